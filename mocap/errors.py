@@ -1,0 +1,28 @@
+"""The project's error types.
+
+`InputError` is a user error (a bad file, a bad option, a degenerate set of observations):
+the command line turns it into one line on stderr and exit status 2. Anything else is a bug.
+"""
+
+from __future__ import annotations
+
+
+class InputError(Exception):
+    """Bad input: the message says which file, where, what is wrong and what to do."""
+
+    def __init__(self, message: str, *, path: object | None = None, where: str | None = None):
+        self.path = None if path is None else str(path)
+        self.where = where
+        self.detail = message
+        prefix = ""
+        if self.path is not None:
+            prefix = f"{self.path}: "
+            if where:
+                prefix = f"{self.path}: {where}: "
+        elif where:
+            prefix = f"{where}: "
+        super().__init__(prefix + message)
+
+
+class DegenerateError(InputError):
+    """The observations cannot determine the unknowns (too few markers, degenerate geometry)."""

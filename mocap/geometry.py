@@ -1,0 +1,128 @@
+"""Rotations and rigid transforms.
+
+Conventions (stated once, here):
+- Rotation matrices act on column vectors: ``x_b = b_from_a.rotation @ x_a + b_from_a.translation``.
+- ``rpy`` is (roll, pitch, yaw) with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, as in URDF.
+- Rotation vectors are Rodrigues vectors (axis times angle, radians), as in OpenCV.
+- Angles are radians inside the package; degrees only in files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rot_x(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation about x by `angle` (rad). Shape (*, 3, 3) for `angle` of shape (*)."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([o, z, z, z, c, -s, z, s, c], axis=-1).reshape(np.shape(c) + (3, 3))
+
+
+def rot_y(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation about y by `angle` (rad). Shape (*, 3, 3)."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(np.shape(c) + (3, 3))
+
+
+def rot_z(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation about z by `angle` (rad). Shape (*, 3, 3)."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(np.shape(c) + (3, 3))
+
+
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) in rad, shape (*, 3) -> R = Rz(yaw) Ry(pitch) Rx(roll), (*, 3, 3)."""
+    rpy = np.asarray(rpy, dtype=float)
+    return rot_z(rpy[..., 2]) @ rot_y(rpy[..., 1]) @ rot_x(rpy[..., 0])
+
+
+def matrix_to_rpy(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of `rpy_to_matrix`: (*, 3, 3) -> (*, 3) (roll, pitch, yaw) in rad."""
+    zyx = Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_euler("ZYX")
+    return zyx[..., ::-1]
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues vectors (*, 3) -> rotation matrices (*, 3, 3)."""
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix()
+
+
+def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
+    """Rotation matrices (*, 3, 3) -> Rodrigues vectors (*, 3)."""
+    return Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_rotvec()
+
+
+def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotation about the unit vector `axis` (3,) by `angle` (*) rad -> (*, 3, 3)."""
+    angle = np.asarray(angle, dtype=float)
+    return rotvec_to_matrix(angle[..., None] * np.asarray(axis, dtype=float))
+
+
+def rotation_angle_between(a_from_b: np.ndarray, a_from_c: np.ndarray) -> np.ndarray:
+    """Angle (rad) of the rotation that takes one orientation to the other; (*, 3, 3) each."""
+    rel = np.swapaxes(a_from_b, -1, -2) @ a_from_c
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+@dataclass(frozen=True)
+class Rigid:
+    """A rigid transform ``b_from_a``: ``x_b = rotation @ x_a + translation``."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def __post_init__(self) -> None:
+        rotation = np.asarray(self.rotation, dtype=float)
+        translation = np.asarray(self.translation, dtype=float)
+        if rotation.shape != (3, 3) or translation.shape != (3,):
+            raise ValueError(
+                f"Rigid needs rotation (3, 3) and translation (3,), got {rotation.shape} and "
+                f"{translation.shape}"
+            )
+        object.__setattr__(self, "rotation", rotation)
+        object.__setattr__(self, "translation", translation)
+
+    @classmethod
+    def identity(cls) -> Rigid:
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_rotvec(cls, rotvec: np.ndarray, translation: np.ndarray) -> Rigid:
+        return cls(rotvec_to_matrix(rotvec), translation)
+
+    @classmethod
+    def from_matrix(cls, matrix: np.ndarray) -> Rigid:
+        """From a homogeneous (4, 4) matrix."""
+        matrix = np.asarray(matrix, dtype=float)
+        return cls(matrix[:3, :3], matrix[:3, 3])
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        return matrix_to_rotvec(self.rotation)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """Homogeneous (4, 4) matrix."""
+        out = np.eye(4)
+        out[:3, :3] = self.rotation
+        out[:3, 3] = self.translation
+        return out
+
+    def inverse(self) -> Rigid:
+        """``a_from_b`` from ``b_from_a``."""
+        return Rigid(self.rotation.T, -self.rotation.T @ self.translation)
+
+    def __matmul__(self, other: Rigid) -> Rigid:
+        """Composition reads right to left: ``c_from_a = c_from_b @ b_from_a``."""
+        return Rigid(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
+
+    def apply(self, points_a: np.ndarray) -> np.ndarray:
+        """Transform points (*, 3) from frame a to frame b."""
+        return np.asarray(points_a, dtype=float) @ self.rotation.T + self.translation

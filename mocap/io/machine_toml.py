@@ -1,0 +1,294 @@
+"""The machine model TOML format (DESIGN.md): read and validate, write."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from mocap.errors import InputError
+from mocap.io.atomic import write_text
+from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine
+
+MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
+
+_TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle"}
+_LINK_KEYS = {"name", "parent", "joint"}
+_JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
+_ITEM_KEYS = {"name", "link", "position"}
+_BUCKET_KEYS = {"link", "direction"}
+
+
+def resolve_machine_path(name_or_path: str) -> Path:
+    """A machine TOML path, or the name of one shipped in calibrations/machines/."""
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    shipped = MACHINES_DIR / f"{name_or_path}.toml"
+    if shipped.exists():
+        return shipped
+    known = ", ".join(sorted(p.stem for p in MACHINES_DIR.glob("*.toml")))
+    raise InputError(
+        f"no machine model named {name_or_path!r}; give a TOML path or one of: {known}",
+        path=name_or_path,
+    )
+
+
+def load_machine(name_or_path: str | Path) -> Machine:
+    """Read and validate a machine model; raises InputError naming the file and entry."""
+    path = resolve_machine_path(str(name_or_path))
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("file not found; check the machine model path", path=path) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    return machine_from_dict(data, path)
+
+
+def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
+    """Validate a parsed machine TOML document and build the model."""
+    _check_keys(data, _TOP_KEYS, path, "top level")
+    name = _string(data, "name", path, "top level")
+    source = data.get("source", "")
+    raw_links = data.get("links")
+    if not isinstance(raw_links, list) or not raw_links:
+        raise InputError("no [[links]]: a machine needs at least its base link", path=path)
+    links = _links(raw_links, path)
+    link_index = {link.name: i for i, link in enumerate(links)}
+
+    markers = _items(data.get("markers", []), "markers", link_index, path)
+    if not markers[0]:
+        raise InputError("no [[markers]]: calibration needs markers on the links", path=path)
+    points = _items(data.get("points", []), "points", link_index, path)
+    names = markers[0] + points[0]
+    _no_duplicates(names, path, "markers and points")
+
+    bucket = None
+    if "bucket_angle" in data:
+        raw = data["bucket_angle"]
+        where = "[bucket_angle]"
+        if not isinstance(raw, dict):
+            raise InputError("must be a table with link and direction", path=path, where=where)
+        _check_keys(raw, _BUCKET_KEYS, path, where)
+        link = _string(raw, "link", path, where)
+        if link not in link_index:
+            raise InputError(f"unknown link {link!r}", path=path, where=where)
+        direction = _unit(_vector(raw, "direction", path, where), path, where, "direction")
+        bucket = BucketAngle(link_index[link], direction)
+
+    return Machine(
+        name=name,
+        source=str(source),
+        links=tuple(links),
+        marker_names=tuple(markers[0]),
+        marker_links=np.array(markers[1], dtype=int),
+        marker_positions=np.array(markers[2], dtype=float).reshape(-1, 3),
+        point_names=tuple(points[0]),
+        point_links=np.array(points[1], dtype=int),
+        point_positions=np.array(points[2], dtype=float).reshape(-1, 3),
+        bucket_angle=bucket,
+    )
+
+
+def _links(raw_links: list, path) -> list[Link]:
+    """Links in topological order (base first), validated."""
+    entries = []
+    for k, raw in enumerate(raw_links):
+        where = f"links[{k}]"
+        if not isinstance(raw, dict):
+            raise InputError("each [[links]] entry must be a table", path=path, where=where)
+        _check_keys(raw, _LINK_KEYS, path, where)
+        name = _string(raw, "name", path, where)
+        where = f"link {name!r}"
+        if k == 0:
+            if "parent" in raw or "joint" in raw:
+                raise InputError(
+                    "the first link is the base: it has no parent and no joint; put the "
+                    "base link first",
+                    path=path,
+                    where=where,
+                )
+            entries.append((name, None, None))
+            continue
+        if "parent" not in raw:
+            raise InputError(
+                "no parent: only the first link (the base) has none", path=path, where=where
+            )
+        if "joint" not in raw:
+            raise InputError("no joint: every link but the base needs one", path=path, where=where)
+        entries.append((name, _string(raw, "parent", path, where), _joint(raw["joint"], path, where)))
+    _no_duplicates([e[0] for e in entries], path, "links")
+    _no_duplicates([e[2].name for e in entries[1:]], path, "joints")
+    names = {e[0] for e in entries}
+    for name, parent, _ in entries[1:]:
+        if parent not in names:
+            raise InputError(f"unknown parent {parent!r}", path=path, where=f"link {name!r}")
+
+    placed = {entries[0][0]: 0}
+    links = [Link(entries[0][0], None, None)]
+    pending = entries[1:]
+    while pending:
+        ready = [e for e in pending if e[1] in placed]
+        if not ready:
+            cycle = ", ".join(repr(e[0]) for e in pending)
+            raise InputError(
+                f"links {cycle} form a cycle and never reach the base", path=path, where="links"
+            )
+        for name, parent, joint in ready:
+            placed[name] = len(links)
+            links.append(Link(name, placed[parent], joint))
+        pending = [e for e in pending if e[0] not in placed]
+    return links
+
+
+def _joint(raw, path, where) -> Joint:
+    where = f"{where} joint"
+    if not isinstance(raw, dict):
+        raise InputError("joint must be an inline table", path=path, where=where)
+    _check_keys(raw, _JOINT_KEYS, path, where)
+    name = _string(raw, "name", path, where)
+    kind = _string(raw, "type", path, where)
+    if kind not in (REVOLUTE, PRISMATIC):
+        raise InputError(
+            f"type {kind!r} is not 'revolute' or 'prismatic'", path=path, where=f"{where} {name!r}"
+        )
+    where = f"{where} {name!r}"
+    axis = _unit(_vector(raw, "axis", path, where), path, where, "axis")
+    origin = _vector(raw, "origin", path, where, default=[0, 0, 0])
+    rpy = np.radians(_vector(raw, "rpy_deg", path, where, default=[0, 0, 0]))
+    if "limits" in raw:
+        limits = np.asarray(_numbers(raw["limits"], 2, path, where, "limits"))
+        if not limits[0] < limits[1]:
+            raise InputError(
+                f"limits {list(limits)} must be [lower, upper] with lower < upper",
+                path=path,
+                where=where,
+            )
+        if kind == REVOLUTE:
+            if np.any(np.abs(limits) > 360):
+                raise InputError(
+                    f"revolute limits {list(limits)} exceed ±360: they are degrees",
+                    path=path,
+                    where=where,
+                )
+            limits = np.radians(limits)
+    else:
+        limits = np.array([-np.pi, np.pi]) if kind == REVOLUTE else np.array([-np.inf, np.inf])
+    return Joint(name, kind, axis, origin, rpy, limits)
+
+
+def _items(raw_items, section, link_index, path):
+    names, links, positions = [], [], []
+    if not isinstance(raw_items, list):
+        raise InputError(f"{section} must be an array of tables [[{section}]]", path=path)
+    for k, raw in enumerate(raw_items):
+        where = f"{section}[{k}]"
+        if not isinstance(raw, dict):
+            raise InputError("must be a table", path=path, where=where)
+        _check_keys(raw, _ITEM_KEYS, path, where)
+        name = _string(raw, "name", path, where)
+        where = f"{section[:-1]} {name!r}"
+        link = _string(raw, "link", path, where)
+        if link not in link_index:
+            raise InputError(f"unknown link {link!r}", path=path, where=where)
+        names.append(name)
+        links.append(link_index[link])
+        positions.append(_vector(raw, "position", path, where))
+    return names, links, positions
+
+
+def _check_keys(raw: dict, allowed: set, path, where) -> None:
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise InputError(
+            f"unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(allowed))}",
+            path=path,
+            where=where,
+        )
+
+
+def _string(raw: dict, key: str, path, where) -> str:
+    value = raw.get(key)
+    if not isinstance(value, str) or not value:
+        raise InputError(f"{key!r} must be a non-empty string", path=path, where=where)
+    return value
+
+
+def _numbers(value, n, path, where, key) -> list[float]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ):
+        raise InputError(f"{key!r} must be a list of {n} numbers, got {value!r}", path=path, where=where)
+    if not all(np.isfinite(value)):
+        raise InputError(f"{key!r} must be finite, got {value!r}", path=path, where=where)
+    return [float(v) for v in value]
+
+
+def _vector(raw: dict, key: str, path, where, default=None) -> np.ndarray:
+    if key not in raw:
+        if default is None:
+            raise InputError(f"missing {key!r} (3 numbers, metres)", path=path, where=where)
+        return np.asarray(default, dtype=float)
+    return np.asarray(_numbers(raw[key], 3, path, where, key))
+
+
+def _unit(vector: np.ndarray, path, where, key) -> np.ndarray:
+    norm = np.linalg.norm(vector)
+    if norm < 1e-9:
+        raise InputError(f"{key!r} is a zero vector; give a direction", path=path, where=where)
+    return vector / norm
+
+
+def _no_duplicates(names: list[str], path, what: str) -> None:
+    seen = set()
+    for name in names:
+        if name in seen:
+            raise InputError(f"duplicate name {name!r} among {what}", path=path)
+        seen.add(name)
+
+
+def machine_to_dict(machine: Machine) -> dict:
+    """The TOML document of a machine model (inverse of `machine_from_dict`)."""
+    links = []
+    for link in machine.links:
+        entry = {"name": link.name}
+        if link.joint is not None:
+            joint = link.joint
+            limits = joint.limits if joint.type == PRISMATIC else np.degrees(joint.limits)
+            entry["parent"] = machine.links[link.parent].name
+            entry["joint"] = {
+                "name": joint.name,
+                "type": joint.type,
+                "axis": joint.axis.tolist(),
+                "origin": joint.origin.tolist(),
+                "rpy_deg": np.degrees(joint.rpy).tolist(),
+            }
+            if np.all(np.isfinite(limits)):
+                entry["joint"]["limits"] = np.asarray(limits).tolist()
+        links.append(entry)
+
+    def items(names, link_ids, positions):
+        return [
+            {"name": n, "link": machine.links[l].name, "position": p.tolist()}
+            for n, l, p in zip(names, link_ids, positions)
+        ]
+
+    data = {"name": machine.name, "source": machine.source, "links": links}
+    data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions)
+    if machine.point_names:
+        data["points"] = items(machine.point_names, machine.point_links, machine.point_positions)
+    if machine.bucket_angle is not None:
+        data["bucket_angle"] = {
+            "link": machine.links[machine.bucket_angle.link].name,
+            "direction": machine.bucket_angle.direction.tolist(),
+        }
+    return data
+
+
+def save_machine(machine: Machine, path: str | Path) -> None:
+    write_text(path, tomli_w.dumps(machine_to_dict(machine)))

@@ -1,0 +1,218 @@
+"""The machine model: an articulated chain of rigid links, its markers and named points.
+
+A link's frame at joint value 0 is its parent's frame moved by `origin` and turned by
+`rpy` (R = Rz(yaw) Ry(pitch) Rx(roll)); the joint then rotates about (revolute) or slides
+along (prismatic) `axis`, given in the link's own frame. The first link is the base; its
+frame is the world frame at the calibration frame. Joint values are radians (revolute) or
+metres (prismatic), in the order of the links that carry them.
+
+Shapes: F frames, J joints, L links, M markers, P named points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mocap.geometry import axis_angle_matrix, rpy_to_matrix
+
+REVOLUTE = "revolute"
+PRISMATIC = "prismatic"
+
+
+@dataclass(frozen=True)
+class Joint:
+    """The joint that moves a link relative to its parent.
+
+    `origin` (3,) m and `rpy` (3,) rad place the link frame at joint value 0 in the
+    parent's frame; `axis` (3,) is a unit vector in the link frame; `limits` (2,) in rad or m.
+    """
+
+    name: str
+    type: str
+    axis: np.ndarray
+    origin: np.ndarray
+    rpy: np.ndarray
+    limits: np.ndarray
+
+    @property
+    def parent_from_zero(self) -> np.ndarray:
+        """Homogeneous (4, 4) transform of the link frame at joint value 0 into its parent."""
+        out = np.eye(4)
+        out[:3, :3] = rpy_to_matrix(self.rpy)
+        out[:3, 3] = self.origin
+        return out
+
+
+@dataclass(frozen=True)
+class Link:
+    name: str
+    parent: int | None  # index of the parent link; None for the base
+    joint: Joint | None  # None for the base only
+
+
+@dataclass(frozen=True)
+class BucketAngle:
+    """The bucket angle: the angle of a link-fixed direction to the horizontal."""
+
+    link: int
+    direction: np.ndarray  # (3,) unit vector in the link frame
+
+
+@dataclass(frozen=True)
+class Machine:
+    """An articulated machine model. Links are in topological order (parents first)."""
+
+    name: str
+    source: str
+    links: tuple[Link, ...]
+    marker_names: tuple[str, ...]
+    marker_links: np.ndarray  # (M,) link index
+    marker_positions: np.ndarray  # (M, 3) in the link frame
+    point_names: tuple[str, ...] = ()
+    point_links: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    point_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bucket_angle: BucketAngle | None = None
+
+    # --- structure -------------------------------------------------------------------
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        return tuple(link.name for link in self.links)
+
+    @property
+    def joint_links(self) -> tuple[int, ...]:
+        """Index of the link each joint moves, in joint order (J,)."""
+        return tuple(i for i, link in enumerate(self.links) if link.joint is not None)
+
+    @property
+    def joints(self) -> tuple[Joint, ...]:
+        return tuple(self.links[i].joint for i in self.joint_links)
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(joint.name for joint in self.joints)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_links)
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(J, 2) lower and upper limits in rad or m."""
+        return np.array([joint.limits for joint in self.joints]).reshape(-1, 2)
+
+    @property
+    def house_link(self) -> int:
+        """The link whose forward axis defines the bucket angle's vertical plane: the base's
+        first child (the house of a shovel or excavator), or the base itself."""
+        for i, link in enumerate(self.links):
+            if link.parent == 0:
+                return i
+        return 0
+
+    def ancestors(self, link: int) -> list[int]:
+        """Links from `link` up to the base, `link` included."""
+        chain = []
+        while link is not None:
+            chain.append(link)
+            link = self.links[link].parent
+        return chain
+
+    def joint_moves(self) -> np.ndarray:
+        """(J, L) bool: joint j moves link l (l is the joint's link or one of its descendants)."""
+        moves = np.zeros((self.n_joints, len(self.links)), dtype=bool)
+        for l in range(len(self.links)):
+            for a in self.ancestors(l)[:-1]:  # every ancestor but the base carries a joint
+                moves[a - 1, l] = True
+        return moves
+
+    def marker_index(self, names) -> np.ndarray:
+        lookup = {name: i for i, name in enumerate(self.marker_names)}
+        return np.array([lookup[name] for name in names], dtype=int)
+
+    def clip_to_limits(self, joints: np.ndarray) -> np.ndarray:
+        limits = self.joint_limits
+        return np.clip(joints, limits[:, 0], limits[:, 1])
+
+    # --- kinematics --------------------------------------------------------------------
+    def link_poses(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
+        """World-from-link transforms for joint values (F, J) -> (F, L, 4, 4).
+
+        `world_from_base` (F, 4, 4) or (4, 4) places a base that has moved; identity by default.
+        """
+        joints = _frames(joints, self.n_joints)
+        n_frames = joints.shape[0]
+        poses = np.empty((n_frames, len(self.links), 4, 4))
+        poses[:, 0] = np.eye(4) if world_from_base is None else world_from_base
+        for j, i in enumerate(self.joint_links):
+            link = self.links[i]
+            joint = link.joint
+            parent = poses[:, link.parent] @ joint.parent_from_zero
+            motion = np.tile(np.eye(4), (n_frames, 1, 1))
+            if joint.type == REVOLUTE:
+                motion[:, :3, :3] = axis_angle_matrix(joint.axis, joints[:, j])
+            else:
+                motion[:, :3, 3] = joints[:, j, None] * joint.axis
+            poses[:, i] = parent @ motion
+        return poses
+
+    def markers(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
+        """Marker positions in the world for joint values (F, J) -> (F, M, 3)."""
+        poses = self.link_poses(joints, world_from_base)
+        return _points_on_links(poses, self.marker_links, self.marker_positions)
+
+    def points(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
+        """Named point positions in the world for joint values (F, J) -> (F, P, 3)."""
+        poses = self.link_poses(joints, world_from_base)
+        return _points_on_links(poses, self.point_links, self.point_positions)
+
+    def markers_with_jacobian(self, joints: np.ndarray):
+        """Markers (F, M, 3) and their derivatives by the joint values (F, M, 3, J).
+
+        Revolute joint j moving marker m: d p / d q_j = a_j x (p - o_j) with a_j the joint's
+        axis and o_j its origin in the world; prismatic: d p / d q_j = a_j.
+        """
+        poses = self.link_poses(joints)
+        markers = _points_on_links(poses, self.marker_links, self.marker_positions)
+        moves = self.joint_moves()[:, self.marker_links]  # (J, M)
+        jac = np.zeros(markers.shape + (self.n_joints,))
+        for j, (link, joint) in enumerate(zip(self.joint_links, self.joints)):
+            axis_world = poses[:, link, :3, :3] @ joint.axis  # (F, 3)
+            if joint.type == REVOLUTE:
+                lever = markers - poses[:, link, None, :3, 3]
+                d = np.cross(axis_world[:, None, :], lever)
+            else:
+                d = np.broadcast_to(axis_world[:, None, :], markers.shape)
+            jac[..., j] = np.where(moves[j][None, :, None], d, 0.0)
+        return markers, jac
+
+    def bucket_angles(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
+        """Bucket angle (rad) for joint values (F, J) -> (F,): the angle of the bucket
+        link's direction to the horizontal, positive upward, in the vertical plane of the
+        house's forward (x) axis. NaN if the model defines no bucket angle."""
+        joints = _frames(joints, self.n_joints)
+        if self.bucket_angle is None:
+            return np.full(joints.shape[0], np.nan)
+        poses = self.link_poses(joints, world_from_base)
+        direction = poses[:, self.bucket_angle.link, :3, :3] @ self.bucket_angle.direction
+        forward = poses[:, self.house_link, :3, 0].copy()
+        forward[:, 2] = 0.0
+        forward /= np.linalg.norm(forward, axis=-1, keepdims=True)
+        return np.arctan2(direction[:, 2], np.einsum("fi,fi->f", direction, forward))
+
+
+def _frames(joints: np.ndarray, n_joints: int) -> np.ndarray:
+    joints = np.asarray(joints, dtype=float)
+    if joints.ndim == 1:
+        joints = joints[None]
+    if joints.ndim != 2 or joints.shape[1] != n_joints:
+        raise ValueError(f"joint values must have shape (F, {n_joints}), got {joints.shape}")
+    return joints
+
+
+def _points_on_links(poses: np.ndarray, links: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Points fixed in links: poses (F, L, 4, 4), links (N,), positions (N, 3) -> (F, N, 3)."""
+    rot = poses[:, links, :3, :3]
+    trans = poses[:, links, :3, 3]
+    return np.einsum("fnij,nj->fni", rot, positions) + trans
