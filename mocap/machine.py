@@ -213,6 +213,7 @@ def _frames(joints: np.ndarray, n_joints: int) -> np.ndarray:
 
 def _points_on_links(poses: np.ndarray, links: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """Points fixed in links: poses (F, L, 4, 4), links (N,), positions (N, 3) -> (F, N, 3)."""
-    rot = poses[:, links, :3, :3]
-    trans = poses[:, links, :3, 3]
+    on_links = poses[:, links]  # (F, N, 4, 4)
+    rot = on_links[..., :3, :3]
+    trans = on_links[..., :3, 3]
     return np.einsum("fnij,nj->fni", rot, positions) + trans

@@ -1,0 +1,162 @@
+"""The motion CSV: per-frame joint values, named points and bucket angle.
+
+Columns: ``frame,time``, one column per joint (degrees for revolute, metres for
+prismatic joints), ``<point>_x,<point>_y,<point>_z`` for every named point (metres, world
+frame), ``bucket_angle_deg``; then, where computed, uncertainty columns (``<joint>_sd``,
+``<point>_sd`` — the standard deviation of the 3-D position, metres, the root of the
+covariance's trace — and ``bucket_angle_sd_deg``) and extra per-frame columns (e.g.
+``filled`` for gap-filled frames, ``<point>_speed`` in m/s).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mocap.errors import InputError
+from mocap.io.atomic import atomic_path
+from mocap.machine import REVOLUTE, Machine
+
+
+@dataclass(frozen=True)
+class Motion:
+    """F frames of a machine's motion, internal units (rad, m).
+
+    frame (F,) reference-camera frames; time (F,) s; joints (F, J); points (F, P, 3);
+    bucket_angle (F,) rad; joints_sd (F, J), points_sd (F, P), bucket_angle_sd (F,) or None;
+    extra: {column name: (F,) array}, written as is.
+    """
+
+    joint_names: tuple[str, ...]
+    point_names: tuple[str, ...]
+    frame: np.ndarray
+    time: np.ndarray
+    joints: np.ndarray
+    points: np.ndarray
+    bucket_angle: np.ndarray
+    joints_sd: np.ndarray | None = None
+    points_sd: np.ndarray | None = None
+    bucket_angle_sd: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n, j, p = len(self.frame), len(self.joint_names), len(self.point_names)
+        checks = {
+            "time": (self.time, (n,)),
+            "joints": (self.joints, (n, j)),
+            "points": (self.points, (n, p, 3)),
+            "bucket_angle": (self.bucket_angle, (n,)),
+            "joints_sd": (self.joints_sd, (n, j)),
+            "points_sd": (self.points_sd, (n, p)),
+            "bucket_angle_sd": (self.bucket_angle_sd, (n,)),
+        }
+        for name, (value, shape) in checks.items():
+            if value is not None and np.shape(value) != shape:
+                raise ValueError(f"Motion.{name}: expected shape {shape}, got {np.shape(value)}")
+        for name, value in self.extra.items():
+            if np.shape(value) != (n,):
+                raise ValueError(f"Motion.extra[{name!r}]: expected shape ({n},), got {np.shape(value)}")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def point(self, name: str) -> np.ndarray:
+        """(F, 3) positions of one named point."""
+        return self.points[:, self.point_names.index(name)]
+
+
+def _joint_scale(machine: Machine) -> np.ndarray:
+    return np.array([np.degrees(1.0) if j.type == REVOLUTE else 1.0 for j in machine.joints])
+
+
+def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
+    """Write the motion CSV (joint values converted to degrees / metres)."""
+    scale = _joint_scale(machine)
+    header = ["frame", "time", *motion.joint_names]
+    columns = [motion.frame, motion.time, *(motion.joints * scale).T]
+    for k, name in enumerate(motion.point_names):
+        header += [f"{name}_x", f"{name}_y", f"{name}_z"]
+        columns += list(motion.points[:, k].T)
+    header.append("bucket_angle_deg")
+    columns.append(np.degrees(motion.bucket_angle))
+    if motion.joints_sd is not None:
+        header += [f"{n}_sd" for n in motion.joint_names]
+        columns += list((motion.joints_sd * scale).T)
+    if motion.points_sd is not None:
+        header += [f"{n}_sd" for n in motion.point_names]
+        columns += list(motion.points_sd.T)
+    if motion.bucket_angle_sd is not None:
+        header.append("bucket_angle_sd_deg")
+        columns.append(np.degrees(motion.bucket_angle_sd))
+    header += list(motion.extra)
+    columns += [np.asarray(v, dtype=float) for v in motion.extra.values()]
+
+    table = np.column_stack([np.asarray(c, dtype=float) for c in columns]) if len(motion) else None
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(header)
+        for row in [] if table is None else table:
+            writer.writerow(
+                [str(int(row[0])), f"{row[1]:.6f}"]
+                + ["" if not np.isfinite(v) else f"{v:.6f}" for v in row[2:]]
+            )
+
+
+def load_motion(path: str | Path, machine: Machine) -> Motion:
+    """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("file not found; check the motion path", path=path) from None
+    reader = csv.reader(io.StringIO(text))
+    header = [h.strip() for h in next(reader, [])]
+    joint_cols = list(machine.joint_names)
+    point_cols = [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
+    required = ["frame", "time", *joint_cols, *point_cols, "bucket_angle_deg"]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(
+            f"header lacks {', '.join(missing)} (is it the motion of {machine.name!r}?)",
+            path=path,
+            where="line 1",
+        )
+    rows = []
+    for line, row in enumerate(reader, start=2):
+        if not row:
+            continue
+        if len(row) != len(header):
+            raise InputError(f"{len(row)} fields, the header has {len(header)}", path=path, where=f"line {line}")
+        try:
+            rows.append([float(v) if v.strip() else np.nan for v in row])
+        except ValueError:
+            raise InputError("a field is not a number", path=path, where=f"line {line}") from None
+    table = np.array(rows, dtype=float).reshape(-1, len(header))
+    col = {h: table[:, i] for i, h in enumerate(header)}
+    scale = _joint_scale(machine)
+    n_points = len(machine.point_names)
+
+    def optional(names):
+        return np.column_stack([col[n] for n in names]) if names and all(n in col for n in names) else None
+
+    joints_sd = optional([f"{n}_sd" for n in machine.joint_names])
+    points_sd = optional([f"{n}_sd" for n in machine.point_names])
+    known = set(required) | {f"{n}_sd" for n in machine.joint_names + machine.point_names}
+    known.add("bucket_angle_sd_deg")
+    return Motion(
+        joint_names=machine.joint_names,
+        point_names=machine.point_names,
+        frame=col["frame"].astype(int),
+        time=col["time"],
+        joints=np.column_stack([col[n] for n in joint_cols]).reshape(-1, machine.n_joints) / scale,
+        points=np.column_stack([col[c] for c in point_cols]).reshape(-1, n_points, 3),
+        bucket_angle=np.radians(col["bucket_angle_deg"]),
+        joints_sd=None if joints_sd is None else joints_sd / scale,
+        points_sd=points_sd,
+        bucket_angle_sd=np.radians(col["bucket_angle_sd_deg"]) if "bucket_angle_sd_deg" in col else None,
+        extra={h: col[h] for h in header if h not in known},
+    )
