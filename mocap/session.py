@@ -1,0 +1,79 @@
+"""A session folder: one object owns every path of the layout in DESIGN.md.
+
+    session.toml  videos/<camera>.mp4  calibration/cameras.toml  tracks/<camera>.csv
+    results/points.csv  results/motion.csv  results/session.rrd  truth/ (synthetic only)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from mocap.io.machine_toml import load_machine, resolve_machine_path
+from mocap.io.session_toml import SessionConfig, load_session_config
+from mocap.machine import Machine
+
+
+@dataclass(frozen=True)
+class Session:
+    root: Path
+
+    @classmethod
+    def open(cls, root: str | Path) -> Session:
+        return cls(Path(root))
+
+    @property
+    def config_path(self) -> Path:
+        return self.root / "session.toml"
+
+    def config(self) -> SessionConfig:
+        return load_session_config(self.config_path)
+
+    def machine_path(self) -> Path:
+        name = self.config().machine
+        local = self.root / name
+        return local if local.exists() else resolve_machine_path(name)
+
+    def machine(self) -> Machine:
+        return load_machine(self.machine_path())
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.config().cameras)
+
+    def video_path(self, camera: str) -> Path:
+        for c in self.config().cameras:
+            if c.name == camera:
+                return self.root / c.video
+        raise KeyError(camera)
+
+    @property
+    def calibration_path(self) -> Path:
+        return self.root / "calibration" / "cameras.toml"
+
+    @property
+    def reference_points_path(self) -> Path:
+        return self.root / "calibration" / "reference_points.csv"
+
+    def tracks_path(self, camera: str) -> Path:
+        return self.root / "tracks" / f"{camera}.csv"
+
+    @property
+    def results_dir(self) -> Path:
+        return self.root / "results"
+
+    @property
+    def points_path(self) -> Path:
+        return self.results_dir / "points.csv"
+
+    @property
+    def motion_path(self) -> Path:
+        return self.results_dir / "motion.csv"
+
+    @property
+    def recording_path(self) -> Path:
+        return self.results_dir / "session.rrd"
+
+    @property
+    def truth_dir(self) -> Path:
+        return self.root / "truth"
