@@ -1,0 +1,175 @@
+"""The replay stage: gather a session's results, log them to Rerun, save and/or show them.
+
+`record_replay` logs a `Replay` into a recording stream; `run_replay` opens the sinks
+(an .rrd file written atomically, a running viewer, a served web viewer, a spawned viewer)
+and records into them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from mocap.io.atomic import atomic_path
+from mocap.io.cameras_toml import Calibration
+from mocap.io.motion_csv import Motion
+from mocap.io.points_csv import Points
+from mocap.io.tracks_csv import Tracks
+from mocap.machine import Machine
+from mocap.viewer import record, scene
+from mocap.viewer.blueprint import default_blueprint
+from mocap.viewer.cycles import Cycles
+from mocap.viewer.video import load_video
+
+log = logging.getLogger(__name__)
+
+APPLICATION_ID = "mocap"
+TIP = "bucket_tip"
+
+
+@dataclass(frozen=True)
+class Replay:
+    """What a replay shows. `fps` (C,) each camera's frame rate, in calibration order;
+    `videos` {camera name: mp4 path}; `cycles` None for a single trail over all frames."""
+
+    machine: Machine
+    calibration: Calibration
+    motion: Motion
+    fps: np.ndarray
+    points: Points | None = None
+    tracks: Tracks | None = None
+    videos: dict = field(default_factory=dict)
+    cycles: Cycles | None = None
+
+    def __post_init__(self) -> None:
+        fps = np.asarray(self.fps, dtype=float)
+        if fps.shape != (len(self.calibration.cameras),):
+            raise ValueError(f"Replay.fps: expected shape ({len(self.calibration.cameras)},), got {fps.shape}")
+        object.__setattr__(self, "fps", fps)
+
+    @property
+    def tip(self) -> str | None:
+        """The named point whose trail is drawn: the bucket tip, else the first point."""
+        names = self.motion.point_names
+        return TIP if TIP in names else (names[0] if names else None)
+
+    def trails(self) -> list[scene.Trail]:
+        if self.tip is None:
+            return []
+        cycles = Cycles.whole(self.motion.frame) if self.cycles is None else self.cycles
+        return scene.trails(self.motion, self.tip, cycles.start, cycles.end, cycles.name)
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    frames: int
+    cameras: int
+    videos: tuple[str, ...]
+    trails: int
+
+
+@dataclass(frozen=True)
+class Sinks:
+    """Where the recording goes: `save` an .rrd path; `connect` a viewer URL ("" for the
+    default local viewer); `serve` a web viewer from this process; `spawn` a native viewer."""
+
+    save: Path | None = None
+    connect: str | None = None
+    serve: bool = False
+    spawn: bool = False
+
+    @property
+    def any(self) -> bool:
+        return self.save is not None or self.connect is not None or self.serve or self.spawn
+
+
+def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
+    """Log everything the replay shows into `rec`."""
+    machine, calibration, motion = replay.machine, replay.calibration, replay.motion
+    offsets = calibration.time_offsets
+    record.log_world(rec, machine)
+    record.log_machine(rec, machine, motion)
+    record.log_markers(rec, machine, motion, replay.points, replay.fps[0])
+    record.log_points(rec, motion)
+    record.log_trails(rec, replay.trails())
+    record.log_cameras(rec, calibration, frustum_depth(calibration))
+    with_video = []
+    for k, camera in enumerate(calibration.cameras):
+        path = replay.videos.get(camera.name)
+        video = None if path is None else load_video(path, camera.name)
+        if video is not None:
+            record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k])
+            with_video.append(camera.name)
+        if replay.tracks is not None:
+            series = scene.track_series(
+                replay.tracks, camera.name, machine.marker_names, replay.fps[k], offsets[k], replay.fps[0], offsets[0]
+            )
+            record.log_tracks(rec, series, camera.name)
+    record.log_plots(rec, machine, motion, replay.tip)
+    return ReplaySummary(len(motion), len(calibration.cameras), tuple(with_video), len(replay.trails()))
+
+
+def frustum_depth(calibration: Calibration) -> float:
+    """Depth (m) of the drawn camera frustums: a tenth of the cameras' mean distance to the base."""
+    distances = [np.linalg.norm(camera.center) for camera in calibration.cameras]
+    return max(0.1, 0.1 * float(np.mean(distances)))
+
+
+def replay_blueprint(replay: Replay):
+    motion = replay.motion
+    uncertain = any(sd is not None for sd in (motion.joints_sd, motion.points_sd, motion.bucket_angle_sd))
+    return default_blueprint(replay.calibration.names, replay.trails(), uncertain)
+
+
+def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:
+    """Record `replay` into `sinks`. The .rrd file appears only once complete; with `serve`,
+    keeps serving until interrupted."""
+    if not sinks.any:
+        raise ValueError("no sink: give a path to save, a viewer to connect to, serve or spawn")
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
+    blueprint = replay_blueprint(replay)
+    if sinks.save is None:
+        summary = _record_live(rec, replay, sinks, blueprint)
+    else:
+        with atomic_path(sinks.save) as tmp:
+            summary = _record_live(rec, replay, sinks, blueprint, file=tmp)
+        log.info("saved the replay to %s", sinks.save)
+    if sinks.serve:
+        _serve_until_interrupted()
+    return summary
+
+
+def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None = None) -> ReplaySummary:
+    targets = []
+    if file is not None:
+        targets.append(rr.FileSink(file))
+    if sinks.spawn:
+        rr.spawn(connect=False)
+        targets.append(rr.GrpcSink())
+    if sinks.connect is not None:
+        targets.append(rr.GrpcSink(sinks.connect or None))
+    server = None
+    if sinks.serve:
+        server = rr.GrpcServerSink()
+        targets.append(server)
+    rec.set_sinks(*targets, default_blueprint=blueprint)
+    with rec:  # leaving the block finalises the file; live sinks stay open
+        summary = record_replay(rec, replay)
+    if server is not None:
+        rr.serve_web_viewer(open_browser=True, connect_to=server.uri)
+    return summary
+
+
+def _serve_until_interrupted() -> None:
+    log.warning("serving the replay to the web viewer; press Ctrl-C to stop")
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass

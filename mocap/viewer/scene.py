@@ -1,0 +1,215 @@
+"""What a replay shows, as arrays: the pure part of the Rerun recording.
+
+Everything here takes the project's data objects and returns plain arrays ready to be
+logged column-wise; nothing touches a file or a recording stream.
+
+Shapes: F motion frames, L links, M markers, C cameras, K dig cycles, R rows.
+Clocks (DESIGN.md): camera k's frame n shows time ``n / fps_k + offset_k``; the motion's
+frames are the reference camera's frames, its times the same clock in seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mocap.camera import Camera
+from mocap.io.motion_csv import Motion
+from mocap.io.tracks_csv import Tracks
+from mocap.machine import REVOLUTE, Machine
+
+# OpenCV puts the centre of the top-left pixel at (0, 0), Rerun its top-left corner.
+RERUN_FROM_OPENCV_PIXEL = 0.5
+
+
+@dataclass(frozen=True)
+class LinkSeries:
+    """World-from-link transforms of the frames where the joints are known.
+
+    rows (R,) indices into the motion's frames; translation (R, L, 3) m;
+    quaternion (R, L, 4) scalar-last (x, y, z, w), as scipy and Rerun both use.
+    """
+
+    rows: np.ndarray
+    translation: np.ndarray
+    quaternion: np.ndarray
+
+    def __post_init__(self) -> None:
+        r = len(self.rows)
+        if self.translation.shape[:1] != (r,) or self.translation.shape[2:] != (3,):
+            raise ValueError(f"LinkSeries.translation: expected ({r}, L, 3), got {self.translation.shape}")
+        if self.quaternion.shape != self.translation.shape[:2] + (4,):
+            raise ValueError(f"LinkSeries.quaternion: expected ({r}, L, 4), got {self.quaternion.shape}")
+
+
+def known_rows(motion: Motion) -> np.ndarray:
+    """(R,) indices of the frames whose joint values are all finite."""
+    return np.flatnonzero(np.all(np.isfinite(motion.joints), axis=1))
+
+
+def link_series(machine: Machine, motion: Motion) -> LinkSeries:
+    """Each link's pose in the world at every frame with known joints."""
+    rows = known_rows(motion)
+    world_from_link = machine.link_poses(motion.joints[rows])  # (R, L, 4, 4)
+    n_rows, n_links = world_from_link.shape[:2]
+    rotations = world_from_link[..., :3, :3].reshape(-1, 3, 3)
+    quaternion = Rotation.from_matrix(rotations).as_quat().reshape(n_rows, n_links, 4)  # x, y, z, w
+    return LinkSeries(rows, world_from_link[..., :3, 3], quaternion)
+
+
+def model_markers(machine: Machine, motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (R,) with known joints and the model's marker positions there (R, M, 3)."""
+    rows = known_rows(motion)
+    return rows, machine.markers(motion.joints[rows])
+
+
+def joint_display_units(machine: Machine) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(J,) factors from internal units to display units, and the unit names (deg or m)."""
+    revolute = np.array([joint.type == REVOLUTE for joint in machine.joints], dtype=bool)
+    return np.where(revolute, np.degrees(1.0), 1.0), tuple("deg" if r else "m" for r in revolute)
+
+
+def tip_speed(motion: Motion, point: str) -> np.ndarray:
+    """(F,) speed of a named point, m/s: the motion's ``<point>_speed`` column if it has one,
+    else central differences of its positions over time (NaN next to unknown positions)."""
+    column = motion.extra.get(f"{point}_speed")
+    if column is not None:
+        return np.asarray(column, dtype=float)
+    xyz = motion.point(point)
+    if len(xyz) < 2:
+        return np.full(len(xyz), np.nan)
+    velocity = np.gradient(xyz, motion.time, axis=0)
+    return np.linalg.norm(velocity, axis=1)
+
+
+@dataclass(frozen=True)
+class Trail:
+    """The bucket tip's path in one dig cycle, drawn as segments that accumulate.
+
+    frame (S,) and time (S,) s of the motion frame at which each segment ends; segments
+    (S, 2, 3) from the previous frame's tip to this frame's, metres; first_frame and
+    first_time the cycle's first motion frame.
+    """
+
+    name: str
+    first_frame: int
+    first_time: float
+    frame: np.ndarray
+    time: np.ndarray
+    segments: np.ndarray
+
+    def __post_init__(self) -> None:
+        s = len(self.frame)
+        if np.shape(self.time) != (s,) or np.shape(self.segments) != (s, 2, 3):
+            raise ValueError(f"Trail {self.name!r}: expected time ({s},), segments ({s}, 2, 3)")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+def trails(motion: Motion, point: str, starts: np.ndarray, ends: np.ndarray, names) -> list[Trail]:
+    """One trail per cycle [start, end] (motion frames, inclusive); segments touching an
+    unknown tip position are left out. Cycles with no motion frame are left out."""
+    xyz = motion.point(point)
+    known = np.all(np.isfinite(xyz), axis=1)
+    out = []
+    for name, start, end in zip(names, starts, ends):
+        rows = np.flatnonzero((motion.frame >= start) & (motion.frame <= end))
+        if len(rows) == 0:
+            continue
+        ends_at = rows[1:]
+        ok = known[ends_at] & known[ends_at - 1]
+        ends_at = ends_at[ok]
+        segments = np.stack([xyz[ends_at - 1], xyz[ends_at]], axis=1)
+        out.append(
+            Trail(
+                str(name),
+                int(motion.frame[rows[0]]),
+                float(motion.time[rows[0]]),
+                motion.frame[ends_at],
+                motion.time[ends_at],
+                segments.reshape(-1, 2, 3),
+            )
+        )
+    return out
+
+
+def camera_pose(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's world_from_cam: translation (3,) = its centre, rotation (3, 3)."""
+    world_from_cam = camera.cam_from_world.inverse()
+    return world_from_cam.translation, world_from_cam.rotation
+
+
+def rerun_intrinsics(camera: Camera) -> np.ndarray:
+    """K (3, 3) for Rerun's pixel grid: the principal point moved by half a pixel."""
+    matrix = camera.matrix.copy()
+    matrix[:2, 2] += RERUN_FROM_OPENCV_PIXEL
+    return matrix
+
+
+def camera_time(frames: np.ndarray, fps: float, offset: float) -> np.ndarray:
+    """Times (s) shown by a camera's own frames (N,)."""
+    return np.asarray(frames, dtype=float) / fps + offset
+
+
+def reference_frames(times: np.ndarray, fps: float, offset: float) -> np.ndarray:
+    """The reference camera's frame numbers (N,) nearest to times (N,) s."""
+    return np.rint((np.asarray(times, dtype=float) - offset) * fps).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class TrackSeries:
+    """One camera's 2-D tracks grouped by frame, for a column-wise log.
+
+    frame (G,) reference frames; time (G,) s; counts (G,) rows per group;
+    xy (R, 2) Rerun pixels; marker (R,) marker index into the machine's markers.
+    """
+
+    frame: np.ndarray
+    time: np.ndarray
+    counts: np.ndarray
+    xy: np.ndarray
+    marker: np.ndarray
+
+
+def track_series(
+    tracks: Tracks,
+    camera: str,
+    marker_names: tuple[str, ...],
+    fps: float,
+    offset: float,
+    reference_fps: float,
+    reference_offset: float,
+) -> TrackSeries:
+    """The rows of `camera` with a known marker name, on the reference clock."""
+    lookup = {name: i for i, name in enumerate(marker_names)}
+    rows = tracks.of_camera(camera)
+    marker = np.array([lookup.get(name, -1) for name in rows.marker], dtype=np.int64)
+    keep = marker >= 0
+    frames, xy, marker = rows.frame[keep], rows.xy[keep], marker[keep]
+    order = np.argsort(frames, kind="stable")
+    frames, xy, marker = frames[order], xy[order], marker[order]
+    groups, first, counts = np.unique(frames, return_index=True, return_counts=True)
+    times = camera_time(groups, fps, offset)
+    return TrackSeries(
+        reference_frames(times, reference_fps, reference_offset),
+        times,
+        counts,
+        xy + RERUN_FROM_OPENCV_PIXEL,
+        marker,
+    )
+
+
+def video_frame_rows(
+    motion: Motion, n_video_frames: int, fps: float, offset: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each motion frame, the camera's own video frame showing that moment.
+
+    Returns rows (R,) motion rows whose moment the video holds, and frames (R,) the video's
+    frame indices (0 .. n_video_frames - 1).
+    """
+    frames = np.rint((motion.time - offset) * fps).astype(np.int64)
+    rows = np.flatnonzero((frames >= 0) & (frames < n_video_frames))
+    return rows, frames[rows]
