@@ -61,7 +61,10 @@ def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
 def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rotation about the unit vector `axis` (3,) by `angle` (*) rad -> (*, 3, 3)."""
     angle = np.asarray(angle, dtype=float)
-    return rotvec_to_matrix(angle[..., None] * np.asarray(axis, dtype=float))
+    x, y, z = np.asarray(axis, dtype=float)
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)  # Rodrigues' formula
 
 
 def rotation_angle_between(a_from_b: np.ndarray, a_from_c: np.ndarray) -> np.ndarray:

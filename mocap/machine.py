@@ -12,6 +12,7 @@ Shapes: F frames, J joints, L links, M markers, P named points.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -36,7 +37,7 @@ class Joint:
     rpy: np.ndarray
     limits: np.ndarray
 
-    @property
+    @cached_property
     def parent_from_zero(self) -> np.ndarray:
         """Homogeneous (4, 4) transform of the link frame at joint value 0 into its parent."""
         out = np.eye(4)
@@ -119,7 +120,8 @@ class Machine:
             link = self.links[link].parent
         return chain
 
-    def joint_moves(self) -> np.ndarray:
+    @cached_property
+    def moves(self) -> np.ndarray:
         """(J, L) bool: joint j moves link l (l is the joint's link or one of its descendants)."""
         moves = np.zeros((self.n_joints, len(self.links)), dtype=bool)
         for l in range(len(self.links)):
@@ -136,6 +138,23 @@ class Machine:
         return np.clip(joints, limits[:, 0], limits[:, 1])
 
     # --- kinematics --------------------------------------------------------------------
+    @cached_property
+    def _motion_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per joint (J, 4, 4) matrices A, B with motion(q) = I + a(q) A + b(q) B:
+        revolute a = sin q, b = 1 - cos q, A = [axis]x, B = [axis]x^2 (Rodrigues);
+        prismatic a = q, A = axis in the translation column, B = 0."""
+        first = np.zeros((self.n_joints, 4, 4))
+        second = np.zeros((self.n_joints, 4, 4))
+        for j, joint in enumerate(self.joints):
+            x, y, z = joint.axis
+            if joint.type == REVOLUTE:
+                k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+                first[j, :3, :3] = k
+                second[j, :3, :3] = k @ k
+            else:
+                first[j, :3, 3] = joint.axis
+        return first, second
+
     def link_poses(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
         """World-from-link transforms for joint values (F, J) -> (F, L, 4, 4).
 
@@ -145,22 +164,25 @@ class Machine:
         n_frames = joints.shape[0]
         poses = np.empty((n_frames, len(self.links), 4, 4))
         poses[:, 0] = np.eye(4) if world_from_base is None else world_from_base
+        first, second = self._motion_terms
+        revolute = np.array([j.type == REVOLUTE for j in self.joints])
+        a = np.where(revolute, np.sin(joints), joints)
+        b = np.where(revolute, 1.0 - np.cos(joints), 0.0)
         for j, i in enumerate(self.joint_links):
             link = self.links[i]
-            joint = link.joint
-            parent = poses[:, link.parent] @ joint.parent_from_zero
-            motion = np.tile(np.eye(4), (n_frames, 1, 1))
-            if joint.type == REVOLUTE:
-                motion[:, :3, :3] = axis_angle_matrix(joint.axis, joints[:, j])
-            else:
-                motion[:, :3, 3] = joints[:, j, None] * joint.axis
-            poses[:, i] = parent @ motion
+            motion = np.eye(4) + a[:, j, None, None] * first[j] + b[:, j, None, None] * second[j]
+            poses[:, i] = (poses[:, link.parent] @ link.joint.parent_from_zero) @ motion
         return poses
 
-    def markers(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
-        """Marker positions in the world for joint values (F, J) -> (F, M, 3)."""
+    def markers(
+        self, joints: np.ndarray, world_from_base: np.ndarray | None = None, index: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Marker positions in the world for joint values (F, J) -> (F, M, 3); with `index`
+        (N,) only those markers, (F, N, 3)."""
         poses = self.link_poses(joints, world_from_base)
-        return _points_on_links(poses, self.marker_links, self.marker_positions)
+        if index is None:
+            return _points_on_links(poses, self.marker_links, self.marker_positions)
+        return _points_on_links(poses, self.marker_links[index], self.marker_positions[index])
 
     def points(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
         """Named point positions in the world for joint values (F, J) -> (F, P, 3)."""
@@ -175,7 +197,7 @@ class Machine:
         """
         poses = self.link_poses(joints)
         markers = _points_on_links(poses, self.marker_links, self.marker_positions)
-        moves = self.joint_moves()[:, self.marker_links]  # (J, M)
+        moves = self.moves[:, self.marker_links]  # (J, M)
         jac = np.zeros(markers.shape + (self.n_joints,))
         for j, (link, joint) in enumerate(zip(self.joint_links, self.joints)):
             axis_world = poses[:, link, :3, :3] @ joint.axis  # (F, 3)

@@ -1,0 +1,19 @@
+"""Model-based camera calibration against an articulated machine, and the classic DLT."""
+
+from mocap.calibration.problem import Observations
+from mocap.calibration.solve import (
+    CalibrationOptions,
+    CalibrationResult,
+    Guess,
+    calibrate,
+    template_camera,
+)
+
+__all__ = [
+    "CalibrationOptions",
+    "CalibrationResult",
+    "Guess",
+    "Observations",
+    "calibrate",
+    "template_camera",
+]

@@ -1,0 +1,149 @@
+"""The automatic starting point: no initial guess needed.
+
+1. Each camera that sees at least four markers on the base link is placed by PnP of those
+   markers over a range of focal lengths, then refined (rotation, translation, focal).
+2. The joint values follow along the chain: each joint is searched on a grid over its
+   limits, keeping a few hypotheses (a beam) scored by the reprojection of every marker on
+   the links placed so far, so that an ambiguity at one link is settled by the next.
+3. Cameras that saw too few base markers are placed by PnP of all their markers, now that
+   the machine's pose is known.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from mocap.camera import Camera, intrinsic_matrix
+from mocap.geometry import Rigid
+from mocap.machine import REVOLUTE, Machine
+
+FOCAL_GRID = np.geomspace(0.2, 12.0, 28)  # focal lengths tried, in image widths
+BEAM = 4
+GRID_STEP_DEG = 3.0
+
+
+def place_camera(
+    points: np.ndarray, pixels: np.ndarray, template: Camera, focal: float | None = None
+) -> tuple[Camera, float]:
+    """A camera from N >= 4 known 3-D points and their pixels, focal length searched when
+    not given: PnP on a grid of focal lengths, then a bounded 1-D search of the RMS
+    reprojection error around the best. Returns the camera and that RMS (px)."""
+    principal = template.matrix[:2, 2]
+
+    def rms_at(f: float) -> float:
+        pose = _pnp(points, pixels, intrinsic_matrix(f, principal))
+        return np.inf if pose is None else _rms(points, pixels, pose, f, principal)
+
+    if focal is None:
+        grid = FOCAL_GRID * template.size[0]
+        errors = np.array([rms_at(f) for f in grid])
+        if not np.any(np.isfinite(errors)):
+            return template, np.inf
+        k = int(np.argmin(errors))
+        low, high = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+        search = minimize_scalar(
+            lambda log_f: rms_at(np.exp(log_f)),
+            bounds=(np.log(low), np.log(high)),
+            method="bounded",
+            options={"xatol": 1e-4},
+        )
+        focal = float(np.exp(search.x)) if search.fun <= errors[k] else float(grid[k])
+    pose = _pnp(points, pixels, intrinsic_matrix(focal, principal))
+    if pose is None:
+        return template, np.inf
+    camera = Camera(
+        template.name,
+        template.size,
+        intrinsic_matrix(focal, principal),
+        np.zeros(5),
+        Rigid.from_rotvec(*pose),
+    )
+    return camera, _rms(points, pixels, pose, focal, principal)
+
+
+def _pnp(points, pixels, matrix):
+    flags = cv2.SOLVEPNP_SQPNP if len(points) >= 3 else cv2.SOLVEPNP_ITERATIVE
+    try:
+        ok, rvec, tvec = cv2.solvePnP(
+            points.astype(np.float64), pixels.astype(np.float64), matrix, None, flags=flags
+        )
+    except cv2.error:
+        return None
+    if not ok:
+        return None
+    return rvec.reshape(3), tvec.reshape(3)
+
+
+def _project(points, rvec, tvec, f, principal):
+    rotation = cv2.Rodrigues(rvec)[0]
+    cam = points @ rotation.T + tvec
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = f * cam[:, :2] / cam[:, 2:3] + principal
+    return np.where(cam[:, 2:3] > 0, uv, 1e6)
+
+
+def _rms(points, pixels, pose, f, principal):
+    uv = _project(points, pose[0], pose[1], f, principal)
+    return float(np.sqrt(np.mean(np.sum((uv - pixels) ** 2, axis=1))))
+
+
+def joint_grid(machine: Machine, j: int) -> np.ndarray:
+    """Values tried for joint j: every 3 degrees over a revolute joint's limits, 60 steps
+    over a prismatic joint's (±2 m when unbounded)."""
+    low, high = machine.joint_limits[j]
+    if machine.joints[j].type == REVOLUTE:
+        n = int(np.ceil((high - low) / np.radians(GRID_STEP_DEG))) + 1
+        return np.linspace(low, high, n)
+    low = low if np.isfinite(low) else -2.0
+    high = high if np.isfinite(high) else 2.0
+    return np.linspace(low, high, 61)
+
+
+def joints_along_chain(
+    machine: Machine, cameras: list[Camera], obs_camera, obs_marker, obs_xy, start: np.ndarray
+) -> np.ndarray:
+    """Joint values (J,) found link by link with a beam search; `cameras[c]` None for cameras
+    not yet placed; `start` (J,) the values used for links not yet reached."""
+    marker_link = machine.marker_links[obs_marker]
+    placed = np.array([cameras[c] is not None for c in obs_camera], dtype=bool)
+    beam = [start.astype(float)]
+    for j, link in enumerate(machine.joint_links):
+        moved = machine.moves[j]
+        reached = np.isin(marker_link, [l for l in range(len(machine.links)) if l <= link])
+        use = placed & reached
+        if not np.any(use & moved[marker_link]):
+            continue  # no marker fixes this joint yet; later links' markers will
+        grid = joint_grid(machine, j)
+        trial = np.repeat(np.array(beam), len(grid), axis=0)  # (B * G, J)
+        trial[:, j] = np.tile(grid, len(beam))
+        cost = _grid_cost(machine, cameras, trial, obs_camera[use], obs_marker[use], obs_xy[use])
+        hypotheses = []
+        for b, row in enumerate(cost.reshape(len(beam), len(grid))):
+            for k in _local_minima(row, 3):
+                hypotheses.append((row[k], trial[b * len(grid) + k]))
+        hypotheses.sort(key=lambda h: h[0])
+        beam = [h[1] for h in hypotheses[:BEAM]]
+    return beam[0]
+
+
+def _grid_cost(machine, cameras, joints, obs_camera, obs_marker, obs_xy) -> np.ndarray:
+    """Robust reprojection cost (G,) of the observed markers for G joint vectors (G, J)."""
+    world = machine.markers(joints, index=obs_marker)  # (G, N, 3)
+    cost = np.zeros(len(joints))
+    for c in np.unique(obs_camera):
+        rows = obs_camera == c
+        uv = cameras[c].project(world[:, rows])
+        err = np.linalg.norm(uv - obs_xy[rows], axis=-1)
+        err = np.where(np.isfinite(err), err, 1e4)
+        cost += np.sum(np.log1p((err / 5.0) ** 2), axis=1)  # Cauchy: a wrong marker counts little
+    return cost
+
+
+def _local_minima(cost: np.ndarray, k: int) -> list[int]:
+    """Indices of up to k lowest local minima of a 1-D cost."""
+    left = np.r_[np.inf, cost[:-1]]
+    right = np.r_[cost[1:], np.inf]
+    minima = np.nonzero((cost <= left) & (cost <= right))[0]
+    return list(minima[np.argsort(cost[minima])][:k])

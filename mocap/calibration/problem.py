@@ -1,0 +1,210 @@
+"""The calibration least-squares problem: parameters, residuals and their analytic Jacobian.
+
+Unknowns, packed in one vector by `Layout`: per camera its rotation (Rodrigues vector,
+world -> camera), translation (m), focal length f = fx = fy (px) and, as options, the
+principal point (px) and distortion coefficients; then the machine's joint values (rad / m)
+at the calibration frame, shared by all cameras or one set per camera (`per_camera`).
+Residuals are projected minus observed pixels, (2N,) for N observations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mocap.camera import Camera, project_cam
+from mocap.geometry import Rigid
+
+DISTORTION_MODELS = {"none": (), "k1": (0,), "k1k2": (0, 1), "full": (0, 1, 2, 3, 4)}
+_DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class Observations:
+    """N marker pixels of one frame: camera (N,) index, marker (N,) index, xy (N, 2) px."""
+
+    camera: np.ndarray
+    marker: np.ndarray
+    xy: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.camera)
+        if len(self.marker) != n or np.shape(self.xy) != (n, 2):
+            raise ValueError("Observations: camera (N,), marker (N,) and xy (N, 2) must agree")
+
+    def __len__(self) -> int:
+        return len(self.camera)
+
+    def select(self, mask: np.ndarray) -> Observations:
+        return Observations(self.camera[mask], self.marker[mask], self.xy[mask])
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each unknown sits in the parameter vector."""
+
+    n_cameras: int
+    n_joints: int
+    per_camera: bool = False
+    fit_principal_point: bool = False
+    distortion: str = "none"
+
+    @property
+    def distortion_terms(self) -> tuple[int, ...]:
+        return DISTORTION_MODELS[self.distortion]
+
+    @property
+    def camera_size(self) -> int:
+        return 7 + 2 * self.fit_principal_point + len(self.distortion_terms)
+
+    @property
+    def size(self) -> int:
+        joints = self.n_joints * (self.n_cameras if self.per_camera else 1)
+        return self.n_cameras * self.camera_size + joints
+
+    def camera_slice(self, c: int) -> slice:
+        return slice(c * self.camera_size, (c + 1) * self.camera_size)
+
+    def joint_slice(self, c: int) -> slice:
+        start = self.n_cameras * self.camera_size + (c * self.n_joints if self.per_camera else 0)
+        return slice(start, start + self.n_joints)
+
+    def names(self, camera_names, joint_names) -> list[str]:
+        out = []
+        for name in camera_names:
+            out += [f"{name}.r{a}" for a in "xyz"] + [f"{name}.t{a}" for a in "xyz"] + [f"{name}.f"]
+            if self.fit_principal_point:
+                out += [f"{name}.cx", f"{name}.cy"]
+            out += [f"{name}.{_DISTORTION_NAMES[k]}" for k in self.distortion_terms]
+        for c in range(self.n_cameras if self.per_camera else 1):
+            prefix = f"{camera_names[c]}." if self.per_camera else ""
+            out += [prefix + j for j in joint_names]
+        return out
+
+    def kinds(self, camera_names, joint_names) -> list[tuple]:
+        """Per parameter: ("camera", camera, parameter) or ("joint", camera or None, joint)."""
+        return [
+            ("joint", name.split(".")[0] if self.per_camera else None, name.rsplit(".", 1)[-1])
+            if i >= self.n_cameras * self.camera_size
+            else ("camera", camera_names[i // self.camera_size], name.split(".", 1)[1])
+            for i, name in enumerate(self.names(camera_names, joint_names))
+        ]
+
+    def pack(self, cameras: list[Camera], joints: np.ndarray) -> np.ndarray:
+        """Cameras and joint values ((J,), or (C, J) per camera) -> parameter vector."""
+        x = np.empty(self.size)
+        for c, camera in enumerate(cameras):
+            block = [camera.cam_from_world.rotvec, camera.cam_from_world.translation, [camera.focal]]
+            if self.fit_principal_point:
+                block.append(camera.matrix[:2, 2])
+            block.append(camera.distortion[list(self.distortion_terms)])
+            x[self.camera_slice(c)] = np.concatenate(block)
+        joints = np.asarray(joints, dtype=float)
+        for c in range(self.n_cameras if self.per_camera else 1):
+            x[self.joint_slice(c)] = joints[c] if self.per_camera else joints
+        return x
+
+    def unpack(self, x: np.ndarray, templates: list[Camera]) -> tuple[list[Camera], np.ndarray]:
+        """Parameter vector -> cameras (names, sizes and unfitted intrinsics from `templates`)
+        and joint values ((J,), or (C, J) per camera)."""
+        cameras = []
+        for c, template in enumerate(templates):
+            block = x[self.camera_slice(c)]
+            matrix = template.matrix.copy()
+            matrix[0, 0] = matrix[1, 1] = block[6]
+            matrix[0, 1] = 0.0
+            k = 7
+            if self.fit_principal_point:
+                matrix[:2, 2] = block[7:9]
+                k = 9
+            distortion = template.distortion.copy()
+            distortion[list(self.distortion_terms)] = block[k:]
+            pose = Rigid.from_rotvec(block[:3], block[3:6])
+            cameras.append(Camera(template.name, template.size, matrix, distortion, pose))
+        if self.per_camera:
+            joints = np.stack([x[self.joint_slice(c)] for c in range(self.n_cameras)])
+        else:
+            joints = x[self.joint_slice(0)].copy()
+        return cameras, joints
+
+
+class Problem:
+    """Residuals and Jacobian of one frame's marker pixels for a machine and cameras."""
+
+    def __init__(self, machine, observations: Observations, layout: Layout, templates: list[Camera]):
+        self.machine = machine
+        self.obs = observations
+        self.layout = layout
+        self.templates = templates
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        return self._evaluate(x, jacobian=False)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        return self._evaluate(x, jacobian=True)
+
+    def _evaluate(self, x: np.ndarray, jacobian: bool) -> np.ndarray:
+        layout, obs = self.layout, self.obs
+        cameras, joints = layout.unpack(x, self.templates)
+        n = len(obs)
+        residuals = np.empty((n, 2))
+        jac = np.zeros((n, 2, layout.size)) if jacobian else None
+        groups = range(layout.n_cameras) if layout.per_camera else [None]
+        for g in groups:
+            q = joints[g] if layout.per_camera else joints
+            if jacobian:
+                world, d_world_d_q = self.machine.markers_with_jacobian(q[None])
+                world, d_world_d_q = world[0], d_world_d_q[0]
+            else:
+                world = self.machine.markers(q[None])[0]
+            for c, camera in enumerate(cameras):
+                if g is not None and c != g:
+                    continue
+                rows = np.nonzero(obs.camera == c)[0]
+                if not len(rows):
+                    continue
+                points = world[obs.marker[rows]]
+                rotation = camera.cam_from_world.rotation
+                points_cam = points @ rotation.T + camera.cam_from_world.translation
+                uv, d_uv_d_cam = project_cam(points_cam, camera.matrix, camera.distortion, True)
+                residuals[rows] = uv - obs.xy[rows]
+                if jacobian:
+                    self._camera_jacobian(jac, rows, c, camera, points, points_cam, uv, d_uv_d_cam)
+                    d_uv_d_world = d_uv_d_cam @ rotation
+                    cols = layout.joint_slice(c if layout.per_camera else 0)
+                    jac[rows, :, cols] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]
+        return jac.reshape(2 * n, layout.size) if jacobian else residuals.reshape(-1)
+
+    def _camera_jacobian(self, jac, rows, c, camera, points, points_cam, uv, d_uv_d_cam):
+        layout = self.layout
+        start = layout.camera_slice(c).start
+        _, d_rotation = cv2.Rodrigues(camera.cam_from_world.rotvec)  # (3, 9): d R.flat / d rvec
+        d_rotation = d_rotation.reshape(3, 3, 3)  # [k, i, j] = d R_ij / d rvec_k
+        d_cam_d_rvec = np.einsum("kij,nj->nik", d_rotation, points)  # (n, 3, 3)
+        jac[rows, :, start : start + 3] = d_uv_d_cam @ d_cam_d_rvec
+        jac[rows, :, start + 3 : start + 6] = d_uv_d_cam
+        focal = camera.matrix[0, 0]
+        jac[rows, :, start + 6] = (uv - camera.matrix[:2, 2]) / focal
+        k = start + 7
+        if layout.fit_principal_point:
+            jac[rows, 0, k] = 1.0
+            jac[rows, 1, k + 1] = 1.0
+            k += 2
+        if layout.distortion_terms:
+            x = points_cam[:, 0] / points_cam[:, 2]
+            y = points_cam[:, 1] / points_cam[:, 2]
+            r2 = x * x + y * y
+            d_normalised = {
+                0: (x * r2, y * r2),
+                1: (x * r2 * r2, y * r2 * r2),
+                2: (2 * x * y, r2 + 2 * y * y),
+                3: (r2 + 2 * x * x, 2 * x * y),
+                4: (x * r2**3, y * r2**3),
+            }
+            for term in layout.distortion_terms:
+                dx, dy = d_normalised[term]
+                jac[rows, 0, k] = focal * dx
+                jac[rows, 1, k] = focal * dy
+                k += 1

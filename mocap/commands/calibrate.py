@@ -1,0 +1,73 @@
+"""`mocap calibrate`: cameras calibrated against the machine itself (or by the DLT)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+from mocap.calibration.solve import CalibrationOptions
+from mocap.calibration.stage import CalibrateRequest, run_calibrate
+from mocap.errors import InputError
+
+EXAMPLE = """example:
+  mocap calibrate calibrations/machines/hitachi_ex3500.toml tracks/cam1.csv tracks/cam2.csv \\
+      --size 1920x1080 --out calibration/cameras.toml --frame 0"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate cameras against the machine's markers in one frame",
+        description="Fit each camera's parameters and the machine's joint values together to the "
+        "marker pixels of one frame (no surveyed control points), or calibrate by the classic DLT.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("machine", help="machine model TOML (or the name of a shipped one)")
+    p.add_argument("tracks", nargs="+", help="observations / tracks CSV file(s)")
+    p.add_argument("--size", action="append", required=True, metavar="[NAME=]WxH",
+                   help="image size, for every camera or per camera (repeatable)")
+    p.add_argument("--out", required=True, help="calibration TOML to write")
+    p.add_argument("--frame", type=int, help="the calibration frame (default: the first frame)")
+    p.add_argument("--per-camera", action="store_true", help="each camera with its own joint values")
+    p.add_argument("--method", choices=("model", "dlt"), default="model",
+                   help="model-based (default) or the 11-parameter DLT from >= 6 known points")
+    p.add_argument("--reference", help="points CSV of known 3-D marker positions, for --method dlt")
+    p.add_argument("--points", help="reference points CSV to write (default: reference_points.csv "
+                   "beside --out)")
+    p.add_argument("--guess", help="initial guess TOML in the paper's parameters (optional)")
+    p.add_argument("--fit-principal-point", action="store_true", help="fit cx, cy too")
+    p.add_argument("--distortion", choices=("none", "k1", "k1k2", "full"), default="none",
+                   help="distortion coefficients to fit (default none)")
+    p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX",
+                   help="robust loss scale in pixels (default 2)")
+    p.add_argument("--outlier-px", type=float, help="residual beyond which an observation is "
+                   "dropped (default max(4 px, 5 sigma))")
+    p.set_defaults(run=run)
+
+
+def parse_sizes(values: list[str]) -> dict:
+    sizes = {}
+    for value in values:
+        match = re.fullmatch(r"(?:([^=]+)=)?(\d+)x(\d+)", value.strip())
+        if not match or int(match[2]) <= 0 or int(match[3]) <= 0:
+            raise InputError(f"--size {value!r}: expected WxH or NAME=WxH, e.g. 1920x1080")
+        sizes[match[1]] = (int(match[2]), int(match[3]))
+    return sizes
+
+
+def run(args) -> int:
+    options = CalibrationOptions(
+        per_camera=args.per_camera,
+        fit_principal_point=args.fit_principal_point,
+        distortion=args.distortion,
+        f_scale_px=args.loss_scale,
+        outlier_px=args.outlier_px,
+    )
+    request = CalibrateRequest(
+        machine=args.machine, tracks=tuple(args.tracks), sizes=parse_sizes(args.size), out=args.out,
+        frame=args.frame, method=args.method, options=options, guess=args.guess,
+        reference=args.reference, points_out=args.points,
+    )
+    print(run_calibrate(request))
+    return 0
