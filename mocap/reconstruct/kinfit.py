@@ -1,0 +1,482 @@
+"""The batched kinematic fit: per frame, the joint values that best explain every camera's
+marker pixels (the paper's multi-frame fit).
+
+All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model for
+every frame, builds each frame's small normal equations (block-diagonal over frames) and
+solves them together with numpy. Residuals are robustified by iteratively reweighted
+least squares (Huber or Cauchy, scale in pixels). Frames without a starting value start
+from the best of a coarse grid of joint values inside the limits (evaluated for all frames
+by one matrix product), and frames that end far worse than a neighbour are restarted from
+that neighbour's solution. Optionally the base (undercarriage) moves too, by a 6-DoF
+``world_from_base`` per frame (bouncing, or a machine that moved since calibration).
+
+Parameters of a frame, in this order: joint values (J,) rad / m, then with base motion a
+rotation increment (3,) rad applied on the left of ``world_from_base`` and its
+translation (3,) m. Shapes: C cameras, F frames, M markers, J joints, P parameters.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.camera import Camera, project_cam
+from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
+from mocap.machine import REVOLUTE, Machine
+
+log = logging.getLogger(__name__)
+
+LOSSES = ("huber", "cauchy", "linear")
+_BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
+_EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of `fit_joints`.
+
+    iterations: LM iterations; loss: "huber", "cauchy" or "linear"; scale_px: the robust
+    loss's scale (px); noise_px: pixel noise SD for the covariance, None to estimate it from
+    the residuals of all frames; base_motion: also fit a 6-DoF base pose per frame; grid:
+    number of coarse-grid candidates for frames without a starting value; chunk: frames
+    solved together (memory); repair_passes: restarts from neighbours' solutions.
+    """
+
+    iterations: int = 12
+    loss: str = "huber"
+    scale_px: float = 2.0
+    noise_px: float | None = None
+    base_motion: bool = False
+    grid: int = 400
+    chunk: int = 2048
+    repair_passes: int = 3
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if not self.scale_px > 0:
+            raise ValueError(f"scale_px must be positive, got {self.scale_px}")
+        if self.noise_px is not None and not self.noise_px > 0:
+            raise ValueError(f"noise_px must be positive or None, got {self.noise_px}")
+        if self.iterations < 1 or self.grid < 1 or self.chunk < 1 or self.repair_passes < 0:
+            raise ValueError("iterations, grid and chunk must be >= 1, repair_passes >= 0")
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """The result of `fit_joints` for F frames.
+
+    joints (F, J) rad / m; base (F, 6) ``world_from_base`` as rotation vector and
+    translation, or None without base motion; covariance (F, P, P) of the parameters from
+    the pixel noise; information (F, P, P) its inverse without regularisation (singular
+    where a joint is unobserved); residuals (C, F, M, 2) observed minus predicted px, NaN
+    where not observed; weights (C, F, M) final robust weights; rms_px (F,) RMS residual
+    of the inlier-weighted observations; n_observations (F,) 2-D observations used; noise_px
+    the pixel SD behind the covariance; valid (F,) frames with enough observations.
+    """
+
+    joints: np.ndarray
+    base: np.ndarray | None
+    covariance: np.ndarray
+    information: np.ndarray
+    residuals: np.ndarray
+    weights: np.ndarray
+    rms_px: np.ndarray
+    n_observations: np.ndarray
+    noise_px: float
+    valid: np.ndarray
+
+    def __post_init__(self) -> None:
+        n, j = np.shape(self.joints)
+        p = j + (6 if self.base is not None else 0)
+        if np.shape(self.covariance) != (n, p, p) or np.shape(self.information) != (n, p, p):
+            raise ValueError(f"JointFit covariance and information must be ({n}, {p}, {p})")
+        if self.base is not None and np.shape(self.base) != (n, 6):
+            raise ValueError(f"JointFit.base must be ({n}, 6), got {np.shape(self.base)}")
+        for name in ("rms_px", "n_observations", "valid"):
+            if np.shape(getattr(self, name)) != (n,):
+                raise ValueError(f"JointFit.{name} must be ({n},)")
+
+    @property
+    def world_from_base(self) -> np.ndarray | None:
+        """(F, 4, 4) base poses, or None without base motion."""
+        return None if self.base is None else base_matrices(self.base)
+
+    @property
+    def joints_sd(self) -> np.ndarray:
+        """(F, J) standard deviations of the joint values."""
+        j = self.joints.shape[1]
+        return np.sqrt(np.diagonal(self.covariance, axis1=1, axis2=2)[:, :j])
+
+
+def base_matrices(base: np.ndarray) -> np.ndarray:
+    """(F, 6) rotation vector and translation -> (F, 4, 4) ``world_from_base``."""
+    out = np.tile(np.eye(4), (len(base), 1, 1))
+    out[:, :3, :3] = rotvec_to_matrix(base[:, :3])
+    out[:, :3, 3] = base[:, 3:]
+    return out
+
+
+def fit_joints(
+    machine: Machine,
+    cameras: list[Camera],
+    pixels: np.ndarray,
+    initial: np.ndarray | None = None,
+    options: FitOptions | None = None,
+    initial_base: np.ndarray | None = None,
+) -> JointFit:
+    """Fit the machine's joint values to marker pixels of every frame at once.
+
+    Parameters
+    ----------
+    machine : the model, M markers and J joints.
+    cameras : C calibrated cameras (one is enough).
+    pixels : (C, F, M, 2) observed marker pixels, NaN where a camera did not see a marker.
+    initial : (F, J) or (J,) starting joint values, or None for the coarse grid.
+    options : FitOptions.
+    initial_base : (F, 6) or (6,) starting base pose with ``options.base_motion``.
+
+    Returns
+    -------
+    JointFit; frames with fewer than P / 2 observations have NaN joints and valid False.
+    """
+    options = options or FitOptions()
+    pixels = np.asarray(pixels, dtype=float)
+    n_cams, n_markers, n_joints = len(cameras), len(machine.marker_names), machine.n_joints
+    if pixels.ndim != 4 or pixels.shape[0] != n_cams or pixels.shape[2:] != (n_markers, 2):
+        raise ValueError(
+            f"pixels must have shape (C={n_cams}, F, M={n_markers}, 2), got {pixels.shape}"
+        )
+    n_frames = pixels.shape[1]
+    start = None if initial is None else _broadcast(initial, n_frames, n_joints, "initial")
+    start_base = None
+    if options.base_motion:
+        start_base = np.zeros((n_frames, 6)) if initial_base is None else _broadcast(
+            initial_base, n_frames, 6, "initial_base"
+        )
+    problem = _Problem(machine, tuple(cameras), options)
+    pieces = [
+        problem.solve(
+            pixels[:, s : s + options.chunk],
+            None if start is None else start[s : s + options.chunk],
+            None if start_base is None else start_base[s : s + options.chunk],
+        )
+        for s in range(0, n_frames, options.chunk)
+    ]
+    state = _State.concatenate(pieces)
+    for _ in range(options.repair_passes):
+        if not problem.repair(pixels, state):
+            break
+    return problem.result(pixels, state)
+
+
+def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
+    values = np.asarray(values, dtype=float)
+    if values.shape == (width,):
+        return np.tile(values, (n_frames, 1))
+    if values.shape != (n_frames, width):
+        raise ValueError(f"{name} must have shape ({n_frames}, {width}) or ({width},), got {values.shape}")
+    return values.copy()
+
+
+@dataclass
+class _State:
+    """Mutable per-frame solver state (private): joints (F, J), base rotation (F, 3, 3) and
+    translation (F, 3) or None, robust cost (F,)."""
+
+    joints: np.ndarray
+    rotation: np.ndarray | None
+    translation: np.ndarray | None
+    cost: np.ndarray
+
+    @staticmethod
+    def concatenate(parts: list[_State]) -> _State:
+        base = parts[0].rotation is not None
+        return _State(
+            np.concatenate([p.joints for p in parts]),
+            np.concatenate([p.rotation for p in parts]) if base else None,
+            np.concatenate([p.translation for p in parts]) if base else None,
+            np.concatenate([p.cost for p in parts]),
+        )
+
+    def take(self, index: np.ndarray) -> _State:
+        base = self.rotation is not None
+        return _State(
+            self.joints[index],
+            self.rotation[index] if base else None,
+            self.translation[index] if base else None,
+            self.cost[index],
+        )
+
+    def put(self, index: np.ndarray, other: _State, mask: np.ndarray) -> None:
+        target = index[mask]
+        self.joints[target] = other.joints[mask]
+        self.cost[target] = other.cost[mask]
+        if self.rotation is not None:
+            self.rotation[target] = other.rotation[mask]
+            self.translation[target] = other.translation[mask]
+
+
+class _Problem:
+    """The model, cameras and options of one fit; evaluates residuals and Jacobians."""
+
+    def __init__(self, machine: Machine, cameras: tuple[Camera, ...], options: FitOptions):
+        self.machine = machine
+        self.cameras = cameras
+        self.options = options
+        limits = machine.joint_limits.astype(float)
+        self.wrap = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
+        self.lower, self.upper = limits[:, 0], limits[:, 1]
+        self.n_params = machine.n_joints + (6 if options.base_motion else 0)
+        self.moves = joint_moves_markers(machine)
+        self.link_groups = [
+            (link, np.nonzero(machine.marker_links == link)[0], machine.marker_positions[machine.marker_links == link])
+            for link in np.unique(machine.marker_links)
+        ]
+
+    # --- model ---------------------------------------------------------------------------
+    def world_markers(self, state: _State):
+        """Markers in the world (F, M, 3) and their derivatives by the parameters (F, M, 3, P).
+
+        Revolute joint j moving marker m: d p / d q_j = a_j x (p - o_j) with a_j the joint's
+        axis and o_j its origin in the world; prismatic: a_j. Base rotation increment w
+        (on the left): d p / d w = -[p - t]x; base translation: the identity.
+        """
+        machine = self.machine
+        poses = machine.link_poses(state.joints)
+        n_frames = len(poses)
+        if state.rotation is not None:
+            world_from_base = np.tile(np.eye(4), (n_frames, 1, 1))
+            world_from_base[:, :3, :3] = state.rotation
+            world_from_base[:, :3, 3] = state.translation
+            poses = world_from_base[:, None] @ poses
+        markers = np.empty((n_frames, len(machine.marker_names), 3))
+        for link, index, local in self.link_groups:
+            markers[:, index] = local @ np.swapaxes(poses[:, link, :3, :3], 1, 2) + poses[:, link, None, :3, 3]
+        d_world = np.zeros(markers.shape + (self.n_params,))
+        for j, (link, joint) in enumerate(zip(machine.joint_links, machine.joints)):
+            axis = (poses[:, link, :3, :3] @ joint.axis)[:, None, :]  # (F, 1, 3)
+            moved = self.moves[j]
+            if joint.type == REVOLUTE:
+                lever = markers[:, moved] - poses[:, link, None, :3, 3]
+                d_world[..., j][:, moved] = _cross(axis, lever)
+            else:
+                d_world[..., j][:, moved] = axis
+        if state.rotation is not None:
+            n_joints = machine.n_joints
+            lever = markers - state.translation[:, None]
+            for i in range(3):
+                unit = np.zeros(3)
+                unit[i] = 1.0
+                d_world[..., n_joints + i] = _cross(unit, lever)
+                d_world[..., i, n_joints + 3 + i] = 1.0
+        return markers, d_world
+
+    def evaluate(self, pixels: np.ndarray, state: _State):
+        """For pixels (F, C, M, 2): residuals (F, N) with N = C * M * 2 (zero where
+        unobserved) and Jacobians (F, N, P) of the predicted pixels by the parameters."""
+        markers, d_world = self.world_markers(state)
+        n_frames, n_markers = markers.shape[:2]
+        residual = np.empty((n_frames, len(self.cameras), n_markers, 2))
+        jac = np.empty((n_frames, len(self.cameras), n_markers, 2, self.n_params))
+        for c, camera in enumerate(self.cameras):
+            rot = camera.cam_from_world.rotation
+            points_cam = markers @ rot.T + camera.cam_from_world.translation
+            uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, with_jacobian=True)
+            seen = np.isfinite(pixels[:, c, :, 0]) & np.isfinite(uv[..., 0])
+            residual[:, c] = np.where(seen[..., None], pixels[:, c] - uv, 0.0)
+            d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * seen[..., None, None]
+            np.matmul(d_uv_world, d_world, out=jac[:, c])
+        return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
+
+    def robust(self, residual: np.ndarray):
+        """Per-observation weights and per-frame cost for residuals (F, N)."""
+        r2 = (residual.reshape(residual.shape[0], -1, 2) ** 2).sum(-1)  # (F, C*M)
+        s = self.options.scale_px
+        if self.options.loss == "huber":
+            e = np.sqrt(r2)
+            weight = np.where(e <= s, 1.0, s / np.maximum(e, 1e-300))
+            rho = np.where(e <= s, r2, 2 * s * e - s * s)
+        elif self.options.loss == "cauchy":
+            weight = 1.0 / (1.0 + r2 / (s * s))
+            rho = s * s * np.log1p(r2 / (s * s))
+        else:
+            weight, rho = np.ones_like(r2), r2
+        return np.repeat(weight, 2, axis=1), rho.sum(1)
+
+    def step(self, state: _State, delta: np.ndarray) -> _State:
+        n_joints = self.machine.n_joints
+        joints = state.joints + delta[:, :n_joints]
+        span = self.upper - self.lower
+        wrapped = self.lower + np.mod(joints - self.lower, np.where(self.wrap, span, 1.0))
+        joints = np.where(self.wrap, wrapped, np.clip(joints, self.lower, self.upper))
+        if state.rotation is None:
+            return _State(joints, None, None, state.cost)
+        rotation = rotvec_to_matrix(delta[:, n_joints : n_joints + 3]) @ state.rotation
+        return _State(joints, rotation, state.translation + delta[:, n_joints + 3 :], state.cost)
+
+    # --- solver --------------------------------------------------------------------------
+    def solve(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> _State:
+        """Fit one chunk of frames; pixels (C, F, M, 2)."""
+        pixels = np.moveaxis(pixels, 1, 0)  # (F, C, M, 2)
+        joints = self.grid_start(pixels) if start is None else self.machine.clip_to_limits(start)
+        rotation = translation = None
+        if start_base is not None:
+            rotation = rotvec_to_matrix(start_base[:, :3])
+            translation = start_base[:, 3:].copy()
+        return self.levenberg_marquardt(pixels, _State(joints, rotation, translation, np.zeros(len(joints))))
+
+    def levenberg_marquardt(self, pixels: np.ndarray, state: _State) -> _State:
+        residual, jac = self.evaluate(pixels, state)
+        weight, cost = self.robust(residual)
+        damping = np.full(len(cost), 1e-3)
+        eye = np.eye(self.n_params)
+        for _ in range(self.options.iterations):
+            jw = jac * weight[..., None]
+            hessian = np.swapaxes(jw, 1, 2) @ jac
+            gradient = (residual[:, None, :] @ jw)[:, 0]
+            diag = np.diagonal(hessian, axis1=1, axis2=2)
+            lhs = hessian + (damping[:, None] * diag + _EPS_INFO)[:, :, None] * eye
+            delta = np.linalg.solve(lhs, gradient[..., None])[..., 0]
+            trial = self.step(state, delta)
+            trial_residual, trial_jac = self.evaluate(pixels, trial)
+            trial_weight, trial_cost = self.robust(trial_residual)
+            better = trial_cost <= cost
+            state = _State(
+                np.where(better[:, None], trial.joints, state.joints),
+                None if state.rotation is None else np.where(better[:, None, None], trial.rotation, state.rotation),
+                None if state.rotation is None else np.where(better[:, None], trial.translation, state.translation),
+                state.cost,
+            )
+            change = np.abs(cost - trial_cost) / np.maximum(cost, 1e-12)
+            residual = np.where(better[:, None], trial_residual, residual)
+            jac = np.where(better[:, None, None], trial_jac, jac)
+            weight = np.where(better[:, None], trial_weight, weight)
+            cost = np.where(better, trial_cost, cost)
+            damping = np.clip(np.where(better, damping * 0.3, damping * 10.0), 1e-9, 1e9)
+            if np.all(change < 1e-9):
+                break
+        state.cost = cost
+        return state
+
+    def grid_start(self, pixels: np.ndarray) -> np.ndarray:
+        """The best of a coarse grid of joint values for every frame (F, J), by the sum of
+        squared pixel residuals, computed as matrix products over frames and candidates."""
+        candidates = self.grid()
+        predicted = np.stack([c.project(self.machine.markers(candidates)) for c in self.cameras], 1)
+        predicted = np.where(np.isfinite(predicted), predicted, _BEHIND_PX).reshape(len(candidates), -1)
+        observed = pixels.reshape(len(pixels), -1)
+        seen = np.isfinite(observed)
+        obs = np.where(seen, observed, 0.0)
+        cost = -2.0 * obs @ predicted.T + seen.astype(float) @ (predicted**2).T
+        return candidates[np.argmin(cost, axis=1)]
+
+    def grid(self) -> np.ndarray:
+        """(K, J) candidates: a regular grid inside the limits (unbounded joints ±1 m)."""
+        n_joints = self.machine.n_joints
+        lower = np.where(np.isfinite(self.lower), self.lower, -1.0)
+        upper = np.where(np.isfinite(self.upper), self.upper, 1.0)
+        span = upper - lower
+        weights = np.where(self.wrap, 2.0, 1.0)
+        levels = np.maximum(2, np.round(self.options.grid ** (weights / weights.sum()))).astype(int)
+        axes = []
+        for j in range(n_joints):
+            if self.wrap[j]:
+                axes.append(lower[j] + span[j] * np.arange(levels[j]) / levels[j])
+            else:
+                axes.append(lower[j] + span[j] * (np.arange(levels[j]) + 0.5) / levels[j])
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, n_joints)
+
+    def repair(self, pixels: np.ndarray, state: _State) -> bool:
+        """Restart frames whose cost is far above a neighbour's from that neighbour's
+        solution; keep the better. Returns whether any frame improved."""
+        n_obs = np.isfinite(pixels).all(-1).sum((0, 2))
+        per_obs = state.cost / np.maximum(n_obs, 1)
+        improved = False
+        for shift in (1, -1):
+            neighbour = np.clip(np.arange(len(per_obs)) - shift, 0, len(per_obs) - 1)
+            bad = np.nonzero((per_obs > 4.0 * per_obs[neighbour] + self.options.scale_px**2) & (n_obs > 0))[0]
+            if not len(bad):
+                continue
+            restart = state.take(neighbour[bad])
+            fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, bad], 1, 0), restart)
+            better = fitted.cost < state.cost[bad]
+            state.put(bad, fitted, better)
+            per_obs[bad[better]] = fitted.cost[better] / np.maximum(n_obs[bad[better]], 1)
+            improved |= bool(better.any())
+        return improved
+
+    # --- result --------------------------------------------------------------------------
+    def result(self, pixels: np.ndarray, state: _State) -> JointFit:
+        n_cams, n_frames, n_markers, _ = pixels.shape
+        hessians, residuals, weights = [], [], []
+        for s in range(0, n_frames, self.options.chunk):
+            chunk = state.take(np.arange(s, min(s + self.options.chunk, n_frames)))
+            residual, jac = self.evaluate(np.moveaxis(pixels[:, s : s + self.options.chunk], 1, 0), chunk)
+            weight, _ = self.robust(residual)
+            hessians.append(np.swapaxes(jac * weight[..., None], 1, 2) @ jac)
+            residuals.append(residual)
+            weights.append(weight)
+        hessian = np.concatenate(hessians)
+        residual = np.concatenate(residuals)
+        weight = np.concatenate(weights)
+        seen = np.isfinite(pixels).all(-1)  # (C, F, M)
+        seen_rows = np.repeat(np.moveaxis(seen, 1, 0).reshape(n_frames, -1), 2, axis=1)
+        n_obs = seen.sum((0, 2))
+        valid = 2 * n_obs >= self.n_params
+        weighted = (weight * residual**2).sum(1)
+        inlier_weight = (weight * seen_rows).sum(1)
+        rms = np.sqrt(weighted / np.maximum(inlier_weight, 1e-12))
+        noise = self.options.noise_px
+        if noise is None:
+            dof = inlier_weight[valid].sum() - self.n_params * valid.sum()
+            noise = float(np.sqrt(weighted[valid].sum() / dof)) if dof > 0 else 1.0
+            log.info("pixel noise estimated from the residuals: %.3f px", noise)
+        eye = np.eye(self.n_params)
+        covariance = noise**2 * np.linalg.inv(hessian + _EPS_INFO * eye)
+        information = hessian / noise**2
+        joints = np.where(valid[:, None], state.joints, np.nan)
+        base = None
+        if state.rotation is not None:
+            base = np.where(valid[:, None], np.c_[matrix_to_rotvec(state.rotation), state.translation], np.nan)
+        residual_out = np.where(seen[..., None], np.moveaxis(residual.reshape(n_frames, n_cams, n_markers, 2), 0, 1), np.nan)
+        weight_out = np.moveaxis(weight[:, ::2].reshape(n_frames, n_cams, n_markers), 0, 1)
+        return JointFit(
+            joints=joints,
+            base=base,
+            covariance=covariance,
+            information=np.where(valid[:, None, None], information, 0.0),
+            residuals=residual_out,
+            weights=np.where(seen, weight_out, np.nan),
+            rms_px=np.where(valid, rms, np.nan),
+            n_observations=n_obs,
+            noise_px=noise,
+            valid=valid,
+        )
+
+
+def joint_moves_markers(machine: Machine, links: np.ndarray | None = None) -> np.ndarray:
+    """(J, N) bool: joint j moves the point fixed in link ``links[n]`` (the markers' links
+    by default)."""
+    links = machine.marker_links if links is None else np.asarray(links, dtype=int)
+    joint_of_link = {link: j for j, link in enumerate(machine.joint_links)}
+    moves = np.zeros((machine.n_joints, len(links)), dtype=bool)
+    for n, link in enumerate(links):
+        for ancestor in machine.ancestors(int(link)):
+            if ancestor in joint_of_link:
+                moves[joint_of_link[ancestor], n] = True
+    return moves
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for broadcastable (*, 3) arrays (faster than np.cross on small last axes)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
