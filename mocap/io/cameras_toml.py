@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-import tomli_w
+from mocap.io import toml_writer
 
 from mocap.camera import Camera
 from mocap.errors import InputError
@@ -185,7 +185,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> None:
-    write_text(path, tomli_w.dumps(calibration_to_dict(calibration)))
+    write_text(path, toml_writer.dumps(calibration_to_dict(calibration)))
 
 
 def _plain(value):

@@ -6,7 +6,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
-import tomli_w
+from mocap.io import toml_writer
 
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
@@ -291,4 +291,4 @@ def machine_to_dict(machine: Machine) -> dict:
 
 
 def save_machine(machine: Machine, path: str | Path) -> None:
-    write_text(path, tomli_w.dumps(machine_to_dict(machine)))
+    write_text(path, toml_writer.dumps(machine_to_dict(machine)))

@@ -14,7 +14,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import tomli_w
+from mocap.io import toml_writer
 
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
@@ -86,4 +86,4 @@ def save_session_config(config: SessionConfig, path: str | Path) -> None:
     }
     if config.options:
         data["options"] = config.options
-    write_text(path, tomli_w.dumps(data))
+    write_text(path, toml_writer.dumps(data))
