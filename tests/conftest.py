@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from mocap.calibration import Observations
+from mocap.io.machine_toml import load_machine
+from mocap.simulate import observe, random_joints, ring_of_cameras
+
+
+@pytest.fixture(scope="session")
+def ex3500():
+    return load_machine("hitachi_ex3500")
+
+
+@pytest.fixture(scope="session")
+def bobcat():
+    return load_machine("bobcat_225")
+
+
+@pytest.fixture(scope="session")
+def cube_pair():
+    return load_machine("cube_pair")
+
+
+def scene(machine, n_cameras, seed, noise_px=0.5, distance=(2.5, 4.0), outliers=0, joints=None):
+    """Cameras around `machine` at `distance` times its extent, a random pose and the
+    observations of one frame as calibration input."""
+    rng = np.random.default_rng(seed)
+    rest = machine.markers(np.zeros((1, machine.n_joints)))[0]
+    extent = np.ptp(rest, axis=0).max()
+    target = rest.mean(axis=0)
+    cameras = ring_of_cameras(
+        n_cameras, target, (distance[0] * extent, distance[1] * extent), rng,
+        height=(0.3 * extent, 0.8 * extent),
+    )
+    q = random_joints(machine, 1, rng)[0] if joints is None else np.asarray(joints, dtype=float)
+    tracks = observe(cameras, machine, q[None], rng, noise_px=noise_px, outliers=outliers)
+    index = {c.name: i for i, c in enumerate(cameras)}
+    obs = Observations(
+        np.array([index[c] for c in tracks.camera]), machine.marker_index(tracks.marker), tracks.xy
+    )
+    return cameras, q, obs, tracks
