@@ -15,6 +15,8 @@ from mocap.errors import InputError
 
 COMMANDS = (
     "calibrate",
+    "view",
+    "synth",
 )
 
 

@@ -203,14 +203,16 @@ def log_video(rec: rr.RecordingStream, camera: str, video: Video, motion: Motion
 
 
 def log_tracks(rec: rr.RecordingStream, series: scene.TrackSeries, camera: str) -> None:
+    """The camera's 2-D tracks over its image; nothing for a camera without tracks."""
+    if len(series.counts) == 0:
+        return
     path = camera_path(camera) + "/tracks"
     rec.log(path, rr.Points2D.from_fields(colors=[TRACK_COLOR], radii=[-3.0]), static=True)
-    if len(series.counts):
-        rec.send_columns(
-            path,
-            indexes=time_columns(series.frame, series.time),
-            columns=rr.Points2D.columns(positions=series.xy, class_ids=series.marker).partition(series.counts),
-        )
+    rec.send_columns(
+        path,
+        indexes=time_columns(series.frame, series.time),
+        columns=rr.Points2D.columns(positions=series.xy, class_ids=series.marker).partition(series.counts),
+    )
 
 
 def log_scalar(rec: rr.RecordingStream, path: str, name: str, motion: Motion, values: np.ndarray) -> None:

@@ -1,0 +1,79 @@
+"""`mocap view`: the Rerun 3-D replay of a session's dig (an .rrd file and/or a viewer)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mocap.errors import InputError
+from mocap.session import Session
+from mocap.viewer import Sinks, run_replay
+from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
+
+EXAMPLES = """examples:
+  mocap view SESSION_DIR                       # writes SESSION_DIR/results/session.rrd
+  mocap view SESSION_DIR --spawn               # ... and opens it in the Rerun viewer
+  mocap view --machine hitachi_ex3500 --calibration cameras.toml --motion motion.csv \\
+      --points points.csv --tracks tracks/cam1.csv tracks/cam2.csv --video cam1=cam1.mp4 \\
+      --save dig.rrd
+"""
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "view",
+        help="record the 3-D replay of a dig in Rerun",
+        description="Record the machine, markers, cameras with their videos and 2-D tracks, "
+        "the bucket tip's trail per dig cycle and time series into a Rerun recording.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("session", nargs="?", type=Path, help="session folder (paths below override its files)")
+    p.add_argument("--machine", help="machine model: a shipped name or a TOML path")
+    p.add_argument("--calibration", type=Path, help="cameras TOML")
+    p.add_argument("--motion", type=Path, help="motion CSV")
+    p.add_argument("--points", type=Path, help="triangulated points CSV")
+    p.add_argument("--tracks", type=Path, nargs="+", default=[], help="2-D tracks CSV file(s)")
+    p.add_argument("--video", action="append", default=[], metavar="NAME=PATH", help="a camera's H.264 video")
+    p.add_argument("--cycles", type=Path, help="dig cycles CSV (start_frame,end_frame[,cycle]); one trail if absent")
+    out = p.add_argument_group("output (a session saves to results/session.rrd unless told otherwise)")
+    out.add_argument("--save", type=Path, metavar="FILE.rrd", help="write the recording to this file")
+    out.add_argument("--connect", nargs="?", const="", metavar="URL", help="stream to a running viewer")
+    out.add_argument("--serve", action="store_true", help="serve a web viewer until Ctrl-C")
+    out.add_argument("--spawn", action="store_true", help="start the native viewer and stream to it")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    files = ReplayFiles(
+        machine=args.machine,
+        calibration=args.calibration,
+        motion=args.motion,
+        points=args.points,
+        tracks=tuple(args.tracks),
+        videos=parse_videos(args.video),
+        cycles=args.cycles,
+    )
+    replay = load_replay(with_session(files, args.session))
+    sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
+    if not sinks.any:
+        if args.session is None:
+            raise InputError("nowhere to send the replay; pass --save FILE.rrd, --connect, --serve or --spawn")
+        sinks = Sinks(save=Session.open(args.session).recording_path)
+    if sinks.save is not None and sinks.save.suffix != ".rrd":
+        raise InputError(f"--save {sinks.save}: a Rerun recording is a .rrd file; name it FILE.rrd")
+    summary = run_replay(replay, sinks)
+    where = f" to {sinks.save}" if sinks.save is not None else ""
+    videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
+    print(f"replay of {summary.frames} frames, {summary.cameras} cameras{videos}, {summary.trails} trail(s){where}")
+    return 0
+
+
+def parse_videos(items: list[str]) -> dict[str, Path]:
+    videos = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name.strip() or not path.strip():
+            raise InputError(f"--video {item!r}: expected NAME=PATH, e.g. --video cam1=videos/cam1.mp4")
+        videos[name.strip()] = Path(path.strip())
+    return videos
