@@ -1,0 +1,254 @@
+"""Dig cycles of a shovel or excavator, planned in the bucket's space and turned into joints.
+
+A session holds still for `hold` seconds (the calibration frame), then runs dig cycles:
+lower to the face, dig (one of the three classes of PAPER.md, with reactive noise, an
+operator's redirection and proportional or non-proportional scaling), lift, swing to the
+truck, dump, swing back. The tip (x forward from the swing axis, z above the ground) and
+bucket angle are planned in the house's vertical plane, the swing separately; joint values
+come from the linkage's closed-form inverse kinematics at any requested times, so every
+camera's frames get exact truth. The base may bounce a little (small 6-DoF motion).
+
+Shapes: T times, J joints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.geometry import rpy_to_matrix
+from mocap.machine import Machine
+from mocap.synthetic.ik import PlanarChain
+from mocap.synthetic.paths import CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk
+
+
+@dataclass(frozen=True)
+class Pile:
+    """The muck pile: its toe `toe` m from the swing axis, face `slope` rad, `height` m,
+    centred on `azimuth` rad (world, from x towards y), `width` m along the face."""
+
+    toe: float
+    slope: float
+    height: float
+    azimuth: float
+    width: float
+
+
+@dataclass(frozen=True)
+class Truck:
+    """Where the bucket dumps: `azimuth` rad, tip `distance` m from the swing axis, bed
+    `height` m above the ground."""
+
+    azimuth: float
+    distance: float
+    height: float
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """One dig cycle's truth; times in seconds on the reference clock."""
+
+    index: int
+    label: str
+    scaling: str
+    scale: tuple[float, float]
+    redirection: str
+    start: float
+    dig_start: float
+    dig_end: float
+    end: float
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """A piece of the tip plan over [t0, t1]: a minimum-jerk move from `a` to `b`
+    (x, z, beta), or a dig."""
+
+    t0: float
+    t1: float
+    a: np.ndarray
+    b: np.ndarray
+    dig: DigShape | None = None
+    noise: SmoothNoise | None = None
+    redirection: Redirection | None = None
+
+    def evaluate(self, t: np.ndarray) -> np.ndarray:
+        tau = np.clip((t - self.t0) / (self.t1 - self.t0), 0.0, 1.0)
+        if self.dig is None:
+            return self.a + (self.b - self.a) * min_jerk(tau)[:, None]
+        return dig_state(self.dig, tau, self.noise, self.redirection, t)
+
+
+def dig_state(dig: DigShape, tau: np.ndarray, noise: SmoothNoise | None, redirection: Redirection | None,
+              t: np.ndarray | None = None) -> np.ndarray:
+    """(x, z, beta) (T, 3) of a dig at time fraction `tau` (T,); noise vanishes at both ends."""
+    u = min_jerk(tau)
+    state = np.concatenate([dig.tip(u), dig.angle(u)[:, None]], axis=-1)
+    if redirection is not None:
+        w = redirection.weight(tau)
+        state[:, 1] += redirection.dz * w
+        state[:, 2] += redirection.dangle * w
+    if noise is not None and t is not None:
+        state += noise(t) * np.sin(np.pi * tau)[:, None]
+    return state
+
+
+@dataclass(frozen=True)
+class DigMotion:
+    """A planned session: tip segments, swing keyframes, base bouncing, cycles, pile, truck."""
+
+    chain: PlanarChain
+    segments: tuple[_Segment, ...]
+    swing_times: np.ndarray
+    swing_values: np.ndarray
+    bounce: SmoothNoise | None
+    hold: float
+    duration: float
+    cycles: tuple[Cycle, ...]
+    pile: Pile
+    truck: Truck
+
+    def tip_plan(self, t: np.ndarray) -> np.ndarray:
+        """Planned (x, z, beta) (T, 3): x forward from the swing axis and z above the
+        ground (m) in the house's vertical plane, bucket angle (rad)."""
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        starts = np.array([s.t0 for s in self.segments])
+        which = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(starts) - 1)
+        out = np.empty((len(t), 3))
+        for k in np.unique(which):
+            pick = which == k
+            out[pick] = self.segments[k].evaluate(t[pick])
+        return out
+
+    def swing(self, t: np.ndarray) -> np.ndarray:
+        """Swing angle (T,) rad: minimum-jerk moves between keyframes."""
+        t = np.clip(np.asarray(t, dtype=float), self.swing_times[0], self.swing_times[-1])
+        k = np.clip(np.searchsorted(self.swing_times, t, side="right") - 1, 0, len(self.swing_times) - 2)
+        t0, t1 = self.swing_times[k], self.swing_times[k + 1]
+        v0, v1 = self.swing_values[k], self.swing_values[k + 1]
+        return v0 + (v1 - v0) * min_jerk((t - t0) / np.maximum(t1 - t0, 1e-12))
+
+    def joints(self, t: np.ndarray) -> np.ndarray:
+        """Joint values (T, J) rad / m at times `t` (T,) s."""
+        plan = self.tip_plan(t)
+        tip = np.stack([plan[:, 0], plan[:, 1] - self.chain.house_height], axis=-1)
+        return self.chain.inverse(tip, plan[:, 2], self.swing(t))
+
+    def world_from_base(self, t: np.ndarray) -> np.ndarray:
+        """The base's pose (T, 4, 4): identity while holding still, bouncing after."""
+        t = np.asarray(t, dtype=float)
+        out = np.tile(np.eye(4), (len(t), 1, 1))
+        if self.bounce is None:
+            return out
+        motion = self.bounce(t) * min_jerk(t - self.hold)[:, None]  # ramps up over 1 s
+        out[:, :3, :3] = rpy_to_matrix(motion[:, :3])
+        out[:, :3, 3] = motion[:, 3:]
+        return out
+
+
+def plan_session(
+    machine: Machine,
+    n_cycles: int,
+    rng: np.random.Generator,
+    *,
+    classes: tuple[str, ...] = CLASSES,
+    redirect_probability: float = 0.4,
+    reactive: float = 1.0,
+    bounce: float = 1.0,
+    hold: float = 2.0,
+) -> DigMotion:
+    """Plan `n_cycles` dig cycles of `machine`; the classes cycle through `classes` in a
+    random order; `reactive` and `bounce` scale the reactive noise and the base's bouncing
+    (0 turns them off)."""
+    chain = PlanarChain.from_machine(machine)
+    reach = float(np.linalg.norm(chain.offsets, axis=1).sum())
+    pace = float(np.clip(np.sqrt(reach / 15.5), 0.6, 1.0))  # small machines cycle faster
+    deg = np.radians
+    pin_x = float(chain.pin[0])
+    pile = Pile(pin_x + 0.6 * reach, deg(rng.uniform(64, 72)), 0.7 * reach, deg(rng.uniform(-5, 5)), 1.4 * reach)
+    side = rng.choice([-1.0, 1.0])
+    truck = Truck(side * deg(rng.uniform(75, 105)), pin_x + 0.66 * reach, 0.42 * reach)
+    carry = np.array([pin_x + 0.62 * reach, 0.55 * reach, deg(45.0)])
+    dump = np.array([truck.distance, truck.height + 0.1 * reach, deg(-20.0)])
+    labels = [classes[k] for k in np.concatenate([rng.permutation(len(classes)) for _ in range(n_cycles)])][:n_cycles]
+
+    segments: list[_Segment] = []
+    swing_t, swing_v = [0.0], [pile.azimuth]
+    cycles: list[Cycle] = []
+    t, state = hold, carry
+    segments.append(_Segment(0.0, hold, carry, carry))
+    for i, label in enumerate(labels):
+        toe = pile.toe + 0.008 * reach * i
+        dig = dig_shape(label, toe, pile.slope, reach, rng)
+        proportional = bool(rng.random() < 0.5)
+        if proportional:
+            scale = (rng.uniform(0.88, 1.08),) * 2
+        else:
+            sx = rng.uniform(0.88, 1.05)
+            scale = (sx, sx * rng.choice([0.85, 1.15]) * rng.uniform(0.97, 1.03))
+        dig = DigShape(dig.label, dig.start, dig.push, dig.radius, dig.climb, dig.rise, dig.angle0, dig.angle1, scale)
+        redirection = None
+        if rng.random() < redirect_probability:
+            redirection = Redirection(
+                rng.uniform(0.35, 0.65), rng.uniform(0.08, 0.14), rng.choice([-1, 1]) * rng.uniform(0.015, 0.03) * reach,
+                rng.choice([-1, 1]) * deg(rng.uniform(8, 18)), bool(rng.random() < 0.4),
+            )
+        noise = None
+        if reactive > 0:
+            noise = SmoothNoise.random(rng, reactive * np.array([0.003 * reach, 0.003 * reach, deg(1.0)]), (0.8, 3.0))
+        azimuth = pile.azimuth + deg(rng.uniform(-10, 10))
+        t_return, t_dig, t_lift = 5.0 * pace, rng.uniform(6.5, 8.5) * pace, 3.0 * pace
+        t_swing, t_dump = rng.uniform(4.5, 5.5) * pace, 5.0 * pace
+        start = t
+        dig_start = start + t_return + 0.5 * pace
+        begin = np.concatenate([dig.start, [dig.angle0]])
+        segments.append(_Segment(start, dig_start, state, begin))
+        swing_t += [start, start + t_return]
+        swing_v += [swing_v[-1], azimuth]
+        dig_end = dig_start + t_dig
+        segments.append(_Segment(dig_start, dig_end, begin, begin, dig, noise, redirection))
+        end_state = dig_state(dig, np.ones(1), None, redirection)[0]
+        lifted = dig_end + t_lift
+        segments.append(_Segment(dig_end, lifted, end_state, carry))
+        swing_t += [dig_end + 0.4 * t_lift, dig_end + 0.4 * t_lift + t_swing]
+        swing_v += [azimuth, truck.azimuth]
+        at_truck = swing_t[-1]
+        segments.append(_Segment(lifted, at_truck, carry, carry))
+        tipped = at_truck + 0.5 * t_dump
+        segments.append(_Segment(at_truck, tipped, carry, dump))
+        end = tipped + 0.5 * t_dump
+        segments.append(_Segment(tipped, end, dump, carry))
+        cycles.append(Cycle(i, label, "proportional" if proportional else "non-proportional",
+                            (float(scale[0]), float(scale[1])),
+                            "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
+                            start, dig_start, dig_end, end))
+        t, state = end, carry
+    segments.append(_Segment(t, t + 4.0 * pace, state, carry))
+    swing_t += [t, t + 4.0 * pace]
+    swing_v += [swing_v[-1], pile.azimuth]
+    duration = t + 4.0 * pace + 1.0
+    segments.append(_Segment(t + 4.0 * pace, duration, carry, carry))
+    swing_t.append(duration)
+    swing_v.append(pile.azimuth)
+
+    bounce_noise = None
+    if bounce > 0:
+        sd = bounce * np.array([deg(0.12), deg(0.2), deg(0.04), 0.002, 0.002, 0.006]) * np.sqrt(reach / 15.5)
+        bounce_noise = SmoothNoise.random(rng, sd, (1.0, 4.0))
+    return DigMotion(chain, tuple(segments), np.array(swing_t), np.array(swing_v), bounce_noise, hold, duration,
+                     tuple(cycles), pile, truck)
+
+
+def check_limits(machine: Machine, joints: np.ndarray) -> None:
+    """Raise ValueError naming the joint and the worst value when joints (T, J) leave the
+    model's limits."""
+    limits = machine.joint_limits
+    below = limits[:, 0] - joints
+    above = joints - limits[:, 1]
+    worst = np.maximum(below, above).max(axis=0)
+    for j in np.flatnonzero(worst > 1e-9):
+        raise ValueError(
+            f"planned motion leaves the limits of joint {machine.joint_names[j]!r} by "
+            f"{np.degrees(worst[j]):.1f} deg; limits {np.degrees(limits[j]).round(1).tolist()}"
+        )

@@ -1,0 +1,221 @@
+"""A synthetic field session with exact ground truth, in memory and on disk.
+
+`make_session` plans the dig cycles, places the cameras and computes every camera's true
+marker pixels and visibility at its own frames; `write_truth` writes the session folder
+(DESIGN.md) with ``truth/``: cameras.toml, motion.csv (reference-camera frames),
+tracks.csv (true centres of visible markers, each camera's own frames), markers.csv (3-D
+marker positions at reference frames), cycles.csv and scene.toml (pile, truck, options).
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from mocap.io import toml_writer
+
+from mocap.io.atomic import atomic_path, write_text
+from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.io.machine_toml import MACHINES_DIR
+from mocap.io.motion_csv import Motion, save_motion
+from mocap.io.points_csv import Points, save_points
+from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
+from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
+from mocap.machine import Machine
+from mocap.shapes import link_boxes
+from mocap.synthetic.cameras import FieldCamera, place_cameras
+from mocap.synthetic.motion import DigMotion, check_limits, plan_session
+from mocap.synthetic.paths import CLASSES
+from mocap.synthetic.visibility import marker_normals, visible_markers
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """What `make_session` varies. Angles in degrees, sizes in pixels."""
+
+    n_cameras: int = 3
+    n_cycles: int = 4
+    seed: int = 7
+    size: tuple[int, int] = (1920, 1080)
+    distortion: bool = False
+    shake_deg: float = 0.0
+    bounce: float = 1.0
+    reactive: float = 1.0
+    redirect_probability: float = 0.4
+    classes: tuple[str, ...] = CLASSES
+    hold: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.n_cameras <= 8:
+            raise ValueError(f"n_cameras must be 1..8, got {self.n_cameras}")
+        if self.n_cycles < 1:
+            raise ValueError(f"n_cycles must be at least 1, got {self.n_cycles}")
+        unknown = [c for c in self.classes if c not in CLASSES]
+        if unknown or not self.classes:
+            raise ValueError(f"classes must be some of {CLASSES}, got {list(self.classes)}")
+        if self.hold < 0.5:
+            raise ValueError(f"hold must be at least 0.5 s, got {self.hold}")
+
+
+@dataclass(frozen=True)
+class SyntheticSession:
+    """A planned session and its truth.
+
+    `cameras` the field cameras (first = reference clock); `motion` the truth at the
+    reference camera's frames; `tracks` the true pixels of visible markers (each camera's
+    own frames, `time` on the reference clock); `markers` (F, M, 3) world positions at the
+    reference frames; `views` (F, M) how many cameras see each marker then.
+    """
+
+    machine: Machine
+    machine_ref: str
+    options: SessionOptions
+    plan: DigMotion
+    cameras: tuple[FieldCamera, ...]
+    motion: Motion
+    tracks: Tracks
+    markers: np.ndarray
+    views: np.ndarray
+    boxes: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def calibration(self) -> Calibration:
+        """The true cameras as a calibration file: clocks in the extras, the joints at the
+        calibration frame (reference frame 0) in the metadata."""
+        extras = tuple({"fps": c.fps, "time_offset": c.time_offset} for c in self.cameras)
+        metadata = {
+            "machine": self.machine_ref,
+            "frame": 0,
+            "joints": joints_to_table(self.motion.joints[0], self.machine),
+            "error": 0.0,
+        }
+        return Calibration(tuple(c.camera for c in self.cameras), extras, metadata)
+
+    def observe(self, camera: FieldCamera, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """True marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) of
+        `camera` at its `frames` (F,) (fractional frames allowed)."""
+        return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames)
+
+
+def observe_camera(machine: Machine, plan: DigMotion, boxes: np.ndarray, normals: np.ndarray,
+                   camera: FieldCamera, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) at `frames`."""
+    times = camera.times(frames)
+    poses = machine.link_poses(plan.joints(times), plan.world_from_base(times))
+    uv, seen = visible_markers(machine, boxes, normals, poses, camera.cam_from_world(times),
+                               camera.camera.matrix, camera.camera.distortion, camera.camera.size)
+    return uv, seen, poses
+
+
+def make_session(machine: Machine, machine_ref: str | None = None, options: SessionOptions | None = None,
+                 **overrides) -> SyntheticSession:
+    """Plan a session of `machine` and compute its truth; deterministic for a seed.
+
+    `machine_ref` is how session.toml names the model (a shipped name or a path);
+    keyword `overrides` set `SessionOptions` fields, e.g. ``n_cameras=3, n_cycles=4, seed=7``.
+    """
+    options = SessionOptions(**{**asdict(options or SessionOptions()), **overrides})
+    rng = np.random.default_rng(options.seed)
+    plan = plan_session(machine, options.n_cycles, rng, classes=options.classes,
+                        redirect_probability=options.redirect_probability, reactive=options.reactive,
+                        bounce=options.bounce, hold=options.hold)
+    coarse = np.arange(0.0, plan.duration, 0.5)
+    check_limits(machine, plan.joints(coarse))
+    working = machine.markers(plan.joints(coarse), plan.world_from_base(coarse)).reshape(-1, 3)
+    reach = float(np.linalg.norm(plan.chain.offsets, axis=1).sum())
+    cameras = place_cameras(options.n_cameras, working, reach, (plan.pile.azimuth, plan.truck.azimuth),
+                            plan.duration, rng, size=options.size, distortion=options.distortion,
+                            shake_deg=options.shake_deg)
+    boxes = link_boxes(machine)
+    normals = marker_normals(machine, boxes)
+
+    reference = cameras[0]
+    frames = np.arange(reference.frames)
+    times = reference.times(frames)
+    joints = plan.joints(times)
+    check_limits(machine, joints)
+    world_from_base = plan.world_from_base(times)
+    motion = Motion(machine.joint_names, machine.point_names, frames, times, joints,
+                    machine.points(joints, world_from_base), machine.bucket_angles(joints, world_from_base),
+                    extra={"base_z": world_from_base[:, 2, 3]})
+    markers = machine.markers(joints, world_from_base)
+
+    parts, views = [], np.zeros(markers.shape[:2], dtype=int)
+    names = np.asarray(machine.marker_names, dtype=object)
+    for camera in cameras:
+        own = np.arange(camera.frames)
+        uv, seen, _ = observe_camera(machine, plan, boxes, normals, camera, own)
+        f, m = np.nonzero(seen)
+        parts.append(Tracks.from_rows(np.full(len(f), camera.name, dtype=object), own[f], names[m], uv[f, m],
+                                      time=camera.times(own[f])))
+        at_reference = (times - camera.time_offset) * camera.fps  # this camera's (fractional) frames
+        _, seen_ref, _ = observe_camera(machine, plan, boxes, normals, camera, at_reference)
+        views += seen_ref
+    return SyntheticSession(machine, machine_ref or machine.name, options, plan, tuple(cameras), motion,
+                            concatenate(parts), markers, views, boxes, normals)
+
+
+def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path | None = None) -> None:
+    """Write session.toml and truth/ under `root`; videos are named, not written here.
+
+    `machine_path`: a model file outside the shipped ones, copied into the folder.
+    """
+    root = Path(root)
+    truth = root / "truth"
+    machine_entry = session.machine_ref
+    if machine_path is not None and machine_path.resolve().parent != MACHINES_DIR.resolve():
+        shutil.copyfile(machine_path, root / "machine.toml")
+        machine_entry = "machine.toml"
+    elif machine_path is not None:
+        machine_entry = machine_path.stem
+    config = SessionConfig(
+        machine_entry,
+        tuple(SessionCamera(c.name, f"videos/{c.name}.mp4", c.fps) for c in session.cameras),
+        {"calibration_frame": 0, "synthetic_seed": session.options.seed},
+    )
+    save_session_config(config, root / "session.toml")
+    save_calibration(session.calibration, truth / "cameras.toml")
+    save_motion(session.motion, session.machine, truth / "motion.csv")
+    save_tracks(session.tracks, truth / "tracks.csv")
+    f, m = np.meshgrid(session.motion.frame, np.arange(len(session.machine.marker_names)), indexing="ij")
+    save_points(Points(f.ravel(), np.asarray(session.machine.marker_names, dtype=object)[m.ravel()],
+                       session.markers.reshape(-1, 3), np.zeros(f.size), session.views.ravel()),
+                truth / "markers.csv")
+    save_cycles(session, truth / "cycles.csv")
+    write_text(truth / "scene.toml", toml_writer.dumps(scene_table(session)))
+
+
+CYCLE_COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
+                 "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
+
+
+def save_cycles(session: SyntheticSession, path: Path) -> None:
+    """cycles.csv: one row per dig cycle; frames are the reference camera's."""
+    fps = session.cameras[0].fps
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(CYCLE_COLUMNS)
+        for c in session.plan.cycles:
+            times = (c.start, c.end, c.dig_start, c.dig_end)
+            frames = [int(round(t * fps)) for t in times]
+            writer.writerow([c.index, c.label, c.scaling, f"{c.scale[0]:.4f}", f"{c.scale[1]:.4f}", c.redirection,
+                             frames[0], frames[1], frames[2], frames[3], *(f"{t:.4f}" for t in times)])
+
+
+def scene_table(session: SyntheticSession) -> dict:
+    """The scene's truth beyond the cameras and the motion (degrees, metres)."""
+    pile, truck = session.plan.pile, session.plan.truck
+    options = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(session.options).items()}
+    return {
+        "machine": session.machine_ref,
+        "duration": session.plan.duration,
+        "pile": {"toe": pile.toe, "slope_deg": float(np.degrees(pile.slope)), "height": pile.height,
+                 "azimuth_deg": float(np.degrees(pile.azimuth)), "width": pile.width},
+        "truck": {"azimuth_deg": float(np.degrees(truck.azimuth)), "distance": truck.distance,
+                  "height": truck.height},
+        "options": options,
+    }

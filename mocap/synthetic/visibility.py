@@ -1,0 +1,83 @@
+"""Which painted markers a camera sees: facing it, inside the image, not behind a link.
+
+Markers are painted on the faces of the links' boxes (mocap.shapes.link_boxes): each
+marker's surface normal is the outward normal of the nearest face of its own link's box.
+A marker is hidden when the segment from it to the camera centre passes through another
+link's box (its own box never hides it: the paint is on the surface).
+
+Shapes: F frames, L links, M markers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocap.camera import project_cam
+from mocap.machine import Machine
+
+MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable marker
+
+
+def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
+    """Outward normals (M, 3) in each marker's link frame: the nearest face of its box."""
+    box = boxes[machine.marker_links]  # (M, 2, 3)
+    p = machine.marker_positions
+    gaps = np.concatenate([p - box[:, 0], box[:, 1] - p], axis=1)  # (M, 6): -x -y -z +x +y +z
+    face = np.argmin(np.abs(gaps), axis=1)
+    normals = np.zeros((len(p), 3))
+    normals[np.arange(len(p)), face % 3] = np.where(face < 3, -1.0, 1.0)
+    return normals
+
+
+def segment_hits_box(start: np.ndarray, end: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """Whether segments from `start` to `end` (*, 3) pass through the box (2, 3) (both in
+    the box's frame); a start point inside the box counts as a hit."""
+    d = end - start
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (box[0] - start) / d
+        t2 = (box[1] - start) / d
+    parallel = d == 0
+    inside_slab = (start >= box[0]) & (start <= box[1])
+    low = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
+    high = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
+    enter, leave = low.max(axis=-1), high.min(axis=-1)
+    return (leave >= np.maximum(enter, 0.0)) & (enter <= 1.0)
+
+
+def visible_markers(
+    machine: Machine,
+    boxes: np.ndarray,
+    normals: np.ndarray,
+    link_poses: np.ndarray,
+    cam_from_world: np.ndarray,
+    matrix: np.ndarray,
+    distortion: np.ndarray,
+    size: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Marker pixels (F, M, 2) and visibility (F, M) bool in one camera.
+
+    boxes (L, 2, 3) and normals (M, 3) in link frames; link_poses (F, L, 4, 4)
+    world_from_link; cam_from_world (F, 4, 4) the camera's pose per frame.
+    """
+    links = machine.marker_links
+    on_link = link_poses[:, links]  # (F, M, 4, 4)
+    world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], machine.marker_positions) + on_link[..., :3, 3]
+    rotation, translation = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    centre = -np.einsum("fji,fj->fi", rotation, translation)  # camera centre in the world (F, 3)
+    points_cam = np.einsum("fij,fmj->fmi", rotation, world) + translation[:, None]
+    uv = project_cam(points_cam, matrix, distortion)
+    w, h = size
+    seen = np.all(np.isfinite(uv), axis=-1)
+    seen &= (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    normal_world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], normals)
+    to_camera = centre[:, None] - world
+    facing = np.einsum("fmi,fmi->fm", normal_world, to_camera) / np.linalg.norm(to_camera, axis=-1)
+    seen &= facing > MIN_FACING_COS
+    for l in range(len(machine.links)):
+        link_from_world = np.linalg.inv(link_poses[:, l])  # (F, 4, 4)
+        r, t = link_from_world[:, :3, :3], link_from_world[:, :3, 3]
+        start = np.einsum("fij,fmj->fmi", r, world) + t[:, None]
+        end = np.einsum("fij,fj->fi", r, centre) + t
+        hidden = segment_hits_box(start, np.broadcast_to(end[:, None], start.shape), boxes[l])
+        seen &= ~(hidden & (links != l)[None])
+    return uv, seen

@@ -1,0 +1,269 @@
+"""Synthetic sessions: dig plans, inverse kinematics, cameras' clocks, visibility, truth files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocap.cli import main
+from mocap.errors import InputError
+from mocap.io.cameras_toml import load_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.motion_csv import load_motion
+from mocap.io.points_csv import load_points
+from mocap.io.session_toml import load_session_config
+from mocap.io.tracks_csv import load_tracks
+from mocap.simulate import random_joints
+from mocap.synthetic import SessionOptions, make_session
+from mocap.synthetic.ik import PlanarChain
+from mocap.synthetic.motion import check_limits, plan_session
+from mocap.synthetic.visibility import marker_normals, segment_hits_box
+from mocap.shapes import link_boxes
+
+MACHINES = ("hitachi_ex3500", "bobcat_225")
+
+
+@pytest.fixture(scope="module")
+def ex3500():
+    return load_machine("hitachi_ex3500")
+
+
+@pytest.fixture(scope="module")
+def session(ex3500):
+    return make_session(ex3500, "hitachi_ex3500", n_cameras=3, n_cycles=3, seed=11)
+
+
+def house_plane(machine, joints, chain):
+    """Bucket tip (F, 2) in the house's x-z plane and bucket angle (F,), by forward kinematics."""
+    tip = machine.points(joints)[:, machine.point_names.index("bucket_tip")]
+    swing = joints[:, chain.swing]
+    x = np.cos(swing) * tip[:, 0] + np.sin(swing) * tip[:, 1]
+    return np.stack([x, tip[:, 2]], axis=-1), machine.bucket_angles(joints)
+
+
+@pytest.mark.parametrize("name", MACHINES)
+def test_ik_inverts_forward_kinematics(name):
+    machine = load_machine(name)
+    chain = PlanarChain.from_machine(machine)
+    joints = random_joints(machine, 200, np.random.default_rng(1))
+    tip, angle = house_plane(machine, joints, chain)
+    back = chain.inverse(tip - [0.0, chain.house_height], angle, joints[:, chain.swing])
+    np.testing.assert_allclose(back, joints, atol=1e-9)
+
+
+@pytest.mark.parametrize("name, top_speed_deg", [("hitachi_ex3500", 100.0), ("bobcat_225", 150.0)])
+def test_planned_digs_are_reached_within_limits(name, top_speed_deg):
+    machine = load_machine(name)
+    chain = PlanarChain.from_machine(machine)
+    for seed in range(4):
+        plan = plan_session(machine, 4, np.random.default_rng(seed), bounce=0.0)
+        t = np.arange(0.0, plan.duration, 0.05)
+        joints = plan.joints(t)
+        check_limits(machine, joints)
+        planned = plan.tip_plan(t)
+        tip, angle = house_plane(machine, joints, chain)
+        np.testing.assert_allclose(tip, planned[:, :2], atol=1e-9)
+        np.testing.assert_allclose(angle, planned[:, 2], atol=1e-9)
+        np.testing.assert_allclose(joints[:, chain.swing], plan.swing(t), atol=1e-12)
+        # smooth: no joint turns faster than a machine of its size does
+        assert np.abs(np.diff(joints, axis=0)).max() / 0.05 < np.radians(top_speed_deg)
+
+
+def dig_of(plan, machine, label, fps=100.0):
+    """(arc fraction, bucket angle deg, tip (T, 2)) of the first dig of class `label`, by FK."""
+    chain = PlanarChain.from_machine(machine)
+    cycle = next(c for c in plan.cycles if c.label == label)
+    t = np.arange(cycle.dig_start, cycle.dig_end, 1.0 / fps)
+    tip, angle = house_plane(machine, plan.joints(t), chain)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(tip, axis=0), axis=1))]
+    return arc / arc[-1], np.degrees(angle), tip
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_dig_classes_have_their_bucket_angle_signatures(ex3500, seed):
+    plan = plan_session(ex3500, 3, np.random.default_rng(seed), redirect_probability=0.0, reactive=0.0, bounce=0.0)
+    reach = float(np.linalg.norm(PlanarChain.from_machine(ex3500).offsets, axis=1).sum())
+    assert sorted(c.label for c in plan.cycles) == ["Type 1", "Type 2", "Type 3"]
+
+    s, angle, tip = dig_of(plan, ex3500, "Type 1")
+    assert angle[0] < -20.0  # significantly negative
+    assert 0.3 < s[np.argmax(angle >= 0)] < 0.6  # negative for up to about half the arc
+    early = s < 0.2
+    assert np.ptp(tip[early, 1]) < 0.02 * reach  # pushed nearly horizontally along the floor
+    assert tip[0, 1] < 0.05 * reach  # at the base of the pile
+    linear = np.interp(s, [0, 1], [angle[0], angle[-1]])
+    assert np.abs(angle - linear).max() < 0.1 * (angle[-1] - angle[0])  # about linear in arc length
+
+    s, angle, tip = dig_of(plan, ex3500, "Type 2")
+    rise = angle[-1] - angle[0]
+    assert abs(angle[0]) < 6.0 and tip[0, 1] < 0.06 * reach
+    assert angle[np.searchsorted(s, 0.6)] - angle[0] < 0.25 * rise  # rises sharply near the end
+    assert rise > 30.0
+
+    s, angle, tip = dig_of(plan, ex3500, "Type 3")
+    rise = angle[-1] - angle[0]
+    assert abs(angle[0]) < 6.0
+    assert tip[0, 1] > 0.3 * plan.pile.height  # midway up the pile
+    direction = np.degrees(np.arctan2(*(tip[-1] - tip[0])[::-1]))
+    assert abs(direction - np.degrees(plan.pile.slope)) < 8.0  # roughly parallel to the face
+    half = angle[np.searchsorted(s, 0.5)] - angle[0]
+    assert 0.2 * rise < half < 0.5 * rise  # about linear, steeper near the end
+
+
+def test_deviations_are_recorded_and_change_the_dig(ex3500):
+    rng_seed = 5
+    smooth = plan_session(ex3500, 3, np.random.default_rng(rng_seed), redirect_probability=0.0, reactive=0.0)
+    redirected = plan_session(ex3500, 3, np.random.default_rng(rng_seed), redirect_probability=1.0, reactive=0.0)
+    assert all(c.redirection in ("temporary", "kept") for c in redirected.cycles)
+    assert all(c.redirection == "none" for c in smooth.cycles)
+    for c in redirected.cycles:
+        if c.scaling == "proportional":
+            assert c.scale[0] == c.scale[1]
+        else:
+            assert abs(c.scale[0] - c.scale[1]) > 0.05
+
+
+def test_same_seed_same_truth(ex3500, session):
+    again = make_session(ex3500, "hitachi_ex3500", n_cameras=3, n_cycles=3, seed=11)
+    np.testing.assert_array_equal(again.tracks.xy, session.tracks.xy)
+    np.testing.assert_array_equal(again.motion.joints, session.motion.joints)
+    other = make_session(ex3500, "hitachi_ex3500", n_cameras=3, n_cycles=3, seed=12)
+    assert other.motion.joints.shape != session.motion.joints.shape or not np.allclose(
+        other.motion.joints, session.motion.joints
+    )
+
+
+def test_clocks_and_calibration_hold(session):
+    reference = session.cameras[0]
+    assert reference.time_offset == 0.0 and session.motion.frame[0] == 0
+    np.testing.assert_allclose(session.motion.time, session.motion.frame / reference.fps)
+    for camera in session.cameras:
+        rows = session.tracks.of_camera(camera.name)
+        np.testing.assert_allclose(rows.time, rows.frame / camera.fps + camera.time_offset, atol=1e-12)
+        assert camera.times()[-1] >= session.plan.duration - 1.0 / camera.fps
+        assert 20.0 <= np.linalg.norm(camera.camera.center[:2]) <= 80.0  # an EX3500 crew's distances
+    still = session.motion.time < session.options.hold
+    assert still.sum() >= 50
+    np.testing.assert_array_equal(session.motion.joints[still], np.repeat(session.motion.joints[:1], still.sum(), 0))
+    assert np.all(session.motion.extra["base_z"][still] == 0.0)
+    assert np.ptp(session.motion.extra["base_z"]) > 0  # the base bounces later
+
+
+def test_truth_pixels_are_projections_of_visible_markers(session):
+    for camera in session.cameras:
+        rows = session.tracks.of_camera(camera.name)
+        frames = np.unique(rows.frame)[::97]
+        uv, seen, _ = session.observe(camera, frames)
+        dense = rows.dense([camera.name], session.machine.marker_names, frames)[0]
+        np.testing.assert_array_equal(np.isfinite(dense[..., 0]), seen)
+        np.testing.assert_allclose(dense[seen], uv[seen], atol=1e-9)
+        w, h = camera.camera.size
+        assert np.all((rows.xy >= 0) & (rows.xy <= [w - 1, h - 1]))
+    assert session.views.max() >= 2 and session.views.mean() > 0.5
+
+
+def test_segment_box_test_agrees_with_sampling():
+    rng = np.random.default_rng(3)
+    box = np.array([[-1.0, -0.5, -0.2], [1.0, 0.5, 0.2]])
+    start = rng.uniform(-2, 2, (4000, 3))
+    end = rng.uniform(-2, 2, (4000, 3))
+    hits = segment_hits_box(start, end, box)
+    s = np.linspace(0, 1, 2001)[:, None, None]
+    samples = start + s * (end - start)
+    sampled = np.any(np.all((samples >= box[0]) & (samples <= box[1]), axis=-1), axis=0)
+    # sampling can only miss a grazing hit shorter than one step
+    assert np.all(hits[sampled])
+    assert (hits & ~sampled).sum() <= 4
+    assert 0.1 < hits.mean() < 0.9
+
+
+def test_hidden_markers_are_behind_other_links(session):
+    machine = session.machine
+    camera = session.cameras[0]
+    frames = np.arange(0, camera.frames, 41)
+    uv, seen, poses = session.observe(camera, frames)
+    centre = camera.camera.center
+    world = machine.markers(session.plan.joints(camera.times(frames)), session.plan.world_from_base(camera.times(frames)))
+    normals = np.einsum("fmij,mj->fmi", poses[:, machine.marker_links, :3, :3], session.normals)
+    facing = np.einsum("fmi,fmi->fm", normals, centre - world) / np.linalg.norm(centre - world, axis=-1) > 0.2
+    s = np.linspace(0.0, 1.0, 400)
+    samples = world[..., None, :] + s[:, None] * (centre - world)[..., None, :]  # (F, M, S, 3)
+    behind = np.zeros(seen.shape, dtype=bool)
+    for l in range(len(machine.links)):
+        inv = np.linalg.inv(poses[:, l])
+        local = np.einsum("fij,fmsj->fmsi", inv[:, :3, :3], samples) + inv[:, None, None, :3, 3]
+        inside = np.all((local >= session.boxes[l, 0]) & (local <= session.boxes[l, 1]), axis=-1).any(axis=-1)
+        behind |= inside & (machine.marker_links != l)[None]
+    in_image = np.all(np.isfinite(uv), axis=-1)
+    candidates = facing & in_image
+    assert (candidates & behind).sum() > 0  # the scene has occlusions
+    assert np.mean(seen[candidates] == ~behind[candidates]) > 0.995
+
+
+def test_marker_normals_point_out_of_their_boxes(ex3500):
+    boxes = link_boxes(ex3500)
+    normals = marker_normals(ex3500, boxes)
+    middle = boxes[ex3500.marker_links].mean(axis=1)
+    assert np.all(np.einsum("mi,mi->m", ex3500.marker_positions - middle, normals) > 0)
+    assert np.all(np.abs(normals).sum(axis=1) == 1)
+
+
+def test_guards():
+    with pytest.raises(InputError, match="bucket_tip"):
+        PlanarChain.from_machine(load_machine("cube_pair"))
+    chain = PlanarChain.from_machine(load_machine("bobcat_225"))
+    with pytest.raises(ValueError, match="out of reach at frame 1"):
+        chain.inverse(np.array([[3.5, 0.0], [40.0, 0.0]]), np.zeros(2), np.zeros(2))
+    machine = load_machine("bobcat_225")
+    with pytest.raises(ValueError, match="limits of joint 'boom'"):
+        check_limits(machine, np.array([[0.0, np.radians(80.0), np.radians(-90.0), 0.0]]))
+    with pytest.raises(ValueError, match="n_cameras must be 1..8"):
+        SessionOptions(n_cameras=0)
+    with pytest.raises(ValueError, match="n_cycles must be at least 1"):
+        SessionOptions(n_cycles=0)
+    with pytest.raises(ValueError, match="classes must be some of"):
+        SessionOptions(classes=("Type 4",))
+    with pytest.raises(ValueError, match="hold must be at least"):
+        SessionOptions(hold=0.1)
+
+
+def test_cli_writes_truth_that_reads_back(tmp_path, capsys):
+    out = tmp_path / "session"
+    argv = ["synth", "--machine", "bobcat_225", "--cameras", "2", "--cycles", "1", "--seed", "3",
+            "--out", str(out), "--no-video", "--distortion"]
+    assert main(argv) == 0
+    machine = load_machine("bobcat_225")
+    truth = make_session(machine, "bobcat_225", n_cameras=2, n_cycles=1, seed=3, distortion=True)
+    config = load_session_config(out / "session.toml")
+    assert config.machine == "bobcat_225" and [c.name for c in config.cameras] == ["cam1", "cam2"]
+    assert [c.fps for c in config.cameras] == [c.fps for c in truth.cameras]
+    calibration = load_calibration(out / "truth" / "cameras.toml")
+    np.testing.assert_allclose(calibration.time_offsets, [c.time_offset for c in truth.cameras])
+    np.testing.assert_allclose(calibration.joints(machine), truth.motion.joints[0], atol=1e-9)
+    assert np.any(calibration.cameras[1].distortion != 0)
+    tracks = load_tracks(out / "truth" / "tracks.csv")
+    assert len(tracks) == len(truth.tracks)
+    np.testing.assert_allclose(tracks.xy, truth.tracks.xy, atol=1e-4)
+    motion = load_motion(out / "truth" / "motion.csv", machine)
+    np.testing.assert_allclose(motion.bucket_angle, truth.motion.bucket_angle, atol=1e-6)
+    points = load_points(out / "truth" / "markers.csv")
+    # reference frame 0 is the calibration frame: the stored cameras reproject its markers
+    first = tracks.of_camera("cam1").of_frame(0)
+    xyz = points.xyz[(points.frame == 0)][machine.marker_index(first.marker)]
+    np.testing.assert_allclose(calibration.cameras[0].project(xyz), first.xy, atol=2e-3)
+    cycles = (out / "truth" / "cycles.csv").read_text().splitlines()
+    assert cycles[0].startswith("cycle,class,scaling") and len(cycles) == 2
+    assert main(argv) == 2  # the folder is not empty now
+    assert "not empty" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [(["--size", "big"], "expected WIDTHxHEIGHT"), (["--classes", "4"], "comma list of 1, 2, 3"),
+     (["--cameras", "0"], "give 1 to 8 cameras"), (["--cycles", "0"], "at least one dig cycle"),
+     (["--machine", "nope"], "no machine model named")],
+)
+def test_cli_rejects_bad_options(tmp_path, capsys, extra, message):
+    argv = ["synth", "--machine", "bobcat_225", "--out", str(tmp_path / "s"), "--no-video", *extra]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
