@@ -342,6 +342,23 @@ def test_trails_leave_out_segments_at_unknown_tips():
     assert trails[1].first_frame == 106
 
 
+def test_link_poses_follow_a_moving_base():
+    machine = load_machine("bobcat_225")
+    rng = np.random.default_rng(5)
+    motion = smooth_motion(machine, rng, 12)
+    lifted = Motion(
+        motion.joint_names, motion.point_names, motion.frame, motion.time, motion.joints, motion.points,
+        motion.bucket_angle, extra={"base_z": np.linspace(0.0, 0.05, 12)},
+    )
+    base = np.tile(np.eye(4), (12, 1, 1))
+    base[:, 2, 3] = np.linspace(0.0, 0.05, 12)
+    series = scene.link_series(machine, lifted)
+    np.testing.assert_allclose(series.translation, machine.link_poses(motion.joints, base)[:, :, :3, 3])
+    _, markers = scene.model_markers(machine, lifted)
+    np.testing.assert_allclose(markers, machine.markers(motion.joints, base))
+    assert scene.world_from_base(motion) is None
+
+
 def test_clock_mapping_between_cameras():
     np.testing.assert_array_equal(scene.reference_frames(scene.camera_time([0, 30, 60], 30.0, 0.5), 30.0, 0.0), [15, 45, 75])
     motion = Motion((), (), np.arange(10), np.arange(10) / 10.0, np.zeros((10, 0)), np.zeros((10, 0, 3)), np.zeros(10))

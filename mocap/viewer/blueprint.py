@@ -28,7 +28,9 @@ def trail_time_ranges(trail: Trail) -> rrb.VisibleTimeRanges:
     )
 
 
-def default_blueprint(cameras: Sequence[str], trails: Sequence[Trail], has_uncertainty: bool) -> rrb.Blueprint:
+def default_blueprint(cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[str]) -> rrb.Blueprint:
+    """`plot_groups` the groups under plots/ beyond joints, bucket angle and speed that have
+    series: "uncertainty", "base", "extra"."""
     scene_3d = rrb.Spatial3DView(
         origin="world",
         name="machine",
@@ -40,7 +42,7 @@ def default_blueprint(cameras: Sequence[str], trails: Sequence[Trail], has_uncer
         rrb.TimeSeriesView(origin="plots/bucket_angle", name="bucket angle (deg)"),
         rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
     ]
-    if has_uncertainty:
-        plots.append(rrb.TimeSeriesView(origin="plots/uncertainty", name="uncertainty (sd)"))
+    names = {"uncertainty": "uncertainty (sd)", "base": "base position (m)", "extra": "other columns"}
+    plots += [rrb.TimeSeriesView(origin=f"plots/{group}", name=names[group]) for group in plot_groups]
     left = rrb.Vertical(scene_3d, rrb.Horizontal(*images), row_shares=[3, 1]) if images else scene_3d
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]))

@@ -121,7 +121,7 @@ def check_machine(calibration, machine, files: ReplayFiles) -> None:
     """The calibration's metadata names the machine it was made for (its name or model file)."""
     named = calibration.metadata.get("machine")
     known = {machine.name, str(files.machine), Path(str(files.machine)).stem}
-    if isinstance(named, str) and named not in known:
+    if isinstance(named, str) and named not in known and Path(named).stem not in known:
         raise InputError(
             f"calibrated for machine {named!r}, not {machine.name!r}; pass the matching --machine",
             path=files.calibration,

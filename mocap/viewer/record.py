@@ -250,7 +250,9 @@ def log_plots(rec: rr.RecordingStream, machine: Machine, motion: Motion, tip: st
             rec, "plots/uncertainty/bucket_angle_sd", "bucket angle sd (deg)", motion, np.degrees(motion.bucket_angle_sd)
         )
     for name, values in motion.extra.items():
-        if name in speed_columns and name != f"{tip}_speed":
+        if name in scene.BASE_COLUMNS:
+            log_scalar(rec, "plots/base/" + entity(name), f"{name} (m)", motion, values)
+        elif name in speed_columns and name != f"{tip}_speed":
             log_scalar(rec, "plots/speed/" + entity(name[: -len("_speed")]), f"{name} (m/s)", motion, values)
         elif name not in speed_columns:
             log_scalar(rec, "plots/extra/" + entity(name), name, motion, values)

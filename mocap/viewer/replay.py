@@ -123,8 +123,15 @@ def frustum_depth(calibration: Calibration) -> float:
 
 def replay_blueprint(replay: Replay):
     motion = replay.motion
-    uncertain = any(sd is not None for sd in (motion.joints_sd, motion.points_sd, motion.bucket_angle_sd))
-    return default_blueprint(replay.calibration.names, replay.trails(), uncertain)
+    groups = []
+    if any(sd is not None for sd in (motion.joints_sd, motion.points_sd, motion.bucket_angle_sd)):
+        groups.append("uncertainty")
+    if any(name in motion.extra for name in scene.BASE_COLUMNS):
+        groups.append("base")
+    speeds = {f"{p}_speed" for p in motion.point_names}
+    if set(motion.extra) - speeds - set(scene.BASE_COLUMNS):
+        groups.append("extra")
+    return default_blueprint(replay.calibration.names, replay.trails(), groups)
 
 
 def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:

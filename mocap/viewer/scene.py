@@ -44,15 +44,40 @@ class LinkSeries:
             raise ValueError(f"LinkSeries.quaternion: expected ({r}, L, 4), got {self.quaternion.shape}")
 
 
+BASE_COLUMNS = ("base_x", "base_y", "base_z")
+
+
+def world_from_base(motion: Motion) -> np.ndarray | None:
+    """(F, 4, 4) base poses from the motion's ``base_x, base_y, base_z`` columns (m; a base
+    that bounces or has moved since calibration), missing ones 0; None if it has none."""
+    present = [name in motion.extra for name in BASE_COLUMNS]
+    if not any(present):
+        return None
+    poses = np.tile(np.eye(4), (len(motion), 1, 1))
+    for axis, name in enumerate(BASE_COLUMNS):
+        if name in motion.extra:
+            poses[:, axis, 3] = motion.extra[name]
+    return poses
+
+
 def known_rows(motion: Motion) -> np.ndarray:
-    """(R,) indices of the frames whose joint values are all finite."""
-    return np.flatnonzero(np.all(np.isfinite(motion.joints), axis=1))
+    """(R,) indices of the frames whose joint values (and base pose, if any) are all finite."""
+    known = np.all(np.isfinite(motion.joints), axis=1)
+    base = world_from_base(motion)
+    if base is not None:
+        known &= np.all(np.isfinite(base[:, :3, 3]), axis=1)
+    return np.flatnonzero(known)
+
+
+def _base_at(motion: Motion, rows: np.ndarray) -> np.ndarray | None:
+    base = world_from_base(motion)
+    return None if base is None else base[rows]
 
 
 def link_series(machine: Machine, motion: Motion) -> LinkSeries:
     """Each link's pose in the world at every frame with known joints."""
     rows = known_rows(motion)
-    world_from_link = machine.link_poses(motion.joints[rows])  # (R, L, 4, 4)
+    world_from_link = machine.link_poses(motion.joints[rows], _base_at(motion, rows))  # (R, L, 4, 4)
     n_rows, n_links = world_from_link.shape[:2]
     rotations = world_from_link[..., :3, :3].reshape(-1, 3, 3)
     quaternion = Rotation.from_matrix(rotations).as_quat().reshape(n_rows, n_links, 4)  # x, y, z, w
@@ -62,7 +87,7 @@ def link_series(machine: Machine, motion: Motion) -> LinkSeries:
 def model_markers(machine: Machine, motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """Rows (R,) with known joints and the model's marker positions there (R, M, 3)."""
     rows = known_rows(motion)
-    return rows, machine.markers(motion.joints[rows])
+    return rows, machine.markers(motion.joints[rows], _base_at(motion, rows))
 
 
 def joint_display_units(machine: Machine) -> tuple[np.ndarray, tuple[str, ...]]:
