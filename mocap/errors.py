@@ -26,3 +26,7 @@ class InputError(Exception):
 
 class DegenerateError(InputError):
     """The observations cannot determine the unknowns (too few markers, degenerate geometry)."""
+
+
+class ConvergenceError(InputError):
+    """A fit did not reach a solution that explains the observations."""

@@ -8,7 +8,7 @@ from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate
 from mocap.calibration.dlt import dlt_camera
 from mocap.calibration.problem import Layout, Problem
 from mocap.camera import Camera, PaperCamera
-from mocap.errors import DegenerateError
+from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import rotation_angle_between
 from mocap.io.machine_toml import machine_from_dict, machine_to_dict
 from mocap.simulate import look_at_camera, observe
@@ -230,3 +230,11 @@ def test_dlt_guards(cube_pair):
     flat = cube_pair.marker_positions[obs.marker] * [1, 1, 0]
     with pytest.raises(DegenerateError, match="coplanar"):
         dlt_camera("c", camera.size, flat, obs.xy)
+
+
+def test_scrambled_labels_do_not_give_a_silent_answer(ex3500):
+    cameras, q, obs, _ = scene(ex3500, 1, seed=8)
+    rng = np.random.default_rng(0)
+    scrambled = Observations(obs.camera, rng.permutation(obs.marker), obs.xy)
+    with pytest.raises(ConvergenceError, match="did not converge: .* check the marker labels"):
+        calibrate(ex3500, scrambled, templates(cameras))

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import least_squares, minimize_scalar
 
 from mocap.camera import Camera, intrinsic_matrix
 from mocap.geometry import Rigid
@@ -61,6 +61,22 @@ def place_camera(
         Rigid.from_rotvec(*pose),
     )
     return camera, _rms(points, pixels, pose, focal, principal)
+
+
+def refine_camera(points: np.ndarray, pixels: np.ndarray, camera: Camera) -> Camera:
+    """Rotation, translation and focal length of `camera` refined on N >= 4 known points."""
+    principal = camera.matrix[:2, 2]
+    pose = camera.cam_from_world
+
+    def residuals(x):
+        return (_project(points, x[:3], x[3:6], x[6], principal) - pixels).ravel()
+
+    x0 = np.r_[pose.rotvec, pose.translation, camera.focal]
+    x = least_squares(residuals, x0, method="trf", x_scale="jac").x
+    return Camera(
+        camera.name, camera.size, intrinsic_matrix(abs(x[6]), principal), np.zeros(5),
+        Rigid.from_rotvec(x[:3], x[3:6]),
+    )
 
 
 def _pnp(points, pixels, matrix):

@@ -17,7 +17,7 @@ from scipy.optimize import least_squares
 from mocap.calibration import identify, initial
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
-from mocap.errors import DegenerateError, InputError
+from mocap.errors import ConvergenceError, DegenerateError, InputError
 from mocap.machine import Machine
 
 log = logging.getLogger(__name__)
@@ -153,14 +153,19 @@ def calibrate(
 def _start(machine, obs: Observations, templates, group, guess: Guess | None):
     """Starting cameras (dict by index) and joint values for the cameras in `group`."""
     cameras: list[Camera | None] = [None] * len(templates)
+    base = machine.marker_links[obs.marker] == 0
     if guess is not None and guess.cameras:
         for c in group:
             paper: PaperCamera = guess.cameras[templates[c].name]
             cameras[c] = Camera.from_paper(
                 templates[c].name, templates[c].size, paper, tuple(templates[c].matrix[:2, 2])
             )
+            rows = (obs.camera == c) & base
+            if guess.joints is None and np.sum(rows) >= 4:
+                cameras[c] = initial.refine_camera(
+                    machine.marker_positions[obs.marker[rows]], obs.xy[rows], cameras[c]
+                )
     else:
-        base = machine.marker_links[obs.marker] == 0
         for c in group:
             rows = (obs.camera == c) & base
             if np.sum(rows) >= 4:
@@ -231,6 +236,12 @@ def _fit(machine, observations, layout, templates, x0, options) -> CalibrationRe
                 ) from None
             problem = Problem(machine, kept, layout, templates)
             final = _least_squares(problem, robust.x, bounds)
+    rms = float(np.sqrt(np.mean(final.fun**2) * 2))
+    if rms > 5.0 * options.f_scale_px:
+        raise ConvergenceError(
+            f"the fit did not converge: {rms:.1f} px rms over {len(final.fun) // 2} observations "
+            "(expected about the pixel noise); check the marker labels, or give a --guess"
+        )
     jacobian = final.jac
     parameter_names = layout.names(names, machine.joint_names)
     rank, condition = identify.check_jacobian(jacobian, parameter_names, layout.kinds(names, machine.joint_names))
