@@ -1,0 +1,94 @@
+"""From resampled pixels to the machine's motion: kinematic fit, smoothing, named points
+with uncertainties, velocities; the pure core of `mocap fit`.
+
+Motion extra columns (DESIGN.md motion CSV): ``filled`` (1 where the smoother predicted
+a frame across a gap or a joint that was not observed), ``<point>_speed`` (m/s) and
+``<point>_acceleration`` (m/s², magnitude) with smoothing, ``rms_px`` (the fit's residual
+RMS) and ``observations`` (2-D observations used).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.camera import Camera
+from mocap.io.motion_csv import Motion
+from mocap.machine import Machine
+from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
+from mocap.reconstruct.smooth import Smoothed, SmoothOptions, smooth
+from mocap.reconstruct.uncertainty import point_quantities
+
+
+@dataclass(frozen=True)
+class MotionResult:
+    """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None."""
+
+    motion: Motion
+    fit: JointFit
+    smoothed: Smoothed | None
+
+
+def reconstruct_motion(
+    machine: Machine,
+    cameras: list[Camera],
+    frame: np.ndarray,
+    time: np.ndarray,
+    pixels: np.ndarray,
+    fit_options: FitOptions | None = None,
+    smooth_options: SmoothOptions | None = None,
+    smoothing: bool = True,
+    initial: np.ndarray | None = None,
+) -> MotionResult:
+    """Fit, smooth and measure the machine's motion.
+
+    frame (F,) reference frames; time (F,) s; pixels (C, F, M, 2) on the reference clock.
+    """
+    fit_options = fit_options or FitOptions()
+    fit = fit_joints(machine, cameras, pixels, initial=initial, options=fit_options)
+    base_motion = fit.base is not None
+    values = fit.joints if not base_motion else np.c_[fit.joints, fit.base]
+    n_joints = machine.n_joints
+    extra = {"rms_px": fit.rms_px, "observations": fit.n_observations.astype(float)}
+    smoothed = None
+    if smoothing and len(frame) > 1:
+        wrap = np.r_[_wraps(machine), np.zeros(6 * base_motion, bool)]
+        smoothed = smooth(time, values, fit.information, fit.valid, wrap=wrap, options=smooth_options)
+        values = smoothed.values
+        covariance = smoothed.covariance
+        limits = machine.joint_limits
+        span = limits[:, 1] - limits[:, 0]
+        joints = values[:, :n_joints]
+        wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(_wraps(machine), span, 1.0))
+        values = np.c_[np.where(_wraps(machine), wrapped, joints), values[:, n_joints:]]
+        quantities = point_quantities(machine, values, covariance, base_motion, smoothed.velocities)
+        extra["filled"] = smoothed.filled.astype(float)
+        for k, name in enumerate(machine.point_names):
+            speed = quantities.speed[:, k]
+            acceleration = np.gradient(quantities.velocities[:, k], time, axis=0) if len(time) > 2 else np.zeros((len(time), 3))
+            extra[f"{name}_speed"] = speed
+            extra[f"{name}_acceleration"] = np.linalg.norm(acceleration, axis=-1)
+    else:
+        covariance = fit.covariance
+        quantities = point_quantities(machine, values, covariance, base_motion)
+    joints_sd = np.sqrt(np.diagonal(covariance, axis1=1, axis2=2)[:, :n_joints])
+    motion = Motion(
+        joint_names=machine.joint_names,
+        point_names=machine.point_names,
+        frame=np.asarray(frame, dtype=int),
+        time=np.asarray(time, dtype=float),
+        joints=values[:, :n_joints],
+        points=quantities.points,
+        bucket_angle=quantities.bucket_angle,
+        joints_sd=joints_sd,
+        points_sd=quantities.points_sd,
+        bucket_angle_sd=quantities.bucket_angle_sd,
+        extra=extra,
+    )
+    return MotionResult(motion, fit, smoothed)
+
+
+def _wraps(machine: Machine) -> np.ndarray:
+    limits = machine.joint_limits
+    return (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9

@@ -1,0 +1,203 @@
+"""Temporal smoothing of the fitted parameters, with gap filling.
+
+A Rauch-Tung-Striebel smoother with a constant-velocity model (white-noise acceleration
+of spectral density ``q`` per parameter). Each frame's measurement is the kinematic fit's
+parameter vector with its information matrix (the inverse covariance from the normal
+equations, singular where a joint was not observed), used in information form so that a
+frame that saw nothing of the bucket still constrains the other joints and leaves the
+bucket to the model. Frames that the fit could not determine are predicted (filled);
+gaps longer than `max_gap_s` are left NaN. Measurements whose innovation is improbable
+(chi-square gate) are skipped as failed fits.
+
+Shapes: F frames, P parameters (J joints, then the base's 6 with base motion).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+log = logging.getLogger(__name__)
+
+_PRIOR_SD = 1e3  # initial state SD (rad, m, per second): uninformative
+
+
+@dataclass(frozen=True)
+class SmoothOptions:
+    """process_noise: (P,) or scalar white-noise acceleration spectral density (unit^2/s^3),
+    None to estimate it from the data at the `stride_s` time scale; max_gap_s: longer gaps
+    stay unfilled; gate_probability: measurements beyond this chi-square quantile are
+    rejected (1 disables the gate); unobserved_factor: a parameter whose fit SD exceeds this
+    multiple of its median counts as unobserved (the frame is marked filled)."""
+
+    process_noise: float | np.ndarray | None = None
+    max_gap_s: float = 2.0
+    stride_s: float = 0.5
+    gate_probability: float = 1.0
+    unobserved_factor: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not self.max_gap_s >= 0 or not self.stride_s > 0:
+            raise ValueError("max_gap_s must be >= 0 and stride_s > 0")
+        if not 0 < self.gate_probability <= 1:
+            raise ValueError(f"gate_probability must be in (0, 1], got {self.gate_probability}")
+        if self.process_noise is not None and np.any(~(np.asarray(self.process_noise) > 0)):
+            raise ValueError("process_noise must be positive")
+
+
+@dataclass(frozen=True)
+class Smoothed:
+    """values (F, P), velocities (F, P) per second, covariance (F, P, P) of the values,
+    velocity_covariance (F, P, P); filled (F,) frames predicted across a gap or with an
+    unobserved parameter; rejected (F,) measurements the gate refused; process_noise (P,)."""
+
+    values: np.ndarray
+    velocities: np.ndarray
+    covariance: np.ndarray
+    velocity_covariance: np.ndarray
+    filled: np.ndarray
+    rejected: np.ndarray
+    process_noise: np.ndarray
+
+    def __post_init__(self) -> None:
+        n, p = np.shape(self.values)
+        if np.shape(self.covariance) != (n, p, p) or np.shape(self.velocities) != (n, p):
+            raise ValueError(f"Smoothed needs velocities ({n}, {p}) and covariance ({n}, {p}, {p})")
+
+
+def smooth(
+    time: np.ndarray,
+    values: np.ndarray,
+    information: np.ndarray,
+    valid: np.ndarray,
+    wrap: np.ndarray | None = None,
+    options: SmoothOptions | None = None,
+) -> Smoothed:
+    """Smooth per-frame parameter measurements.
+
+    Parameters
+    ----------
+    time : (F,) seconds, increasing.
+    values : (F, P) measured parameters (NaN where not valid).
+    information : (F, P, P) inverse covariance of each measurement (may be singular).
+    valid : (F,) frames with a measurement.
+    wrap : (P,) bool, angles measured modulo 2 pi (unwrapped here, returned unwrapped).
+    """
+    options = options or SmoothOptions()
+    time = np.asarray(time, dtype=float)
+    values = np.asarray(values, dtype=float)
+    n, p = values.shape
+    if time.shape != (n,) or np.shape(information) != (n, p, p) or np.shape(valid) != (n,):
+        raise ValueError(f"smooth needs time ({n},), information ({n}, {p}, {p}) and valid ({n},)")
+    if n > 1 and np.any(np.diff(time) <= 0):
+        raise ValueError("time must increase")
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(values).all(1)
+    values = _unwrap(values, valid, np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool))
+    covariance_fit = np.linalg.inv(information + 1e-12 * np.eye(p))
+    fit_sd = np.sqrt(np.abs(np.diagonal(covariance_fit, axis1=1, axis2=2)))
+    typical = np.nanmedian(np.where(valid[:, None], fit_sd, np.nan), axis=0) if valid.any() else np.ones(p)
+    observed = valid[:, None] & (fit_sd <= options.unobserved_factor * typical)
+    q = _process_noise(time, values, observed, fit_sd, options) if options.process_noise is None else (
+        np.broadcast_to(np.asarray(options.process_noise, dtype=float), (p,)).copy()
+    )
+    if not valid.any():
+        nan = np.full((n, p), np.nan)
+        return Smoothed(nan, nan.copy(), np.full((n, p, p), np.nan), np.full((n, p, p), np.nan), np.zeros(n, bool), np.zeros(n, bool), q)
+    mean, cov, rejected = _rts(time, values, information, valid, q, options)
+    long_gap = _long_gaps(time, valid, options.max_gap_s)
+    mean[long_gap] = np.nan
+    cov[long_gap] = np.nan
+    filled = ~long_gap & ~(observed.all(1) & valid & ~rejected)
+    return Smoothed(mean[:, :p], mean[:, p:], cov[:, :p, :p], cov[:, p:, p:], filled, rejected, q)
+
+
+def _unwrap(values: np.ndarray, valid: np.ndarray, wrap: np.ndarray) -> np.ndarray:
+    values = values.copy()
+    for j in np.nonzero(wrap)[0]:
+        values[valid, j] = np.unwrap(values[valid, j])
+    return values
+
+
+def _process_noise(time, values, observed, fit_sd, options) -> np.ndarray:
+    """Per parameter: the mean squared second difference at stride h minus its measurement
+    part, over (2/3) h^3 (the white-noise-acceleration variance of a second difference)."""
+    n, p = values.shape
+    dt = np.median(np.diff(time)) if n > 1 else 1.0
+    stride = max(1, int(round(options.stride_s / dt)))
+    q = np.full(p, 1e-6)
+    if n <= 2 * stride:
+        return q
+    h = stride * dt
+    for j in range(p):
+        ok = observed[: n - 2 * stride, j] & observed[stride : n - stride, j] & observed[2 * stride :, j]
+        if ok.sum() < 3:
+            continue
+        d2 = values[2 * stride :, j] - 2 * values[stride : n - stride, j] + values[: n - 2 * stride, j]
+        noise = 6.0 * np.mean(fit_sd[stride : n - stride, j][ok] ** 2)
+        q[j] = max(np.mean(d2[ok] ** 2) - noise, 1e-6 * noise, 1e-12) / (2.0 / 3.0 * h**3)
+    return q
+
+
+def _long_gaps(time: np.ndarray, valid: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """(F,) frames inside a run of invalid frames whose span between measurements exceeds
+    `max_gap_s`, and frames before the first or after the last measurement."""
+    out = np.zeros(len(time), bool)
+    index = np.nonzero(valid)[0]
+    out[: index[0]] = True
+    out[index[-1] + 1 :] = True
+    for a, b in zip(index[:-1], index[1:]):
+        if b - a > 1 and time[b] - time[a] > max_gap_s:
+            out[a + 1 : b] = True
+    return out
+
+
+def _rts(time, values, information, valid, q, options):
+    """Forward information-form Kalman filter and RTS backward pass -> mean (F, 2P),
+    covariance (F, 2P, 2P), rejected (F,)."""
+    n, p = values.shape
+    eye_p, eye_s = np.eye(p), np.eye(2 * p)
+    first = int(np.argmax(valid))
+    x = np.r_[values[first], np.zeros(p)]
+    cov = _PRIOR_SD**2 * eye_s
+    gate = chi2.ppf(options.gate_probability, p) if options.gate_probability < 1 else np.inf
+    pred_mean = np.empty((n, 2 * p))
+    pred_cov = np.empty((n, 2 * p, 2 * p))
+    post_mean = np.empty((n, 2 * p))
+    post_cov = np.empty((n, 2 * p, 2 * p))
+    transitions = np.empty((n, 2 * p, 2 * p))
+    rejected = np.zeros(n, bool)
+    previous = time[0]
+    for k in range(n):
+        dt = time[k] - previous
+        previous = time[k]
+        transition = eye_s.copy()
+        transition[:p, p:] = dt * eye_p
+        noise = np.block([[dt**3 / 3 * np.diag(q), dt**2 / 2 * np.diag(q)], [dt**2 / 2 * np.diag(q), dt * np.diag(q)]])
+        x = transition @ x
+        cov = transition @ cov @ transition.T + noise
+        transitions[k], pred_mean[k], pred_cov[k] = transition, x, cov
+        if valid[k]:
+            info = information[k]
+            innovation = values[k] - x[:p]
+            s_info = info @ np.linalg.inv(eye_p + cov[:p, :p] @ info)  # (H P H^T + R)^-1
+            distance = innovation @ s_info @ innovation
+            if distance > gate:
+                rejected[k] = True
+            else:
+                gain = cov[:, :p] @ s_info
+                x = x + gain @ innovation
+                cov = cov - gain @ cov[:p, :]
+                cov = 0.5 * (cov + cov.T)
+        post_mean[k], post_cov[k] = x, cov
+    mean = post_mean.copy()
+    smoothed_cov = post_cov.copy()
+    for k in range(n - 2, -1, -1):
+        gain = post_cov[k] @ transitions[k + 1].T @ np.linalg.inv(pred_cov[k + 1])
+        mean[k] = post_mean[k] + gain @ (mean[k + 1] - pred_mean[k + 1])
+        smoothed_cov[k] = post_cov[k] + gain @ (smoothed_cov[k + 1] - pred_cov[k + 1]) @ gain.T
+    if rejected.any():
+        log.info("smoother rejected %d measurement(s) as failed fits", int(rejected.sum()))
+    return mean, smoothed_cov, rejected

@@ -1,0 +1,116 @@
+"""Cameras on one clock: every camera's tracks resampled to the reference camera's frames.
+
+Camera k's frame f shows time ``f / fps_k + offset_k`` (DESIGN.md); the first camera of
+the calibration is the reference clock (offset 0). A camera's marker position at a
+reference frame's time is interpolated linearly between the two neighbouring frames of
+that camera in which the marker was seen; where either neighbour is missing (a gap, or
+outside the camera's recording) it is NaN: nothing is extrapolated.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.io.tracks_csv import Tracks
+
+log = logging.getLogger(__name__)
+
+_TIME_EPS = 1e-6  # frames: a sample this close to a camera frame takes that frame as is
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """Pixels of C cameras at F reference frames: frame (F,) int, time (F,) s,
+    pixels (C, F, M, 2) NaN where not seen."""
+
+    frame: np.ndarray
+    time: np.ndarray
+    pixels: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        if np.shape(self.time) != (n,) or np.ndim(self.pixels) != 4 or np.shape(self.pixels)[1] != n:
+            raise ValueError(f"Resampled needs time ({n},) and pixels (C, {n}, M, 2)")
+
+
+def resample(
+    pixels: list[np.ndarray],
+    first_frames: np.ndarray,
+    fps: np.ndarray,
+    offsets: np.ndarray,
+) -> Resampled:
+    """Resample each camera's pixels to the reference camera's frames.
+
+    Parameters
+    ----------
+    pixels : C arrays (F_k, M, 2), camera k's pixels at its frames
+        ``first_frames[k] .. first_frames[k] + F_k - 1``, NaN where not seen.
+    first_frames : (C,) int; fps : (C,) frames per second; offsets : (C,) seconds, camera
+        k's frame f shows time ``f / fps[k] + offsets[k]``; camera 0 is the reference.
+
+    Returns
+    -------
+    Resampled over every reference frame (from 0) whose time lies inside some camera's
+    recording.
+    """
+    fps = np.asarray(fps, dtype=float)
+    offsets = np.asarray(offsets, dtype=float)
+    first_frames = np.asarray(first_frames, dtype=int)
+    if not (len(pixels) == len(fps) == len(offsets) == len(first_frames)) or not len(pixels):
+        raise ValueError("one pixel array, fps, offset and first frame per camera")
+    if np.any(~(fps > 0)):
+        raise ValueError(f"fps must be positive, got {fps}")
+    offsets = offsets - offsets[0]  # the first camera is the clock
+    starts = first_frames / fps + offsets
+    ends = (first_frames + np.array([len(p) for p in pixels]) - 1) / fps + offsets
+    present = np.array([len(p) > 0 for p in pixels])
+    if not present.any():
+        n_markers = pixels[0].shape[1] if np.ndim(pixels[0]) == 3 else 0
+        return Resampled(np.zeros(0, int), np.zeros(0), np.zeros((len(pixels), 0, n_markers, 2)))
+    first = max(0, int(np.ceil(starts[present].min() * fps[0] - _TIME_EPS)))  # frames count from 0
+    last = int(np.floor(ends[present].max() * fps[0] + _TIME_EPS))
+    frame = np.arange(first, last + 1)
+    time = frame / fps[0]
+    out = np.stack([_sample(p, f0, rate, offset, time) for p, f0, rate, offset in zip(pixels, first_frames, fps, offsets)])
+    return Resampled(frame, time, out)
+
+
+def _sample(pixels: np.ndarray, first_frame: int, fps: float, offset: float, time: np.ndarray) -> np.ndarray:
+    """One camera's pixels (F_k, M, 2) at times (F,) -> (F, M, 2), linear, NaN across gaps."""
+    n_markers = pixels.shape[1]
+    position = (time - offset) * fps - first_frame  # fractional index into `pixels`
+    out = np.full((len(time), n_markers, 2), np.nan)
+    if not len(pixels):
+        return out
+    lower = np.floor(position + _TIME_EPS).astype(int)
+    fraction = np.clip(position - lower, 0.0, None)
+    exact = fraction < _TIME_EPS
+    inside = (lower >= 0) & (lower < len(pixels)) & (exact | (lower + 1 < len(pixels)))
+    i0 = np.clip(lower, 0, len(pixels) - 1)
+    i1 = np.clip(lower + 1, 0, len(pixels) - 1)
+    a = fraction[:, None, None]
+    blended = (1.0 - a) * pixels[i0] + a * pixels[i1]
+    values = np.where(exact[:, None, None], pixels[i0], blended)
+    out[inside] = values[inside]
+    return out
+
+
+def tracks_on_reference_clock(
+    tracks: Tracks, camera_names, marker_names, fps: np.ndarray, offsets: np.ndarray
+) -> Resampled:
+    """Tracks of the named cameras and markers on the first camera's clock; cameras with
+    no rows give NaN pixels."""
+    pixels, first_frames = [], []
+    for name in camera_names:
+        own = tracks.of_camera(name)
+        if len(own):
+            frames = np.arange(own.frame.min(), own.frame.max() + 1)
+            pixels.append(own.dense([name], marker_names, frames)[0])
+            first_frames.append(int(frames[0]))
+        else:
+            pixels.append(np.zeros((0, len(marker_names), 2)))
+            first_frames.append(0)
+    return resample(pixels, np.array(first_frames), fps, offsets)

@@ -1,0 +1,174 @@
+"""Multi-view triangulation of every marker in every frame (the APAS replacement).
+
+For all points at once: pixels are undistorted (cv2.undistortPoints), a linear DLT on
+normalised coordinates gives a start, and a few Gauss-Newton steps minimise the pixel
+reprojection error with the cameras' analytic projection Jacobians. With three or more
+views a point whose worst view is off by more than `max_error_px` is re-triangulated
+leaving each view out in turn (all candidates in one batch); the view whose removal fits
+the rest best is dropped, repeatedly while at least three views remain.
+
+Shapes: C cameras, N points (any leading shape, e.g. F frames by M markers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mocap.camera import Camera, project_cam
+
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class TriangulateOptions:
+    """iterations: Gauss-Newton steps; max_error_px: a view whose reprojection error
+    exceeds this is an outlier candidate (with >= 3 views); min_views: views needed."""
+
+    iterations: int = 3
+    max_error_px: float = 4.0
+    min_views: int = 2
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0 or self.min_views < 2 or not self.max_error_px > 0:
+            raise ValueError("iterations >= 0, min_views >= 2 and max_error_px > 0 are required")
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """xyz (*, 3) world metres, NaN where fewer than `min_views` views; error_px (*) RMS
+    reprojection error over the used views; views (*) number of used views; used (C, *)
+    which views were used (False where not seen or dropped as an outlier)."""
+
+    xyz: np.ndarray
+    error_px: np.ndarray
+    views: np.ndarray
+    used: np.ndarray
+
+    def __post_init__(self) -> None:
+        shape = np.shape(self.error_px)
+        if np.shape(self.xyz) != shape + (3,) or np.shape(self.views) != shape or np.shape(self.used)[1:] != shape:
+            raise ValueError("Triangulation needs xyz (*, 3), views (*) and used (C, *) for error_px (*)")
+
+
+def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateOptions | None = None) -> Triangulation:
+    """Triangulate points seen by several cameras.
+
+    Parameters
+    ----------
+    cameras : C calibrated cameras.
+    pixels : (C, *, 2) pixels, NaN where a camera did not see the point.
+
+    Returns
+    -------
+    Triangulation over the leading shape ``*``.
+    """
+    options = options or TriangulateOptions()
+    pixels = np.asarray(pixels, dtype=float)
+    if pixels.ndim < 2 or pixels.shape[0] != len(cameras) or pixels.shape[-1] != 2:
+        raise ValueError(f"pixels must have shape (C={len(cameras)}, *, 2), got {pixels.shape}")
+    shape = pixels.shape[1:-1]
+    flat = pixels.reshape(len(cameras), -1, 2)
+    seen = np.isfinite(flat).all(-1)
+    normalised = undistort(cameras, flat)
+    used = seen.copy()
+    xyz, residual = _solve(cameras, flat, normalised, used, options.iterations)
+    for _ in range(len(cameras) - 2):
+        error = np.where(used, np.linalg.norm(residual, axis=-1), 0.0)
+        suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > options.max_error_px))[0]
+        if not len(suspect):
+            break
+        drop = _leave_one_out(cameras, flat[:, suspect], normalised[:, suspect], used[:, suspect], options)
+        index = suspect[drop >= 0]
+        if not len(index):
+            break
+        used[drop[drop >= 0], index] = False
+        xyz[index], residual[:, index] = _solve(
+            cameras, flat[:, index], normalised[:, index], used[:, index], options.iterations
+        )
+    views = used.sum(0)
+    enough = views >= options.min_views
+    squared = np.where(used, (residual**2).sum(-1), 0.0).sum(0)
+    error_px = np.where(enough, np.sqrt(squared / np.maximum(views, 1)), np.nan)
+    xyz = np.where(enough[:, None], xyz, np.nan)
+    return Triangulation(
+        xyz.reshape(shape + (3,)),
+        error_px.reshape(shape),
+        views.reshape(shape),
+        used.reshape((len(cameras),) + shape),
+    )
+
+
+def undistort(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
+    """Normalised image coordinates (C, N, 2) of pixels (C, N, 2), NaN stays NaN."""
+    out = np.full(pixels.shape, np.nan)
+    for c, camera in enumerate(cameras):
+        ok = np.isfinite(pixels[c]).all(-1)
+        if ok.any():
+            points = np.ascontiguousarray(pixels[c, ok].reshape(-1, 1, 2))
+            out[c, ok] = cv2.undistortPoints(points, camera.matrix, camera.distortion).reshape(-1, 2)
+    return out
+
+
+def _solve(cameras, pixels, normalised, used, iterations):
+    """DLT then Gauss-Newton for points (N,) with views `used` (C, N) -> xyz (N, 3),
+    residuals (C, N, 2) observed minus projected (zero where unused)."""
+    xyz = _dlt(cameras, normalised, used)
+    eye = _EPS * np.eye(3)
+    for _ in range(iterations):
+        residual, jac = _residuals(cameras, pixels, used, xyz)  # (N, 2C), (N, 2C, 3)
+        jac_t = np.swapaxes(jac, 1, 2)
+        xyz = xyz + np.linalg.solve(jac_t @ jac + eye, jac_t @ residual[..., None])[..., 0]
+    residual, _ = _residuals(cameras, pixels, used, xyz, with_jacobian=False)
+    return xyz, np.moveaxis(residual.reshape(len(xyz), len(cameras), 2), 1, 0)
+
+
+def _dlt(cameras, normalised, used) -> np.ndarray:
+    """Linear triangulation (N, 3): least squares of x P3 - P1 = 0, y P3 - P2 = 0 over the
+    used views with P = [R | t] on undistorted normalised coordinates."""
+    n_cams, n = used.shape
+    rows = np.empty((n, n_cams, 2, 4))
+    for c, camera in enumerate(cameras):
+        projection = np.c_[camera.cam_from_world.rotation, camera.cam_from_world.translation]
+        xy = np.where(used[c][:, None], normalised[c], 0.0)
+        w = used[c].astype(float)[:, None, None]
+        rows[:, c] = (xy[:, :, None] * projection[2] - projection[:2]) * w
+    rows = rows.reshape(n, 2 * n_cams, 4)
+    lhs = np.swapaxes(rows, 1, 2) @ rows
+    return np.linalg.solve(lhs[:, :3, :3] + _EPS * np.eye(3), -lhs[:, :3, 3:])[..., 0]
+
+
+def _residuals(cameras, pixels, used, xyz, with_jacobian=True):
+    """Residuals (N, 2C) and d(projection)/d(xyz) (N, 2C, 3), zero where unused."""
+    n = len(xyz)
+    residual = np.empty((n, len(cameras), 2))
+    jac = np.empty((n, len(cameras), 2, 3)) if with_jacobian else None
+    for c, camera in enumerate(cameras):
+        rot = camera.cam_from_world.rotation
+        out = project_cam(xyz @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion, with_jacobian)
+        uv, d_uv = out if with_jacobian else (out, None)
+        ok = used[c] & np.isfinite(uv[:, 0])
+        residual[:, c] = np.where(ok[:, None], pixels[c] - uv, 0.0)
+        if with_jacobian:
+            np.matmul(np.where(ok[:, None, None], d_uv, 0.0), rot, out=jac[:, c])
+    residual = residual.reshape(n, -1)
+    return residual, None if jac is None else jac.reshape(n, -1, 3)
+
+
+def _leave_one_out(cameras, pixels, normalised, used, options) -> np.ndarray:
+    """For suspect points (N,): the view (N,) whose removal leaves the smallest RMS error
+    of the remaining views, or -1 where no view can be removed."""
+    n_cams, n = used.shape
+    candidates = np.repeat(used[:, None, :], n_cams, axis=1)  # (C views, C left out, N)
+    candidates[np.arange(n_cams), np.arange(n_cams)] = False
+    flat_used = candidates.reshape(n_cams, n_cams * n)
+    tile = lambda a: np.tile(a, (1, n_cams) + (1,) * (a.ndim - 2))  # noqa: E731
+    _, residual = _solve(cameras, tile(pixels), tile(normalised), flat_used, options.iterations)
+    error = np.where(flat_used, np.linalg.norm(residual, axis=-1), 0.0).reshape(n_cams, n_cams, n)
+    views = flat_used.reshape(n_cams, n_cams, n).sum(0)  # (C left out, N)
+    rms = np.sqrt((error**2).sum(0) / np.maximum(views, 1))
+    rms = np.where(used & (views >= 2), rms, np.inf)  # only drop a view that was used
+    best = np.argmin(rms, axis=0)
+    return np.where(np.isfinite(rms[best, np.arange(n)]), best, -1)
