@@ -17,6 +17,8 @@ COMMANDS = (
     "calibrate",
     "view",
     "synth",
+    "track",
+    "sync",
 )
 
 

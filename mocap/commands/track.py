@@ -1,0 +1,79 @@
+"""`mocap track`: labelled 2-D marker tracks from one camera's video."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mocap.detect import DetectOptions
+from mocap.errors import InputError
+from mocap.tracking.stage import TrackRequest, run_track
+from mocap.tracking.tracker import TrackOptions
+
+EXAMPLE = """examples:
+  mocap track videos/cam1.mp4 --machine hitachi_ex3500 --calibration calibration/cameras.toml \\
+      --camera cam1 --propose-labels tracks/cam1_labels.csv
+  mocap track videos/cam1.mp4 --machine hitachi_ex3500 --calibration calibration/cameras.toml \\
+      --camera cam1 --labels tracks/cam1_labels.csv --out tracks/cam1.csv"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "track",
+        help="detect, label and track the machine's markers in one camera's video",
+        description="Find the painted disk markers in every frame, name them with the model's "
+        "markers and follow them through the video, guided by the calibrated camera and the "
+        "machine model. The first frame is labelled from --labels (digitised marker pixels) or "
+        "by fitting the model; --propose-labels writes that proposal for checking and stops.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("video", help="the camera's video file")
+    p.add_argument("--machine", required=True, help="machine model TOML (or a shipped model's name)")
+    p.add_argument("--calibration", required=True, help="camera calibration TOML")
+    p.add_argument("--camera", required=True, help="the camera's name in the calibration")
+    p.add_argument("--out", help="tracks CSV to write")
+    p.add_argument("--labels", help="tracks CSV with the first frame's marker pixels")
+    p.add_argument("--propose-labels", metavar="OUT.csv", help="write proposed first-frame labels and stop")
+    p.add_argument("--start", type=int, default=0, help="first frame to track (default 0)")
+    p.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
+    p.add_argument("--gate", type=float, default=10.0, metavar="PX", help="least search radius (default 10)")
+    p.add_argument("--min-contrast", type=float, default=60.0, metavar="GREY",
+                   help="least disk-to-background contrast, grey levels (default 60)")
+    p.add_argument("--no-occlusion", action="store_true",
+                   help="do not predict markers hidden by the machine's own links")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    if args.propose_labels is None and args.out is None:
+        raise InputError("give --out TRACKS.csv (or --propose-labels OUT.csv to check the first frame)")
+    if args.start < 0 or (args.stop is not None and args.stop <= args.start):
+        raise InputError(f"--start {args.start} --stop {args.stop}: need 0 <= start < stop")
+    if not args.gate > 0 or not args.min_contrast > 0:
+        raise InputError("--gate and --min-contrast must be positive")
+    options = TrackOptions(
+        gate_px=args.gate,
+        occlusion=not args.no_occlusion,
+        detect=DetectOptions(min_contrast=args.min_contrast),
+    )
+    request = TrackRequest(
+        Path(args.video), args.machine, Path(args.calibration), args.camera,
+        Path(args.out) if args.out else None,
+        Path(args.labels) if args.labels else None,
+        Path(args.propose_labels) if args.propose_labels else None,
+        args.start, args.stop, options,
+    )
+    report = run_track(request)
+    if report.summary is None:
+        print(f"proposed labels of frame {int(report.labels.frame[0])} ({len(report.labels)} markers), "
+              f"written to {args.propose_labels}; check them, then run with --labels")
+        for k in range(len(report.labels)):
+            print(f"  {report.labels.marker[k]:>8}  x {report.labels.xy[k, 0]:9.2f}  y {report.labels.xy[k, 1]:9.2f}")
+        return 0
+    s = report.summary
+    print(f"{args.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
+          f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
+    if report.broken_at is not None:
+        print(f"{args.video}: the video broke at frame {report.broken_at}; tracks up to there are written")
+    return 0

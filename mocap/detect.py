@@ -1,0 +1,364 @@
+"""Marker detection in grey images: painted disks (a black disk on a white square) and
+ArUco / AprilTag markers.
+
+Disks are found in two steps. Candidates are the connected dark regions of an adaptive
+threshold (darker than their neighbourhood's mean), kept when their area is in range.
+Each candidate is then refined, all candidates at once on a stack of patches: the centre is
+the darkness-weighted centroid ``sum(w x) / sum(w)`` with ``w = max(background - I, 0)``
+inside an elliptical window a little larger than the disk, the background level being the
+median of an elliptical ring around it (on the white square); the ellipse (semi-axes,
+angle) comes from the weighted second moments (a uniform ellipse of semi-axes a, b has
+moments a^2/4, b^2/4). The tests: contrast between the ring and the disk, a filled
+ellipse (dark area / ellipse area), a uniform bright ring, a size in range.
+
+A disk's projected centre is not the centre of its image ellipse under perspective; where
+the disk's plane is known, `disk_centre_from_ellipse` gives the exact image of the centre
+(the pole of the plane's vanishing line with respect to the ellipse).
+
+Pixels are in the OpenCV convention (centre of the top-left pixel at 0, 0). Shapes: N
+detections, P patch side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    """Disk detection settings (pixels, grey levels 0-255)."""
+
+    min_radius: float = 1.5
+    max_radius: float = 40.0
+    min_contrast: float = 60.0
+    block: int = 51  # adaptive threshold neighbourhood, odd, larger than a marker's square
+    threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
+    min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
+    max_fill: float = 1.25
+    max_ring_spread: float = 0.25  # ring grey-level spread / contrast
+    max_elongation: float = 6.0  # major / minor semi-axis
+
+    def __post_init__(self) -> None:
+        if self.block < 3 or self.block % 2 == 0:
+            raise ValueError(f"DetectOptions.block must be odd and >= 3, got {self.block}")
+        if not 0 < self.min_radius < self.max_radius:
+            raise ValueError("DetectOptions needs 0 < min_radius < max_radius")
+
+
+@dataclass(frozen=True)
+class Detections:
+    """N disk detections: `xy` (N, 2) sub-pixel centres, `axes` (N, 2) semi-axes a >= b px,
+    `angle` (N,) rad of the major axis from +x towards +y, `contrast` (N,) grey levels,
+    `fill` (N,), `score` (N,) in [0, 1]."""
+
+    xy: np.ndarray
+    axes: np.ndarray
+    angle: np.ndarray
+    contrast: np.ndarray
+    fill: np.ndarray
+    score: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.xy)
+        if np.shape(self.xy) != (n, 2) or np.shape(self.axes) != (n, 2):
+            raise ValueError(f"Detections: xy and axes must be (N, 2), got {np.shape(self.xy)}, {np.shape(self.axes)}")
+        for name in ("angle", "contrast", "fill", "score"):
+            if np.shape(getattr(self, name)) != (n,):
+                raise ValueError(f"Detections.{name} must be ({n},), got {np.shape(getattr(self, name))}")
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    @property
+    def radius(self) -> np.ndarray:
+        """(N,) geometric mean of the semi-axes."""
+        return np.sqrt(self.axes[:, 0] * self.axes[:, 1])
+
+    def select(self, mask: np.ndarray) -> Detections:
+        return Detections(*(getattr(self, f)[mask] for f in _FIELDS))
+
+    @classmethod
+    def empty(cls) -> Detections:
+        return cls(np.zeros((0, 2)), np.zeros((0, 2)), *(np.zeros(0) for _ in range(4)))
+
+
+_FIELDS = ("xy", "axes", "angle", "contrast", "fill", "score")
+
+
+def concatenate(parts: list[Detections]) -> Detections:
+    if not parts:
+        return Detections.empty()
+    return Detections(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
+
+
+def as_gray(image: np.ndarray) -> np.ndarray:
+    """A grey uint8 image (H, W) from grey or BGR input."""
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise ValueError(f"expected an image (H, W) or (H, W, 3), got shape {image.shape}")
+    return image if image.dtype == np.uint8 else np.clip(image, 0, 255).astype(np.uint8)
+
+
+def find_candidates(
+    gray: np.ndarray, options: DetectOptions, origin: tuple[int, int] = (0, 0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dark connected regions of an adaptive threshold: centroids (N, 2) and half their
+    larger bounding-box side (N,), in the coordinates of the full image (`origin` = the
+    top-left pixel of `gray` in it)."""
+    block = min(options.block, 2 * (min(gray.shape) // 2) - 1)
+    if block < 3:
+        return np.zeros((0, 2)), np.zeros(0)
+    binary = cv2.adaptiveThreshold(
+        gray, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, block, options.threshold_offset
+    )
+    _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    area = stats[1:, cv2.CC_STAT_AREA].astype(float)
+    width = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
+    height = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
+    radius = np.sqrt(area / np.pi)
+    keep = (radius >= 0.8 * options.min_radius) & (radius <= options.max_radius)
+    keep &= area >= 0.4 * width * height  # compact, not a line or a frame
+    keep &= np.maximum(width, height) <= options.max_elongation * np.minimum(width, height) + 2
+    xy = centroids[1:][keep] + np.asarray(origin, dtype=float)
+    return xy, 0.5 * np.maximum(width, height)[keep]
+
+
+def refine(
+    gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, iterations: int = 3
+) -> tuple[Detections, np.ndarray]:
+    """Sub-pixel centres and ellipses of dark disks near `xy` (N, 2), of about `radius` (N,).
+
+    Candidates are refined in groups of similar size, each group together on a stack of
+    square patches. Returns the Detections without any test applied (see `accept`) and
+    the grey-level spread of each one's surrounding ring relative to its contrast (N,).
+    """
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    radius = np.asarray(radius, dtype=float).reshape(len(xy))
+    group = np.digitize(radius, [2.5, 4.0, 6.0, 9.0, 13.0, 19.0, 28.0])
+    order = np.argsort(group, kind="stable")
+    parts, spreads = [], []
+    for g in np.unique(group):
+        pick = order[group[order] == g]
+        found, spread = _refine_group(gray, xy[pick], radius[pick], iterations)
+        parts.append(found)
+        spreads.append(spread)
+    if not parts:
+        return Detections.empty(), np.zeros(0)
+    inverse = np.argsort(order, kind="stable")
+    return concatenate(parts).select(inverse), np.concatenate(spreads)[inverse]
+
+
+def _refine_group(
+    gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, iterations: int
+) -> tuple[Detections, np.ndarray]:
+    n = len(xy)
+    if n == 0:
+        return Detections.empty(), np.zeros(0)
+    radius = np.maximum(np.asarray(radius, dtype=float).reshape(n), 1.0)
+    half = int(np.ceil(np.max(radius) * 2.0 + 4))
+    offsets = np.arange(-half, half + 1)
+    height, width = gray.shape
+    centre = np.round(xy).astype(int)
+    rows = np.clip(centre[:, 1, None] + offsets, 0, height - 1)  # (N, P)
+    cols = np.clip(centre[:, 0, None] + offsets, 0, width - 1)
+    patch = gray[rows[:, :, None], cols[:, None, :]].astype(float)  # (N, P, P)
+    gx = cols[:, None, :].astype(float)  # pixel coordinates of the patch, (N, 1, P)
+    gy = rows[:, :, None].astype(float)  # (N, P, 1)
+    # shape as the inverse of the ellipse's semi-axis matrix S (x^T S^-1 x = 1 on the edge)
+    inv_shape = np.eye(2)[None] / radius[:, None, None] ** 2
+    c = xy.copy()
+    for iteration in range(iterations):
+        dx = gx - c[:, 0, None, None]
+        dy = gy - c[:, 1, None, None]
+        rho2 = (
+            inv_shape[:, 0, 0, None, None] * dx * dx
+            + 2 * inv_shape[:, 0, 1, None, None] * dx * dy
+            + inv_shape[:, 1, 1, None, None] * dy * dy
+        )
+        minor = 1.0 / np.sqrt(np.linalg.eigvalsh(inv_shape)[:, 1])
+        k_in = 1.0 + np.maximum(1.5 / minor, 0.3)  # past the blurred edge
+        k_out = k_in + np.maximum(1.5 / minor, 0.4)  # still on the white square
+        if iteration == 0:
+            # the disk lies inside the circle of `radius`, the white square around it:
+            # take the bright end of the neighbourhood as the background
+            k_in = np.full(n, 1.05)
+            background = _masked_quantiles(patch, rho2 < 2.6, [0.9])[0]
+        window = rho2 < (k_in**2)[:, None, None]
+        ring = (rho2 >= (k_in**2)[:, None, None]) & (rho2 < (k_out**2)[:, None, None])
+        if iteration > 0:
+            background = _masked_quantiles(patch, ring, [0.5])[0]
+        darkness = np.where(window, np.maximum(background[:, None, None] - patch, 0.0), 0.0)
+        mass = darkness.sum(axis=(1, 2))
+        safe = np.where(mass > 0, mass, 1.0)
+        cx = (darkness * gx).sum(axis=(1, 2)) / safe
+        cy = (darkness * gy).sum(axis=(1, 2)) / safe
+        ddx, ddy = gx - cx[:, None, None], gy - cy[:, None, None]
+        sxx = (darkness * ddx * ddx).sum(axis=(1, 2)) / safe
+        sxy = (darkness * ddx * ddy).sum(axis=(1, 2)) / safe
+        syy = (darkness * ddy * ddy).sum(axis=(1, 2)) / safe
+        moments = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
+        shape = 4.0 * moments + 1e-3 * np.eye(2)
+        good = (mass > 0) & np.all(np.isfinite(shape), axis=(1, 2))
+        c = np.where(good[:, None], np.c_[cx, cy], c)
+        shape = np.where(good[:, None, None], shape, np.eye(2) * radius[:, None, None] ** 2)
+        evals, evecs = np.linalg.eigh(shape)
+        evals = np.clip(evals, 0.25, ((half - 3) / 1.8) ** 2)  # keep the window inside the patch
+        inv_shape = evecs @ (evecs.transpose(0, 2, 1) / evals[:, :, None])
+    axes = np.sqrt(np.maximum(evals[:, ::-1], 1e-9))
+    angle = np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1])
+    foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
+    contrast = background - foreground
+    fill = mass / np.maximum(contrast, 1.0) / (np.pi * axes[:, 0] * axes[:, 1])
+    low, high = _masked_quantiles(patch, ring, [0.1, 0.9])
+    spread = np.where(np.isfinite(high - low), 0.5 * (high - low), np.inf) / np.maximum(contrast, 1.0)
+    score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
+    return Detections(c, axes, angle, contrast, fill, score), spread
+
+
+def accept(detections: Detections, spread: np.ndarray, options: DetectOptions) -> np.ndarray:
+    """(N,) bool: the detections that pass the shape and contrast tests."""
+    a, b = detections.axes[:, 0], detections.axes[:, 1]
+    ok = detections.contrast >= options.min_contrast
+    ok &= (detections.fill >= options.min_fill) & (detections.fill <= options.max_fill)
+    ok &= spread <= options.max_ring_spread
+    ok &= (np.sqrt(a * b) >= options.min_radius) & (a <= options.max_radius)
+    ok &= a <= options.max_elongation * b
+    return ok & np.all(np.isfinite(detections.xy), axis=1)
+
+
+def detect_disks(
+    image: np.ndarray, options: DetectOptions | None = None, roi: tuple[int, int, int, int] | None = None
+) -> Detections:
+    """Disk markers in an image, or in its region `roi` = (x0, y0, x1, y1) (end exclusive).
+
+    Returns the accepted Detections, duplicates (one disk found twice) merged.
+    """
+    options = options or DetectOptions()
+    gray = as_gray(image)
+    x0, y0, x1, y1 = roi if roi is not None else (0, 0, gray.shape[1], gray.shape[0])
+    xy, radius = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+    return refine_and_accept(gray, xy, radius, options)
+
+
+def refine_and_accept(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, options: DetectOptions) -> Detections:
+    """`refine` then `accept`, duplicates merged (centres closer than half a radius)."""
+    found, spread = refine(gray, xy, radius)
+    found = found.select(accept(found, spread, options))
+    return unique(found)
+
+
+def unique(detections: Detections) -> Detections:
+    """Drop detections within half a radius of a better-scored one."""
+    if len(detections) < 2:
+        return detections
+    order = np.argsort(-detections.score)
+    d = detections.select(order)
+    dist = np.linalg.norm(d.xy[:, None] - d.xy[None], axis=-1)
+    close = dist < 0.5 * np.minimum(d.radius[:, None], d.radius[None])
+    keep = ~np.any(np.triu(close, 1), axis=0)
+    return d.select(keep)
+
+
+def _masked_quantiles(values: np.ndarray, mask: np.ndarray, quantiles) -> np.ndarray:
+    """Quantiles (Q, N) of `values` (N, P, P) over `mask` (N, P, P) per item; NaN if empty."""
+    flat = np.sort(np.where(mask, values, np.inf).reshape(len(values), -1), axis=1)
+    count = mask.reshape(len(values), -1).sum(axis=1)
+    out = np.full((len(quantiles), len(values)), np.nan)
+    ok = count > 0
+    for k, q in enumerate(quantiles):
+        index = np.floor(q * np.maximum(count - 1, 0)).astype(int)
+        out[k, ok] = np.take_along_axis(flat, index[:, None], axis=1)[ok, 0]
+    return out
+
+
+# --- perspective: the image of a disk's centre -------------------------------------------
+
+
+def ellipse_conic(centre: np.ndarray, axes: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Conic matrices (N, 3, 3) of ellipses (x^T C x = 0 in homogeneous pixels)."""
+    centre = np.asarray(centre, dtype=float).reshape(-1, 2)
+    axes = np.asarray(axes, dtype=float).reshape(-1, 2)
+    angle = np.asarray(angle, dtype=float).reshape(-1)
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # columns: axes
+    inv_shape = rot @ (np.eye(2)[None] / axes[:, None, :] ** 2) @ np.swapaxes(rot, -1, -2)
+    conic = np.zeros((len(centre), 3, 3))
+    conic[:, :2, :2] = inv_shape
+    shift = -np.einsum("nij,nj->ni", inv_shape, centre)
+    conic[:, :2, 2] = shift
+    conic[:, 2, :2] = shift
+    conic[:, 2, 2] = np.einsum("ni,nij,nj->n", centre, inv_shape, centre) - 1.0
+    return conic
+
+
+def disk_centre_from_ellipse(
+    centre: np.ndarray, axes: np.ndarray, angle: np.ndarray, normal_cam: np.ndarray, matrix: np.ndarray
+) -> np.ndarray:
+    """The image (N, 2) of the centre of disks whose image ellipses are given and whose
+    planes have normals `normal_cam` (N, 3) in the (undistorted) camera frame, K `matrix`.
+
+    The plane's vanishing line in pixels is ``l = K^-T n``; the image of the circle's centre
+    is its pole with respect to the image conic: ``x = C^-1 l``.
+    """
+    conic = ellipse_conic(centre, axes, angle)
+    normal = np.asarray(normal_cam, dtype=float).reshape(-1, 3)
+    line = normal @ np.linalg.inv(matrix)  # rows: (K^-T n)^T
+    pole = np.linalg.solve(conic, line[..., None])[..., 0]
+    return pole[:, :2] / pole[:, 2:]
+
+
+# --- ArUco / AprilTag ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TagDetections:
+    """N self-identifying tags: `ids` (N,) int, `corners` (N, 4, 2) px, `xy` (N, 2) centre
+    (the intersection of the diagonals, exact under perspective)."""
+
+    ids: np.ndarray
+    corners: np.ndarray
+    xy: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        corners = np.asarray(self.corners, dtype=float).reshape(-1, 4, 2)
+        if len(self.ids) != len(corners):
+            raise ValueError(f"TagDetections: {len(self.ids)} ids for {len(corners)} corner sets")
+        object.__setattr__(self, "corners", corners)
+        object.__setattr__(self, "ids", np.asarray(self.ids, dtype=int).reshape(-1))
+        object.__setattr__(self, "xy", diagonal_intersection(corners))
+
+
+def diagonal_intersection(corners: np.ndarray) -> np.ndarray:
+    """(N, 4, 2) quadrilaterals in order -> (N, 2) intersections of their diagonals."""
+    h = np.concatenate([corners, np.ones(corners.shape[:-1] + (1,))], axis=-1)
+    d1 = np.cross(h[:, 0], h[:, 2])
+    d2 = np.cross(h[:, 1], h[:, 3])
+    x = np.cross(d1, d2)
+    return x[:, :2] / x[:, 2:]
+
+
+def tag_dictionary(name: str):
+    """An OpenCV predefined dictionary by name, e.g. 'DICT_4X4_50' or 'DICT_APRILTAG_36h11'."""
+    key = name if name.startswith("DICT_") else f"DICT_{name}"
+    if not hasattr(cv2.aruco, key.upper()) and not hasattr(cv2.aruco, key):
+        known = sorted(k[5:] for k in dir(cv2.aruco) if k.startswith("DICT_"))
+        raise ValueError(f"unknown tag dictionary {name!r}; known: {', '.join(known)}")
+    value = getattr(cv2.aruco, key, None)
+    value = getattr(cv2.aruco, key.upper()) if value is None else value
+    return cv2.aruco.getPredefinedDictionary(value)
+
+
+def detect_tags(image: np.ndarray, dictionary: str = "DICT_4X4_50") -> TagDetections:
+    """ArUco / AprilTag markers (cv2.aruco.ArucoDetector, sub-pixel corner refinement)."""
+    parameters = cv2.aruco.DetectorParameters()
+    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    detector = cv2.aruco.ArucoDetector(tag_dictionary(dictionary), parameters)
+    corners, ids, _ = detector.detectMarkers(as_gray(image))
+    if ids is None or len(ids) == 0:
+        return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
+    return TagDetections(ids.reshape(-1), np.concatenate(corners).reshape(-1, 4, 2))

@@ -1,0 +1,114 @@
+"""Labelling one frame: from the user's digitised marker pixels, or proposed by fitting the
+machine model to the frame's detections.
+
+The proposal searches joint values starting from the calibration's (and a few swings and
+boom/arm moves around them): each start alternates an optimal gated assignment of the
+detections to the projected markers with a robust fit of the joint values, the gate
+shrinking from coarse to tight; the start that labels the most detections within the tight
+gate (then the lowest residual) wins.
+
+Shapes: M markers, N detections, J joints.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from mocap.detect import Detections
+from mocap.tracking.model import CameraModel
+from mocap.tracking.tracker import FrameResult, assign
+
+log = logging.getLogger(__name__)
+
+_GATES_PX = (120.0, 60.0, 30.0, 15.0, 8.0, 4.0)
+
+
+def starts_around(model: CameraModel, joints: np.ndarray, n_swing: int = 7, spread_deg: float = 25.0) -> np.ndarray:
+    """Starting joint values (S, J): `joints` and variations of each joint by ±`spread_deg`
+    (swing by a wider fan of `n_swing` values), clipped to the limits."""
+    joints = np.asarray(joints, dtype=float)
+    starts = [joints]
+    spread = np.radians(spread_deg)
+    for j in range(model.machine.n_joints):
+        values = np.linspace(-3, 3, n_swing) * spread if j == 0 else np.array([-spread, spread])
+        for v in values:
+            if v == 0:
+                continue
+            s = joints.copy()
+            s[j] += v
+            starts.append(s)
+    return model.machine.clip_to_limits(np.array(starts))
+
+
+def propose_labels(
+    model: CameraModel,
+    detections: Detections,
+    starts: np.ndarray,
+    tight_px: float = 3.0,
+    min_markers: int = 5,
+) -> FrameResult | None:
+    """Label detections by fitting the model from each of `starts` (S, J); None when no
+    start explains at least `min_markers` detections."""
+    best, best_key = None, None
+    for start in np.atleast_2d(starts):
+        result = _fit_from(model, detections, start, tight_px)
+        if result is None:
+            continue
+        key = (len(result.markers), -result.rms_px)
+        if best_key is None or key > best_key:
+            best, best_key = result, key
+    if best is None or len(best.markers) < min_markers:
+        return None
+    return best
+
+
+def labels_from_pixels(
+    model: CameraModel,
+    detections: Detections,
+    labelled: np.ndarray,
+    start: np.ndarray,
+    snap_px: float = 6.0,
+    tight_px: float = 3.0,
+) -> FrameResult:
+    """Label a frame from digitised pixels `labelled` (M, 2) (NaN for markers not given):
+    each is snapped to the nearest detection within `snap_px`, the model is fitted to
+    them from `start` (J,) and every detection the fitted model explains is labelled."""
+    given = np.all(np.isfinite(labelled), axis=-1)
+    markers, index = assign(labelled, detections.xy, np.full(len(labelled), snap_px), given)
+    observed = np.where(given[:, None], labelled, np.nan)
+    observed[markers] = detections.xy[index]
+    best = None
+    for s in starts_around(model, start):
+        joints, residual = model.fit(observed[None], s, iterations=15)
+        rms = float(np.sqrt(np.nanmean(residual**2)))
+        if best is None or rms < best[1]:
+            best = (joints[0], rms)
+    joints = best[0]
+    uv = model.pixels(joints[None])[0]
+    visible = model.visible(joints[None])[0] | given
+    markers, index = assign(uv, detections.xy, np.full(len(uv), max(tight_px, 3 * best[1])), visible)
+    rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1)))) if len(markers) else np.nan
+    return FrameResult(markers, detections.select(index), joints, True, rms)
+
+
+def _fit_from(model: CameraModel, detections: Detections, start: np.ndarray, tight_px: float) -> FrameResult | None:
+    joints = start
+    n_markers = len(model.machine.marker_names)
+    for gate in _GATES_PX + (tight_px,):
+        uv = model.pixels(joints[None])[0]
+        visible = model.visible(joints[None])[0]
+        markers, index = assign(uv, detections.xy, np.full(n_markers, gate), visible)
+        if len(markers) < 3:
+            return None
+        observed = np.full((n_markers, 2), np.nan)
+        observed[markers] = detections.xy[index]
+        fitted, _ = model.fit(observed[None], joints, iterations=8, scale_px=max(gate / 4, 1.0))
+        joints = fitted[0]
+    uv = model.pixels(joints[None])[0]
+    markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), model.visible(joints[None])[0])
+    if len(markers) == 0:
+        return None
+    rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1))))
+    return FrameResult(markers, detections.select(index), joints, True, rms)

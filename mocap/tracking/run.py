@@ -1,0 +1,118 @@
+"""Tracking a whole video: label the first frame, follow the markers, collect the rows of
+the tracks CSV (DESIGN.md). Frames come from any iterable of ``(index, grey image)``."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.detect import Detections, detect_disks
+from mocap.io.tracks_csv import Tracks, concatenate
+from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
+from mocap.tracking.model import CameraModel
+from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    """`frames` read, `fitted` frames with a model fit, `labelled` rows written,
+    `restarts` full-frame relabellings after a loss."""
+
+    frames: int
+    fitted: int
+    labelled: int
+    restarts: int
+
+
+def label_first_frame(
+    model: CameraModel,
+    gray: np.ndarray,
+    start: np.ndarray,
+    labelled: np.ndarray | None,
+    options: TrackOptions,
+) -> FrameResult | None:
+    """The first frame's labels: from digitised pixels `labelled` (M, 2) NaN where not
+    given, or proposed by the model search from joint values `start` (J,)."""
+    found = detect_disks(gray, options.detect)
+    if labelled is not None:
+        return labels_from_pixels(model, found, labelled, start)
+    return propose_labels(model, found, starts_around(model, start), min_markers=options.min_markers)
+
+
+def frame_rows(camera: str, frame: int, fps: float, names, result: FrameResult) -> Tracks:
+    """One frame's labels as tracks rows (time = frame / fps, the camera's own clock)."""
+    n = len(result.markers)
+    time = np.full(n, frame / fps) if fps > 0 else None
+    return Tracks.from_rows(
+        np.full(n, camera, dtype=object),
+        np.full(n, frame),
+        np.asarray(names, dtype=object)[result.markers],
+        result.detections.xy,
+        time,
+        result.detections.score,
+    )
+
+
+def track_frames(
+    model: CameraModel,
+    frames,
+    start: np.ndarray,
+    labelled: np.ndarray | None = None,
+    fps: float = 0.0,
+    options: TrackOptions | None = None,
+) -> tuple[Tracks, TrackSummary]:
+    """Label and track markers through `frames` (iterable of (index, grey (H, W))).
+
+    `start` (J,) joint values near the first frame's (the calibration's); `labelled`
+    (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
+    tracks of the frames read and a summary; raises ValueError if the first frame cannot
+    be labelled.
+    """
+    options = options or TrackOptions()
+    names = model.machine.marker_names
+    rows: list[Tracks] = []
+    tracker = None
+    n_frames = n_fitted = restarts = 0
+    for index, gray in frames:
+        n_frames += 1
+        if tracker is None:
+            first = label_first_frame(model, gray, start, labelled, options)
+            if first is None:
+                raise ValueError(f"frame {index}: the model explains too few of the detected disks")
+            radius = _radii(first.detections, first.markers, len(names))
+            tracker = Tracker(model, first, radius, options)
+            result = first
+            log.info("frame %d: %d markers labelled, residual %.2f px", index, len(first.markers), first.rms_px)
+        else:
+            result = tracker.step(gray)
+            if tracker.lost >= options.lost_frames:
+                again = propose_labels(
+                    model, detect_disks(gray, options.detect), starts_around(model, result.joints),
+                    min_markers=options.min_markers,
+                )
+                if again is not None:
+                    tracker.restart(again)
+                    result = again
+                    restarts += 1
+                    log.info("frame %d: markers found again by a full-frame search", index)
+        n_fitted += bool(result.fitted)
+        if len(result.markers):
+            rows.append(frame_rows(model.camera.name, index, fps, names, result))
+    tracks = _concatenate(rows)
+    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
+
+
+def _radii(detections: Detections, markers: np.ndarray, n_markers: int) -> np.ndarray:
+    radius = np.full(n_markers, np.median(detections.radius) if len(detections) else 5.0)
+    radius[markers] = detections.radius
+    return radius
+
+
+def _concatenate(rows: list[Tracks]) -> Tracks:
+    if not rows:
+        return Tracks.from_rows([], [], [], np.zeros((0, 2)))
+    return concatenate(rows)

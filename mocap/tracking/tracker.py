@@ -1,0 +1,205 @@
+"""Model-guided labelled tracking of disk markers through one camera's video.
+
+Each frame: predict the joint values from the last two (constant velocity), project the
+markers, look for disks only in a window around each predicted marker, assign detections
+to markers (gated, optimal: `scipy.optimize.linear_sum_assignment` on squared distances),
+fit the joint values to the assigned pixels (robust Gauss-Newton), drop assignments the fit
+disowns, then assign again against the fitted projection with a tight gate: a marker that
+comes back after an occlusion is picked up there. A blob is labelled only if it passes the
+disk tests and lies where the model puts a marker. When too few markers are found the
+joints coast on the prediction with widening windows; after a longer loss the whole frame
+is searched again (`propose.propose_labels`).
+
+Shapes: M markers, N detections, J joints.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept
+from mocap.tracking.model import CameraModel
+
+log = logging.getLogger(__name__)
+
+_INFEASIBLE = 1e12
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Tracking settings (pixels unless stated).
+
+    gate_px: least search radius around a prediction; gate_radii: search radius in marker
+    radii; tight_px: least gate of the final assignment against the fitted model;
+    outlier_px: least residual at which the fit disowns a detection; min_markers: markers
+    needed to fit the joints; lost_frames: frames without a fit before the whole frame is
+    searched again; occlusion: predict markers hidden by the machine's links (boxes).
+    """
+
+    gate_px: float = 10.0
+    gate_radii: float = 2.0
+    tight_px: float = 2.5
+    outlier_px: float = 3.0
+    min_markers: int = 5
+    lost_frames: int = 15
+    occlusion: bool = True
+    detect: DetectOptions = field(default_factory=DetectOptions)
+
+    def __post_init__(self) -> None:
+        if not (self.gate_px > 0 and self.tight_px > 0 and self.outlier_px > 0):
+            raise ValueError("gate_px, tight_px and outlier_px must be positive")
+        if self.min_markers < 1 or self.lost_frames < 1:
+            raise ValueError("min_markers and lost_frames must be >= 1")
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One frame's labels: `markers` (K,) model marker indices, `detections` (K) their
+    detections, `joints` (J,) the fitted joint values (the prediction when `fitted` is False),
+    `rms_px` the fit's residual RMS."""
+
+    markers: np.ndarray
+    detections: Detections
+    joints: np.ndarray
+    fitted: bool
+    rms_px: float
+
+
+@dataclass
+class TrackState:
+    """What the tracker carries between frames (mutable: one per tracker)."""
+
+    joints: np.ndarray  # (J,) at the last frame
+    previous: np.ndarray  # (J,) at the frame before
+    radius: np.ndarray  # (M,) expected marker radii (px)
+    lost: int = 0  # frames since the last fit
+
+
+class Tracker:
+    """Labelled tracking for one camera; `step(gray)` per frame, in order."""
+
+    def __init__(self, model: CameraModel, start: FrameResult, radius: np.ndarray, options: TrackOptions | None = None):
+        self.model = model
+        self.options = options or TrackOptions()
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), np.asarray(radius, float).copy())
+
+    def step(self, gray: np.ndarray) -> FrameResult:
+        options, state, model = self.options, self.state, self.model
+        velocity = state.joints - state.previous if state.lost == 0 else 0.0
+        predicted = model.machine.clip_to_limits(state.joints + velocity)
+        uv = model.pixels(predicted[None])[0]
+        visible = self._visible(predicted, state.radius)
+        motion = np.linalg.norm(uv - model.pixels(state.joints[None])[0], axis=-1)
+        widen = 1.0 + min(state.lost, 10)
+        gate = widen * np.maximum(options.gate_px, options.gate_radii * state.radius) + np.nan_to_num(motion)
+        found = self._search(gray, uv, gate, visible)
+        markers, index = assign(uv, found.xy, gate, visible, found.radius, state.radius)
+        if len(markers) < options.min_markers:
+            return self._coast(predicted)
+        observed = np.full(uv.shape, np.nan)
+        observed[markers] = found.xy[index]
+        joints, residual = model.fit(observed[None], predicted, iterations=3)
+        keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * state.radius[markers])
+        if np.sum(keep) < options.min_markers:
+            return self._coast(predicted)
+        if not np.all(keep):
+            observed[markers[~keep]] = np.nan
+            joints, residual = model.fit(observed[None], joints[0], iterations=2)
+        joints = joints[0]
+        fitted_uv = model.pixels(joints[None])[0]
+        visible = self._visible(joints, state.radius)
+        inlier_rms = float(np.sqrt(np.nanmean(np.where(residual[0] < options.outlier_px, residual[0], np.nan) ** 2)))
+        tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
+        markers, index = assign(fitted_uv, found.xy, tight, visible, found.radius, state.radius)
+        if len(markers) < options.min_markers:
+            return self._coast(predicted)
+        observed = np.full(uv.shape, np.nan)
+        observed[markers] = found.xy[index]
+        joints, residual = model.fit(observed[None], joints, iterations=1)
+        joints = joints[0]
+        state.previous, state.joints, state.lost = state.joints, joints, 0
+        state.radius[markers] = 0.7 * state.radius[markers] + 0.3 * found.radius[index]
+        rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
+        return FrameResult(markers, found.select(index), joints, True, rms)
+
+    @property
+    def lost(self) -> int:
+        return self.state.lost
+
+    def restart(self, start: FrameResult) -> None:
+        """Carry on from a fresh labelling of the current frame (after a long loss)."""
+        self.state.joints = start.joints.copy()
+        self.state.previous = start.joints.copy()
+        self.state.lost = 0
+
+    def _visible(self, joints: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        margin = 0.0
+        if self.options.occlusion:
+            return self.model.visible(joints[None], margin)[0]
+        uv = self.model.pixels(joints[None])[0]
+        w, h = self.model.camera.size
+        return np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+
+    def _coast(self, predicted: np.ndarray) -> FrameResult:
+        state = self.state
+        state.previous, state.joints = state.joints, predicted
+        state.lost += 1
+        return FrameResult(np.zeros(0, dtype=int), Detections.empty(), predicted, False, float("nan"))
+
+    def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray) -> Detections:
+        """Disks in a window around each visible predicted marker, duplicates merged."""
+        height, width = gray.shape
+        xys, radii = [], []
+        for m in np.nonzero(visible)[0]:
+            r = self.state.radius[m]
+            half = gate[m] + 2.6 * r + 3
+            x0, y0 = int(max(uv[m, 0] - half, 0)), int(max(uv[m, 1] - half, 0))
+            x1, y1 = int(min(uv[m, 0] + half + 1, width)), int(min(uv[m, 1] + half + 1, height))
+            if x1 - x0 < 3 or y1 - y0 < 3:
+                continue
+            block = int(2 * np.ceil(3.0 * r) + 1)
+            options = replace(self.options.detect, block=max(block, 7))
+            xy, radius = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+            near = np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r
+            xys.append(xy[near])
+            radii.append(radius[near])
+        if not xys:
+            return Detections.empty()
+        xy, radius = np.concatenate(xys), np.concatenate(radii)
+        _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
+        return refine_and_accept(gray, xy[first], radius[first], self.options.detect)
+
+
+def assign(
+    predicted: np.ndarray,
+    detected: np.ndarray,
+    gate: np.ndarray,
+    visible: np.ndarray,
+    detected_radius: np.ndarray | None = None,
+    expected_radius: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Optimal one-to-one assignment of detections to predicted markers.
+
+    predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
+    and (M,), pairs whose sizes differ by more than a factor of two are not allowed.
+    Returns marker indices (K,) and detection indices (K,) of the gated pairs.
+    """
+    if len(detected) == 0 or not np.any(visible):
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
+    allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
+    if detected_radius is not None and expected_radius is not None:
+        ratio = detected_radius[None] / np.maximum(expected_radius[:, None], 1e-6)
+        allowed &= (ratio > 0.5) & (ratio < 2.0)
+    rows = np.nonzero(np.any(allowed, axis=1))[0]
+    cols = np.nonzero(np.any(allowed, axis=0))[0]
+    if len(rows) == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    sub = np.where(allowed[np.ix_(rows, cols)], cost[np.ix_(rows, cols)], _INFEASIBLE)
+    r, c = linear_sum_assignment(sub)
+    ok = sub[r, c] < _INFEASIBLE
+    return rows[r[ok]], cols[c[ok]]
