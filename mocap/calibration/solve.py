@@ -31,6 +31,9 @@ class CalibrationOptions:
     fit_principal_point, distortion ("none", "k1", "k1k2", "full"): extra intrinsics.
     f_scale_px: scale of the robust (soft L1) loss. outlier_px: residual beyond which an
     observation is named an outlier and dropped (default: max(4 px, 5 sigma)).
+    max_rms_px: residual RMS beyond which the fit is reported as not converged (default: 1 %
+    of the largest image diagonal, 22 px at 1920x1080; a model error of a few per cent
+    stays below it, a wrong solution or wrong labels do not).
     """
 
     per_camera: bool = False
@@ -38,6 +41,7 @@ class CalibrationOptions:
     distortion: str = "none"
     f_scale_px: float = 2.0
     outlier_px: float | None = None
+    max_rms_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -237,10 +241,12 @@ def _fit(machine, observations, layout, templates, x0, options) -> CalibrationRe
             problem = Problem(machine, kept, layout, templates)
             final = _least_squares(problem, robust.x, bounds)
     rms = float(np.sqrt(np.mean(final.fun**2) * 2))
-    if rms > 5.0 * options.f_scale_px:
+    diagonal = max(np.hypot(*t.size) for t in templates)
+    if rms > (options.max_rms_px or 0.01 * diagonal):
         raise ConvergenceError(
             f"the fit did not converge: {rms:.1f} px rms over {len(final.fun) // 2} observations "
-            "(expected about the pixel noise); check the marker labels, or give a --guess"
+            "(expected about the pixel noise); check the marker labels, or give a --guess "
+            "(or a larger --max-rms)"
         )
     jacobian = final.jac
     parameter_names = layout.names(names, machine.joint_names)

@@ -43,6 +43,8 @@ def add_parser(sub) -> None:
                    help="robust loss scale in pixels (default 2)")
     p.add_argument("--outlier-px", type=float, help="residual beyond which an observation is "
                    "dropped (default max(4 px, 5 sigma))")
+    p.add_argument("--max-rms", type=float, metavar="PX", help="residual RMS beyond which the fit "
+                   "counts as not converged (default 1 %% of the image diagonal)")
     p.set_defaults(run=run)
 
 
@@ -63,6 +65,7 @@ def run(args) -> int:
         distortion=args.distortion,
         f_scale_px=args.loss_scale,
         outlier_px=args.outlier_px,
+        max_rms_px=args.max_rms,
     )
     request = CalibrateRequest(
         machine=args.machine, tracks=tuple(args.tracks), sizes=parse_sizes(args.size), out=args.out,
