@@ -162,7 +162,7 @@ def test_recording_has_the_entity_tree_timelines_and_blueprint(recorded):
     expected = {f"/world/machine/{link}" for link in ("undercarriage", "house", "boom", "arm", "bucket")}
     expected |= {f"/world/cameras/{cam}" for cam in ("cam1", "cam2", "cam3")}
     expected |= {"/world/markers/model", "/world/markers/observed", "/world/bucket_tip", "/world/trail/1"}
-    expected |= {"/world/trail/2", "/plots/bucket_angle", "/plots/speed/bucket_tip", "/plots/joints/boom"}
+    expected |= {"/world/trail/2", "/plots/bucket/bucket_angle", "/plots/speed/bucket_tip", "/plots/joints/boom"}
     assert expected <= rec.entities
     for chunk in rec.chunks["/world/machine/boom"]:
         if not chunk.is_static:
@@ -291,7 +291,7 @@ def test_plots_carry_the_motion_columns(world, recorded):
     np.testing.assert_allclose(np.array(boom)[:, 0], np.degrees(motion.joints[:, j]), atol=1e-9)
     times, _ = rec.series("/plots/joints/boom", "Scalars:scalars", timeline="time")
     np.testing.assert_allclose(times * 1e-9, motion.time, atol=1e-9)
-    _, angle = rec.series("/plots/bucket_angle", "Scalars:scalars")
+    _, angle = rec.series("/plots/bucket/bucket_angle", "Scalars:scalars")
     np.testing.assert_allclose(np.array(angle)[:, 0], np.degrees(motion.bucket_angle), atol=1e-9)
     _, speed = rec.series("/plots/speed/bucket_tip", "Scalars:scalars")
     np.testing.assert_allclose(np.array(speed)[:, 0], scene.tip_speed(motion, "bucket_tip"))
@@ -310,6 +310,12 @@ def test_failed_recording_leaves_no_file(world, tmp_path, monkeypatch):
     monkeypatch.setattr(replay_module, "record_replay", broken)
     with pytest.raises(RuntimeError, match="disk gone"):
         run_replay(world, Sinks(save=tmp_path / "out.rrd"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_no_viewer_at_the_url_is_an_input_error_and_leaves_no_file(world, tmp_path):
+    with pytest.raises(InputError, match="is a Rerun viewer running there"):
+        run_replay(world, Sinks(save=tmp_path / "out.rrd", connect="rerun+http://127.0.0.1:9/proxy"))
     assert list(tmp_path.iterdir()) == []
 
 

@@ -35,7 +35,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--points", type=Path, help="triangulated points CSV")
     p.add_argument("--tracks", type=Path, nargs="+", default=[], help="2-D tracks CSV file(s)")
     p.add_argument("--video", action="append", default=[], metavar="NAME=PATH", help="a camera's H.264 video")
-    p.add_argument("--cycles", type=Path, help="dig cycles CSV (start_frame,end_frame[,cycle]); one trail if absent")
+    p.add_argument(
+        "--cycles", type=Path, help="dig cycles CSV (start_frame,end_frame[,cycle]); one trail if absent"
+    )
     out = p.add_argument_group("output (a session saves to results/session.rrd unless told otherwise)")
     out.add_argument("--save", type=Path, metavar="FILE.rrd", help="write the recording to this file")
     out.add_argument("--connect", nargs="?", const="", metavar="URL", help="stream to a running viewer")
@@ -65,7 +67,8 @@ def run(args) -> int:
     summary = run_replay(replay, sinks)
     where = f" to {sinks.save}" if sinks.save is not None else ""
     videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
-    print(f"replay of {summary.frames} frames, {summary.cameras} cameras{videos}, {summary.trails} trail(s){where}")
+    trails = f"{summary.trails} trail(s)"
+    print(f"replay of {summary.frames} frames, {summary.cameras} cameras{videos}, {trails}{where}")
     return 0
 
 

@@ -28,7 +28,9 @@ def trail_time_ranges(trail: Trail) -> rrb.VisibleTimeRanges:
     )
 
 
-def default_blueprint(cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[str]) -> rrb.Blueprint:
+def default_blueprint(
+    cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[str]
+) -> rrb.Blueprint:
     """`plot_groups` the groups under plots/ beyond joints, bucket angle and speed that have
     series: "uncertainty", "base", "extra"."""
     scene_3d = rrb.Spatial3DView(
@@ -39,7 +41,7 @@ def default_blueprint(cameras: Sequence[str], trails: Sequence[Trail], plot_grou
     images = [rrb.Spatial2DView(origin=camera_path(name), name=name) for name in cameras]
     plots = [
         rrb.TimeSeriesView(origin="plots/joints", name="joints (deg / m)"),
-        rrb.TimeSeriesView(origin="plots/bucket_angle", name="bucket angle (deg)"),
+        rrb.TimeSeriesView(origin="plots/bucket", name="bucket angle (deg)"),
         rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
     ]
     names = {"uncertainty": "uncertainty (sd)", "base": "base position (m)", "extra": "other columns"}

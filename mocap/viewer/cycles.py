@@ -30,7 +30,9 @@ class Cycles:
     def __post_init__(self) -> None:
         k = len(self.name)
         if np.shape(self.start) != (k,) or np.shape(self.end) != (k,):
-            raise ValueError(f"Cycles needs start ({k},) and end ({k},), got {np.shape(self.start)}, {np.shape(self.end)}")
+            raise ValueError(
+                f"Cycles needs start ({k},) and end ({k},), got {np.shape(self.start)}, {np.shape(self.end)}"
+            )
 
     def __len__(self) -> int:
         return len(self.name)
@@ -71,7 +73,9 @@ def load_cycles(path: str | Path) -> Cycles:
         try:
             start, end = int(row[col["start_frame"]]), int(row[col["end_frame"]])
         except ValueError:
-            raise InputError("start_frame and end_frame must be integers", path=path, where=f"line {line}") from None
+            raise InputError(
+                "start_frame and end_frame must be integers", path=path, where=f"line {line}"
+            ) from None
         if end < start:
             raise InputError(f"end_frame {end} is before start_frame {start}", path=path, where=f"line {line}")
         names.append(row[col["cycle"]].strip() if "cycle" in col else str(len(names) + 1))

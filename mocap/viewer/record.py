@@ -11,7 +11,7 @@ Entity tree (it mirrors the frame tree; the world is the machine's base frame, z
     world/cameras/<cam>             world_from_cam and the pinhole (static, OpenCV axes RDF)
     world/cameras/<cam>/video       the camera's H.264 video and the frame shown per frame
     world/cameras/<cam>/tracks      the camera's 2-D tracks
-    plots/...                       joint values, bucket angle, tip speed, uncertainties
+    plots/<group>/<series>          joints, bucket (angle), speed, uncertainty, base, extra
 
 Timelines: ``frame`` (the reference camera's frame number) and ``time`` (seconds).
 """
@@ -105,7 +105,9 @@ def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion) -> No
             )
 
 
-def log_markers(rec: rr.RecordingStream, machine: Machine, motion: Motion, points: Points | None, fps: float) -> None:
+def log_markers(
+    rec: rr.RecordingStream, machine: Machine, motion: Motion, points: Points | None, fps: float
+) -> None:
     """Model markers at the fitted joints, and the triangulated ones where given."""
     n_markers = len(machine.marker_names)
     rows, markers = scene.model_markers(machine, motion)
@@ -189,7 +191,9 @@ def log_cameras(rec: rr.RecordingStream, calibration: Calibration, scale: float)
         )
 
 
-def log_video(rec: rr.RecordingStream, camera: str, video: Video, motion: Motion, fps: float, offset: float) -> None:
+def log_video(
+    rec: rr.RecordingStream, camera: str, video: Video, motion: Motion, fps: float, offset: float
+) -> None:
     """The camera's video asset and, at each motion frame, the video frame showing it."""
     path = camera_path(camera) + "/video"
     rec.log(path, video.asset, static=True)
@@ -229,30 +233,6 @@ def log_scalar(rec: rr.RecordingStream, path: str, name: str, motion: Motion, va
 
 
 def log_plots(rec: rr.RecordingStream, machine: Machine, motion: Motion, tip: str | None) -> None:
-    """Joint values (deg / m), bucket angle (deg), tip speed (m/s), uncertainties, extras."""
-    scale, units = scene.joint_display_units(machine)
-    for j, name in enumerate(motion.joint_names):
-        log_scalar(rec, "plots/joints/" + entity(name), f"{name} ({units[j]})", motion, motion.joints[:, j] * scale[j])
-    log_scalar(rec, "plots/bucket_angle", "bucket angle (deg)", motion, np.degrees(motion.bucket_angle))
-    speed_columns = {f"{p}_speed" for p in motion.point_names}
-    if tip is not None:
-        log_scalar(rec, "plots/speed/" + entity(tip), f"{tip} speed (m/s)", motion, scene.tip_speed(motion, tip))
-    if motion.joints_sd is not None:
-        for j, name in enumerate(motion.joint_names):
-            log_scalar(
-                rec, "plots/uncertainty/" + entity(f"{name}_sd"), f"{name} sd ({units[j]})", motion, motion.joints_sd[:, j] * scale[j]
-            )
-    if motion.points_sd is not None:
-        for k, name in enumerate(motion.point_names):
-            log_scalar(rec, "plots/uncertainty/" + entity(f"{name}_sd"), f"{name} sd (m)", motion, motion.points_sd[:, k])
-    if motion.bucket_angle_sd is not None:
-        log_scalar(
-            rec, "plots/uncertainty/bucket_angle_sd", "bucket angle sd (deg)", motion, np.degrees(motion.bucket_angle_sd)
-        )
-    for name, values in motion.extra.items():
-        if name in scene.BASE_COLUMNS:
-            log_scalar(rec, "plots/base/" + entity(name), f"{name} (m)", motion, values)
-        elif name in speed_columns and name != f"{tip}_speed":
-            log_scalar(rec, "plots/speed/" + entity(name[: -len("_speed")]), f"{name} (m/s)", motion, values)
-        elif name not in speed_columns:
-            log_scalar(rec, "plots/extra/" + entity(name), name, motion, values)
+    """Joint values (deg / m), bucket angle (deg), speeds (m/s), uncertainties, other columns."""
+    for series in scene.plot_series(machine, motion, tip):
+        log_scalar(rec, f"plots/{series.group}/" + entity(series.name), series.label, motion, series.values)

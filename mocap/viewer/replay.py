@@ -16,12 +16,14 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
 from mocap.io.cameras_toml import Calibration
 from mocap.io.motion_csv import Motion
 from mocap.io.points_csv import Points
 from mocap.io.tracks_csv import Tracks
 from mocap.machine import Machine
+from mocap.progress import progress
 from mocap.viewer import record, scene
 from mocap.viewer.blueprint import default_blueprint
 from mocap.viewer.cycles import Cycles
@@ -90,29 +92,35 @@ class Sinks:
 
 
 def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
-    """Log everything the replay shows into `rec`."""
+    """Log everything the replay shows into `rec` (a progress bar on a terminal)."""
     machine, calibration, motion = replay.machine, replay.calibration, replay.motion
     offsets = calibration.time_offsets
-    record.log_world(rec, machine)
-    record.log_machine(rec, machine, motion)
-    record.log_markers(rec, machine, motion, replay.points, replay.fps[0])
-    record.log_points(rec, motion)
-    record.log_trails(rec, replay.trails())
-    record.log_cameras(rec, calibration, frustum_depth(calibration))
-    with_video = []
-    for k, camera in enumerate(calibration.cameras):
-        path = replay.videos.get(camera.name)
-        video = None if path is None else load_video(path, camera.name)
-        if video is not None:
-            record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k])
-            with_video.append(camera.name)
-        if replay.tracks is not None:
-            series = scene.track_series(
-                replay.tracks, camera.name, machine.marker_names, replay.fps[k], offsets[k], replay.fps[0], offsets[0]
-            )
-            record.log_tracks(rec, series, camera.name)
-    record.log_plots(rec, machine, motion, replay.tip)
-    return ReplaySummary(len(motion), len(calibration.cameras), tuple(with_video), len(replay.trails()))
+    trails = replay.trails()
+    with progress(total=4 + len(calibration.cameras), desc="replay", unit="part") as bar:
+        record.log_world(rec, machine)
+        record.log_machine(rec, machine, motion)
+        bar.update()
+        record.log_markers(rec, machine, motion, replay.points, replay.fps[0])
+        record.log_points(rec, motion)
+        bar.update()
+        record.log_trails(rec, trails)
+        record.log_cameras(rec, calibration, frustum_depth(calibration))
+        bar.update()
+        with_video = []
+        for k, camera in enumerate(calibration.cameras):
+            path = replay.videos.get(camera.name)
+            video = None if path is None else load_video(path, camera.name)
+            if video is not None:
+                record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k])
+                with_video.append(camera.name)
+            if replay.tracks is not None:
+                clocks = (replay.fps[k], offsets[k], replay.fps[0], offsets[0])
+                series = scene.track_series(replay.tracks, camera.name, machine.marker_names, *clocks)
+                record.log_tracks(rec, series, camera.name)
+            bar.update()
+        record.log_plots(rec, machine, motion, replay.tip)
+        bar.update()
+    return ReplaySummary(len(motion), len(calibration.cameras), tuple(with_video), len(trails))
 
 
 def frustum_depth(calibration: Calibration) -> float:
@@ -122,15 +130,9 @@ def frustum_depth(calibration: Calibration) -> float:
 
 
 def replay_blueprint(replay: Replay):
-    motion = replay.motion
-    groups = []
-    if any(sd is not None for sd in (motion.joints_sd, motion.points_sd, motion.bucket_angle_sd)):
-        groups.append("uncertainty")
-    if any(name in motion.extra for name in scene.BASE_COLUMNS):
-        groups.append("base")
-    speeds = {f"{p}_speed" for p in motion.point_names}
-    if set(motion.extra) - speeds - set(scene.BASE_COLUMNS):
-        groups.append("extra")
+    fixed = ("joints", "bucket", "speed")
+    groups = [s.group for s in scene.plot_series(replay.machine, replay.motion, replay.tip)]
+    groups = [g for g in dict.fromkeys(groups) if g not in fixed]
     return default_blueprint(replay.calibration.names, replay.trails(), groups)
 
 
@@ -166,8 +168,15 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
         server = rr.GrpcServerSink()
         targets.append(server)
     rec.set_sinks(*targets, default_blueprint=blueprint)
-    with rec:  # leaving the block finalises the file; live sinks stay open
-        summary = record_replay(rec, replay)
+    try:
+        with rec:  # leaving the block flushes every sink and finalises the file
+            summary = record_replay(rec, replay)
+    except RuntimeError as exc:
+        if "gRPC" not in str(exc):
+            raise
+        raise InputError(
+            f"{exc}; is a Rerun viewer running there? Start one with `rerun`, or use --spawn or --save"
+        ) from None
     if server is not None:
         rr.serve_web_viewer(open_browser=True, connect_to=server.uri)
     return summary

@@ -110,6 +110,52 @@ def tip_speed(motion: Motion, point: str) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class PlotSeries:
+    """One plotted series: its group under plots/, name, label with unit, values (F,)."""
+
+    group: str
+    name: str
+    label: str
+    values: np.ndarray
+
+
+def plot_series(machine: Machine, motion: Motion, tip: str | None) -> list[PlotSeries]:
+    """The motion's per-frame columns in display units, grouped: joints (deg / m), the bucket
+    angle (deg, group bucket), speeds (m/s; the tip's computed if the file has none), uncertainty (SDs),
+    base (position columns) and extra (every other column)."""
+    scale, units = joint_display_units(machine)
+    out = [
+        PlotSeries("joints", name, f"{name} ({units[j]})", motion.joints[:, j] * scale[j])
+        for j, name in enumerate(motion.joint_names)
+    ]
+    out.append(PlotSeries("bucket", "bucket_angle", "bucket angle (deg)", np.degrees(motion.bucket_angle)))
+    if tip is not None:
+        out.append(PlotSeries("speed", tip, f"{tip} speed (m/s)", tip_speed(motion, tip)))
+    if motion.joints_sd is not None:
+        out += [
+            PlotSeries("uncertainty", f"{name}_sd", f"{name} sd ({units[j]})", motion.joints_sd[:, j] * scale[j])
+            for j, name in enumerate(motion.joint_names)
+        ]
+    if motion.points_sd is not None:
+        out += [
+            PlotSeries("uncertainty", f"{name}_sd", f"{name} sd (m)", motion.points_sd[:, k])
+            for k, name in enumerate(motion.point_names)
+        ]
+    if motion.bucket_angle_sd is not None:
+        sd = np.degrees(motion.bucket_angle_sd)
+        out.append(PlotSeries("uncertainty", "bucket_angle_sd", "bucket angle sd (deg)", sd))
+    speeds = {f"{p}_speed": p for p in motion.point_names}
+    for name, values in motion.extra.items():
+        if name in BASE_COLUMNS:
+            out.append(PlotSeries("base", name, f"{name} (m)", values))
+        elif name in speeds and speeds[name] != tip:
+            out.append(PlotSeries("speed", speeds[name], f"{speeds[name]} speed (m/s)", values))
+        elif name not in speeds:
+            out.append(PlotSeries("extra", name, name, values))
+    return out
+
+
+@dataclass(frozen=True)
 class Trail:
     """The bucket tip's path in one dig cycle, drawn as segments that accumulate.
 
