@@ -1,0 +1,57 @@
+"""`mocap fit`: the machine's joint values in every frame, smoothed, with uncertainties."""
+
+from __future__ import annotations
+
+import argparse
+
+from mocap.errors import InputError
+from mocap.reconstruct.kinfit import FitOptions
+from mocap.reconstruct.smooth import SmoothOptions
+from mocap.reconstruct.stage import run_fit
+
+EXAMPLE = """example:
+  mocap fit calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml \\
+      tracks/cam1.csv tracks/cam2.csv tracks/cam3.csv --out results/motion.csv"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "fit",
+        help="fit the machine model to all cameras' marker pixels in every frame",
+        description="Per frame, the joint values that best explain every camera's observations "
+        "(one camera is enough), robust to wrong detections; then a smoother fills short gaps. "
+        "Writes joint values, named points (bucket tip), bucket angle, their standard deviations, "
+        "tip speed and acceleration, and which frames were filled.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("machine", help="machine model TOML (or the name of a shipped one)")
+    p.add_argument("calibration", help="camera calibration TOML")
+    p.add_argument("tracks", nargs="+", help="tracks CSV file(s), one per camera or all in one")
+    p.add_argument("--out", required=True, help="motion CSV to write")
+    p.add_argument("--base-motion", action="store_true",
+                   help="also fit the base's 6-DoF pose per frame (bouncing, or moved since calibration)")
+    p.add_argument("--loss", choices=("huber", "cauchy", "linear"), default="huber",
+                   help="robust loss (default huber)")
+    p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
+    p.add_argument("--noise-px", type=float, help="pixel noise SD for the uncertainties "
+                   "(default: estimated from the residuals)")
+    p.add_argument("--no-smooth", action="store_true", help="per-frame fit only, no smoothing or gap filling")
+    p.add_argument("--max-gap", type=float, default=2.0, metavar="S",
+                   help="longest gap the smoother fills, seconds (default 2)")
+    p.add_argument("--process-noise", type=float, metavar="Q",
+                   help="smoother's acceleration noise density, unit²/s³ (default: estimated)")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    try:
+        fit_options = FitOptions(loss=args.loss, scale_px=args.loss_scale, noise_px=args.noise_px,
+                                 base_motion=args.base_motion)
+        smooth_options = None if args.no_smooth else SmoothOptions(
+            process_noise=args.process_noise, max_gap_s=args.max_gap
+        )
+    except ValueError as exc:
+        raise InputError(f"bad option: {exc}") from None
+    print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options))
+    return 0

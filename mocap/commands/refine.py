@@ -1,0 +1,49 @@
+"""`mocap refine`: bundle adjustment of the cameras (and marker positions) over many frames."""
+
+from __future__ import annotations
+
+import argparse
+
+from mocap.errors import InputError
+from mocap.reconstruct.refine import RefineOptions
+from mocap.reconstruct.stage import run_refine
+
+EXAMPLE = """example:
+  mocap refine calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml tracks/*.csv \\
+      --out calibration/refined.toml --markers --out-machine calibration/machine_refined.toml"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "refine",
+        help="refine cameras (and marker positions) over many frames",
+        description="Bundle adjustment over many frames of the session: the cameras calibrated "
+        "from one frame, the per-frame joint values and, with --markers, the tape-measured marker "
+        "positions within --tolerance. Writes the refined calibration and, with --out-machine, model.",
+        epilog=EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("machine", help="machine model TOML (or the name of a shipped one)")
+    p.add_argument("calibration", help="camera calibration TOML")
+    p.add_argument("tracks", nargs="+", help="tracks CSV file(s), one per camera or all in one")
+    p.add_argument("--out", required=True, help="refined calibration TOML to write")
+    p.add_argument("--markers", action="store_true", help="also refine the marker positions")
+    p.add_argument("--out-machine", help="refined machine model TOML to write (with --markers)")
+    p.add_argument("--tolerance", type=float, default=0.05,
+                   help="relative tolerance of the marker positions (default 0.05 = 5 %%)")
+    p.add_argument("--frames", type=int, default=120, help="frames used, at most (default 120)")
+    p.add_argument("--fixed-focal", action="store_true", help="keep the focal lengths")
+    p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
+    p.set_defaults(run=run)
+
+
+def run(args) -> int:
+    if args.out_machine and not args.markers:
+        raise InputError("--out-machine needs --markers (without it the model is not changed)")
+    try:
+        options = RefineOptions(frames=args.frames, markers=args.markers, tolerance=args.tolerance,
+                                fit_focal=not args.fixed_focal, scale_px=args.loss_scale)
+    except ValueError as exc:
+        raise InputError(f"bad option: {exc}") from None
+    print(run_refine(args.machine, args.calibration, args.tracks, args.out, args.out_machine, options))
+    return 0

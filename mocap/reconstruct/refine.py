@@ -1,0 +1,182 @@
+"""Model refinement: a bundle adjustment over many frames of the cameras, the per-frame
+joint values and, optionally, the marker positions within a stated tolerance.
+
+The cameras calibrated from one frame and a tape-measured machine (markers ±5 %) leave
+errors that one frame cannot reveal; many frames of a moving machine can. The problem is
+solved with scipy.optimize.least_squares (trust region, robust loss with its scale in
+pixels) and a Jacobian sparsity pattern: every residual depends on one camera, one frame
+and one marker. A marker's offset from its measured position has a Gaussian prior of SD
+``tolerance × max(|position|, 0.5 m)`` per coordinate, expressed in pixel units through
+the pixel noise, so the named points (bucket tip), which no camera sees, stay where the
+model puts them relative to their links.
+
+Camera parameters: a rotation increment (3,) on the left of ``cam_from_world``, a
+translation increment (3,) and, with `fit_focal`, the log of a focal-length scale.
+Shapes: C cameras, K frames used, M markers, J joints.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from mocap.camera import Camera
+from mocap.errors import DegenerateError
+from mocap.geometry import Rigid, rotvec_to_matrix
+from mocap.machine import Machine
+from mocap.reconstruct.kinfit import FitOptions, fit_joints
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """frames: at most this many frames (the best-observed, spread over the session);
+    markers: also refine the marker positions; tolerance: their relative measurement
+    tolerance; fit_focal: refine each camera's focal length; scale_px: robust loss scale;
+    max_evaluations: residual evaluations allowed to the solver."""
+
+    frames: int = 120
+    markers: bool = False
+    tolerance: float = 0.05
+    fit_focal: bool = True
+    scale_px: float = 2.0
+    max_evaluations: int = 100
+
+    def __post_init__(self) -> None:
+        if self.frames < 2 or not self.tolerance > 0 or not self.scale_px > 0 or self.max_evaluations < 1:
+            raise ValueError("frames >= 2, tolerance > 0, scale_px > 0 and max_evaluations >= 1 are required")
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """cameras (C) refined; machine with refined marker positions (or the input model);
+    frames (K,) indices of the frames used; joints (K, J) their fitted joint values;
+    rms_before / rms_after the pixel residual RMS over those frames; message the solver's."""
+
+    cameras: tuple[Camera, ...]
+    machine: Machine
+    frames: np.ndarray
+    joints: np.ndarray
+    rms_before: float
+    rms_after: float
+    message: str
+
+
+def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
+    """Bundle-adjust cameras (and markers) to pixels (C, F, M, 2) of many frames."""
+    options = options or RefineOptions()
+    pixels = np.asarray(pixels, dtype=float)
+    n_cams, n_markers, n_joints = len(cameras), len(machine.marker_names), machine.n_joints
+    if pixels.ndim != 4 or pixels.shape[0] != n_cams or pixels.shape[2:] != (n_markers, 2):
+        raise ValueError(f"pixels must have shape (C={n_cams}, F, M={n_markers}, 2), got {pixels.shape}")
+    frames = select_frames(pixels, options.frames, minimum=n_joints + 2)
+    if len(frames) < 2:
+        raise DegenerateError(
+            "fewer than 2 frames show enough markers to refine the cameras; track more frames "
+            "or refine with the calibration as it is"
+        )
+    obs = pixels[:, frames]
+    fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px))
+    problem = _Bundle(machine, tuple(cameras), obs, options, fit.noise_px)
+    x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), np.nan_to_num(fit.joints).ravel(), np.zeros(3 * n_markers * options.markers)]
+    before = problem.pixel_rms(x0)
+    solution = least_squares(
+        problem.residuals, x0, jac_sparsity=problem.sparsity(), method="trf", loss="huber",
+        f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations,
+    )
+    cams, joints, refined = problem.unpack(solution.x)
+    after = problem.pixel_rms(solution.x)
+    log.info("bundle adjustment over %d frames: %.3f -> %.3f px (%s)", len(frames), before, after, solution.message)
+    return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message))
+
+
+def select_frames(pixels: np.ndarray, count: int, minimum: int) -> np.ndarray:
+    """Up to `count` frame indices spread evenly over the frames whose observations (2-D,
+    all cameras) number at least `minimum`."""
+    n_obs = np.isfinite(pixels[..., 0]).sum((0, 2))
+    usable = np.nonzero(n_obs >= minimum)[0]
+    if len(usable) <= count:
+        return usable
+    return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
+
+
+class _Bundle:
+    """Residuals of the bundle adjustment as a pure function of the parameter vector:
+    camera parameters (C, n_camera_params), joints (K, J), marker offsets (M, 3)."""
+
+    def __init__(self, machine: Machine, cameras: tuple[Camera, ...], pixels: np.ndarray, options: RefineOptions, noise_px: float):
+        self.machine, self.cameras, self.pixels, self.options = machine, cameras, pixels, options
+        self.seen = np.isfinite(pixels[..., 0])  # (C, K, M)
+        self.n_camera_params = 7 if options.fit_focal else 6
+        self.prior_sd = options.tolerance * np.maximum(np.linalg.norm(machine.marker_positions, axis=1), 0.5)
+        self.noise_px = noise_px
+
+    def unpack(self, x: np.ndarray):
+        n_cams, n_frames, n_markers = self.seen.shape
+        n_joints = self.machine.n_joints
+        k = self.n_camera_params * n_cams
+        camera_params = x[:k].reshape(n_cams, self.n_camera_params)
+        joints = x[k : k + n_frames * n_joints].reshape(n_frames, n_joints)
+        machine = self.machine
+        if self.options.markers:
+            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3)
+            machine = replace(machine, marker_positions=machine.marker_positions + offsets)
+        cameras = [self._camera(camera, p) for camera, p in zip(self.cameras, camera_params)]
+        return cameras, joints, machine
+
+    def _camera(self, camera: Camera, params: np.ndarray) -> Camera:
+        pose = camera.cam_from_world
+        rotation = rotvec_to_matrix(params[:3]) @ pose.rotation
+        moved = replace(camera, cam_from_world=Rigid(rotation, pose.translation + params[3:6]))
+        if self.options.fit_focal:
+            matrix = camera.matrix.copy()
+            matrix[:2, :2] *= np.exp(params[6])
+            moved = replace(moved, matrix=matrix)
+        return moved
+
+    def pixel_residuals(self, x: np.ndarray) -> np.ndarray:
+        cameras, joints, machine = self.unpack(x)
+        world = machine.markers(joints)  # (K, M, 3)
+        out = np.stack([c.project(world) for c in cameras])  # (C, K, M, 2)
+        residual = self.pixels - out
+        return np.where(self.seen[..., None], np.nan_to_num(residual, nan=1e3), 0.0)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        pixel = self.pixel_residuals(x).ravel()
+        if not self.options.markers:
+            return pixel
+        n_cams, n_frames, n_markers = self.seen.shape
+        start = self.n_camera_params * n_cams + n_frames * self.machine.n_joints
+        offsets = x[start:].reshape(n_markers, 3)
+        return np.r_[pixel, (offsets / self.prior_sd[:, None] * self.noise_px).ravel()]
+
+    def pixel_rms(self, x: np.ndarray) -> float:
+        residual = self.pixel_residuals(x)
+        return float(np.sqrt((residual**2).sum() / max(self.seen.sum(), 1)))
+
+    def sparsity(self):
+        n_cams, n_frames, n_markers = self.seen.shape
+        n_joints = self.machine.n_joints
+        n_pixel = n_cams * n_frames * n_markers * 2
+        n_params = self.n_camera_params * n_cams + n_frames * n_joints + 3 * n_markers * self.options.markers
+        n_rows = n_pixel + 3 * n_markers * self.options.markers
+        pattern = lil_matrix((n_rows, n_params), dtype=int)
+        c, k, m, a = np.meshgrid(np.arange(n_cams), np.arange(n_frames), np.arange(n_markers), np.arange(2), indexing="ij")
+        rows = np.arange(n_pixel).reshape(c.shape)
+        for p in range(self.n_camera_params):
+            pattern[rows.ravel(), (c * self.n_camera_params + p).ravel()] = 1
+        joint_start = self.n_camera_params * n_cams
+        for j in range(n_joints):
+            pattern[rows.ravel(), (joint_start + k * n_joints + j).ravel()] = 1
+        if self.options.markers:
+            marker_start = joint_start + n_frames * n_joints
+            for axis in range(3):
+                pattern[rows.ravel(), (marker_start + 3 * m + axis).ravel()] = 1
+            prior = np.arange(3 * n_markers)
+            pattern[n_pixel + prior, marker_start + prior] = 1
+        return pattern.tocsr()

@@ -1,0 +1,131 @@
+"""The reconstruction stages: load -> compute -> save -> a short report. The only part of
+`mocap.reconstruct` that touches files; the commands only parse options and call these.
+"""
+
+from __future__ import annotations
+
+import logging
+import numpy as np
+
+from mocap.errors import InputError
+from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.machine_toml import load_machine, save_machine
+from mocap.io.motion_csv import save_motion
+from mocap.io.points_csv import Points, save_points
+from mocap.io.tracks_csv import Tracks, load_tracks
+from mocap.machine import Machine
+from mocap.progress import progress
+from mocap.reconstruct.kinfit import FitOptions
+from mocap.reconstruct.motion import reconstruct_motion
+from mocap.reconstruct.refine import RefineOptions, refine
+from mocap.reconstruct.smooth import SmoothOptions
+from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
+from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
+
+log = logging.getLogger(__name__)
+
+_CHUNK_FRAMES = 2000  # frames triangulated per batch (memory, progress)
+
+
+def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
+    """Calibration, tracks and their marker names; raises InputError for cameras or
+    markers that do not match."""
+    calibration = load_calibration(calibration_path)
+    tracks = load_tracks(tracks_paths)
+    if not len(tracks):
+        raise InputError("no observations in the tracks file(s)", path=", ".join(map(str, tracks_paths)))
+    unknown = sorted(set(tracks.cameras) - set(calibration.names))
+    if unknown:
+        raise InputError(
+            f"tracks name camera(s) {unknown} that the calibration lacks (it has "
+            f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
+            path=calibration_path,
+        )
+    if machine is None:
+        _, first = np.unique(tracks.marker, return_index=True)
+        markers = tuple(tracks.marker[np.sort(first)])
+    else:
+        strange = sorted(set(tracks.marker) - set(machine.marker_names))
+        if strange:
+            raise InputError(
+                f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
+                f"model {machine.name!r}; check the model or the tracks' marker names",
+                path=", ".join(map(str, tracks_paths)),
+            )
+        markers = machine.marker_names
+    return calibration, tracks, markers
+
+
+def on_reference_clock(calibration: Calibration, tracks: Tracks, markers) -> Resampled:
+    offsets = calibration.time_offsets
+    missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
+    if missing_fps and np.any(offsets != 0):
+        log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
+    return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
+
+
+def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
+    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
+    clock = on_reference_clock(calibration, tracks, markers)
+    cameras = list(calibration.cameras)
+    rows = []
+    for start in progress(range(0, len(clock.frame), _CHUNK_FRAMES), desc="triangulate", unit="chunk"):
+        part = triangulate(cameras, clock.pixels[:, start : start + _CHUNK_FRAMES], options)
+        f, m = np.nonzero(np.isfinite(part.xyz[..., 0]))
+        rows.append((clock.frame[start + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m], part.views[f, m]))
+    points = Points(*(np.concatenate([r[k] for r in rows]) if rows else np.zeros(0) for k in range(5)))
+    if not len(points):
+        raise InputError(
+            "no marker is seen by two cameras at the same time; check the time offsets and "
+            "that the tracks' camera names match the calibration",
+            path=calibration_path,
+        )
+    save_points(points, out)
+    seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
+    return (
+        f"{len(points)} points in {len(np.unique(points.frame))} frames written to {out}; "
+        f"median reprojection error {np.median(points.error_px):.2f} px; "
+        f"{seen - len(points)} marker-frames seen by fewer than 2 cameras"
+    )
+
+
+def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
+            smooth_options: SmoothOptions | None) -> str:
+    machine = load_machine(machine_path)
+    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
+    clock = on_reference_clock(calibration, tracks, markers)
+    result = reconstruct_motion(
+        machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
+        fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,
+    )
+    save_motion(result.motion, machine, out)
+    fit = result.fit
+    report = (
+        f"{len(result.motion)} frames written to {out}; {int(fit.valid.sum())} fitted, "
+        f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
+    )
+    if result.smoothed is not None:
+        report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
+    return report
+
+
+def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, out_machine,
+               options: RefineOptions) -> str:
+    machine = load_machine(machine_path)
+    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
+    clock = on_reference_clock(calibration, tracks, markers)
+    result = refine(machine, list(calibration.cameras), clock.pixels, options)
+    refined = Calibration(result.cameras, calibration.extras, {
+        **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),
+    })
+    save_calibration(refined, out_calibration)
+    report = (
+        f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
+        f"{result.rms_after:.2f} px, written to {out_calibration}"
+    )
+    if out_machine is not None:
+        save_machine(result.machine, out_machine)
+        moved = np.linalg.norm(result.machine.marker_positions - machine.marker_positions, axis=1)
+        report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
+    return report
+
