@@ -19,6 +19,9 @@ COMMANDS = (
     "synth",
     "track",
     "sync",
+    "triangulate",
+    "fit",
+    "refine",
 )
 
 
