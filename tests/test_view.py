@@ -112,6 +112,7 @@ class Recording:
     def __init__(self, path: Path):
         reader = RrdReader(path)
         self.blueprints = reader.blueprints()
+        self.blueprint_chunks = [c for b in self.blueprints for c in reader.stream(store=b).collect().stream()]
         self.chunks: dict[str, list] = {}
         for chunk in reader.stream().collect().stream():
             self.chunks.setdefault(chunk.entity_path, []).append(chunk)
@@ -169,6 +170,27 @@ def test_recording_has_the_entity_tree_timelines_and_blueprint(recorded):
             assert set(chunk.timeline_names) == {"frame", "time"}
     assert len(rec.blueprints) == 1
     assert summary.frames == N_FRAMES and summary.trails == 2
+
+
+def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, recorded):
+    _, rec = recorded
+    origins, overrides = [], {}
+    for chunk in rec.blueprint_chunks:
+        batch = chunk.to_record_batch()
+        if "ViewBlueprint:space_origin" in batch.schema.names:
+            origins += [o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist()]
+        if "VisibleTimeRanges:ranges" in batch.schema.names:
+            overrides[chunk.entity_path.split("/overrides")[1]] = batch.column("VisibleTimeRanges:ranges").to_pylist()[-1]
+    assert sorted(origins) == sorted(
+        ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots/joints",
+         "plots/bucket", "plots/speed", "plots/uncertainty", "plots/extra"]
+    )
+    assert set(overrides) == {"/world/trail/1/visualizers", "/world/trail/2/visualizers"}
+    ranges = {r["timeline"]: r["range"] for r in overrides["/world/trail/2/visualizers"]}
+    assert set(ranges) == {"frame", "time"}
+    assert ranges["frame"]["start"] == world.cycles.start[1]  # from the cycle's start ...
+    assert ranges["time"]["start"] == round(world.cycles.start[1] / FPS * 1e9)  # (ns)
+    assert ranges["frame"]["end"] == ranges["time"]["end"] == 0  # ... up to the time cursor
 
 
 def test_world_is_z_up_right_handed(recorded):
