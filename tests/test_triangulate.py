@@ -1,0 +1,150 @@
+"""Triangulation, the reference clock, and `mocap triangulate` end to end."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mocap import cli
+from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.points_csv import load_points
+from mocap.io.tracks_csv import Tracks, save_tracks
+from mocap.reconstruct.timing import resample, tracks_on_reference_clock
+from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
+from mocap.simulate import observe, random_joints, ring_of_cameras
+
+NOISE = 0.5
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("hitachi_ex3500")
+
+
+def rig(n_cameras, seed, distorted=True):
+    rng = np.random.default_rng(seed)
+    cameras = ring_of_cameras(n_cameras, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
+    if distorted:
+        cameras = [replace(c, distortion=np.array([-0.08, 0.01, 0.0005, -0.0003, 0.0])) for c in cameras]
+    return cameras, rng
+
+
+def cramer_rao_mahalanobis(cameras, world, used, error):
+    """error^T (J^T J / sigma^2) error per point, J the projection Jacobian at the truth."""
+    from mocap.camera import project_cam
+
+    info = np.zeros(world.shape[:-1] + (3, 3))
+    for c, camera in enumerate(cameras):
+        rot = camera.cam_from_world.rotation
+        _, d_uv = project_cam(world @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+        jac = d_uv @ rot
+        info += np.where(used[c][..., None, None], np.swapaxes(jac, -1, -2) @ jac, 0.0)
+    return np.einsum("...i,...ij,...j->...", error, info / NOISE**2, error)
+
+
+def test_exact_without_noise(machine):
+    cameras, rng = rig(3, seed=1)
+    world = machine.markers(random_joints(machine, 50, rng))
+    pixels = np.stack([c.project(world) for c in cameras])
+    result = triangulate(cameras, pixels)
+    assert result.xyz.shape == world.shape and (result.views == 3).all()
+    np.testing.assert_allclose(result.xyz, world, atol=1e-6)
+    assert result.error_px.max() < 1e-6
+
+
+def test_accuracy_matches_the_cramer_rao_bound(machine):
+    cameras, rng = rig(4, seed=2)
+    world = machine.markers(random_joints(machine, 200, rng))
+    pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (4,) + world.shape[:-1] + (2,))
+    pixels[0, :100] = np.nan  # half the points in 3 views
+    result = triangulate(cameras, pixels)
+    d2 = cramer_rao_mahalanobis(cameras, world, result.used, result.xyz - world)
+    assert np.mean(d2) == pytest.approx(3.0, rel=0.1)  # chi-square with 3 dof
+    assert np.median(result.error_px) == pytest.approx(NOISE, rel=0.3)
+
+
+def test_drops_a_wrong_view(machine):
+    cameras, rng = rig(4, seed=3)
+    joints = random_joints(machine, 300, rng)
+    world = machine.markers(joints)
+    tracks = observe(cameras, machine, joints, rng, noise_px=NOISE, outliers=500, outlier_px=(20.0, 60.0))
+    pixels = tracks.dense([c.name for c in cameras], machine.marker_names, np.arange(300))
+    clean = np.stack([c.project(world) for c in cameras])
+    wrong = np.linalg.norm(pixels - clean, axis=-1) > 10.0
+    result = triangulate(cameras, pixels, TriangulateOptions(max_error_px=4.0))
+    one_wrong = (wrong.sum(0) == 1) & (np.isfinite(pixels[..., 0]).sum(0) == 4)
+    assert one_wrong.sum() > 300
+    assert (result.used & wrong)[:, one_wrong].sum() == 0  # every wrong view was dropped
+    assert (result.views[one_wrong] == 3).all()
+    d2 = cramer_rao_mahalanobis(cameras, world, result.used, result.xyz - world)
+    assert np.mean(d2[one_wrong]) < 3.6
+
+
+def test_unseen_points_are_nan():
+    cameras, _ = rig(2, seed=4)
+    pixels = np.stack([c.project(np.array([[[1.0, 2.0, 3.0], [4.0, 1.0, 2.0]]])) for c in cameras])
+    pixels[1, 0, 1] = np.nan
+    result = triangulate(cameras, pixels)
+    assert np.isfinite(result.xyz[0, 0]).all() and np.isnan(result.xyz[0, 1]).all()
+    assert result.views.tolist() == [[2, 1]]
+
+
+def test_guards():
+    cameras, _ = rig(2, seed=5)
+    with pytest.raises(ValueError, match="pixels must have shape"):
+        triangulate(cameras, np.zeros((3, 4, 2)))
+    with pytest.raises(ValueError, match="min_views >= 2"):
+        TriangulateOptions(min_views=1)
+    with pytest.raises(ValueError, match="fps must be positive"):
+        resample([np.zeros((2, 1, 2))], np.array([0]), np.array([0.0]), np.array([0.0]))
+
+
+def test_resampling_interpolates_and_never_extrapolates():
+    # a marker moving linearly in camera 1 (25 fps, 0.1 s late); the reference runs at 30 fps
+    frames_1 = np.arange(0, 50)
+    time_1 = frames_1 / 25.0 + 0.1
+    track_1 = np.stack([10 * time_1, -3 * time_1], -1)[:, None, :]
+    track_1[20:23] = np.nan  # a gap
+    reference = np.full((60, 1, 2), 1.0)
+    out = resample([reference, track_1], np.array([0, 0]), np.array([30.0, 25.0]), np.array([0.0, 0.1]))
+    t = out.time
+    inside = (t >= time_1[0]) & (t <= time_1[-1])
+    gap = (t > time_1[19]) & (t < time_1[23])
+    expected = np.stack([10 * t, -3 * t], -1)
+    ok = inside & ~gap
+    np.testing.assert_allclose(out.pixels[1, ok, 0], expected[ok], atol=1e-9)
+    assert np.isnan(out.pixels[1, ~inside | gap]).all()
+    assert out.frame[0] == 0 and out.frame[-1] == 61  # camera 1 runs until 49 / 25 + 0.1 = 2.06 s
+
+
+def test_tracks_on_the_reference_clock_take_exact_frames():
+    tracks = Tracks.from_rows(["a", "a", "b"], [0, 1, 1], ["m", "m", "m"], [[1, 2], [3, 4], [5, 6]])
+    out = tracks_on_reference_clock(tracks, ["a", "b"], ["m"], np.array([30.0, 30.0]), np.zeros(2))
+    assert out.frame.tolist() == [0, 1]
+    assert out.pixels[1, 1, 0].tolist() == [5.0, 6.0] and np.isnan(out.pixels[1, 0]).all()
+
+
+def test_cli_triangulate(tmp_path, machine, capsys):
+    cameras, rng = rig(3, seed=6)
+    joints = random_joints(machine, 20, rng)
+    tracks = observe(cameras, machine, joints, rng, noise_px=NOISE)
+    calibration = Calibration(tuple(cameras), tuple({"fps": 30.0, "time_offset": 0.0} for _ in cameras))
+    save_calibration(calibration, tmp_path / "cameras.toml")
+    for camera in cameras:
+        save_tracks(tracks.of_camera(camera.name), tmp_path / f"{camera.name}.csv")
+    paths = [str(tmp_path / f"{c.name}.csv") for c in cameras]
+    out = tmp_path / "points.csv"
+    assert cli.main(["triangulate", str(tmp_path / "cameras.toml"), *paths, "--out", str(out)]) == 0
+    points = load_points(out)
+    world = machine.markers(joints)
+    truth = world[points.frame, machine.marker_index(points.marker)]
+    seen_twice = (np.isfinite(tracks.dense([c.name for c in cameras], machine.marker_names, np.arange(20))[..., 0]).sum(0) >= 2)
+    assert len(points) == seen_twice.sum() > 0.9 * seen_twice.size
+    assert np.sqrt(np.mean(np.sum((points.xyz - truth) ** 2, -1))) < 0.05
+    assert "points in 20 frames" in capsys.readouterr().out
+
+    save_tracks(Tracks.from_rows(["nope"], [0], ["U1"], [[1.0, 2.0]]), tmp_path / "bad.csv")
+    code = cli.main(["triangulate", str(tmp_path / "cameras.toml"), str(tmp_path / "bad.csv"), "--out", str(out)])
+    assert code == 2
+    assert "lacks" in capsys.readouterr().err and load_points(out).frame.size == len(points)
