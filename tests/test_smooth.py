@@ -1,0 +1,143 @@
+"""The smoother, gap filling, uncertainty of named points, and `mocap fit` end to end."""
+
+import numpy as np
+import pytest
+
+from mocap import cli
+from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.motion_csv import load_motion
+from mocap.io.tracks_csv import save_tracks
+from mocap.reconstruct.motion import reconstruct_motion
+from mocap.reconstruct.smooth import SmoothOptions, smooth
+from mocap.reconstruct.uncertainty import point_quantities
+from mocap.simulate import observe, ring_of_cameras
+
+NOISE = 0.5
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("hitachi_ex3500")
+
+
+def dig_like(machine, seconds, rng):
+    """Smooth joint trajectories (F, J): a few slow sinusoids inside the limits."""
+    time = np.arange(int(seconds * FPS)) / FPS
+    limits = machine.joint_limits.copy()
+    limits[0] = np.radians([-60, 60])
+    centre, half = limits.mean(1), 0.35 * (limits[:, 1] - limits[:, 0])
+    phase = rng.uniform(0, 2 * np.pi, (3, machine.n_joints))
+    period = rng.uniform(8.0, 20.0, (3, machine.n_joints))
+    wave = sum(np.sin(2 * np.pi * time[:, None] / period[k] + phase[k]) for k in range(3)) / 3
+    return time, centre + half * wave
+
+
+def test_smoother_reduces_noise_with_honest_intervals():
+    rng = np.random.default_rng(1)
+    time = np.arange(900) / FPS
+    truth = np.c_[np.sin(time / 3.0), 0.5 * np.cos(time / 2.0)]
+    sd = np.array([0.02, 0.01])
+    measured = truth + rng.normal(0, sd, truth.shape)
+    information = np.tile(np.diag(1 / sd**2), (len(time), 1, 1))
+    out = smooth(time, measured, information, np.ones(len(time), bool))
+    error = out.values - truth
+    assert (np.sqrt(np.mean(error**2, 0)) < 0.6 * sd).all()
+    z = error / np.sqrt(np.diagonal(out.covariance, axis1=1, axis2=2))
+    assert 0.9 < np.mean(np.abs(z) < 1.96) < 0.995
+    assert not out.filled.any()
+    velocity_error = out.velocities[:, 0] - np.cos(time / 3.0) / 3.0
+    assert np.sqrt(np.mean(velocity_error**2)) < 0.02
+    assert np.mean(np.abs(velocity_error) < 1.96 * np.sqrt(out.velocity_covariance[:, 0, 0])) > 0.85
+
+
+def test_gaps_are_filled_and_long_gaps_left_empty():
+    rng = np.random.default_rng(2)
+    time = np.arange(600) / FPS
+    truth = np.sin(time / 2.0)[:, None]
+    measured = truth + rng.normal(0, 0.01, truth.shape)
+    valid = np.ones(600, bool)
+    valid[100:130] = False  # 1 s
+    valid[300:420] = False  # 4 s
+    information = np.tile(np.eye(1) / 0.01**2, (600, 1, 1))
+    out = smooth(time, np.where(valid[:, None], measured, np.nan), information, valid, options=SmoothOptions(max_gap_s=2.0))
+    assert out.filled[100:130].all() and not out.filled[:100].any()
+    assert np.isnan(out.values[300:420]).all() and not out.filled[300:420].any()
+    gap_error = np.abs(out.values[100:130, 0] - truth[100:130, 0])
+    assert (gap_error < 3 * np.sqrt(out.covariance[100:130, 0, 0])).all()
+
+
+def test_singular_information_leaves_one_parameter_to_the_model():
+    time = np.arange(200) / FPS
+    truth = np.c_[time, 1.0 + 0.5 * time]
+    information = np.tile(np.eye(2) * 1e4, (200, 1, 1))
+    information[80:110, 1, :] = information[80:110, :, 1] = 0.0  # parameter 1 unobserved
+    measured = truth.copy()
+    measured[80:110, 1] = 123.0  # whatever the fit left there
+    out = smooth(time, measured, information, np.ones(200, bool), options=SmoothOptions(process_noise=1e-3))
+    np.testing.assert_allclose(out.values[:, 1], truth[:, 1], atol=1e-3)
+    assert out.filled[80:110].all() and not out.filled[:80].any()
+
+
+def test_guards():
+    with pytest.raises(ValueError, match="time must increase"):
+        smooth(np.zeros(3), np.zeros((3, 1)), np.ones((3, 1, 1)), np.ones(3, bool))
+    with pytest.raises(ValueError, match="smooth needs"):
+        smooth(np.arange(3.0), np.zeros((3, 2)), np.ones((3, 1, 1)), np.ones(3, bool))
+    with pytest.raises(ValueError, match="gate_probability"):
+        SmoothOptions(gate_probability=0.0)
+    with pytest.raises(ValueError, match="values must be"):
+        point_quantities(load_machine("hitachi_ex3500"), np.zeros((2, 3)), np.zeros((2, 3, 3)))
+
+
+def test_bucket_occlusion_filled_with_honest_uncertainty(machine):
+    rng = np.random.default_rng(3)
+    cameras = ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
+    time, joints = dig_like(machine, 20.0, rng)
+    tracks = observe(cameras, machine, joints, rng, noise_px=NOISE)
+    pixels = tracks.dense([c.name for c in cameras], machine.marker_names, np.arange(len(time)))
+    bucket = [i for i, n in enumerate(machine.marker_names) if n.startswith("K")]
+    hidden = slice(300, 330)  # one second
+    pixels[:, hidden][:, :, bucket] = np.nan
+    result = reconstruct_motion(machine, cameras, np.arange(len(time)), time, pixels)
+    motion = result.motion
+    tip_true = machine.points(joints)[:, 0]
+    error = np.linalg.norm(motion.points[:, 0] - tip_true, axis=-1)
+    assert motion.extra["filled"][hidden].all() and motion.extra["filled"].sum() == 30
+    assert error[hidden].max() < 0.10
+    assert (error[hidden] < 2.0 * motion.points_sd[hidden, 0]).all()  # the 3-D SD covers the gap
+    z = (motion.joints - joints) / motion.joints_sd
+    assert 0.9 < np.mean(np.abs(z) < 1.96) < 0.98
+    angle_true = machine.bucket_angles(joints)
+    z_angle = (motion.bucket_angle - angle_true) / motion.bucket_angle_sd
+    assert 0.9 < np.mean(np.abs(z_angle) < 1.96) < 0.985
+    speed_true = np.linalg.norm(np.gradient(tip_true, time, axis=0), axis=-1)
+    assert np.median(np.abs(motion.extra["bucket_tip_speed"] - speed_true)) < 0.02 * np.median(speed_true)
+
+
+def test_cli_fit(tmp_path, machine, capsys):
+    rng = np.random.default_rng(4)
+    cameras = ring_of_cameras(2, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
+    time, joints = dig_like(machine, 4.0, rng)
+    tracks = observe(cameras, machine, joints, rng, noise_px=NOISE)
+    save_calibration(Calibration(tuple(cameras), tuple({"fps": FPS} for _ in cameras)), tmp_path / "cameras.toml")
+    for camera in cameras:
+        save_tracks(tracks.of_camera(camera.name), tmp_path / f"{camera.name}.csv")
+    paths = [str(tmp_path / f"{c.name}.csv") for c in cameras]
+    out = tmp_path / "motion.csv"
+    args = ["fit", "hitachi_ex3500", str(tmp_path / "cameras.toml"), *paths, "--out", str(out)]
+    assert cli.main(args) == 0
+    motion = load_motion(out, machine)
+    assert len(motion) == len(time) and "filled" in motion.extra and "bucket_tip_speed" in motion.extra
+    tip_error = np.linalg.norm(motion.point("bucket_tip") - machine.points(joints)[:, 0], axis=-1)
+    assert np.sqrt(np.mean(tip_error**2)) < 3 * np.sqrt(np.mean(motion.points_sd[:, 0] ** 2))
+    assert np.degrees(np.abs(motion.joints - joints)).max() < 1.0
+    assert "frames written" in capsys.readouterr().out
+
+    assert cli.main(args + ["--no-smooth", "--base-motion"]) == 0
+    assert "filled" not in load_motion(out, machine).extra
+    assert cli.main(["fit", "cube_pair", str(tmp_path / "cameras.toml"), *paths, "--out", str(out)]) == 2
+    assert "not in the machine model" in capsys.readouterr().err
+    assert cli.main(args + ["--loss-scale", "0"]) == 2
+    assert "scale_px must be positive" in capsys.readouterr().err
