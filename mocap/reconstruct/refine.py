@@ -7,7 +7,8 @@ solved with scipy.optimize.least_squares (trust region, robust loss with its sca
 pixels) and a Jacobian sparsity pattern: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
 ``tolerance × max(|position|, 0.5 m)`` per coordinate, expressed in pixel units through
-the pixel noise, so the named points (bucket tip), which no camera sees, stay where the
+the pixel noise; the base link's markers stay as measured (they define the world frame,
+which the cameras would otherwise share with them as a free gauge), and the named points (bucket tip), which no camera sees, stay where the
 model puts them relative to their links.
 
 Camera parameters: a rotation increment (3,) on the left of ``cam_from_world``, a
@@ -56,7 +57,7 @@ class RefineOptions:
 class RefineResult:
     """cameras (C) refined; machine with refined marker positions (or the input model);
     frames (K,) indices of the frames used; joints (K, J) their fitted joint values;
-    rms_before / rms_after the pixel residual RMS over those frames; message the solver's."""
+    rms_before / rms_after the pixel residual RMS (per coordinate) over those frames; message the solver's."""
 
     cameras: tuple[Camera, ...]
     machine: Machine
@@ -85,8 +86,11 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     problem = _Bundle(machine, tuple(cameras), obs, options, fit.noise_px)
     x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), np.nan_to_num(fit.joints).ravel(), np.zeros(3 * n_markers * options.markers)]
     before = problem.pixel_rms(x0)
+    sparsity = problem.sparsity()
+    # plain least squares first: a robust loss from a start pixels off stalls the trust region
+    start = least_squares(problem.residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", max_nfev=10)
     solution = least_squares(
-        problem.residuals, x0, jac_sparsity=problem.sparsity(), method="trf", loss="huber",
+        problem.residuals, start.x, jac_sparsity=sparsity, method="trf", loss="huber",
         f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations,
     )
     cams, joints, refined = problem.unpack(solution.x)
@@ -115,6 +119,7 @@ class _Bundle:
         self.n_camera_params = 7 if options.fit_focal else 6
         self.prior_sd = options.tolerance * np.maximum(np.linalg.norm(machine.marker_positions, axis=1), 0.5)
         self.noise_px = noise_px
+        self.movable = machine.marker_links != 0  # the base's markers define the world frame
 
     def unpack(self, x: np.ndarray):
         n_cams, n_frames, n_markers = self.seen.shape
@@ -124,7 +129,7 @@ class _Bundle:
         joints = x[k : k + n_frames * n_joints].reshape(n_frames, n_joints)
         machine = self.machine
         if self.options.markers:
-            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3)
+            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3) * self.movable[:, None]
             machine = replace(machine, marker_positions=machine.marker_positions + offsets)
         cameras = [self._camera(camera, p) for camera, p in zip(self.cameras, camera_params)]
         return cameras, joints, machine
@@ -157,7 +162,7 @@ class _Bundle:
 
     def pixel_rms(self, x: np.ndarray) -> float:
         residual = self.pixel_residuals(x)
-        return float(np.sqrt((residual**2).sum() / max(self.seen.sum(), 1)))
+        return float(np.sqrt((residual**2).sum() / max(2 * self.seen.sum(), 1)))  # per coordinate
 
     def sparsity(self):
         n_cams, n_frames, n_markers = self.seen.shape
@@ -175,8 +180,9 @@ class _Bundle:
             pattern[rows.ravel(), (joint_start + k * n_joints + j).ravel()] = 1
         if self.options.markers:
             marker_start = joint_start + n_frames * n_joints
+            moving = self.movable[m.ravel()]
             for axis in range(3):
-                pattern[rows.ravel(), (marker_start + 3 * m + axis).ravel()] = 1
+                pattern[rows.ravel()[moving], (marker_start + 3 * m + axis).ravel()[moving]] = 1
             prior = np.arange(3 * n_markers)
             pattern[n_pixel + prior, marker_start + prior] = 1
         return pattern.tocsr()
