@@ -75,7 +75,8 @@ def joint_curves(
 
 
 def synchronise(
-    curves: list[JointCurves], fps: np.ndarray, max_offset: float = 10.0, min_overlap: float = 0.3
+    curves: list[JointCurves], fps: np.ndarray, max_offset: float = 10.0, min_overlap: float = 0.3,
+    max_residual: float = 0.15,
 ) -> SyncResult:
     """Time offsets of cameras 1.. against camera 0 from their joint-value curves.
 
@@ -84,6 +85,8 @@ def synchronise(
     max_offset : the search range, ± seconds.
     min_overlap : the least fraction of a camera's valid samples that must fall inside the
         reference recording at a candidate offset.
+    max_residual : the largest RMS difference of the scaled joint values at the best
+        offset for it to count as found (the motions agree).
     """
     fps = np.asarray(fps, dtype=float)
     if len(fps) != len(curves):
@@ -120,6 +123,13 @@ def synchronise(
         offsets[k] = float(fine.x)
         cost, count = reference.cost(time + offsets[k], values, need)
         residual[k], overlap[k] = float(np.sqrt(cost)), count
+        if not residual[k] <= max_residual:
+            reasons[k] = (
+                f"no offset within ±{max_offset:g} s makes the motions agree "
+                f"(residual {residual[k]:.2f} of the joints' spread at the best)"
+            )
+            offsets[k] = np.nan
+            continue
         log.info("camera %d: offset %.4f s (%.3f reference frames), residual %.3f", k, offsets[k], offsets[k] * fps[0], residual[k])
     return SyncResult(offsets, residual, overlap, tuple(reasons))
 

@@ -46,12 +46,13 @@ def run(args) -> int:
     machine = load_machine(args.machine)
     calibration = load_calibration(args.calibration)
     tracks = load_tracks(args.tracks)
+    missing = [name for name in calibration.names if name not in tracks.cameras]
+    if missing:
+        raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(args.tracks)}; give its tracks CSV")
     fps = frame_rates(calibration, tracks, parse_fps(args.fps, calibration.names))
     curves = []
     for k, camera in enumerate(calibration.cameras):
         rows = tracks.of_camera(camera.name)
-        if len(rows) == 0:
-            raise InputError(f"no tracks of camera {camera.name!r} in {', '.join(args.tracks)}; give its tracks CSV")
         frames = np.arange(rows.frame.min(), rows.frame.max() + 1)
         pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
         curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))

@@ -85,10 +85,24 @@ def labels_from_pixels(
         rms = float(np.sqrt(np.nanmean(residual**2)))
         if best is None or rms < best[1]:
             best = (joints[0], rms)
-    joints = best[0]
+    joints, rms = best
+    # the markers not given: found by widening the model's reach, the given ones kept
+    n_markers = len(labelled)
+    for gate in (40.0, 20.0, 10.0, max(tight_px, 3 * rms)):
+        uv = model.pixels(joints[None])[0]
+        free = model.visible(joints[None])[0] & ~given
+        taken = np.zeros(len(detections), dtype=bool)
+        taken[index] = True
+        extra, extra_index = assign(uv, np.where(taken[:, None], np.inf, detections.xy), np.full(n_markers, gate), free)
+        combined = observed.copy()
+        combined[extra] = detections.xy[extra_index]
+        fitted, residual = model.fit(combined[None], joints, iterations=8)
+        joints, rms = fitted[0], float(np.sqrt(np.nanmean(residual**2)))
+    markers = np.r_[markers, extra]
+    index = np.r_[index, extra_index]
+    order = np.argsort(markers)
+    markers, index = markers[order], index[order]
     uv = model.pixels(joints[None])[0]
-    visible = model.visible(joints[None])[0] | given
-    markers, index = assign(uv, detections.xy, np.full(len(uv), max(tight_px, 3 * best[1])), visible)
     rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1)))) if len(markers) else np.nan
     return FrameResult(markers, detections.select(index), joints, True, rms)
 

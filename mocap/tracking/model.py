@@ -1,5 +1,5 @@
 """The machine model seen by one calibrated camera: predicted marker pixels, which markers
-the machine's own links hide, and a small robust Gauss-Newton fit of the joint values to
+it sees (facing it, not hidden by another link), and a small robust Gauss-Newton fit of the joint values to
 labelled pixels (batched over frames; the tracker calls it with one frame at a time).
 
 Shapes: F frames, M markers, J joints, L links.
@@ -14,55 +14,49 @@ import numpy as np
 from mocap.camera import Camera, project_cam
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
+from mocap.synthetic.visibility import marker_normals, visible_markers
 
 
 @dataclass(frozen=True)
 class CameraModel:
-    """A machine model and one calibrated camera; `boxes` (L, 2, 3) link solids in link frames."""
+    """A machine model and one calibrated camera; `boxes` (L, 2, 3) link solids in link
+    frames (default: `mocap.shapes.link_boxes`), `normals` (M, 3) each marker's disk normal
+    in its link frame (the nearest face of its box)."""
 
     machine: Machine
     camera: Camera
     boxes: np.ndarray = field(default=None)
+    normals: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         if self.boxes is None:
             object.__setattr__(self, "boxes", link_boxes(self.machine))
         if np.shape(self.boxes) != (len(self.machine.links), 2, 3):
             raise ValueError(f"boxes must be (L={len(self.machine.links)}, 2, 3), got {np.shape(self.boxes)}")
+        object.__setattr__(self, "normals", marker_normals(self.machine, self.boxes))
 
     def pixels(self, joints: np.ndarray) -> np.ndarray:
         """Marker pixels (F, M, 2) for joint values (F, J); NaN behind the camera."""
         return self.camera.project(self.machine.markers(joints))
 
-    def visible(self, joints: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
-        """(F, M) bool: in the image (`margin_px` inside its border), in front of the camera
-        and not hidden by a link's box (its own included: a marker on a box's far side)."""
+    def visible(self, joints: np.ndarray) -> np.ndarray:
+        """(F, M) bool: in the image, facing the camera and not hidden behind another link's
+        box (the painting convention of `mocap.synthetic.visibility`: markers on the faces
+        of the links' boxes)."""
         joints = np.atleast_2d(joints)
-        uv = self.pixels(joints)
-        w, h = self.camera.size
-        inside = np.all(np.isfinite(uv), axis=-1)
-        inside &= (uv[..., 0] >= margin_px) & (uv[..., 0] <= w - 1 - margin_px)
-        inside &= (uv[..., 1] >= margin_px) & (uv[..., 1] <= h - 1 - margin_px)
-        return inside & ~self.hidden(joints)
+        poses = self.machine.link_poses(joints)
+        cam_from_world = np.broadcast_to(self.camera.cam_from_world.matrix, (len(joints), 4, 4))
+        camera = self.camera
+        _, seen = visible_markers(
+            self.machine, self.boxes, self.normals, poses, cam_from_world, camera.matrix, camera.distortion, camera.size
+        )
+        return seen
 
-    def hidden(self, joints: np.ndarray) -> np.ndarray:
-        """(F, M) bool: the segment from the camera to the marker passes through a link box
-        before reaching it (slab test in each link's frame)."""
-        joints = np.atleast_2d(joints)
-        poses = self.machine.link_poses(joints)  # (F, L, 4, 4) world_from_link
-        markers = self.machine.markers(joints)  # (F, M, 3)
-        link_from_world_rot = np.swapaxes(poses[:, :, :3, :3], -1, -2)  # (F, L, 3, 3)
-        origin = np.einsum("flij,flj->fli", link_from_world_rot, self.camera.center - poses[:, :, :3, 3])
-        target = np.einsum("flij,flmj->flmi", link_from_world_rot, markers[:, None] - poses[:, :, None, :3, 3])
-        direction = target - origin[:, :, None]  # (F, L, M, 3), t in [0, 1] along it
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t0 = (self.boxes[None, :, None, 0] - origin[:, :, None]) / direction
-            t1 = (self.boxes[None, :, None, 1] - origin[:, :, None]) / direction
-        t_enter = np.nanmax(np.minimum(t0, t1), axis=-1)
-        t_exit = np.nanmin(np.maximum(t0, t1), axis=-1)
-        # entering a box clearly before the marker (1 cm before it) hides it
-        size = np.linalg.norm(direction, axis=-1)
-        return np.any((t_enter < t_exit) & (t_exit > 0) & (t_enter < 1.0 - 0.01 / size), axis=1)
+    def normals_cam(self, joints: np.ndarray) -> np.ndarray:
+        """Marker disk normals (F, M, 3) in the camera frame."""
+        poses = self.machine.link_poses(np.atleast_2d(joints))[:, self.machine.marker_links, :3, :3]
+        world = np.einsum("fmij,mj->fmi", poses, self.normals)
+        return world @ self.camera.cam_from_world.rotation.T
 
     def fit(
         self,

@@ -137,9 +137,8 @@ class Tracker:
         self.state.lost = 0
 
     def _visible(self, joints: np.ndarray, radius: np.ndarray) -> np.ndarray:
-        margin = 0.0
         if self.options.occlusion:
-            return self.model.visible(joints[None], margin)[0]
+            return self.model.visible(joints[None])[0]
         uv = self.model.pixels(joints[None])[0]
         w, h = self.model.camera.size
         return np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)

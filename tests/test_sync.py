@@ -1,0 +1,115 @@
+"""Camera synchronisation from the motion: cameras with their own frame rates and clocks
+watching the shovel; offsets recovered to a small fraction of a frame."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from mocap.cli import main
+from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
+from mocap.simulate import observe, ring_of_cameras
+from mocap.sync import JointCurves, joint_curves, synchronise
+
+FPS = np.array([30.0, 29.97, 25.0])
+OFFSETS = np.array([0.0, 0.437, -1.213])
+START = np.radians([0.0, 40.0, -70.0, 30.0])
+
+
+def true_joints(t: np.ndarray) -> np.ndarray:
+    """(F, J) a smooth dig-like motion of the shovel over time t (F,) s."""
+    t = np.asarray(t)[:, None]
+    return START + np.radians([40, 15, 25, 35]) * np.sin(
+        2 * np.pi * t * np.array([0.05, 0.11, 0.13, 0.17]) + np.array([0.0, 1.0, 2.0, 3.0])
+    )
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(3)
+    machine = load_machine("hitachi_ex3500")
+    cameras = ring_of_cameras(3, [6, 0, 5], (35, 50), rng)
+    tracks = []
+    for k, camera in enumerate(cameras):
+        frames = np.arange(int(25 * FPS[k]))
+        seen = observe([camera], machine, true_joints(frames / FPS[k] + OFFSETS[k]), rng, noise_px=0.3, miss_fraction=0.05)
+        tracks.append(Tracks.from_rows(seen.camera, seen.frame, seen.marker, seen.xy, seen.frame / FPS[k]))
+    return machine, cameras, tracks
+
+
+def curves_of(machine, cameras, tracks):
+    out = []
+    for camera, rows in zip(cameras, tracks):
+        frames = np.arange(rows.frame.max() + 1)
+        out.append(joint_curves(machine, camera, frames, rows.dense([camera.name], machine.marker_names, frames)[0], START))
+    return out
+
+
+def test_offsets_to_a_fraction_of_a_frame(scene):
+    machine, cameras, tracks = scene
+    result = synchronise(curves_of(machine, cameras, tracks), FPS)
+    assert result.reasons == ("", "", "")
+    # 0.3 px noise on ~25 markers over 600-750 frames: the offset to ~0.01 frame
+    assert np.max(np.abs(result.offsets - OFFSETS) * FPS[0]) < 0.05
+    assert np.all(result.residual < 0.05) and np.all(result.overlap > 400)
+
+
+def test_a_still_machine_cannot_be_synchronised():
+    frames = np.arange(100)
+    still = JointCurves(frames, np.tile(START, (100, 1)))
+    result = synchronise([still, still], np.array([30.0, 30.0]))
+    assert np.all(np.isnan(result.offsets)) and "do not vary" in result.reasons[1]
+
+
+def test_recordings_that_do_not_match():
+    t = np.arange(300) / 30.0
+    first = JointCurves(np.arange(300), true_joints(t))
+    late = JointCurves(np.arange(300), true_joints(t + 60.0))
+    result = synchronise([first, late], np.array([30.0, 30.0]), max_offset=5.0)
+    assert np.isnan(result.offsets[1]) and "makes the motions agree" in result.reasons[1]
+    brief = JointCurves(np.arange(30), true_joints(t[:30]))
+    result = synchronise([brief, first], np.array([30.0, 30.0]), max_offset=5.0, min_overlap=0.5)
+    assert np.isnan(result.offsets[1]) and "do not overlap" in result.reasons[1]
+
+
+def test_guards():
+    frames = np.arange(10)
+    with pytest.raises(ValueError, match="one frame rate per camera"):
+        synchronise([JointCurves(frames, np.zeros((10, 4)))], np.array([30.0, 30.0]))
+    with pytest.raises(ValueError, match="joints must be"):
+        JointCurves(frames, np.zeros((9, 4)))
+
+
+def test_cli_writes_time_offsets(scene, tmp_path, capsys):
+    machine, cameras, tracks = scene
+    calibration = Calibration(tuple(cameras), metadata={"machine": "hitachi_ex3500", "joints": joints_to_table(START, machine)})
+    save_calibration(calibration, tmp_path / "cameras.toml")
+    paths = []
+    for camera, rows in zip(cameras, tracks):
+        paths.append(str(tmp_path / f"{camera.name}.csv"))
+        save_tracks(rows, paths[-1])
+    before = (tmp_path / "cameras.toml").read_text()
+    args = ["sync", str(tmp_path / "cameras.toml"), *paths, "--machine", "hitachi_ex3500", "--out", str(tmp_path / "synced.toml")]
+    assert main(args) == 0
+    assert "time_offset" in capsys.readouterr().out
+    assert (tmp_path / "cameras.toml").read_text() == before
+    data = tomllib.loads((tmp_path / "synced.toml").read_text())
+    tables = [v for k, v in data.items() if k != "metadata"]
+    offsets = np.array([t["time_offset"] for t in tables])
+    fps = np.array([t["fps"] for t in tables])
+    assert np.allclose(fps, FPS, rtol=1e-4)  # from the tracks' time column
+    assert np.max(np.abs(offsets - OFFSETS)) * FPS[0] < 0.05
+    # guards: a camera without tracks, a bad --fps
+    assert main(args[:3] + args[4:]) == 2
+    assert f"no tracks of camera '{cameras[1].name}'" in capsys.readouterr().err
+    assert main(args + ["--fps", "nope=30"]) == 2
+    assert "expected NAME=FPS" in capsys.readouterr().err
+    untimed = concatenate([Tracks.from_rows(r.camera, r.frame, r.marker, r.xy) for r in tracks])
+    save_tracks(untimed, tmp_path / "untimed.csv")
+    assert main(["sync", str(tmp_path / "cameras.toml"), str(tmp_path / "untimed.csv"), "--machine",
+                 "hitachi_ex3500", "--out", str(tmp_path / "x.toml")]) == 2
+    assert "pass --fps" in capsys.readouterr().err
