@@ -9,6 +9,9 @@ from pathlib import Path
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.synthetic import CLASSES, SessionOptions, make_session, write_truth
+from mocap.synthetic.effects import EffectOptions
+from mocap.synthetic.encode import CODECS
+from mocap.synthetic.render import RenderOptions, render_videos
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +38,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--redirect", type=float, default=0.4, metavar="P",
                    help="probability of an operator's redirection per dig (default 0.4)")
     p.add_argument("--hold", type=float, default=2.0, help="seconds the machine holds still at the start")
+    p.add_argument("--scale", type=float, default=1.0, help="scale the image size, e.g. 0.5 for fast tests")
+    p.add_argument("--codec", choices=CODECS, default="h264", help="h264 (PyAV) or mp4v (OpenCV); default h264")
+    p.add_argument("--noise", type=float, default=2.5, help="sensor noise SD in grey levels (0: none)")
+    p.add_argument("--blur", type=float, default=0.3, help="motion blur: weight of the previous frame, 0..0.9")
+    p.add_argument("--exposure", type=float, default=0.08, help="SD of the exposure's slow drift (0: none)")
+    p.add_argument("--dust", type=float, default=0.55, help="opacity of the densest dust, 0..0.9 (0: none)")
+    p.add_argument("--clean", action="store_true", help="no camera effects at all (noise, blur, exposure, dust)")
     p.add_argument("--no-video", action="store_true", help="write the truth only")
     p.set_defaults(run=run)
 
@@ -67,8 +77,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
     if args.out.exists() and any(args.out.iterdir()):
         raise InputError("the output folder exists and is not empty; choose a new folder", path=args.out)
+    if not 0.05 <= args.scale <= 4.0:
+        raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
+    width, height = parse_size(args.size)
+    size = (max(16, round(width * args.scale)), max(16, round(height * args.scale)))
+    try:
+        effects = EffectOptions.none() if args.clean else EffectOptions(args.noise, args.blur, args.exposure, args.dust)
+    except ValueError as exc:
+        raise InputError(f"{exc}; noise and exposure take 0..50, blur and dust 0..0.9") from None
     options = SessionOptions(
-        n_cameras=args.cameras, n_cycles=args.cycles, seed=args.seed, size=parse_size(args.size),
+        n_cameras=args.cameras, n_cycles=args.cycles, seed=args.seed, size=size,
         distortion=args.distortion, shake_deg=args.shake, bounce=args.bounce, reactive=args.reactive,
         redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
     )
@@ -76,4 +94,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     write_truth(session, args.out, machine_path)
     log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
+    if not args.no_video:
+        paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects))
+        log.info("wrote %d videos", len(paths))
     return 0

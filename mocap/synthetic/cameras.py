@@ -63,15 +63,15 @@ def place_cameras(
 ) -> list[FieldCamera]:
     """`n` cameras around the machine.
 
-    working_points (N, 3) world points the cameras must see (markers over the session);
-    `avoid_azimuths` (rad) directions of the pile and the truck, kept clear by 40°; the
+    working_points (N, 3) world points the cameras must see (the links over the session);
+    `avoid_azimuths` (rad) directions of the pile and the truck, kept clear by 55°; the
     recordings cover the session's `duration` s on the reference clock.
     """
     scale = reach / 15.5
     free = np.radians(np.arange(-180, 180, 2.0))
     for azimuth in avoid_azimuths:
         gap = np.abs((free - azimuth + np.pi) % (2 * np.pi) - np.pi)
-        free = free[gap > np.radians(40.0)]
+        free = free[gap > np.radians(55.0)]
     start = rng.integers(len(free))
     picks = free[(start + np.round(np.arange(n) * len(free) / n).astype(int)) % len(free)]
     centre = 0.5 * (working_points.min(axis=0) + working_points.max(axis=0))

@@ -25,10 +25,10 @@ from mocap.io.points_csv import Points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
 from mocap.machine import Machine
-from mocap.shapes import link_boxes
+from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
-from mocap.synthetic.paths import CLASSES
+from mocap.synthetic.paths import CLASSES, min_jerk
 from mocap.synthetic.visibility import marker_normals, visible_markers
 
 
@@ -95,6 +95,28 @@ class SyntheticSession:
         }
         return Calibration(tuple(c.camera for c in self.cameras), extras, metadata)
 
+    @property
+    def reach(self) -> float:
+        """The machine's reach (m): boom, arm and bucket lengths added."""
+        return float(np.linalg.norm(self.plan.chain.offsets, axis=1).sum())
+
+    def plan_tips(self, times: np.ndarray) -> np.ndarray:
+        """World positions (T, 3) of the bucket tip at `times` (T,) s."""
+        joints = self.plan.joints(times)
+        points = self.machine.points(joints, self.plan.world_from_base(times))
+        return points[:, self.machine.point_names.index("bucket_tip")]
+
+    def dust_density(self, times: np.ndarray) -> np.ndarray:
+        """How thick the dust raised by digging is at `times` (T,): 0 (none) to 1, rising
+        over a second from each dig's start, settling over two after it ends."""
+        times = np.asarray(times, dtype=float)
+        density = np.zeros(len(times))
+        for c in self.plan.cycles:
+            rise = min_jerk(times - c.dig_start)
+            settle = 1.0 - min_jerk((times - c.dig_end - 1.0) / 2.0)
+            density = np.maximum(density, rise * settle)
+        return density
+
     def observe(self, camera: FieldCamera, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """True marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) of
         `camera` at its `frames` (F,) (fractional frames allowed)."""
@@ -125,12 +147,14 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                         bounce=options.bounce, hold=options.hold)
     coarse = np.arange(0.0, plan.duration, 0.5)
     check_limits(machine, plan.joints(coarse))
-    working = machine.markers(plan.joints(coarse), plan.world_from_base(coarse)).reshape(-1, 3)
+    boxes = link_boxes(machine)
+    poses = machine.link_poses(plan.joints(coarse), plan.world_from_base(coarse))
+    corners = np.array([box_corners(box) for box in boxes])  # (L, 8, 3)
+    working = (np.einsum("tlij,lkj->tlki", poses[..., :3, :3], corners) + poses[:, :, None, :3, 3]).reshape(-1, 3)
     reach = float(np.linalg.norm(plan.chain.offsets, axis=1).sum())
     cameras = place_cameras(options.n_cameras, working, reach, (plan.pile.azimuth, plan.truck.azimuth),
                             plan.duration, rng, size=options.size, distortion=options.distortion,
                             shake_deg=options.shake_deg)
-    boxes = link_boxes(machine)
     normals = marker_normals(machine, boxes)
 
     reference = cameras[0]

@@ -1,0 +1,99 @@
+"""What a field camera adds to a clean picture: motion blur, exposure drift, dust, noise.
+
+Each effect is cheap per frame at 1080p: blur blends the previous clean frame (the
+shutter's smear) where the machine moved, dust is a soft plume blended into a small region
+around the bucket while it digs, and the exposure's gain and the sensor noise (from a bank
+of noise images drawn once) are one saturating pass over the frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mocap.synthetic.paths import SmoothNoise
+
+DUST = np.array([150.0, 170.0, 185.0])  # BGR
+
+
+@dataclass(frozen=True)
+class EffectOptions:
+    """Strengths of the effects; 0 turns one off. `noise` is the sensor noise SD (grey
+    levels), `blur` the weight of the previous frame, `exposure` the SD of the gain's drift,
+    `dust` the densest plume's opacity."""
+
+    noise: float = 2.5
+    blur: float = 0.3
+    exposure: float = 0.08
+    dust: float = 0.55
+
+    def __post_init__(self) -> None:
+        for name in ("noise", "blur", "exposure", "dust"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= (0.9 if name in ("blur", "dust") else 50.0):
+                raise ValueError(f"effect {name!r} out of range: {value}")
+
+    @classmethod
+    def none(cls) -> EffectOptions:
+        return cls(0.0, 0.0, 0.0, 0.0)
+
+
+class CameraEffects:
+    """Per-camera effect state: the noise bank, the gain's drift, the dust plume's shape,
+    the previous clean frame."""
+
+    def __init__(self, size: tuple[int, int], options: EffectOptions, rng: np.random.Generator):
+        w, h = size
+        self.options = options
+        self.previous: np.ndarray | None = None
+        self.rng = rng
+        self.bank = []  # noise images offset by 128, added with one saturating pass
+        if options.noise > 0:
+            for _ in range(4):
+                noise = rng.normal(128.0, options.noise, (h, w, 3))
+                self.bank.append(np.clip(np.round(noise), 0, 255).astype(np.uint8))
+        self.gain = SmoothNoise.random(rng, np.array([options.exposure]), (0.01, 0.08), k=4)
+        yy, xx = np.mgrid[-1:1:96j, -1:1:96j]
+        lumps = cv2.GaussianBlur(rng.uniform(0, 1, (96, 96)).astype(np.float32), (0, 0), 6)
+        lumps = (lumps - lumps.min()) / max(np.ptp(lumps), 1e-6)
+        self.plume = (np.clip(1 - (xx**2 + yy**2), 0, 1) ** 1.5 * (0.5 + 0.5 * lumps)).astype(np.float32)
+
+    def apply(self, image: np.ndarray, time: float, moving: tuple[int, int, int, int] | None,
+              dust_centre: np.ndarray | None, dust_radius: float, dust_density: float) -> np.ndarray:
+        """The camera's picture of the clean `image` (H, W, 3) uint8 at `time` s, changed in
+        place. `moving` (x0, y0, x1, y1) bounds what changed since the previous frame (the
+        only region the blur touches); the dust plume (radius px) around `dust_centre` (2,)
+        px has a density in [0, 1]."""
+        if self.options.blur > 0 and self.previous is not None and moving is not None:
+            x0, y0, x1, y1 = moving
+            clean = image[y0:y1, x0:x1].copy()
+            cv2.addWeighted(clean, 1.0 - self.options.blur, self.previous[y0:y1, x0:x1], self.options.blur, 0.0,
+                            dst=image[y0:y1, x0:x1])
+            self.previous[y0:y1, x0:x1] = clean
+        elif self.options.blur > 0:
+            self.previous = image.copy()
+        if self.options.dust > 0 and dust_centre is not None and dust_density > 0 and np.all(np.isfinite(dust_centre)):
+            self._dust(image, dust_centre, dust_radius, dust_density)
+        gain = 1.0 + float(self.gain(np.array([time]))[0, 0]) if self.options.exposure > 0 else 1.0
+        if self.bank:
+            noise = self.bank[int(self.rng.integers(len(self.bank)))]
+            return cv2.addWeighted(image, gain, noise, 1.0, -128.0)
+        if gain != 1.0:
+            return cv2.convertScaleAbs(image, alpha=gain)
+        return image
+
+    def _dust(self, image: np.ndarray, centre: np.ndarray, radius: float, density: float) -> None:
+        h, w = image.shape[:2]
+        r = int(max(4, radius))
+        x0, y0 = int(centre[0]) - r, int(centre[1]) - r
+        xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x0 + 2 * r, w), min(y0 + 2 * r, h)
+        if xb <= xa or yb <= ya:
+            return
+        alpha = cv2.resize(self.plume, (2 * r, 2 * r))[ya - y0 : yb - y0, xa - x0 : xb - x0]
+        alpha = np.ascontiguousarray(alpha * (self.options.dust * density), dtype=np.float32)
+        roi = image[ya:yb, xa:xb]
+        colour = np.empty_like(roi)
+        colour[:] = DUST.astype(np.uint8)
+        image[ya:yb, xa:xb] = cv2.blendLinear(roi, colour, 1.0 - alpha, alpha)

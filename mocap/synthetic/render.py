@@ -1,0 +1,215 @@
+"""Rendering a synthetic session's videos: the machine as flat-shaded boxes over the
+camera's still backdrop, the painted markers as black disks on white squares seen in
+perspective, then the camera's effects.
+
+Links are drawn far to near (painter's order by box centre), each link's faces that face
+the camera and then its markers. A marker is drawn only where the truth calls it visible
+(facing the camera, in the image, not behind another link's box), so the truth tracks
+and the pictures agree. Marker squares and disks are filled on a 4x finer grid over a
+small region and area-averaged back, so their centres are exact to a few hundredths of a
+pixel.
+
+Shapes: F frames, L links, M markers, N outline points.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mocap.camera import project_cam
+from mocap.progress import progress
+from mocap.shapes import BOX_FACES, box_corners
+from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
+from mocap.synthetic.effects import CameraEffects, EffectOptions
+from mocap.synthetic.encode import CODECS, video_writer
+from mocap.synthetic.session import SyntheticSession
+
+log = logging.getLogger(__name__)
+
+PALETTE = np.array([[72.0, 75.0, 80.0], [20.0, 110.0, 230.0], [25.0, 125.0, 240.0], [30.0, 120.0, 225.0],
+                    [62.0, 66.0, 72.0]])  # BGR: dark undercarriage, orange house, boom and arm, grey bucket
+WHITE, BLACK = (235, 235, 235), (18, 18, 18)
+OUTLINE_POINTS = 48
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """`disk` and `square` marker sizes (m; default 0.3 and 0.5 for a machine of the
+    EX3500's reach, scaled with it), `codec` one of CODECS, the camera `effects`, the fine
+    grid's `supersample` factor, frames per batch `chunk`."""
+
+    codec: str = "h264"
+    effects: EffectOptions = field(default_factory=EffectOptions)
+    disk: float | None = None
+    square: float | None = None
+    supersample: int = 4
+    chunk: int = 32
+
+    def __post_init__(self) -> None:
+        if self.codec not in CODECS:
+            raise ValueError(f"codec must be one of {CODECS}, got {self.codec!r}")
+        if not 1 <= self.supersample <= 8:
+            raise ValueError(f"supersample must be 1..8, got {self.supersample}")
+
+
+def marker_outlines(session: SyntheticSession, disk: float, square: float) -> tuple[np.ndarray, np.ndarray]:
+    """Square corners (M, 4, 3) and disk outlines (M, N, 3) in the markers' link frames,
+    in the plane of each marker's face, centred on the marker."""
+    normals = session.normals
+    axis = np.argmax(np.abs(normals), axis=1)
+    first = np.eye(3)[(axis + 1) % 3]
+    second = np.cross(normals, first)
+    centre = session.machine.marker_positions[:, None]
+    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * 0.5 * square
+    squares = centre + corners[None, :, :1] * first[:, None] + corners[None, :, 1:] * second[:, None]
+    angles = np.linspace(0, 2 * np.pi, OUTLINE_POINTS, endpoint=False)
+    c, s = 0.5 * disk * np.cos(angles), 0.5 * disk * np.sin(angles)
+    disks = centre + c[None, :, None] * first[:, None] + s[None, :, None] * second[:, None]
+    return squares, disks
+
+
+class CameraRenderer:
+    """Renders one camera's frames of a session (clean pictures and the camera's own)."""
+
+    def __init__(self, session: SyntheticSession, index: int, options: RenderOptions, rng: np.random.Generator):
+        self.session, self.options = session, options
+        self.field = session.cameras[index]
+        camera = self.field.camera
+        reach = session.reach
+        elevation, azimuth = np.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * np.pi)
+        self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+        self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
+        self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
+        self.colours = PALETTE[np.arange(len(session.boxes)) % len(PALETTE)]
+        disk = 0.3 * reach / 15.5 if options.disk is None else options.disk
+        square = 0.5 * reach / 15.5 if options.square is None else options.square
+        self.squares, self.disks = marker_outlines(session, disk, square)
+        self.effects = CameraEffects(camera.size, options.effects, rng)
+        self.dust_radius = 0.2 * reach
+
+    def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """World points (F, ..., 3) into pixels (F, ..., 2) with per-frame poses (F, 4, 4)."""
+        flat = points.reshape(len(points), -1, 3)
+        p = np.einsum("fij,fnj->fni", cams[:, :3, :3], flat) + cams[:, None, :3, 3]
+        uv = project_cam(p, self.field.camera.matrix, self.field.camera.distortion)
+        return uv.reshape(points.shape[:-1] + (2,))
+
+    def frames(self, frames: np.ndarray | None = None, clean: bool = False):
+        """Yield (frame, image (H, W, 3) uint8 BGR) for the camera's `frames` (all by default);
+        `clean` skips the camera's effects."""
+        frames = np.arange(self.field.frames) if frames is None else np.asarray(frames)
+        session, machine = self.session, self.session.machine
+        links = machine.marker_links
+        previous = None
+        for start in range(0, len(frames), self.options.chunk):
+            chunk = frames[start : start + self.options.chunk]
+            times = self.field.times(chunk)
+            _, seen, poses = session.observe(self.field, chunk)
+            cams = self.field.cam_from_world(times)
+            centres = -np.einsum("fji,fj->fi", cams[:, :3, :3], cams[:, :3, 3])
+            corners = np.einsum("flij,lkj->flki", poses[..., :3, :3], self.corners) + poses[:, :, None, :3, 3]
+            normals = np.einsum("flij,kj->flki", poses[..., :3, :3], BOX_NORMALS)  # (F, L, 6, 3)
+            on_link = poses[:, links]
+            squares = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.squares) + on_link[..., None, :3, 3]
+            disks = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.disks) + on_link[..., None, :3, 3]
+            uv_corners = self._project(cams, corners)
+            uv_squares = self._project(cams, squares)
+            uv_disks = self._project(cams, disks)
+            tip = session.plan_tips(times)
+            uv_tip = self._project(cams, tip[:, None])[:, 0]
+            depth = np.einsum("fi,fi->f", cams[:, 2, :3], tip) + cams[:, 2, 3]
+            density = session.dust_density(times)
+            for k, frame in enumerate(chunk):
+                image = self._backdrop(cams[k])
+                self._draw_machine(image, centres[k], corners[k], normals[k], uv_corners[k], uv_squares[k],
+                                   uv_disks[k], seen[k])
+                if not clean:
+                    box = self._bounds(uv_corners[k])
+                    moving = box if previous is None or box is None else _union(box, previous)
+                    previous = box
+                    radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
+                    image = self.effects.apply(image, float(times[k]), moving, uv_tip[k], radius, float(density[k]))
+                yield int(frame), image
+
+    def _bounds(self, uv: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Pixel bounds (x0, y0, x1, y1) of the machine's projected boxes, clipped to the image."""
+        w, h = self.field.camera.size
+        uv = uv.reshape(-1, 2)
+        uv = uv[np.all(np.isfinite(uv), axis=1)]
+        if not len(uv):
+            return None
+        x0, y0 = np.clip(np.floor(uv.min(axis=0)).astype(int) - 2, 0, [w, h])
+        x1, y1 = np.clip(np.ceil(uv.max(axis=0)).astype(int) + 3, 0, [w, h])
+        return (int(x0), int(y0), int(x1), int(y1)) if x1 > x0 and y1 > y0 else None
+
+    def _backdrop(self, cam_from_world: np.ndarray) -> np.ndarray:
+        nominal = self.field.camera.cam_from_world.rotation
+        turn = cam_from_world[:3, :3] @ nominal.T
+        if np.allclose(turn, np.eye(3), atol=1e-12):
+            return self.backdrop.copy()
+        k = self.field.camera.matrix
+        homography = k @ turn @ np.linalg.inv(k)
+        w, h = self.field.camera.size
+        return cv2.warpPerspective(self.backdrop, homography, (w, h), borderMode=cv2.BORDER_REPLICATE)
+
+    def _draw_machine(self, image, centre, corners, normals, uv_corners, uv_squares, uv_disks, seen) -> None:
+        links = self.session.machine.marker_links
+        order = np.argsort(-np.linalg.norm(corners.mean(axis=1) - centre, axis=-1))
+        for l in order:
+            for f, quad in enumerate(BOX_FACES):
+                if normals[l, f] @ (centre - corners[l, quad].mean(axis=0)) <= 0:
+                    continue
+                pts = uv_corners[l, quad]
+                if not np.all(np.isfinite(pts)) or np.abs(pts).max() > 1e5:
+                    continue
+                shade = 0.45 + 0.55 * max(0.0, float(normals[l, f] @ self.sun))
+                cv2.fillPoly(image, [np.round(pts * 16).astype(np.int32)], (self.colours[l] * shade).tolist(),
+                             lineType=cv2.LINE_AA, shift=4)
+            for m in np.flatnonzero(seen & (links == l)):
+                draw_marker(image, uv_squares[m], uv_disks[m], self.options.supersample)
+
+
+def _union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+
+
+def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor: int) -> None:
+    """A black disk (outline (N, 2) px) on a white square (4, 2) px, filled on a grid
+    `factor` times finer and area-averaged back into `image`."""
+    h, w = image.shape[:2]
+    x0, y0 = np.floor(square.min(axis=0)).astype(int) - 1
+    x1, y1 = np.ceil(square.max(axis=0)).astype(int) + 2
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if x1 - x0 < 1 or y1 - y0 < 1:
+        return
+    roi = image[y0:y1, x0:x1]
+    fine = cv2.resize(roi, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST)
+    origin = np.array([x0, y0], dtype=float)
+    for outline, colour in ((square, WHITE), (disk, BLACK)):
+        pts = ((outline - origin + 0.5) * factor - 0.5) * 256  # fine-grid pixels, 8 fraction bits
+        cv2.fillPoly(fine, [np.round(pts).astype(np.int32)], colour, lineType=cv2.LINE_8, shift=8)
+    image[y0:y1, x0:x1] = cv2.resize(fine, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+
+
+def render_videos(session: SyntheticSession, root: str | Path, options: RenderOptions | None = None) -> list[Path]:
+    """Write videos/<camera>.mp4 for every camera of the session; returns the paths."""
+    options = options or RenderOptions()
+    rng = np.random.default_rng([session.options.seed, 1])
+    paths = []
+    total = sum(c.frames for c in session.cameras)
+    with progress(total=total, desc="rendering", unit="frame") as bar:
+        for index, camera in enumerate(session.cameras):
+            renderer = CameraRenderer(session, index, options, rng)
+            path = Path(root) / "videos" / f"{camera.name}.mp4"
+            with video_writer(path, camera.camera.size, camera.fps, options.codec) as write:
+                for _, image in renderer.frames():
+                    write(image)
+                    bar.update(1)
+            log.info("wrote %s (%d frames)", path, camera.frames)
+            paths.append(path)
+    return paths
