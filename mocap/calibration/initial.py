@@ -22,6 +22,7 @@ from mocap.machine import REVOLUTE, Machine
 FOCAL_GRID = np.geomspace(0.2, 12.0, 28)  # focal lengths tried, in image widths
 BEAM = 4
 GRID_STEP_DEG = 3.0
+MAX_PENDING = 1024  # combinations of unfixed joints' values tried with the next joint
 
 
 def place_camera(
@@ -121,27 +122,52 @@ def joints_along_chain(
     machine: Machine, cameras: list[Camera], obs_camera, obs_marker, obs_xy, start: np.ndarray
 ) -> np.ndarray:
     """Joint values (J,) found link by link with a beam search; `cameras[c]` None for cameras
-    not yet placed; `start` (J,) the values used for links not yet reached."""
+    not yet placed; `start` (J,) the values used for links not yet reached.
+
+    A joint that no observed marker fixes (its link's markers all unseen) is searched over
+    its whole grid together with the next joint that has markers."""
     marker_link = machine.marker_links[obs_marker]
     placed = np.array([cameras[c] is not None for c in obs_camera], dtype=bool)
     beam = [start.astype(float)]
+    pending: list[int] = []  # joints passed with no observed marker to fix them
     for j, link in enumerate(machine.joint_links):
         moved = machine.moves[j]
         reached = np.isin(marker_link, [l for l in range(len(machine.links)) if l <= link])
         use = placed & reached
         if not np.any(use & moved[marker_link]):
-            continue  # no marker fixes this joint yet; later links' markers will
+            pending.append(j)
+            continue  # no marker fixes this joint yet; it is searched with the next one
         grid = joint_grid(machine, j)
-        trial = np.repeat(np.array(beam), len(grid), axis=0)  # (B * G, J)
-        trial[:, j] = np.tile(grid, len(beam))
+        earlier = np.stack([_with_pending(machine, b, pending) for b in beam])  # (B, K, J)
+        n_beam, n_variants = earlier.shape[:2]
+        trial = np.repeat(earlier.reshape(-1, machine.n_joints), len(grid), axis=0)  # (B * K * G, J)
+        trial[:, j] = np.tile(grid, n_beam * n_variants)
         cost = _grid_cost(machine, cameras, trial, obs_camera[use], obs_marker[use], obs_xy[use])
+        cost = cost.reshape(n_beam, n_variants, len(grid))
+        best = np.argmin(cost, axis=1)  # (B, G): the best variant of the earlier joints
+        trial = trial.reshape(n_beam, n_variants, len(grid), -1)
         hypotheses = []
-        for b, row in enumerate(cost.reshape(len(beam), len(grid))):
+        for b, row in enumerate(np.min(cost, axis=1)):
             for k in _local_minima(row, 3):
-                hypotheses.append((row[k], trial[b * len(grid) + k]))
+                hypotheses.append((row[k], trial[b, best[b, k], k]))
         hypotheses.sort(key=lambda h: h[0])
         beam = [h[1] for h in hypotheses[:BEAM]]
+        pending = []
     return beam[0]
+
+
+def _with_pending(machine: Machine, joints: np.ndarray, pending: list[int]) -> np.ndarray:
+    """Variants (K, J) of a hypothesis `joints` (J,): every combination of the pending
+    joints' grids, thinned to at most MAX_PENDING; the hypothesis itself when none pend."""
+    if not pending:
+        return joints[None]
+    grids = [joint_grid(machine, p) for p in pending]
+    per_joint = max(2, int(MAX_PENDING ** (1.0 / len(grids))))
+    grids = [g[:: max(1, int(np.ceil(len(g) / per_joint)))] for g in grids]
+    combos = np.stack(np.meshgrid(*grids, indexing="ij"), axis=-1).reshape(-1, len(grids))
+    out = np.repeat(joints[None], len(combos), axis=0)
+    out[:, pending] = combos
+    return out
 
 
 def _grid_cost(machine, cameras, joints, obs_camera, obs_marker, obs_xy) -> np.ndarray:
