@@ -112,15 +112,7 @@ class Layout:
         cameras = []
         for c, template in enumerate(templates):
             block = x[self.camera_slice(c)]
-            matrix = template.matrix.copy()
-            matrix[0, 0] = matrix[1, 1] = block[6]
-            matrix[0, 1] = 0.0
-            k = 7
-            if self.fit_principal_point:
-                matrix[:2, 2] = block[7:9]
-                k = 9
-            distortion = template.distortion.copy()
-            distortion[list(self.distortion_terms)] = block[k:]
+            matrix, distortion = self.intrinsics(block, template)
             pose = Rigid.from_rotvec(block[:3], block[3:6])
             cameras.append(Camera(template.name, template.size, matrix, distortion, pose))
         if self.per_camera:
@@ -128,6 +120,20 @@ class Layout:
         else:
             joints = x[self.joint_slice(0)].copy()
         return cameras, joints
+
+    def intrinsics(self, block: np.ndarray, template: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """K (3, 3) and distortion (5,) of a camera's parameter block; the values not fitted
+        come from `template`."""
+        matrix = template.matrix.copy()
+        matrix[0, 0] = matrix[1, 1] = block[6]
+        matrix[0, 1] = 0.0
+        k = 7
+        if self.fit_principal_point:
+            matrix[:2, 2] = block[7:9]
+            k = 9
+        distortion = template.distortion.copy()
+        distortion[list(self.distortion_terms)] = block[k:]
+        return matrix, distortion
 
 
 class Problem:
@@ -138,6 +144,7 @@ class Problem:
         self.obs = observations
         self.layout = layout
         self.templates = templates
+        self._rows = [np.nonzero(observations.camera == c)[0] for c in range(layout.n_cameras)]
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         return self._evaluate(x, jacobian=False)
@@ -147,46 +154,47 @@ class Problem:
 
     def _evaluate(self, x: np.ndarray, jacobian: bool) -> np.ndarray:
         layout, obs = self.layout, self.obs
-        cameras, joints = layout.unpack(x, self.templates)
         n = len(obs)
         residuals = np.empty((n, 2))
         jac = np.zeros((n, 2, layout.size)) if jacobian else None
         groups = range(layout.n_cameras) if layout.per_camera else [None]
         for g in groups:
-            q = joints[g] if layout.per_camera else joints
+            q = x[layout.joint_slice(0 if g is None else g)]
             if jacobian:
                 world, d_world_d_q = self.machine.markers_with_jacobian(q[None])
                 world, d_world_d_q = world[0], d_world_d_q[0]
             else:
                 world = self.machine.markers(q[None])[0]
-            for c, camera in enumerate(cameras):
+            for c, template in enumerate(self.templates):
                 if g is not None and c != g:
                     continue
-                rows = np.nonzero(obs.camera == c)[0]
+                rows = self._rows[c]
                 if not len(rows):
                     continue
+                start = layout.camera_slice(c).start
+                block = x[start : start + layout.camera_size]
+                matrix, distortion = layout.intrinsics(block, template)
+                rotation, d_rotation = cv2.Rodrigues(block[:3])  # d_rotation (3, 9): d R.flat / d rvec
                 points = world[obs.marker[rows]]
-                rotation = camera.cam_from_world.rotation
-                points_cam = points @ rotation.T + camera.cam_from_world.translation
-                uv, d_uv_d_cam = project_cam(points_cam, camera.matrix, camera.distortion, True)
+                points_cam = points @ rotation.T + block[3:6]
+                projected = project_cam(points_cam, matrix, distortion, jacobian)
+                uv, d_uv_d_cam = projected if jacobian else (projected, None)
                 residuals[rows] = uv - obs.xy[rows]
                 if jacobian:
-                    self._camera_jacobian(jac, rows, c, camera, points, points_cam, uv, d_uv_d_cam)
+                    self._camera_jacobian(jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam)
                     d_uv_d_world = d_uv_d_cam @ rotation
                     cols = layout.joint_slice(c if layout.per_camera else 0)
                     jac[rows, :, cols] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]
         return jac.reshape(2 * n, layout.size) if jacobian else residuals.reshape(-1)
 
-    def _camera_jacobian(self, jac, rows, c, camera, points, points_cam, uv, d_uv_d_cam):
+    def _camera_jacobian(self, jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam):
         layout = self.layout
-        start = layout.camera_slice(c).start
-        _, d_rotation = cv2.Rodrigues(camera.cam_from_world.rotvec)  # (3, 9): d R.flat / d rvec
         d_rotation = d_rotation.reshape(3, 3, 3)  # [k, i, j] = d R_ij / d rvec_k
         d_cam_d_rvec = np.einsum("kij,nj->nik", d_rotation, points)  # (n, 3, 3)
         jac[rows, :, start : start + 3] = d_uv_d_cam @ d_cam_d_rvec
         jac[rows, :, start + 3 : start + 6] = d_uv_d_cam
-        focal = camera.matrix[0, 0]
-        jac[rows, :, start + 6] = (uv - camera.matrix[:2, 2]) / focal
+        focal = matrix[0, 0]
+        jac[rows, :, start + 6] = (uv - matrix[:2, 2]) / focal
         k = start + 7
         if layout.fit_principal_point:
             jac[rows, 0, k] = 1.0
