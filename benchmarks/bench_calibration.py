@@ -66,6 +66,7 @@ SIZE = (1920, 1080)
 CHESSBOARD_DIR = Path("/usr/share/doc/opencv-doc/examples/data")
 BOARD = (9, 6)  # inner corners per row, per column; OpenCV's stereo_calib default square 1.0
 ANIPOSE_ENV = HERE / ".envs" / "aniposelib"
+PARTS = ("accuracy", "convergence", "speed", "chessboard", "aniposelib")
 SPEED_MARKERS = ("U1", "U2", "U3", "U5", "U7", "H1", "H2", "H4", "B1", "B2", "A1", "A2", "K1", "K2", "K4")
 
 
@@ -386,7 +387,7 @@ def pose_with_known_focal(machine, obs: Observations, template: Camera) -> Camer
     return layout.unpack(np.r_[fit.x, focal], [template])[0][0]
 
 
-def bench_speed_cube(cube, sizes: Sizes, reference_ms: float) -> dict:
+def bench_speed_cube(cube, sizes: Sizes) -> dict:
     rest = cube.marker_positions
     extent = np.ptp(rest, axis=0).max()
     rng = np.random.default_rng(11)
@@ -500,7 +501,7 @@ def bench_chessboard() -> dict | None:
                 views.append(corners)
                 names.append(path.name)
         opencv = opencv_calibrations(objp, views, size)
-        rows, ratios, dlt_message = [], [], None
+        rows, ratios, ratios_k1, dlt_message = [], [], [], None
         for name, corners, rvec, tvec in zip(names, views, *opencv["full"][2:]):
             reference = Rigid.from_rotvec(rvec.ravel(), tvec.ravel())
             obs = Observations(np.zeros(len(corners), int), np.arange(len(corners)), corners)
@@ -517,6 +518,8 @@ def bench_chessboard() -> dict | None:
                 row += [f"{fit.focal:.1f} ± {result.std[6]:.1f}", f"{centre:.2f}", f"{angle:.2f}", f"{result.rms_px:.2f}"]
                 if options.distortion == "none":
                     ratios.append(fit.focal / opencv["same"][0][0, 0] - 1)
+                else:
+                    ratios_k1.append(fit.focal / np.mean(np.diag(opencv["full"][0])[:2]) - 1)
             rows.append(row)
             try:
                 dlt_camera(side, size, board.marker_positions, corners)
@@ -542,8 +545,12 @@ def bench_chessboard() -> dict | None:
         if ratios:
             print(f"   ours (no distortion) vs OpenCV same-model f: median {100 * np.median(ratios):+.1f} %, "
                   f"range {100 * min(ratios):+.1f} .. {100 * max(ratios):+.1f} %")
+        if ratios_k1:
+            print(f"   ours (k1 fitted) vs OpenCV full-model f: median {100 * np.median(ratios_k1):+.1f} %, "
+                  f"range {100 * min(ratios_k1):+.1f} .. {100 * max(ratios_k1):+.1f} %")
         print(f"   DLT on the same views: {'refused: ' + dlt_message if dlt_message else 'NOT refused'}")
         out[side] = dict(median_f=float(np.median(ratios)) if ratios else float("nan"),
+                         median_f_k1=float(np.median(ratios_k1)) if ratios_k1 else float("nan"),
                          opencv_f=float(same_k[0, 0]), dlt_refused=dlt_message is not None)
     return out
 
@@ -646,41 +653,47 @@ def print_table(title: str, header: list[str], rows: list[list]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="small sizes, a smoke check")
+    parser.add_argument("--only", action="append", choices=PARTS, help="run only this part (repeatable)")
     args = parser.parse_args(argv)
     sizes = QUICK if args.quick else FULL
     ex3500 = load_machine("hitachi_ex3500")
     cube = load_machine("cube_pair")
     started = time.perf_counter()
 
-    crb = bench_crb(ex3500, sizes)
-    convergence = bench_convergence(ex3500, sizes)
-    speed = bench_speed_ex3500(ex3500, sizes)
-    cube_speed = bench_speed_cube(cube, sizes, speed["median_ms"])
-    board = bench_chessboard()
-    anipose = bench_aniposelib(ex3500)
+    run = set(args.only or PARTS)
+    crb = bench_crb(ex3500, sizes) if "accuracy" in run else None
+    convergence = bench_convergence(ex3500, sizes) if "convergence" in run else None
+    speed = bench_speed_ex3500(ex3500, sizes) if "speed" in run else None
+    cube_speed = bench_speed_cube(cube, sizes) if "speed" in run else None
+    board = bench_chessboard() if "chessboard" in run else None
+    anipose = bench_aniposelib(ex3500) if "aniposelib" in run else None
 
-    worst_ratio = max(r["ratio"] for r in crb)
-    best_ratio = min(r["ratio"] for r in crb)
-    summary = [
-        ["accuracy: error / CRB, over all quantities", "<= 1.2", f"{best_ratio:.2f} .. {worst_ratio:.2f}",
-         "yes" if worst_ratio <= 1.2 else "NO"],
-        ["convergence with no guess", "100 %", f"{convergence['rate']:.1f} % of {convergence['tried']}",
-         "yes" if convergence["rate"] == 100.0 else "NO"],
-        ["calibrate(), 1 camera, 15 markers, 4 joints", "<= 20 ms", f"{speed['median_ms']:.1f} ms",
-         "yes" if speed["median_ms"] <= 20.0 else "NO"],
-        ["  vs OpenCV SQPNP on the cube pair (f known to it)", "-",
-         f"{cube_speed['ours calibrate() (f unknown)'] / cube_speed['OpenCV solvePnP SQPNP (K known)']:.0f}x its time", "-"],
-    ]
-    if board is None:
+    summary = []
+    if crb is not None:
+        worst_ratio = max(r["ratio"] for r in crb)
+        best_ratio = min(r["ratio"] for r in crb)
+        summary.append(["accuracy: error / CRB, over all quantities", "<= 1.2",
+                        f"{best_ratio:.2f} .. {worst_ratio:.2f}", "yes" if worst_ratio <= 1.2 else "NO"])
+    if convergence is not None:
+        summary.append(["convergence with no guess", "100 %", f"{convergence['rate']:.1f} % of {convergence['tried']}",
+                        "yes" if convergence["rate"] == 100.0 else "NO"])
+    if speed is not None:
+        ratio = cube_speed["ours calibrate() (f unknown)"] / cube_speed["OpenCV solvePnP SQPNP (K known)"]
+        summary += [
+            ["calibrate(), 1 camera, 15 markers, 4 joints", "<= 20 ms", f"{speed['median_ms']:.1f} ms",
+             "yes" if speed["median_ms"] <= 20.0 else "NO"],
+            ["  cube pair: ours (f unknown) vs OpenCV SQPNP (K known)", "-", f"{ratio:.0f}x its time", "-"],
+        ]
+    if "chessboard" in run and board is None:
         summary.append(["chessboard, one view vs calibrateCamera", "-", "skipped (no opencv-doc)", "-"])
-    else:
-        for side, b in board.items():
-            summary.append([f"chessboard {side}: median f vs OpenCV (same model)", "-", f"{100 * b['median_f']:+.1f} %", "-"])
-            summary.append([f"chessboard {side}: DLT refuses the plane", "refuses", "refuses" if b["dlt_refused"] else "accepts",
-                            "yes" if b["dlt_refused"] else "NO"])
-    if anipose is None:
+    for side, b in (board or {}).items():
+        summary.append([f"chessboard {side}: median f vs OpenCV (same model)", "-", f"{100 * b['median_f']:+.1f} %", "-"])
+        summary.append([f"chessboard {side}: median f with k1 vs OpenCV (full)", "-", f"{100 * b['median_f_k1']:+.1f} %", "-"])
+        summary.append([f"chessboard {side}: DLT refuses the plane", "refuses", "refuses" if b["dlt_refused"] else "accepts",
+                        "yes" if b["dlt_refused"] else "NO"])
+    if "aniposelib" in run and anipose is None:
         summary.append(["aniposelib reads our files", "<= 1e-6 px", "skipped", "-"])
-    else:
+    elif anipose is not None:
         worst = max(anipose.values())
         summary.append(["aniposelib reads our files: projection difference", "<= 1e-6 px", f"{worst:.1e} px",
                         "yes" if worst <= 1e-6 else "NO"])

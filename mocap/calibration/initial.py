@@ -84,7 +84,11 @@ def _pnp(points, pixels, matrix):
     flags = cv2.SOLVEPNP_SQPNP if len(points) >= 3 else cv2.SOLVEPNP_ITERATIVE
     try:
         ok, rvec, tvec = cv2.solvePnP(
-            points.astype(np.float64), pixels.astype(np.float64), matrix, None, flags=flags
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(pixels, dtype=np.float64),
+            matrix,
+            None,
+            flags=flags,
         )
     except cv2.error:
         return None
@@ -96,6 +100,8 @@ def _pnp(points, pixels, matrix):
 def _project(points, rvec, tvec, f, principal):
     rotation = cv2.Rodrigues(rvec)[0]
     cam = points @ rotation.T + tvec
+    if np.all(cam[:, 2] > 0):
+        return f * cam[:, :2] / cam[:, 2:3] + principal
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = f * cam[:, :2] / cam[:, 2:3] + principal
     return np.where(cam[:, 2:3] > 0, uv, 1e6)
@@ -185,7 +191,7 @@ def _grid_cost(machine, cameras, joints, obs_camera, obs_marker, obs_xy) -> np.n
 
 def _local_minima(cost: np.ndarray, k: int) -> list[int]:
     """Indices of up to k lowest local minima of a 1-D cost."""
-    left = np.r_[np.inf, cost[:-1]]
-    right = np.r_[cost[1:], np.inf]
+    left = np.concatenate(([np.inf], cost[:-1]))
+    right = np.concatenate((cost[1:], [np.inf]))
     minima = np.nonzero((cost <= left) & (cost <= right))[0]
     return list(minima[np.argsort(cost[minima])][:k])
