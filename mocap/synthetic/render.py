@@ -5,7 +5,7 @@ perspective, then the camera's effects.
 Links are drawn far to near (painter's order by box centre), each link's faces that face
 the camera and then its markers. A marker is drawn only where the truth calls it visible
 (facing the camera, in the image, not behind another link's box), so the truth tracks
-and the pictures agree. Marker squares and disks are filled on a 4x finer grid over a
+and the pictures agree. Marker squares and disks are filled on an 8x finer grid over a
 small region and area-averaged back, so their centres are exact to a few hundredths of a
 pixel.
 
@@ -41,14 +41,15 @@ OUTLINE_POINTS = 48
 class RenderOptions:
     """`disk` and `square` marker sizes (m; default 0.3 and 0.5 for a machine of the
     EX3500's reach, scaled with it), `codec` one of CODECS, the camera `effects`, the fine
-    grid's `supersample` factor, frames per batch `chunk`."""
+    grid's `supersample` factor, frames per batch `chunk`, encoder `threads` (0: automatic)."""
 
     codec: str = "h264"
     effects: EffectOptions = field(default_factory=EffectOptions)
     disk: float | None = None
     square: float | None = None
-    supersample: int = 4
+    supersample: int = 8
     chunk: int = 32
+    threads: int = 0
 
     def __post_init__(self) -> None:
         if self.codec not in CODECS:
@@ -206,7 +207,7 @@ def render_videos(session: SyntheticSession, root: str | Path, options: RenderOp
         for index, camera in enumerate(session.cameras):
             renderer = CameraRenderer(session, index, options, rng)
             path = Path(root) / "videos" / f"{camera.name}.mp4"
-            with video_writer(path, camera.camera.size, camera.fps, options.codec) as write:
+            with video_writer(path, camera.camera.size, camera.fps, options.codec, options.threads) as write:
                 for _, image in renderer.frames():
                     write(image)
                     bar.update(1)
