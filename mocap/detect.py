@@ -33,12 +33,12 @@ class DetectOptions:
 
     min_radius: float = 1.5
     max_radius: float = 40.0
-    min_contrast: float = 60.0
+    min_contrast: float = 80.0
     block: int = 51  # adaptive threshold neighbourhood, odd, larger than a marker's square
     threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
     min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
     max_fill: float = 1.25
-    max_ring_spread: float = 0.25  # ring grey-level spread / contrast
+    max_ring_spread: float = 0.4  # (ring's white - ring's median) / contrast
     max_elongation: float = 6.0  # major / minor semi-axis
 
     def __post_init__(self) -> None:
@@ -87,6 +87,13 @@ class Detections:
 
 _FIELDS = ("xy", "axes", "angle", "contrast", "fill", "score")
 
+# After a first pass with weights proportional to darkness, a pixel's weight is its
+# darkness (0 on the white, 1 on the black) mapped through a ramp of this slope about one
+# half, clipped to [0, 1]: the centroid of the area darker than half the contrast. A
+# blurred edge is symmetric about its half level, so its place is kept, while the noise of
+# the white and the black and a fainter trail left by motion (less than half dark) drop out.
+HALF_LEVEL_SLOPE = 3.0
+
 
 def concatenate(parts: list[Detections]) -> Detections:
     if not parts:
@@ -107,16 +114,16 @@ def as_gray(image: np.ndarray) -> np.ndarray:
 def find_candidates(
     gray: np.ndarray, options: DetectOptions, origin: tuple[int, int] = (0, 0)
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Dark connected regions of an adaptive threshold: centroids (N, 2) and half their
-    larger bounding-box side (N,), in the coordinates of the full image (`origin` = the
-    top-left pixel of `gray` in it)."""
+    """Dark connected regions of an adaptive threshold: centroids (N, 2) in the coordinates
+    of the full image (`origin` = the top-left pixel of `gray` in it) and their ellipses as
+    semi-axis matrices (N, 2, 2) (``x^T S^-1 x = 1`` on the edge) from the regions' moments."""
     block = min(options.block, 2 * (min(gray.shape) // 2) - 1)
     if block < 3:
-        return np.zeros((0, 2)), np.zeros(0)
+        return np.zeros((0, 2)), np.zeros((0, 2, 2))
     binary = cv2.adaptiveThreshold(
         gray, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV, block, options.threshold_offset
     )
-    _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
     area = stats[1:, cv2.CC_STAT_AREA].astype(float)
     width = stats[1:, cv2.CC_STAT_WIDTH].astype(float)
     height = stats[1:, cv2.CC_STAT_HEIGHT].astype(float)
@@ -124,27 +131,46 @@ def find_candidates(
     keep = (radius >= 0.8 * options.min_radius) & (radius <= options.max_radius)
     keep &= area >= 0.4 * width * height  # compact, not a line or a frame
     keep &= np.maximum(width, height) <= options.max_elongation * np.minimum(width, height) + 2
-    xy = centroids[1:][keep] + np.asarray(origin, dtype=float)
-    return xy, 0.5 * np.maximum(width, height)[keep]
+    if not np.any(keep):
+        return np.zeros((0, 2)), np.zeros((0, 2, 2))
+    # second moments of the kept regions, all at once
+    index = np.zeros(count, dtype=int)
+    index[1:][keep] = np.arange(1, keep.sum() + 1)
+    flat = index[labels.ravel()]
+    inside = flat > 0
+    flat = flat[inside]
+    ys, xs = np.divmod(np.nonzero(inside)[0], gray.shape[1])
+    n = keep.sum() + 1
+    mean = centroids[1:][keep]
+    dx, dy = xs - mean[flat - 1, 0], ys - mean[flat - 1, 1]
+    sums = [np.bincount(flat, weights=w, minlength=n)[1:] for w in (dx * dx, dx * dy, dy * dy)]
+    moments = np.stack([np.stack([sums[0], sums[1]], -1), np.stack([sums[1], sums[2]], -1)], -2)
+    shape = 4.0 * (moments / area[keep, None, None] + np.eye(2) / 12.0)
+    return mean + np.asarray(origin, dtype=float), shape
 
 
 def refine(
-    gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, iterations: int = 3
+    gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int = 3
 ) -> tuple[Detections, np.ndarray]:
-    """Sub-pixel centres and ellipses of dark disks near `xy` (N, 2), of about `radius` (N,).
+    """Sub-pixel centres and ellipses of dark disks near `xy` (N, 2), of about `shape`:
+    semi-axis matrices (N, 2, 2) or radii (N,).
 
     Candidates are refined in groups of similar size, each group together on a stack of
     square patches. Returns the Detections without any test applied (see `accept`) and
-    the grey-level spread of each one's surrounding ring relative to its contrast (N,).
+    how far each one's surrounding ring falls short of white, relative to its contrast (N,).
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    radius = np.asarray(radius, dtype=float).reshape(len(xy))
-    group = np.digitize(radius, [2.5, 4.0, 6.0, 9.0, 13.0, 19.0, 28.0])
+    shape = np.asarray(shape, dtype=float)
+    if shape.ndim == 1:
+        shape = shape[:, None, None] ** 2 * np.eye(2)
+    shape = shape.reshape(len(xy), 2, 2)
+    size = np.sqrt(np.linalg.eigvalsh(shape)[:, -1]) if len(xy) else np.zeros(0)
+    group = np.digitize(size, [2.5, 4.0, 6.0, 9.0, 13.0, 19.0, 28.0])
     order = np.argsort(group, kind="stable")
     parts, spreads = [], []
     for g in np.unique(group):
         pick = order[group[order] == g]
-        found, spread = _refine_group(gray, xy[pick], radius[pick], iterations)
+        found, spread = _refine_group(gray, xy[pick], shape[pick], size[pick], iterations)
         parts.append(found)
         spreads.append(spread)
     if not parts:
@@ -154,13 +180,10 @@ def refine(
 
 
 def _refine_group(
-    gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, iterations: int
+    gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, size: np.ndarray, iterations: int
 ) -> tuple[Detections, np.ndarray]:
     n = len(xy)
-    if n == 0:
-        return Detections.empty(), np.zeros(0)
-    radius = np.maximum(np.asarray(radius, dtype=float).reshape(n), 1.0)
-    half = int(np.ceil(np.max(radius) * 2.0 + 4))
+    half = int(np.ceil(np.max(np.maximum(size, 1.0)) * 2.0 + 4))
     offsets = np.arange(-half, half + 1)
     height, width = gray.shape
     centre = np.round(xy).astype(int)
@@ -169,8 +192,10 @@ def _refine_group(
     patch = gray[rows[:, :, None], cols[:, None, :]].astype(float)  # (N, P, P)
     gx = cols[:, None, :].astype(float)  # pixel coordinates of the patch, (N, 1, P)
     gy = rows[:, :, None].astype(float)  # (N, P, 1)
-    # shape as the inverse of the ellipse's semi-axis matrix S (x^T S^-1 x = 1 on the edge)
-    inv_shape = np.eye(2)[None] / radius[:, None, None] ** 2
+    evals, evecs = np.linalg.eigh(shape)
+    evals = np.clip(evals, 0.25, ((half - 3) / 1.8) ** 2)
+    inv_shape = evecs @ (np.swapaxes(evecs, 1, 2) / evals[:, :, None])
+    shape = evecs @ (evals[:, :, None] * np.swapaxes(evecs, 1, 2))
     c = xy.copy()
     for iteration in range(iterations):
         dx = gx - c[:, 0, None, None]
@@ -181,18 +206,18 @@ def _refine_group(
             + inv_shape[:, 1, 1, None, None] * dy * dy
         )
         minor = 1.0 / np.sqrt(np.linalg.eigvalsh(inv_shape)[:, 1])
-        k_in = 1.0 + np.maximum(1.5 / minor, 0.3)  # past the blurred edge
-        k_out = k_in + np.maximum(1.5 / minor, 0.4)  # still on the white square
-        if iteration == 0:
-            # the disk lies inside the circle of `radius`, the white square around it:
-            # take the bright end of the neighbourhood as the background
-            k_in = np.full(n, 1.05)
-            background = _masked_quantiles(patch, rho2 < 2.6, [0.9])[0]
+        k_in = 1.0 + np.maximum(0.7 / minor, 0.15)  # past the blurred edge
+        k_out = np.maximum(1.6, k_in + 0.35)  # mostly on the white square
         window = rho2 < (k_in**2)[:, None, None]
         ring = (rho2 >= (k_in**2)[:, None, None]) & (rho2 < (k_out**2)[:, None, None])
-        if iteration > 0:
-            background = _masked_quantiles(patch, ring, [0.5])[0]
-        darkness = np.where(window, np.maximum(background[:, None, None] - patch, 0.0), 0.0)
+        # the white of the ring (it may reach past the square's edges)
+        background = _masked_quantiles(patch, ring, [0.85])[0]
+        foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
+        contrast = np.maximum(background - foreground, 1.0)[:, None, None]
+        cover = (background[:, None, None] - patch) / contrast  # 0 on white, 1 on black
+        if iteration > 0:  # the half-contrast area: each disk edge where it is half dark
+            cover = 0.5 + HALF_LEVEL_SLOPE * (cover - 0.5)
+        darkness = np.where(window, np.clip(cover, 0.0, 1.0), 0.0)
         mass = darkness.sum(axis=(1, 2))
         safe = np.where(mass > 0, mass, 1.0)
         cx = (darkness * gx).sum(axis=(1, 2)) / safe
@@ -202,20 +227,19 @@ def _refine_group(
         sxy = (darkness * ddx * ddy).sum(axis=(1, 2)) / safe
         syy = (darkness * ddy * ddy).sum(axis=(1, 2)) / safe
         moments = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
-        shape = 4.0 * moments + 1e-3 * np.eye(2)
-        good = (mass > 0) & np.all(np.isfinite(shape), axis=(1, 2))
+        new_shape = 4.0 * moments + 1e-3 * np.eye(2)
+        good = (mass > 0) & np.all(np.isfinite(new_shape), axis=(1, 2))
         c = np.where(good[:, None], np.c_[cx, cy], c)
-        shape = np.where(good[:, None, None], shape, np.eye(2) * radius[:, None, None] ** 2)
+        shape = np.where(good[:, None, None], new_shape, shape)
         evals, evecs = np.linalg.eigh(shape)
         evals = np.clip(evals, 0.25, ((half - 3) / 1.8) ** 2)  # keep the window inside the patch
         inv_shape = evecs @ (evecs.transpose(0, 2, 1) / evals[:, :, None])
     axes = np.sqrt(np.maximum(evals[:, ::-1], 1e-9))
     angle = np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1])
-    foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
     contrast = background - foreground
-    fill = mass / np.maximum(contrast, 1.0) / (np.pi * axes[:, 0] * axes[:, 1])
-    low, high = _masked_quantiles(patch, ring, [0.1, 0.9])
-    spread = np.where(np.isfinite(high - low), 0.5 * (high - low), np.inf) / np.maximum(contrast, 1.0)
+    fill = mass / (np.pi * axes[:, 0] * axes[:, 1])
+    middle = _masked_quantiles(patch, ring, [0.5])[0]
+    spread = np.where(np.isfinite(middle), background - middle, np.inf) / np.maximum(contrast, 1.0)
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
     return Detections(c, axes, angle, contrast, fill, score), spread
 
@@ -241,13 +265,13 @@ def detect_disks(
     options = options or DetectOptions()
     gray = as_gray(image)
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, gray.shape[1], gray.shape[0])
-    xy, radius = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
-    return refine_and_accept(gray, xy, radius, options)
+    xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+    return refine_and_accept(gray, xy, shape, options)
 
 
-def refine_and_accept(gray: np.ndarray, xy: np.ndarray, radius: np.ndarray, options: DetectOptions) -> Detections:
+def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:
     """`refine` then `accept`, duplicates merged (centres closer than half a radius)."""
-    found, spread = refine(gray, xy, radius)
+    found, spread = refine(gray, xy, shape)
     found = found.select(accept(found, spread, options))
     return unique(found)
 
