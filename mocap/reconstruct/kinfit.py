@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 LOSSES = ("huber", "cauchy", "linear")
 _BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
 _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
+_CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,10 @@ class FitOptions:
     loss's scale (px); noise_px: pixel noise SD for the covariance, None to estimate it from
     the residuals of all frames; base_motion: also fit a 6-DoF base pose per frame; grid:
     number of coarse-grid candidates for frames without a starting value; chunk: frames
-    solved together (memory); repair_passes: restarts from neighbours' solutions.
+    solved together (memory); repair_passes: restarts from neighbours' solutions;
+    key_stride: without a start, every key_stride-th frame is fitted from the grid and the
+    frames between start from the interpolated key solutions (a frame that then ends badly
+    is fitted again from the grid).
     """
 
     iterations: int = 12
@@ -52,6 +56,7 @@ class FitOptions:
     grid: int = 400
     chunk: int = 2048
     repair_passes: int = 3
+    key_stride: int = 8
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -60,8 +65,8 @@ class FitOptions:
             raise ValueError(f"scale_px must be positive, got {self.scale_px}")
         if self.noise_px is not None and not self.noise_px > 0:
             raise ValueError(f"noise_px must be positive or None, got {self.noise_px}")
-        if self.iterations < 1 or self.grid < 1 or self.chunk < 1 or self.repair_passes < 0:
-            raise ValueError("iterations, grid and chunk must be >= 1, repair_passes >= 0")
+        if min(self.iterations, self.grid, self.chunk, self.key_stride) < 1 or self.repair_passes < 0:
+            raise ValueError("iterations, grid, chunk and key_stride must be >= 1, repair_passes >= 0")
 
 
 @dataclass(frozen=True)
@@ -157,15 +162,12 @@ def fit_joints(
             initial_base, n_frames, 6, "initial_base"
         )
     problem = _Problem(machine, tuple(cameras), options)
-    pieces = [
-        problem.solve(
-            pixels[:, s : s + options.chunk],
-            None if start is None else start[s : s + options.chunk],
-            None if start_base is None else start_base[s : s + options.chunk],
-        )
-        for s in range(0, n_frames, options.chunk)
-    ]
-    state = _State.concatenate(pieces)
+    if start is None and n_frames > 2 * options.key_stride:
+        start = problem.key_frame_start(pixels, start_base)
+        state = problem.solve_all(pixels, start, start_base)
+        problem.restart_from_grid(pixels, state, start_base)
+    else:
+        state = problem.solve_all(pixels, start, start_base)
     for _ in range(options.repair_passes):
         if not problem.repair(pixels, state):
             break
@@ -184,39 +186,34 @@ def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
 @dataclass
 class _State:
     """Mutable per-frame solver state (private): joints (F, J), base rotation (F, 3, 3) and
-    translation (F, 3) or None, robust cost (F,)."""
+    translation (F, 3) or None, robust cost (F,); after a solve also the weighted normal
+    matrix (F, P, P), residuals (F, N) and robust weights (F, N) at the solution."""
 
     joints: np.ndarray
     rotation: np.ndarray | None
     translation: np.ndarray | None
     cost: np.ndarray
+    hessian: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    weight: np.ndarray | None = None
+
+    _FIELDS = ("joints", "rotation", "translation", "cost", "hessian", "residual", "weight")
 
     @staticmethod
     def concatenate(parts: list[_State]) -> _State:
-        base = parts[0].rotation is not None
-        return _State(
-            np.concatenate([p.joints for p in parts]),
-            np.concatenate([p.rotation for p in parts]) if base else None,
-            np.concatenate([p.translation for p in parts]) if base else None,
-            np.concatenate([p.cost for p in parts]),
-        )
+        return _State(*(
+            None if getattr(parts[0], f) is None else np.concatenate([getattr(p, f) for p in parts])
+            for f in _State._FIELDS
+        ))
 
     def take(self, index: np.ndarray) -> _State:
-        base = self.rotation is not None
-        return _State(
-            self.joints[index],
-            self.rotation[index] if base else None,
-            self.translation[index] if base else None,
-            self.cost[index],
-        )
+        return _State(*(None if getattr(self, f) is None else getattr(self, f)[index] for f in self._FIELDS))
 
     def put(self, index: np.ndarray, other: _State, mask: np.ndarray) -> None:
         target = index[mask]
-        self.joints[target] = other.joints[mask]
-        self.cost[target] = other.cost[mask]
-        if self.rotation is not None:
-            self.rotation[target] = other.rotation[mask]
-            self.translation[target] = other.translation[mask]
+        for f in self._FIELDS:
+            if getattr(self, f) is not None:
+                getattr(self, f)[target] = getattr(other, f)[mask]
 
 
 class _Problem:
@@ -318,6 +315,45 @@ class _Problem:
         return _State(joints, rotation, state.translation + delta[:, n_joints + 3 :], state.cost)
 
     # --- solver --------------------------------------------------------------------------
+    def solve_all(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> _State:
+        """Fit every frame of pixels (C, F, M, 2) in chunks."""
+        chunk = self.options.chunk
+        return _State.concatenate([
+            self.solve(
+                pixels[:, s : s + chunk],
+                None if start is None else start[s : s + chunk],
+                None if start_base is None else start_base[s : s + chunk],
+            )
+            for s in range(0, pixels.shape[1], chunk)
+        ])
+
+    def key_frame_start(self, pixels: np.ndarray, start_base: np.ndarray | None) -> np.ndarray:
+        """Starting joints (F, J): every `key_stride`-th frame fitted from the grid, the frames
+        between interpolated linearly (angles of full-circle joints unwrapped first)."""
+        n_frames = pixels.shape[1]
+        keys = np.unique(np.r_[np.arange(0, n_frames, self.options.key_stride), n_frames - 1])
+        state = self.solve_all(pixels[:, keys], None, None if start_base is None else start_base[keys])
+        n_obs = np.isfinite(pixels[:, keys][..., 0]).sum((0, 2))
+        good = 2 * n_obs >= self.n_params
+        if good.sum() < 2:
+            return np.tile(self.machine.clip_to_limits(np.zeros(self.machine.n_joints)), (n_frames, 1))
+        joints = state.joints[good]
+        joints[:, self.wrap] = np.unwrap(joints[:, self.wrap], axis=0)
+        frames = np.arange(n_frames)
+        return np.stack([np.interp(frames, keys[good], joints[:, j]) for j in range(joints.shape[1])], 1)
+
+    def restart_from_grid(self, pixels: np.ndarray, state: _State, start_base: np.ndarray | None) -> None:
+        """Frames that ended far worse than is typical are fitted again from the grid; the
+        better solution is kept."""
+        n_obs = np.isfinite(pixels[..., 0]).sum((0, 2))
+        per_obs = state.cost / np.maximum(n_obs, 1)
+        typical = np.median(per_obs[n_obs > 0]) if (n_obs > 0).any() else 0.0
+        bad = np.nonzero((per_obs > 4.0 * typical + self.options.scale_px**2) & (n_obs > 0))[0]
+        if not len(bad):
+            return
+        fitted = self.solve_all(pixels[:, bad], None, None if start_base is None else start_base[bad])
+        state.put(bad, fitted, fitted.cost < state.cost[bad])
+
     def solve(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> _State:
         """Fit one chunk of frames; pixels (C, F, M, 2)."""
         pixels = np.moveaxis(pixels, 1, 0)  # (F, C, M, 2)
@@ -329,37 +365,43 @@ class _Problem:
         return self.levenberg_marquardt(pixels, _State(joints, rotation, translation, np.zeros(len(joints))))
 
     def levenberg_marquardt(self, pixels: np.ndarray, state: _State) -> _State:
+        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged."""
         residual, jac = self.evaluate(pixels, state)
         weight, cost = self.robust(residual)
+        base = state.rotation is not None
+        joints = state.joints.copy()
+        rotation = state.rotation.copy() if base else None
+        translation = state.translation.copy() if base else None
         damping = np.full(len(cost), 1e-3)
         eye = np.eye(self.n_params)
+        active = np.arange(len(cost))
         for _ in range(self.options.iterations):
-            jw = jac * weight[..., None]
-            hessian = np.swapaxes(jw, 1, 2) @ jac
-            gradient = (residual[:, None, :] @ jw)[:, 0]
+            a = active
+            jw = jac[a] * weight[a][..., None]
+            hessian = np.swapaxes(jw, 1, 2) @ jac[a]
+            gradient = (residual[a][:, None, :] @ jw)[:, 0]
             diag = np.diagonal(hessian, axis1=1, axis2=2)
-            lhs = hessian + (damping[:, None] * diag + _EPS_INFO)[:, :, None] * eye
+            lhs = hessian + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
             delta = np.linalg.solve(lhs, gradient[..., None])[..., 0]
-            trial = self.step(state, delta)
-            trial_residual, trial_jac = self.evaluate(pixels, trial)
+            current = _State(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
+            trial = self.step(current, delta)
+            trial_residual, trial_jac = self.evaluate(pixels[a], trial)
             trial_weight, trial_cost = self.robust(trial_residual)
-            better = trial_cost <= cost
-            state = _State(
-                np.where(better[:, None], trial.joints, state.joints),
-                None if state.rotation is None else np.where(better[:, None, None], trial.rotation, state.rotation),
-                None if state.rotation is None else np.where(better[:, None], trial.translation, state.translation),
-                state.cost,
-            )
-            change = np.abs(cost - trial_cost) / np.maximum(cost, 1e-12)
-            residual = np.where(better[:, None], trial_residual, residual)
-            jac = np.where(better[:, None, None], trial_jac, jac)
-            weight = np.where(better[:, None], trial_weight, weight)
-            cost = np.where(better, trial_cost, cost)
-            damping = np.clip(np.where(better, damping * 0.3, damping * 10.0), 1e-9, 1e9)
-            if np.all(change < 1e-9):
+            better = trial_cost <= cost[a]
+            change = np.abs(cost[a] - trial_cost) / np.maximum(cost[a], 1e-12)
+            kept = a[better]
+            joints[kept] = trial.joints[better]
+            if base:
+                rotation[kept] = trial.rotation[better]
+                translation[kept] = trial.translation[better]
+            residual[kept], jac[kept], weight[kept] = trial_residual[better], trial_jac[better], trial_weight[better]
+            cost[kept] = trial_cost[better]
+            damping[a] = np.clip(np.where(better, damping[a] * 0.3, damping[a] * 10.0), 1e-9, 1e9)
+            active = a[change >= _CONVERGED]
+            if not len(active):
                 break
-        state.cost = cost
-        return state
+        hessian = np.swapaxes(jac * weight[..., None], 1, 2) @ jac
+        return _State(joints, rotation, translation, cost, hessian, residual, weight)
 
     def grid_start(self, pixels: np.ndarray) -> np.ndarray:
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
@@ -411,17 +453,7 @@ class _Problem:
     # --- result --------------------------------------------------------------------------
     def result(self, pixels: np.ndarray, state: _State) -> JointFit:
         n_cams, n_frames, n_markers, _ = pixels.shape
-        hessians, residuals, weights = [], [], []
-        for s in range(0, n_frames, self.options.chunk):
-            chunk = state.take(np.arange(s, min(s + self.options.chunk, n_frames)))
-            residual, jac = self.evaluate(np.moveaxis(pixels[:, s : s + self.options.chunk], 1, 0), chunk)
-            weight, _ = self.robust(residual)
-            hessians.append(np.swapaxes(jac * weight[..., None], 1, 2) @ jac)
-            residuals.append(residual)
-            weights.append(weight)
-        hessian = np.concatenate(hessians)
-        residual = np.concatenate(residuals)
-        weight = np.concatenate(weights)
+        hessian, residual, weight = state.hessian, state.residual, state.weight
         seen = np.isfinite(pixels).all(-1)  # (C, F, M)
         seen_rows = np.repeat(np.moveaxis(seen, 1, 0).reshape(n_frames, -1), 2, axis=1)
         n_obs = seen.sum((0, 2))

@@ -27,7 +27,7 @@ class TriangulateOptions:
     """iterations: Gauss-Newton steps; max_error_px: a view whose reprojection error
     exceeds this is an outlier candidate (with >= 3 views); min_views: views needed."""
 
-    iterations: int = 3
+    iterations: int = 2
     max_error_px: float = 4.0
     min_views: int = 2
 
@@ -74,18 +74,18 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     seen = np.isfinite(flat).all(-1)
     normalised = undistort(cameras, flat)
     used = seen.copy()
-    xyz, residual = _solve(cameras, flat, normalised, used, options.iterations)
+    xyz, residual, jac = _solve(cameras, flat, normalised, used, options.iterations)
     for _ in range(len(cameras) - 2):
         error = np.where(used, np.linalg.norm(residual, axis=-1), 0.0)
         suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > options.max_error_px))[0]
         if not len(suspect):
             break
-        drop = _leave_one_out(cameras, flat[:, suspect], normalised[:, suspect], used[:, suspect], options)
+        drop = _leave_one_out(residual[:, suspect], jac[suspect], used[:, suspect])
         index = suspect[drop >= 0]
         if not len(index):
             break
         used[drop[drop >= 0], index] = False
-        xyz[index], residual[:, index] = _solve(
+        xyz[index], residual[:, index], jac[index] = _solve(
             cameras, flat[:, index], normalised[:, index], used[:, index], options.iterations
         )
     views = used.sum(0)
@@ -114,15 +114,16 @@ def undistort(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
 
 def _solve(cameras, pixels, normalised, used, iterations):
     """DLT then Gauss-Newton for points (N,) with views `used` (C, N) -> xyz (N, 3),
-    residuals (C, N, 2) observed minus projected (zero where unused)."""
+    residuals (C, N, 2) observed minus projected and their Jacobians (N, 2C, 3) by xyz
+    (zero where unused)."""
     xyz = _dlt(cameras, normalised, used)
     eye = _EPS * np.eye(3)
     for _ in range(iterations):
         residual, jac = _residuals(cameras, pixels, used, xyz)  # (N, 2C), (N, 2C, 3)
         jac_t = np.swapaxes(jac, 1, 2)
         xyz = xyz + np.linalg.solve(jac_t @ jac + eye, jac_t @ residual[..., None])[..., 0]
-    residual, _ = _residuals(cameras, pixels, used, xyz, with_jacobian=False)
-    return xyz, np.moveaxis(residual.reshape(len(xyz), len(cameras), 2), 1, 0)
+    residual, jac = _residuals(cameras, pixels, used, xyz)
+    return xyz, np.moveaxis(residual.reshape(len(xyz), len(cameras), 2), 1, 0), jac
 
 
 def _dlt(cameras, normalised, used) -> np.ndarray:
@@ -157,18 +158,27 @@ def _residuals(cameras, pixels, used, xyz, with_jacobian=True):
     return residual, None if jac is None else jac.reshape(n, -1, 3)
 
 
-def _leave_one_out(cameras, pixels, normalised, used, options) -> np.ndarray:
-    """For suspect points (N,): the view (N,) whose removal leaves the smallest RMS error
-    of the remaining views, or -1 where no view can be removed."""
+def _leave_one_out(residual: np.ndarray, jac: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """For suspect points (N,): the view (N,) whose removal leaves the smallest RMS error of
+    the remaining views, or -1 where no view can be removed.
+
+    Each removal is ranked by one Gauss-Newton step from the all-view solution without that
+    view, and the remaining residuals predicted linearly (residual (C, N, 2) and jac
+    (N, 2C, 3) at the all-view solution): no new projections.
+    """
     n_cams, n = used.shape
-    candidates = np.repeat(used[:, None, :], n_cams, axis=1)  # (C views, C left out, N)
-    candidates[np.arange(n_cams), np.arange(n_cams)] = False
-    flat_used = candidates.reshape(n_cams, n_cams * n)
-    tile = lambda a: np.tile(a, (1, n_cams) + (1,) * (a.ndim - 2))  # noqa: E731
-    _, residual = _solve(cameras, tile(pixels), tile(normalised), flat_used, options.iterations)
-    error = np.where(flat_used, np.linalg.norm(residual, axis=-1), 0.0).reshape(n_cams, n_cams, n)
-    views = flat_used.reshape(n_cams, n_cams, n).sum(0)  # (C left out, N)
-    rms = np.sqrt((error**2).sum(0) / np.maximum(views, 1))
-    rms = np.where(used & (views >= 2), rms, np.inf)  # only drop a view that was used
-    best = np.argmin(rms, axis=0)
-    return np.where(np.isfinite(rms[best, np.arange(n)]), best, -1)
+    jac = jac.reshape(n, n_cams, 2, 3)
+    r = np.moveaxis(residual, 0, 1)  # (N, C, 2)
+    jac_t = np.swapaxes(jac, -1, -2)  # (N, C, 3, 2)
+    hessian_views = jac_t @ jac  # (N, C, 3, 3), zero for unused views
+    gradient_views = (jac_t @ r[..., None])[..., 0]  # (N, C, 3)
+    hessian = hessian_views.sum(1, keepdims=True) - hessian_views + _EPS * np.eye(3)
+    gradient = gradient_views.sum(1, keepdims=True) - gradient_views
+    step = np.linalg.solve(hessian, gradient[..., None])[..., 0]  # (N, K left out, 3)
+    predicted = r[:, None] - np.einsum("nckd,njd->njck", jac, step)  # (N, K, C, 2)
+    keep = used.T[:, None, :] & ~np.eye(n_cams, dtype=bool)[None]  # (N, K, C)
+    squared = np.where(keep, (predicted**2).sum(-1), 0.0).sum(-1)
+    views = keep.sum(-1)
+    rms = np.where(used.T & (views >= 2), np.sqrt(squared / np.maximum(views, 1)), np.inf)
+    best = np.argmin(rms, axis=1)
+    return np.where(np.isfinite(rms[np.arange(n), best]), best, -1)
