@@ -183,7 +183,8 @@ def test_hidden_markers_are_behind_other_links(session):
     frames = np.arange(0, camera.frames, 41)
     uv, seen, poses = session.observe(camera, frames)
     centre = camera.camera.center
-    world = machine.markers(session.plan.joints(camera.times(frames)), session.plan.world_from_base(camera.times(frames)))
+    times = camera.times(frames)
+    world = machine.markers(session.plan.joints(times), session.plan.world_from_base(times))
     normals = np.einsum("fmij,mj->fmi", poses[:, machine.marker_links, :3, :3], session.normals)
     facing = np.einsum("fmi,fmi->fm", normals, centre - world) / np.linalg.norm(centre - world, axis=-1) > 0.2
     s = np.linspace(0.0, 1.0, 400)
@@ -267,3 +268,14 @@ def test_cli_rejects_bad_options(tmp_path, capsys, extra, message):
     argv = ["synth", "--machine", "bobcat_225", "--out", str(tmp_path / "s"), "--no-video", *extra]
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_small_objects_check_their_shapes(session):
+    from dataclasses import replace
+
+    from mocap.synthetic.paths import SmoothNoise
+
+    with pytest.raises(ValueError, match="SmoothNoise needs amplitude and phase"):
+        SmoothNoise(np.zeros((3, 2)), np.zeros(4), np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="needs fps > 0 and frames >= 1"):
+        replace(session.cameras[0], fps=0.0)

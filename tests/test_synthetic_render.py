@@ -81,7 +81,8 @@ def test_rendered_marker_centres_match_the_projected_disks(scene):
                 mask = np.zeros(grey.shape, np.uint8)
                 cv2.fillPoly(mask, [np.round(squares[k, m] * 256).astype(np.int32)], 1, shift=8)
                 mask = cv2.erode(mask, np.ones((3, 3), np.uint8)).astype(bool)
-                (x0, y0), (x1, y1) = np.floor(disks[k, m].min(0)).astype(int) - 1, np.ceil(disks[k, m].max(0)).astype(int) + 2
+                x0, y0 = np.floor(disks[k, m].min(0)).astype(int) - 1
+                x1, y1 = np.ceil(disks[k, m].max(0)).astype(int) + 2
                 mask[:y0], mask[y1:], mask[:, :x0], mask[:, x1:] = False, False, False, False  # the disk's box
                 weight = np.where(mask, np.clip(WHITE[0] - grey, 0, None), 0.0)
                 yy, xx = np.mgrid[: grey.shape[0], : grey.shape[1]]

@@ -174,7 +174,8 @@ def _draw_clutter(image: np.ndarray, camera: Camera, reach: float, rng: np.rando
             facing /= np.linalg.norm(facing)
             side = np.array([-facing[1], facing[0], 0.0])
             middle = centre + [0, 0, 0.06 * reach]
-            square = middle + 0.016 * reach * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) @ np.stack([side, [0, 0, 1.0]])
+            corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float)
+            square = middle + 0.016 * reach * corners @ np.stack([side, [0, 0, 1.0]])
             disk = middle + 0.0095 * reach * (np.cos(angles)[:, None] * side + np.sin(angles)[:, None] * [0, 0, 1.0])
             for outline, colour in ((square, (230, 230, 230)), (disk, (25, 25, 25))):
                 _fill(image, camera, pose, outline, colour)

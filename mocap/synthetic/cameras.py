@@ -31,6 +31,12 @@ class FieldCamera:
     frames: int
     shake: SmoothNoise | None = None
 
+    def __post_init__(self) -> None:
+        if not self.fps > 0 or self.frames < 1:
+            raise ValueError(
+                f"camera {self.camera.name!r}: needs fps > 0 and frames >= 1, got {self.fps}, {self.frames}"
+            )
+
     @property
     def name(self) -> str:
         return self.camera.name

@@ -27,8 +27,9 @@ def frame_rate(fps: float) -> Fraction:
 def video_writer(path: str | Path, size: tuple[int, int], fps: float, codec: str = "h264", threads: int = 0):
     """Yield ``write(image)`` for BGR uint8 images (H, W, 3); the file appears when done.
 
-    `threads` is the H.264 encoder's thread count (0: automatic). The video is written to a hidden ``.NAME.partial.mp4`` beside `path` (the extension
-    tells OpenCV the container) and renamed onto `path` when whole; removed on an error.
+    `threads` is the H.264 encoder's thread count (0: automatic). The video is written to
+    a hidden ``.NAME.partial.mp4`` beside `path` (the extension tells OpenCV the container)
+    and renamed onto `path` when whole; removed on an error.
     """
     if codec not in CODECS:
         raise ValueError(f"codec must be one of {CODECS}, got {codec!r}")

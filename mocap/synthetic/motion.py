@@ -241,13 +241,13 @@ def plan_session(
 
 
 def check_limits(machine: Machine, joints: np.ndarray) -> None:
-    """Raise ValueError naming the joint and the worst value when joints (T, J) leave the
+    """Raise ValueError naming the joint and by how much when joints (T, J) leave the
     model's limits."""
     limits = machine.joint_limits
-    below = limits[:, 0] - joints
-    above = joints - limits[:, 1]
-    worst = np.maximum(below, above).max(axis=0)
-    for j in np.flatnonzero(worst > 1e-9):
+    worst = np.maximum(limits[:, 0] - joints, joints - limits[:, 1]).max(axis=0)
+    outside = np.flatnonzero(worst > 1e-9)
+    if outside.size:
+        j = outside[0]
         raise ValueError(
             f"planned motion leaves the limits of joint {machine.joint_names[j]!r} by "
             f"{np.degrees(worst[j]):.1f} deg; limits {np.degrees(limits[j]).round(1).tolist()}"

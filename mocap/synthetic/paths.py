@@ -32,6 +32,15 @@ class SmoothNoise:
     frequency: np.ndarray
     phase: np.ndarray
 
+    def __post_init__(self) -> None:
+        k = np.shape(self.frequency)[0]
+        shape = np.shape(self.amplitude)
+        if np.ndim(self.frequency) != 1 or shape != np.shape(self.phase) or len(shape) != 2 or shape[0] != k:
+            raise ValueError(
+                f"SmoothNoise needs amplitude and phase (K, D) and frequency (K,), got "
+                f"{np.shape(self.amplitude)}, {np.shape(self.phase)}, {np.shape(self.frequency)}"
+            )
+
     @classmethod
     def random(cls, rng: np.random.Generator, sd: np.ndarray, band_hz: tuple[float, float], k: int = 6) -> SmoothNoise:
         """Noise of standard deviation `sd` (D,) per channel with frequencies in `band_hz`."""

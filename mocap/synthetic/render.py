@@ -83,7 +83,8 @@ class CameraRenderer:
         camera = self.field.camera
         reach = session.reach
         elevation, azimuth = np.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * np.pi)
-        self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+        self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                             np.sin(elevation)])
         self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
         self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
         self.colours = PALETTE[np.arange(len(session.boxes)) % len(PALETTE)]
