@@ -5,7 +5,7 @@ import pytest
 
 from mocap.geometry import rotvec_to_matrix
 from mocap.io.machine_toml import load_machine
-from mocap.reconstruct import kinfit
+from mocap.reconstruct import kinfit, kinmodel
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.simulate import observe, random_joints, ring_of_cameras
 
@@ -31,7 +31,7 @@ def test_jacobian_matches_finite_differences(machine):
     cameras, joints, pixels = scene(machine, 3, 4, seed=1)
     problem = kinfit._Problem(machine, tuple(cameras), FitOptions(base_motion=True))
     rotation = rotvec_to_matrix(rng.normal(0, 0.05, (4, 3)))
-    state = kinfit._State(joints, rotation, rng.normal(0, 0.3, (4, 3)), np.zeros(4))
+    state = kinmodel.FrameState(joints, rotation, rng.normal(0, 0.3, (4, 3)), np.zeros(4))
     obs = np.moveaxis(pixels, 1, 0)
     _, jac = problem.evaluate(obs, state)
     numeric = np.zeros_like(jac)
@@ -84,7 +84,7 @@ def test_base_motion(machine):
     cameras = ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
     joints = random_joints(machine, 100, rng)
     base = np.c_[rng.normal(0, 0.02, (100, 3)), rng.normal(0, 0.2, (100, 3))]
-    world = machine.markers(joints, kinfit.base_matrices(base))
+    world = machine.markers(joints, kinmodel.base_matrices(base))
     pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (3, 100, len(machine.marker_names), 2))
     fixed = fit_joints(machine, cameras, pixels, initial=joints)
     moving = fit_joints(machine, cameras, pixels, initial=joints, options=FitOptions(base_motion=True))

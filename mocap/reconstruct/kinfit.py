@@ -10,9 +10,9 @@ by one matrix product), and frames that end far worse than a neighbour are resta
 that neighbour's solution. Optionally the base (undercarriage) moves too, by a 6-DoF
 ``world_from_base`` per frame (bouncing, or a machine that moved since calibration).
 
-Parameters of a frame, in this order: joint values (J,) rad / m, then with base motion a
-rotation increment (3,) rad applied on the left of ``world_from_base`` and its
-translation (3,) m. Shapes: C cameras, F frames, M markers, J joints, P parameters.
+Parameters of a frame (mocap.reconstruct.kinmodel): joint values (J,) rad / m, then with
+base motion a rotation increment (3,) and a translation (3,) of ``world_from_base``.
+Shapes: C cameras, F frames, M markers, J joints, P parameters.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera, project_cam
+from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
-from mocap.machine import REVOLUTE, Machine
+from mocap.machine import Machine
+from mocap.reconstruct.kinmodel import LOSSES, KinematicModel, FrameState, base_matrices
 
 log = logging.getLogger(__name__)
 
-LOSSES = ("huber", "cauchy", "linear")
 _BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
 _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
 _CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
@@ -116,14 +116,6 @@ class JointFit:
         return np.sqrt(np.diagonal(self.covariance, axis1=1, axis2=2)[:, :j])
 
 
-def base_matrices(base: np.ndarray) -> np.ndarray:
-    """(F, 6) rotation vector and translation -> (F, 4, 4) ``world_from_base``."""
-    out = np.tile(np.eye(4), (len(base), 1, 1))
-    out[:, :3, :3] = rotvec_to_matrix(base[:, :3])
-    out[:, :3, 3] = base[:, 3:]
-    return out
-
-
 def fit_joints(
     machine: Machine,
     cameras: list[Camera],
@@ -183,142 +175,17 @@ def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
     return values.copy()
 
 
-@dataclass
-class _State:
-    """Mutable per-frame solver state (private): joints (F, J), base rotation (F, 3, 3) and
-    translation (F, 3) or None, robust cost (F,); after a solve also the weighted normal
-    matrix (F, P, P), residuals (F, N) and robust weights (F, N) at the solution."""
-
-    joints: np.ndarray
-    rotation: np.ndarray | None
-    translation: np.ndarray | None
-    cost: np.ndarray
-    hessian: np.ndarray | None = None
-    residual: np.ndarray | None = None
-    weight: np.ndarray | None = None
-
-    _FIELDS = ("joints", "rotation", "translation", "cost", "hessian", "residual", "weight")
-
-    @staticmethod
-    def concatenate(parts: list[_State]) -> _State:
-        return _State(*(
-            None if getattr(parts[0], f) is None else np.concatenate([getattr(p, f) for p in parts])
-            for f in _State._FIELDS
-        ))
-
-    def take(self, index: np.ndarray) -> _State:
-        return _State(*(None if getattr(self, f) is None else getattr(self, f)[index] for f in self._FIELDS))
-
-    def put(self, index: np.ndarray, other: _State, mask: np.ndarray) -> None:
-        target = index[mask]
-        for f in self._FIELDS:
-            if getattr(self, f) is not None:
-                getattr(self, f)[target] = getattr(other, f)[mask]
-
-
-class _Problem:
-    """The model, cameras and options of one fit; evaluates residuals and Jacobians."""
+class _Problem(KinematicModel):
+    """The model, cameras and options of one fit, and the batched solver."""
 
     def __init__(self, machine: Machine, cameras: tuple[Camera, ...], options: FitOptions):
-        self.machine = machine
-        self.cameras = cameras
+        super().__init__(machine, cameras, options.base_motion, options.loss, options.scale_px)
         self.options = options
-        limits = machine.joint_limits.astype(float)
-        self.wrap = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
-        self.lower, self.upper = limits[:, 0], limits[:, 1]
-        self.n_params = machine.n_joints + (6 if options.base_motion else 0)
-        self.moves = joint_moves_markers(machine)
-        self.link_groups = [
-            (link, np.nonzero(machine.marker_links == link)[0], machine.marker_positions[machine.marker_links == link])
-            for link in np.unique(machine.marker_links)
-        ]
 
-    # --- model ---------------------------------------------------------------------------
-    def world_markers(self, state: _State):
-        """Markers in the world (F, M, 3) and their derivatives by the parameters (F, M, 3, P).
-
-        Revolute joint j moving marker m: d p / d q_j = a_j x (p - o_j) with a_j the joint's
-        axis and o_j its origin in the world; prismatic: a_j. Base rotation increment w
-        (on the left): d p / d w = -[p - t]x; base translation: the identity.
-        """
-        machine = self.machine
-        poses = machine.link_poses(state.joints)
-        n_frames = len(poses)
-        if state.rotation is not None:
-            world_from_base = np.tile(np.eye(4), (n_frames, 1, 1))
-            world_from_base[:, :3, :3] = state.rotation
-            world_from_base[:, :3, 3] = state.translation
-            poses = world_from_base[:, None] @ poses
-        markers = np.empty((n_frames, len(machine.marker_names), 3))
-        for link, index, local in self.link_groups:
-            markers[:, index] = local @ np.swapaxes(poses[:, link, :3, :3], 1, 2) + poses[:, link, None, :3, 3]
-        d_world = np.zeros(markers.shape + (self.n_params,))
-        for j, (link, joint) in enumerate(zip(machine.joint_links, machine.joints)):
-            axis = (poses[:, link, :3, :3] @ joint.axis)[:, None, :]  # (F, 1, 3)
-            moved = self.moves[j]
-            if joint.type == REVOLUTE:
-                lever = markers[:, moved] - poses[:, link, None, :3, 3]
-                d_world[..., j][:, moved] = _cross(axis, lever)
-            else:
-                d_world[..., j][:, moved] = axis
-        if state.rotation is not None:
-            n_joints = machine.n_joints
-            lever = markers - state.translation[:, None]
-            for i in range(3):
-                unit = np.zeros(3)
-                unit[i] = 1.0
-                d_world[..., n_joints + i] = _cross(unit, lever)
-                d_world[..., i, n_joints + 3 + i] = 1.0
-        return markers, d_world
-
-    def evaluate(self, pixels: np.ndarray, state: _State):
-        """For pixels (F, C, M, 2): residuals (F, N) with N = C * M * 2 (zero where
-        unobserved) and Jacobians (F, N, P) of the predicted pixels by the parameters."""
-        markers, d_world = self.world_markers(state)
-        n_frames, n_markers = markers.shape[:2]
-        residual = np.empty((n_frames, len(self.cameras), n_markers, 2))
-        jac = np.empty((n_frames, len(self.cameras), n_markers, 2, self.n_params))
-        for c, camera in enumerate(self.cameras):
-            rot = camera.cam_from_world.rotation
-            points_cam = markers @ rot.T + camera.cam_from_world.translation
-            uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, with_jacobian=True)
-            seen = np.isfinite(pixels[:, c, :, 0]) & np.isfinite(uv[..., 0])
-            residual[:, c] = np.where(seen[..., None], pixels[:, c] - uv, 0.0)
-            d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * seen[..., None, None]
-            np.matmul(d_uv_world, d_world, out=jac[:, c])
-        return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
-
-    def robust(self, residual: np.ndarray):
-        """Per-observation weights and per-frame cost for residuals (F, N)."""
-        r2 = (residual.reshape(residual.shape[0], -1, 2) ** 2).sum(-1)  # (F, C*M)
-        s = self.options.scale_px
-        if self.options.loss == "huber":
-            e = np.sqrt(r2)
-            weight = np.where(e <= s, 1.0, s / np.maximum(e, 1e-300))
-            rho = np.where(e <= s, r2, 2 * s * e - s * s)
-        elif self.options.loss == "cauchy":
-            weight = 1.0 / (1.0 + r2 / (s * s))
-            rho = s * s * np.log1p(r2 / (s * s))
-        else:
-            weight, rho = np.ones_like(r2), r2
-        return np.repeat(weight, 2, axis=1), rho.sum(1)
-
-    def step(self, state: _State, delta: np.ndarray) -> _State:
-        n_joints = self.machine.n_joints
-        joints = state.joints + delta[:, :n_joints]
-        span = self.upper - self.lower
-        wrapped = self.lower + np.mod(joints - self.lower, np.where(self.wrap, span, 1.0))
-        joints = np.where(self.wrap, wrapped, np.clip(joints, self.lower, self.upper))
-        if state.rotation is None:
-            return _State(joints, None, None, state.cost)
-        rotation = rotvec_to_matrix(delta[:, n_joints : n_joints + 3]) @ state.rotation
-        return _State(joints, rotation, state.translation + delta[:, n_joints + 3 :], state.cost)
-
-    # --- solver --------------------------------------------------------------------------
-    def solve_all(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> _State:
+    def solve_all(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> FrameState:
         """Fit every frame of pixels (C, F, M, 2) in chunks."""
         chunk = self.options.chunk
-        return _State.concatenate([
+        return FrameState.concatenate([
             self.solve(
                 pixels[:, s : s + chunk],
                 None if start is None else start[s : s + chunk],
@@ -342,7 +209,7 @@ class _Problem:
         frames = np.arange(n_frames)
         return np.stack([np.interp(frames, keys[good], joints[:, j]) for j in range(joints.shape[1])], 1)
 
-    def restart_from_grid(self, pixels: np.ndarray, state: _State, start_base: np.ndarray | None) -> None:
+    def restart_from_grid(self, pixels: np.ndarray, state: FrameState, start_base: np.ndarray | None) -> None:
         """Frames that ended far worse than is typical are fitted again from the grid; the
         better solution is kept."""
         n_obs = np.isfinite(pixels[..., 0]).sum((0, 2))
@@ -354,7 +221,7 @@ class _Problem:
         fitted = self.solve_all(pixels[:, bad], None, None if start_base is None else start_base[bad])
         state.put(bad, fitted, fitted.cost < state.cost[bad])
 
-    def solve(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> _State:
+    def solve(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> FrameState:
         """Fit one chunk of frames; pixels (C, F, M, 2)."""
         pixels = np.moveaxis(pixels, 1, 0)  # (F, C, M, 2)
         joints = self.grid_start(pixels) if start is None else self.machine.clip_to_limits(start)
@@ -362,9 +229,9 @@ class _Problem:
         if start_base is not None:
             rotation = rotvec_to_matrix(start_base[:, :3])
             translation = start_base[:, 3:].copy()
-        return self.levenberg_marquardt(pixels, _State(joints, rotation, translation, np.zeros(len(joints))))
+        return self.levenberg_marquardt(pixels, FrameState(joints, rotation, translation, np.zeros(len(joints))))
 
-    def levenberg_marquardt(self, pixels: np.ndarray, state: _State) -> _State:
+    def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState) -> FrameState:
         """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged."""
         residual, jac = self.evaluate(pixels, state)
         weight, cost = self.robust(residual)
@@ -383,7 +250,7 @@ class _Problem:
             diag = np.diagonal(hessian, axis1=1, axis2=2)
             lhs = hessian + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
             delta = np.linalg.solve(lhs, gradient[..., None])[..., 0]
-            current = _State(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
+            current = FrameState(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
             trial = self.step(current, delta)
             trial_residual, trial_jac = self.evaluate(pixels[a], trial)
             trial_weight, trial_cost = self.robust(trial_residual)
@@ -401,7 +268,7 @@ class _Problem:
             if not len(active):
                 break
         hessian = np.swapaxes(jac * weight[..., None], 1, 2) @ jac
-        return _State(joints, rotation, translation, cost, hessian, residual, weight)
+        return FrameState(joints, rotation, translation, cost, hessian, residual, weight)
 
     def grid_start(self, pixels: np.ndarray) -> np.ndarray:
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
@@ -431,7 +298,7 @@ class _Problem:
                 axes.append(lower[j] + span[j] * (np.arange(levels[j]) + 0.5) / levels[j])
         return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, n_joints)
 
-    def repair(self, pixels: np.ndarray, state: _State) -> bool:
+    def repair(self, pixels: np.ndarray, state: FrameState) -> bool:
         """Restart frames whose cost is far above a neighbour's from that neighbour's
         solution; keep the better. Returns whether any frame improved."""
         n_obs = np.isfinite(pixels).all(-1).sum((0, 2))
@@ -451,7 +318,7 @@ class _Problem:
         return improved
 
     # --- result --------------------------------------------------------------------------
-    def result(self, pixels: np.ndarray, state: _State) -> JointFit:
+    def result(self, pixels: np.ndarray, state: FrameState) -> JointFit:
         n_cams, n_frames, n_markers, _ = pixels.shape
         hessian, residual, weight = state.hessian, state.residual, state.weight
         seen = np.isfinite(pixels).all(-1)  # (C, F, M)
@@ -487,28 +354,3 @@ class _Problem:
             noise_px=noise,
             valid=valid,
         )
-
-
-def joint_moves_markers(machine: Machine, links: np.ndarray | None = None) -> np.ndarray:
-    """(J, N) bool: joint j moves the point fixed in link ``links[n]`` (the markers' links
-    by default)."""
-    links = machine.marker_links if links is None else np.asarray(links, dtype=int)
-    joint_of_link = {link: j for j, link in enumerate(machine.joint_links)}
-    moves = np.zeros((machine.n_joints, len(links)), dtype=bool)
-    for n, link in enumerate(links):
-        for ancestor in machine.ancestors(int(link)):
-            if ancestor in joint_of_link:
-                moves[joint_of_link[ancestor], n] = True
-    return moves
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for broadcastable (*, 3) arrays (faster than np.cross on small last axes)."""
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )

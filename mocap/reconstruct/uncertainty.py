@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mocap.machine import Machine
-from mocap.reconstruct.kinfit import FitOptions, _Problem, _State, base_matrices
+from mocap.reconstruct.kinmodel import KinematicModel, FrameState, base_matrices
 
 _ANGLE_STEP = 1e-6
 
@@ -103,9 +103,9 @@ def _point_jacobian(points_machine: Machine, values: np.ndarray, base_motion: bo
         n = len(values)
         return np.zeros((n, 0, 3)), np.zeros((n, 0, 3, values.shape[1]))
     n_joints = points_machine.n_joints
-    problem = _Problem(points_machine, (), FitOptions(base_motion=base_motion))
+    problem = KinematicModel(points_machine, (), base_motion)
     rotation = translation = None
     if base_motion:
         pose = base_matrices(values[:, n_joints:])
         rotation, translation = pose[:, :3, :3], pose[:, :3, 3]
-    return problem.world_markers(_State(values[:, :n_joints], rotation, translation, np.zeros(len(values))))
+    return problem.world_markers(FrameState(values[:, :n_joints], rotation, translation, np.zeros(len(values))))

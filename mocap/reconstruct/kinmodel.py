@@ -1,0 +1,189 @@
+"""The kinematic model seen by cameras, as the fit and the uncertainty propagation use it:
+marker positions and their analytic derivatives by the per-frame parameters, projected
+residuals and Jacobians, robust weights, and limit-respecting parameter steps.
+
+Parameters of a frame, in this order: joint values (J,) rad / m, then with base motion a
+rotation increment (3,) rad applied on the left of ``world_from_base`` and its
+translation (3,) m. Shapes: C cameras, F frames, M markers, J joints, P parameters,
+N = C * M * 2 residual rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.camera import Camera, project_cam
+from mocap.geometry import rotvec_to_matrix
+from mocap.machine import REVOLUTE, Machine
+
+LOSSES = ("huber", "cauchy", "linear")
+
+
+def base_matrices(base: np.ndarray) -> np.ndarray:
+    """(F, 6) rotation vector and translation -> (F, 4, 4) ``world_from_base``."""
+    out = np.tile(np.eye(4), (len(base), 1, 1))
+    out[:, :3, :3] = rotvec_to_matrix(base[:, :3])
+    out[:, :3, 3] = base[:, 3:]
+    return out
+
+
+@dataclass
+class FrameState:
+    """Mutable per-frame solver state: joints (F, J), base rotation (F, 3, 3) and
+    translation (F, 3) or None, robust cost (F,); after a solve also the weighted normal
+    matrix (F, P, P), residuals (F, N) and robust weights (F, N) at the solution."""
+
+    joints: np.ndarray
+    rotation: np.ndarray | None
+    translation: np.ndarray | None
+    cost: np.ndarray
+    hessian: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    weight: np.ndarray | None = None
+
+    _FIELDS = ("joints", "rotation", "translation", "cost", "hessian", "residual", "weight")
+
+    @staticmethod
+    def concatenate(parts: list[FrameState]) -> FrameState:
+        return FrameState(*(
+            None if getattr(parts[0], f) is None else np.concatenate([getattr(p, f) for p in parts])
+            for f in FrameState._FIELDS
+        ))
+
+    def take(self, index: np.ndarray) -> FrameState:
+        return FrameState(*(None if getattr(self, f) is None else getattr(self, f)[index] for f in self._FIELDS))
+
+    def put(self, index: np.ndarray, other: FrameState, mask: np.ndarray) -> None:
+        target = index[mask]
+        for f in self._FIELDS:
+            if getattr(self, f) is not None:
+                getattr(self, f)[target] = getattr(other, f)[mask]
+
+
+class KinematicModel:
+    """A machine seen by cameras: residuals and Jacobians of marker pixels for per-frame
+    parameters, robust weights, and parameter steps that respect the joint limits."""
+
+    def __init__(self, machine: Machine, cameras: tuple[Camera, ...], base_motion: bool = False,
+                 loss: str = "huber", scale_px: float = 2.0):
+        self.machine = machine
+        self.cameras = cameras
+        self.loss, self.scale_px = loss, scale_px
+        limits = machine.joint_limits.astype(float)
+        self.wrap = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
+        self.lower, self.upper = limits[:, 0], limits[:, 1]
+        self.n_params = machine.n_joints + (6 if base_motion else 0)
+        self.moves = joint_moves_markers(machine)
+        self.link_groups = [
+            (link, np.nonzero(machine.marker_links == link)[0], machine.marker_positions[machine.marker_links == link])
+            for link in np.unique(machine.marker_links)
+        ]
+
+    def world_markers(self, state: FrameState):
+        """Markers in the world (F, M, 3) and their derivatives by the parameters (F, M, 3, P).
+
+        Revolute joint j moving marker m: d p / d q_j = a_j x (p - o_j) with a_j the joint's
+        axis and o_j its origin in the world; prismatic: a_j. Base rotation increment w
+        (on the left): d p / d w = -[p - t]x; base translation: the identity.
+        """
+        machine = self.machine
+        poses = machine.link_poses(state.joints)
+        n_frames = len(poses)
+        if state.rotation is not None:
+            world_from_base = np.tile(np.eye(4), (n_frames, 1, 1))
+            world_from_base[:, :3, :3] = state.rotation
+            world_from_base[:, :3, 3] = state.translation
+            poses = world_from_base[:, None] @ poses
+        markers = np.empty((n_frames, len(machine.marker_names), 3))
+        for link, index, local in self.link_groups:
+            markers[:, index] = local @ np.swapaxes(poses[:, link, :3, :3], 1, 2) + poses[:, link, None, :3, 3]
+        d_world = np.zeros(markers.shape + (self.n_params,))
+        for j, (link, joint) in enumerate(zip(machine.joint_links, machine.joints)):
+            axis = (poses[:, link, :3, :3] @ joint.axis)[:, None, :]  # (F, 1, 3)
+            moved = self.moves[j]
+            if joint.type == REVOLUTE:
+                lever = markers[:, moved] - poses[:, link, None, :3, 3]
+                d_world[..., j][:, moved] = _cross(axis, lever)
+            else:
+                d_world[..., j][:, moved] = axis
+        if state.rotation is not None:
+            n_joints = machine.n_joints
+            lever = markers - state.translation[:, None]
+            for i in range(3):
+                unit = np.zeros(3)
+                unit[i] = 1.0
+                d_world[..., n_joints + i] = _cross(unit, lever)
+                d_world[..., i, n_joints + 3 + i] = 1.0
+        return markers, d_world
+
+    def evaluate(self, pixels: np.ndarray, state: FrameState):
+        """For pixels (F, C, M, 2): residuals (F, N) with N = C * M * 2 (zero where
+        unobserved) and Jacobians (F, N, P) of the predicted pixels by the parameters."""
+        markers, d_world = self.world_markers(state)
+        n_frames, n_markers = markers.shape[:2]
+        residual = np.empty((n_frames, len(self.cameras), n_markers, 2))
+        jac = np.empty((n_frames, len(self.cameras), n_markers, 2, self.n_params))
+        for c, camera in enumerate(self.cameras):
+            rot = camera.cam_from_world.rotation
+            points_cam = markers @ rot.T + camera.cam_from_world.translation
+            uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, with_jacobian=True)
+            seen = np.isfinite(pixels[:, c, :, 0]) & np.isfinite(uv[..., 0])
+            residual[:, c] = np.where(seen[..., None], pixels[:, c] - uv, 0.0)
+            d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * seen[..., None, None]
+            np.matmul(d_uv_world, d_world, out=jac[:, c])
+        return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
+
+    def robust(self, residual: np.ndarray):
+        """Per-observation weights and per-frame cost for residuals (F, N)."""
+        r2 = (residual.reshape(residual.shape[0], -1, 2) ** 2).sum(-1)  # (F, C*M)
+        s = self.scale_px
+        if self.loss == "huber":
+            e = np.sqrt(r2)
+            weight = np.where(e <= s, 1.0, s / np.maximum(e, 1e-300))
+            rho = np.where(e <= s, r2, 2 * s * e - s * s)
+        elif self.loss == "cauchy":
+            weight = 1.0 / (1.0 + r2 / (s * s))
+            rho = s * s * np.log1p(r2 / (s * s))
+        else:
+            weight, rho = np.ones_like(r2), r2
+        return np.repeat(weight, 2, axis=1), rho.sum(1)
+
+    def step(self, state: FrameState, delta: np.ndarray) -> FrameState:
+        n_joints = self.machine.n_joints
+        joints = state.joints + delta[:, :n_joints]
+        span = self.upper - self.lower
+        wrapped = self.lower + np.mod(joints - self.lower, np.where(self.wrap, span, 1.0))
+        joints = np.where(self.wrap, wrapped, np.clip(joints, self.lower, self.upper))
+        if state.rotation is None:
+            return FrameState(joints, None, None, state.cost)
+        rotation = rotvec_to_matrix(delta[:, n_joints : n_joints + 3]) @ state.rotation
+        return FrameState(joints, rotation, state.translation + delta[:, n_joints + 3 :], state.cost)
+
+    # --- solver --------------------------------------------------------------------------
+
+
+def joint_moves_markers(machine: Machine, links: np.ndarray | None = None) -> np.ndarray:
+    """(J, N) bool: joint j moves the point fixed in link ``links[n]`` (the markers' links
+    by default)."""
+    links = machine.marker_links if links is None else np.asarray(links, dtype=int)
+    joint_of_link = {link: j for j, link in enumerate(machine.joint_links)}
+    moves = np.zeros((machine.n_joints, len(links)), dtype=bool)
+    for n, link in enumerate(links):
+        for ancestor in machine.ancestors(int(link)):
+            if ancestor in joint_of_link:
+                moves[joint_of_link[ancestor], n] = True
+    return moves
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for broadcastable (*, 3) arrays (faster than np.cross on small last axes)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
