@@ -19,7 +19,7 @@ from mocap.cli import main
 from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.motion_csv import Motion, save_motion
+from mocap.io.motion_csv import Motion, load_motion, save_motion
 from mocap.io.points_csv import Points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
@@ -506,3 +506,24 @@ def test_cli_wrong_machine_and_missing_session_in_a_subprocess(session_dir, tmp_
         done = subprocess.run([sys.executable, "-m", "mocap.cli", *argv], capture_output=True, text=True, timeout=60)
         assert done.returncode == 2, done.stderr
         assert message in done.stderr and done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+
+
+def test_cli_replays_a_synthetic_session(tmp_path, capsys):
+    """`mocap synth` (truth only) then `mocap view` on its truth: the trail follows the
+    synthetic cycles file and the base link the truth's bouncing base."""
+    root = tmp_path / "synthetic"
+    synth = ["synth", "--machine", "bobcat_225", "--cycles", "1", "--seed", "3", "--out", str(root), "--no-video"]
+    assert main(synth) == 0
+    truth = root / "truth"
+    argv = ["view", str(root), "--calibration", str(truth / "cameras.toml"), "--motion", str(truth / "motion.csv")]
+    assert main(argv + ["--cycles", str(truth / "cycles.csv")]) == 0
+    assert "1 trail(s)" in capsys.readouterr().out
+    rec = Recording(root / "results" / "session.rrd")
+    cycles = load_cycles(truth / "cycles.csv")
+    frames, _ = rec.series(f"/world/trail/{cycles.name[0]}", "LineStrips3D:strips")
+    np.testing.assert_array_equal(frames, np.arange(cycles.start[0] + 1, cycles.end[0] + 1))
+    motion = load_motion(truth / "motion.csv", load_machine("bobcat_225"))
+    _, translation = rec.series("/world/machine/undercarriage", "Transform3D:translation")
+    base_z = motion.extra["base_z"]
+    assert np.ptp(base_z) > 0.001  # the base bounces ...
+    np.testing.assert_allclose(np.array(translation)[:, 0, 2], base_z, atol=1e-6)  # ... and the replay follows
