@@ -25,7 +25,7 @@ import numpy as np
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine
-from mocap.reconstruct.kinmodel import LOSSES, KinematicModel, FrameState, base_matrices
+from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices
 
 log = logging.getLogger(__name__)
 

@@ -80,13 +80,14 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
         suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > options.max_error_px))[0]
         if not len(suspect):
             break
-        drop = _leave_one_out(residual[:, suspect], jac[suspect], used[:, suspect])
+        drop, moved = _leave_one_out(xyz[suspect], residual[:, suspect], jac[suspect], used[:, suspect])
         index = suspect[drop >= 0]
         if not len(index):
             break
         used[drop[drop >= 0], index] = False
         xyz[index], residual[:, index], jac[index] = _solve(
-            cameras, flat[:, index], normalised[:, index], used[:, index], options.iterations
+            cameras, flat[:, index], normalised[:, index], used[:, index], options.iterations,
+            start=moved[drop >= 0],
         )
     views = used.sum(0)
     enough = views >= options.min_views
@@ -112,11 +113,11 @@ def undistort(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
     return out
 
 
-def _solve(cameras, pixels, normalised, used, iterations):
-    """DLT then Gauss-Newton for points (N,) with views `used` (C, N) -> xyz (N, 3),
-    residuals (C, N, 2) observed minus projected and their Jacobians (N, 2C, 3) by xyz
-    (zero where unused)."""
-    xyz = _dlt(cameras, normalised, used)
+def _solve(cameras, pixels, normalised, used, iterations, start=None):
+    """DLT (or `start` (N, 3)) then Gauss-Newton for points (N,) with views `used` (C, N)
+    -> xyz (N, 3), residuals (C, N, 2) observed minus projected and their Jacobians
+    (N, 2C, 3) by xyz (zero where unused)."""
+    xyz = _dlt(cameras, normalised, used) if start is None else start
     eye = _EPS * np.eye(3)
     for _ in range(iterations):
         residual, jac = _residuals(cameras, pixels, used, xyz)  # (N, 2C), (N, 2C, 3)
@@ -153,14 +154,15 @@ def _residuals(cameras, pixels, used, xyz, with_jacobian=True):
         ok = used[c] & np.isfinite(uv[:, 0])
         residual[:, c] = np.where(ok[:, None], pixels[c] - uv, 0.0)
         if with_jacobian:
-            np.matmul(np.where(ok[:, None, None], d_uv, 0.0), rot, out=jac[:, c])
+            jac[:, c] = (d_uv.reshape(-1, 3) @ rot).reshape(n, 2, 3) * ok[:, None, None]
     residual = residual.reshape(n, -1)
     return residual, None if jac is None else jac.reshape(n, -1, 3)
 
 
-def _leave_one_out(residual: np.ndarray, jac: np.ndarray, used: np.ndarray) -> np.ndarray:
+def _leave_one_out(xyz: np.ndarray, residual: np.ndarray, jac: np.ndarray, used: np.ndarray):
     """For suspect points (N,): the view (N,) whose removal leaves the smallest RMS error of
-    the remaining views, or -1 where no view can be removed.
+    the remaining views, or -1 where no view can be removed, and the points moved by the
+    step that removal implies (N, 3), a start for re-triangulating without the view.
 
     Each removal is ranked by one Gauss-Newton step from the all-view solution without that
     view, and the remaining residuals predicted linearly (residual (C, N, 2) and jac
@@ -181,4 +183,5 @@ def _leave_one_out(residual: np.ndarray, jac: np.ndarray, used: np.ndarray) -> n
     views = keep.sum(-1)
     rms = np.where(used.T & (views >= 2), np.sqrt(squared / np.maximum(views, 1)), np.inf)
     best = np.argmin(rms, axis=1)
-    return np.where(np.isfinite(rms[np.arange(n), best]), best, -1)
+    moved = xyz + step[np.arange(n), best]
+    return np.where(np.isfinite(rms[np.arange(n), best]), best, -1), moved
