@@ -494,6 +494,24 @@ def test_cli_bad_input_is_one_line_and_exit_2(session_dir, tmp_path, capsys, ext
     assert not (tmp_path / "o.rrd").exists()
 
 
+@pytest.mark.parametrize(
+    "extras, message",
+    [
+        ({"fps": 0.0}, "camera cam2: fps must be a positive number, got 0.0"),
+        ({"fps": "thirty"}, "camera cam2: fps must be a positive number, got 'thirty'"),
+        ({"fps": 30.0, "time_offset": "late"}, "camera cam2: time_offset must be a number of seconds"),
+    ],
+)
+def test_cli_bad_camera_clock_is_one_line_and_exit_2(world, session_dir, tmp_path, capsys, extras, message):
+    calibration = tmp_path / "cameras.toml"
+    save_calibration(Calibration(world.calibration.cameras, ({}, extras, {}), world.calibration.metadata), calibration)
+    argv = ["view", str(session_dir), "--calibration", str(calibration), "--save", str(tmp_path / "o.rrd")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(calibration) in err and err.count("\n") == 1
+    assert not (tmp_path / "o.rrd").exists()
+
+
 def test_cli_wrong_machine_and_missing_session_in_a_subprocess(session_dir, tmp_path):
     cases = [
         (["view", "--machine", "hitachi_ex3500", "--calibration", str(session_dir / "calibration" / "cameras.toml"),

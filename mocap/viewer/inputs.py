@@ -109,7 +109,7 @@ def load_replay(files: ReplayFiles) -> Replay:
         machine=machine,
         calibration=calibration,
         motion=motion,
-        fps=camera_fps(calibration, files.fps),
+        fps=camera_fps(calibration, files.fps, files.calibration),
         points=None if files.points is None else load_points(files.points),
         tracks=load_tracks(list(files.tracks)) if files.tracks else None,
         videos=dict(files.videos),
@@ -128,18 +128,27 @@ def check_machine(calibration, machine, files: ReplayFiles) -> None:
         )
 
 
-def camera_fps(calibration, known: dict) -> np.ndarray:
-    """(C,) frame rates: the calibration's `fps`, else the session's, else 30 (logged)."""
+def camera_fps(calibration, known: dict, path: Path | None = None) -> np.ndarray:
+    """(C,) frame rates: the calibration's `fps`, else the session's, else 30 (logged).
+    Each camera's `time_offset`, if given, must be a number too."""
     fps = []
     for camera, extra in zip(calibration.cameras, calibration.extras):
+        where = f"camera {camera.name}"
         value = extra.get("fps", known.get(camera.name))
         if value is None:
             log.warning("camera %s: frame rate unknown, assuming %g fps", camera.name, DEFAULT_FPS)
             value = DEFAULT_FPS
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise InputError(f"camera {camera.name}: fps must be a positive number, got {value!r}")
+        if not _number(value) or not value > 0:
+            raise InputError(f"fps must be a positive number, got {value!r}", path=path, where=where)
+        offset = extra.get("time_offset", 0.0)
+        if not _number(offset) or not np.isfinite(offset):
+            raise InputError(f"time_offset must be a number of seconds, got {offset!r}", path=path, where=where)
         fps.append(float(value))
     return np.array(fps)
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def with_session(files: ReplayFiles, session_dir: str | Path | None) -> ReplayFiles:
