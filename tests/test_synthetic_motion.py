@@ -279,3 +279,15 @@ def test_small_objects_check_their_shapes(session):
         SmoothNoise(np.zeros((3, 2)), np.zeros(4), np.zeros((3, 2)))
     with pytest.raises(ValueError, match="needs fps > 0 and frames >= 1"):
         replace(session.cameras[0], fps=0.0)
+
+
+def test_cli_copies_a_model_from_outside_into_the_session(tmp_path):
+    from mocap.io.machine_toml import MACHINES_DIR
+    from mocap.session import Session
+
+    model = tmp_path / "my_excavator.toml"
+    model.write_text((MACHINES_DIR / "bobcat_225.toml").read_text())
+    out = tmp_path / "s"
+    assert main(["synth", "--machine", str(model), "--cameras", "1", "--cycles", "1", "--out", str(out), "--no-video"]) == 0
+    assert load_session_config(out / "session.toml").machine == "machine.toml"
+    assert Session.open(out).machine().joint_names == load_machine("bobcat_225").joint_names

@@ -55,7 +55,8 @@ class PlanarChain:
         """The chain of `machine`; InputError if it has no boom-arm-bucket linkage."""
         if machine.bucket_angle is None or "bucket_tip" not in machine.point_names:
             raise InputError(
-                "synthetic digs need a [bucket_angle] and a 'bucket_tip' point in the model",
+                "synthetic digs need a [bucket_angle] and a 'bucket_tip' point in the model; "
+                "use a shovel or excavator model such as hitachi_ex3500",
                 path=machine.name,
             )
         house = machine.house_link

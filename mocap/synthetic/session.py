@@ -10,7 +10,6 @@ marker positions at reference frames), cycles.csv and scene.toml (pile, truck, o
 from __future__ import annotations
 
 import csv
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -192,7 +191,7 @@ def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path 
     truth = root / "truth"
     machine_entry = session.machine_ref
     if machine_path is not None and machine_path.resolve().parent != MACHINES_DIR.resolve():
-        shutil.copyfile(machine_path, root / "machine.toml")
+        write_text(root / "machine.toml", machine_path.read_text(encoding="utf-8"))
         machine_entry = "machine.toml"
     elif machine_path is not None:
         machine_entry = machine_path.stem
