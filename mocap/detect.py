@@ -38,7 +38,7 @@ class DetectOptions:
     threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
     min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
     max_fill: float = 1.25
-    max_ring_spread: float = 0.4  # (ring's white - ring's median) / contrast
+    max_ring_spread: float = 0.5  # (ring's white - ring's 10th percentile) / contrast
     max_elongation: float = 6.0  # major / minor semi-axis
 
     def __post_init__(self) -> None:
@@ -76,6 +76,13 @@ class Detections:
     def radius(self) -> np.ndarray:
         """(N,) geometric mean of the semi-axes."""
         return np.sqrt(self.axes[:, 0] * self.axes[:, 1])
+
+    @property
+    def shape(self) -> np.ndarray:
+        """(N, 2, 2) semi-axis matrices ``R diag(a², b²) R^T`` (``x^T S^-1 x = 1`` on the edge)."""
+        c, s = np.cos(self.angle), np.sin(self.angle)
+        rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        return rot @ (self.axes[:, :, None] ** 2 * np.swapaxes(rot, -1, -2))
 
     def select(self, mask: np.ndarray) -> Detections:
         return Detections(*(getattr(self, f)[mask] for f in _FIELDS))
@@ -238,8 +245,8 @@ def _refine_group(
     angle = np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1])
     contrast = background - foreground
     fill = mass / (np.pi * axes[:, 0] * axes[:, 1])
-    middle = _masked_quantiles(patch, ring, [0.5])[0]
-    spread = np.where(np.isfinite(middle), background - middle, np.inf) / np.maximum(contrast, 1.0)
+    darkest = _masked_quantiles(patch, ring, [0.1])[0]  # a ring cut by something darker fails
+    spread = np.where(np.isfinite(darkest), background - darkest, np.inf) / np.maximum(contrast, 1.0)
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
     return Detections(c, axes, angle, contrast, fill, score), spread
 

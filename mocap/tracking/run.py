@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.detect import Detections, detect_disks
+from mocap.detect import detect_disks
 from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
@@ -83,8 +83,7 @@ def track_frames(
             first = label_first_frame(model, gray, start, labelled, options)
             if first is None:
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks")
-            radius = _radii(first.detections, first.markers, len(names))
-            tracker = Tracker(model, first, radius, options)
+            tracker = Tracker(model, first, options)
             result = first
             log.info("frame %d: %d markers labelled, residual %.2f px", index, len(first.markers), first.rms_px)
         else:
@@ -104,12 +103,6 @@ def track_frames(
             rows.append(frame_rows(model.camera.name, index, fps, names, result))
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
-
-
-def _radii(detections: Detections, markers: np.ndarray, n_markers: int) -> np.ndarray:
-    radius = np.full(n_markers, np.median(detections.radius) if len(detections) else 5.0)
-    radius[markers] = detections.radius
-    return radius
 
 
 def _concatenate(rows: list[Tracks]) -> Tracks:

@@ -1,7 +1,8 @@
 """Model-guided labelled tracking of disk markers through one camera's video.
 
 Each frame: predict the joint values from the last two (constant velocity), project the
-markers, look for disks only in a window around each predicted marker, assign detections
+markers, refine a disk from each predicted marker with its last image ellipse (and, for markers not
+found so, look for disks in a window around the prediction), assign detections
 to markers (gated, optimal: `scipy.optimize.linear_sum_assignment` on squared distances),
 fit the joint values to the assigned pixels (robust Gauss-Newton), drop assignments the fit
 disowns, then assign again against the fitted projection with a tight gate: a marker that
@@ -21,7 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept
+from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept, unique
 from mocap.tracking.model import CameraModel
 
 log = logging.getLogger(__name__)
@@ -75,24 +76,33 @@ class TrackState:
 
     joints: np.ndarray  # (J,) at the last frame
     previous: np.ndarray  # (J,) at the frame before
-    radius: np.ndarray  # (M,) expected marker radii (px)
+    shape: np.ndarray  # (M, 2, 2) each marker's last image ellipse (semi-axis matrix, px²)
     lost: int = 0  # frames since the last fit
+
+    @property
+    def radius(self) -> np.ndarray:
+        """(M,) expected marker radii: the geometric mean of the semi-axes (px)."""
+        return np.sqrt(np.sqrt(np.maximum(np.linalg.det(self.shape), 1e-12)))
 
 
 class Tracker:
     """Labelled tracking for one camera; `step(gray)` per frame, in order."""
 
-    def __init__(self, model: CameraModel, start: FrameResult, radius: np.ndarray, options: TrackOptions | None = None):
+    def __init__(self, model: CameraModel, start: FrameResult, options: TrackOptions | None = None):
         self.model = model
         self.options = options or TrackOptions()
-        self.state = TrackState(start.joints.copy(), start.joints.copy(), np.asarray(radius, float).copy())
+        n_markers = len(model.machine.marker_names)
+        typical = np.median(start.detections.radius) if len(start.detections) else 5.0
+        shape = np.tile(np.eye(2) * typical**2, (n_markers, 1, 1))
+        shape[start.markers] = start.detections.shape
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape)
 
     def step(self, gray: np.ndarray) -> FrameResult:
         options, state, model = self.options, self.state, self.model
         velocity = state.joints - state.previous if state.lost == 0 else 0.0
         predicted = model.machine.clip_to_limits(state.joints + velocity)
         uv = model.pixels(predicted[None])[0]
-        visible = self._visible(predicted, state.radius)
+        visible = self._visible(predicted)
         motion = np.linalg.norm(uv - model.pixels(state.joints[None])[0], axis=-1)
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * state.radius) + np.nan_to_num(motion)
@@ -111,7 +121,7 @@ class Tracker:
             joints, residual = model.fit(observed[None], joints[0], iterations=2)
         joints = joints[0]
         fitted_uv = model.pixels(joints[None])[0]
-        visible = self._visible(joints, state.radius)
+        visible = self._visible(joints)
         inlier_rms = float(np.sqrt(np.nanmean(np.where(residual[0] < options.outlier_px, residual[0], np.nan) ** 2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         markers, index = assign(fitted_uv, found.xy, tight, visible, found.radius, state.radius)
@@ -122,7 +132,7 @@ class Tracker:
         joints, residual = model.fit(observed[None], joints, iterations=1)
         joints = joints[0]
         state.previous, state.joints, state.lost = state.joints, joints, 0
-        state.radius[markers] = 0.7 * state.radius[markers] + 0.3 * found.radius[index]
+        state.shape[markers] = found.shape[index]
         rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
         return FrameResult(markers, found.select(index), joints, True, rms)
 
@@ -136,7 +146,7 @@ class Tracker:
         self.state.previous = start.joints.copy()
         self.state.lost = 0
 
-    def _visible(self, joints: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    def _visible(self, joints: np.ndarray) -> np.ndarray:
         if self.options.occlusion:
             return self.model.visible(joints[None])[0]
         uv = self.model.pixels(joints[None])[0]
@@ -150,10 +160,19 @@ class Tracker:
         return FrameResult(np.zeros(0, dtype=int), Detections.empty(), predicted, False, float("nan"))
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray) -> Detections:
-        """Disks in a window around each visible predicted marker, duplicates merged."""
+        """Disks near the predicted markers: refined from each prediction with the marker's
+        last ellipse; for markers not found so, searched in a window (gate) around the
+        prediction. Duplicates merged."""
+        seeds = np.nonzero(visible)[0]
+        found = refine_and_accept(gray, uv[seeds], self.state.shape[seeds], self.options.detect)
+        near = np.linalg.norm(found.xy[None] - uv[seeds, None], axis=-1) if len(found) else np.zeros((len(seeds), 0))
+        close = 0.5 * np.maximum(self.state.radius[seeds], 2.0)
+        missing = seeds[~np.any(near < close[:, None] + self.options.tight_px, axis=1)]
+        if len(missing) == 0:
+            return found
         height, width = gray.shape
-        xys, radii = [], []
-        for m in np.nonzero(visible)[0]:
+        xys, shapes = [], []
+        for m in missing:
             r = self.state.radius[m]
             half = gate[m] + 2.6 * r + 3
             x0, y0 = int(max(uv[m, 0] - half, 0)), int(max(uv[m, 1] - half, 0))
@@ -162,15 +181,16 @@ class Tracker:
                 continue
             block = int(2 * np.ceil(3.0 * r) + 1)
             options = replace(self.options.detect, block=max(block, 7))
-            xy, radius = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+            xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
             near = np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r
             xys.append(xy[near])
-            radii.append(radius[near])
+            shapes.append(shape[near])
         if not xys:
-            return Detections.empty()
-        xy, radius = np.concatenate(xys), np.concatenate(radii)
+            return found
+        xy, shape = np.concatenate(xys), np.concatenate(shapes)
         _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
-        return refine_and_accept(gray, xy[first], radius[first], self.options.detect)
+        extra = refine_and_accept(gray, xy[first], shape[first], self.options.detect)
+        return unique(concatenate([found, extra]))
 
 
 def assign(
@@ -180,11 +200,12 @@ def assign(
     visible: np.ndarray,
     detected_radius: np.ndarray | None = None,
     expected_radius: np.ndarray | None = None,
+    size_ratio: float = 1.33,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one assignment of detections to predicted markers.
 
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
-    and (M,), pairs whose sizes differ by more than a factor of two are not allowed.
+    and (M,), pairs whose radii differ by more than `size_ratio` are not allowed.
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
     if len(detected) == 0 or not np.any(visible):
@@ -193,7 +214,7 @@ def assign(
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
     if detected_radius is not None and expected_radius is not None:
         ratio = detected_radius[None] / np.maximum(expected_radius[:, None], 1e-6)
-        allowed &= (ratio > 0.5) & (ratio < 2.0)
+        allowed &= (ratio > 1.0 / size_ratio) & (ratio < size_ratio)
     rows = np.nonzero(np.any(allowed, axis=1))[0]
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
