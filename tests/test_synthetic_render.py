@@ -206,3 +206,14 @@ def test_cli_rejects_bad_effects(tmp_path, capsys):
     argv = ["synth", "--machine", "bobcat_225", "--out", str(tmp_path / "s"), "--dust", "2"]
     assert main(argv) == 2
     assert "blur and dust 0..0.9" in capsys.readouterr().err
+
+
+def test_same_seed_same_pictures():
+    machine = load_machine("bobcat_225")
+    session = make_session(machine, "bobcat_225", n_cameras=1, n_cycles=1, seed=8, size=(256, 144))
+    frames = np.array([10, 200, 201])
+    first = [image for _, image in CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(3)).frames(frames)]
+    again = [image for _, image in CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(3)).frames(frames)]
+    other = [image for _, image in CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(4)).frames(frames)]
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert not np.array_equal(first[1], other[1])

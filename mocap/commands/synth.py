@@ -8,7 +8,7 @@ from pathlib import Path
 
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
-from mocap.synthetic import CLASSES, SessionOptions, make_session, write_truth
+from mocap.synthetic import CLASSES, SessionOptions, make_session, summary, write_truth
 from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import CODECS
 from mocap.synthetic.render import RenderOptions, render_videos
@@ -97,4 +97,6 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_video:
         paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects))
         log.info("wrote %d videos", len(paths))
+    print(summary(session))
+    print(f"wrote {args.out}" + ("" if args.no_video else f" with {args.codec} videos"))
     return 0

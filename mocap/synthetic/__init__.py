@@ -2,6 +2,6 @@
 cameras with their own clocks, visible marker pixels, and (optionally) rendered video."""
 
 from mocap.synthetic.paths import CLASSES
-from mocap.synthetic.session import SessionOptions, SyntheticSession, make_session, write_truth
+from mocap.synthetic.session import SessionOptions, SyntheticSession, make_session, summary, write_truth
 
-__all__ = ["CLASSES", "SessionOptions", "SyntheticSession", "make_session", "write_truth"]
+__all__ = ["CLASSES", "SessionOptions", "SyntheticSession", "make_session", "summary", "write_truth"]

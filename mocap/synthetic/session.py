@@ -212,6 +212,19 @@ def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path 
     write_text(truth / "scene.toml", toml_writer.dumps(scene_table(session)))
 
 
+def summary(session: SyntheticSession) -> str:
+    """A few lines saying what the session holds."""
+    cycles = ", ".join(f"{c.label} ({c.scaling}, redirection {c.redirection})" for c in session.plan.cycles)
+    lines = [f"{session.machine_ref}: {len(session.plan.cycles)} cycles in {session.plan.duration:.1f} s: {cycles}"]
+    for camera in session.cameras:
+        rows = session.tracks.of_camera(camera.name)
+        lines.append(
+            f"  {camera.name}: {camera.fps:g} fps, offset {camera.time_offset:+.3f} s, {camera.frames} frames, "
+            f"{np.linalg.norm(camera.camera.center[:2]):.0f} m away, {len(rows) / camera.frames:.1f} markers seen a frame"
+        )
+    return "\n".join(lines)
+
+
 CYCLE_COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
                  "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
 
