@@ -7,8 +7,10 @@ solved with scipy.optimize.least_squares (trust region, robust loss with its sca
 pixels) and a Jacobian sparsity pattern: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
 ``tolerance × max(|position|, 0.5 m)`` per coordinate, expressed in pixel units through
-the pixel noise; the base link's markers stay as measured (they define the world frame,
-which the cameras would otherwise share with them as a free gauge), and the named points (bucket tip), which no camera sees, stay where the
+the pixel noise. The priors also fix the gauge: a rigid motion of the base's markers
+together with the cameras, or a turn of a link's markers about its joint together with
+that joint's values, leaves the pixels unchanged and is resolved towards the measured
+positions (so a link's mean angular marker error is not recoverable). The named points (bucket tip), which no camera sees, stay where the
 model puts them relative to their links.
 
 Camera parameters: a rotation increment (3,) on the left of ``cam_from_world``, a
@@ -119,7 +121,6 @@ class _Bundle:
         self.n_camera_params = 7 if options.fit_focal else 6
         self.prior_sd = options.tolerance * np.maximum(np.linalg.norm(machine.marker_positions, axis=1), 0.5)
         self.noise_px = noise_px
-        self.movable = machine.marker_links != 0  # the base's markers define the world frame
 
     def unpack(self, x: np.ndarray):
         n_cams, n_frames, n_markers = self.seen.shape
@@ -129,7 +130,7 @@ class _Bundle:
         joints = x[k : k + n_frames * n_joints].reshape(n_frames, n_joints)
         machine = self.machine
         if self.options.markers:
-            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3) * self.movable[:, None]
+            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3)
             machine = replace(machine, marker_positions=machine.marker_positions + offsets)
         cameras = [self._camera(camera, p) for camera, p in zip(self.cameras, camera_params)]
         return cameras, joints, machine
@@ -180,9 +181,8 @@ class _Bundle:
             pattern[rows.ravel(), (joint_start + k * n_joints + j).ravel()] = 1
         if self.options.markers:
             marker_start = joint_start + n_frames * n_joints
-            moving = self.movable[m.ravel()]
             for axis in range(3):
-                pattern[rows.ravel()[moving], (marker_start + 3 * m + axis).ravel()[moving]] = 1
+                pattern[rows.ravel(), (marker_start + 3 * m + axis).ravel()] = 1
             prior = np.arange(3 * n_markers)
             pattern[n_pixel + prior, marker_start + prior] = 1
         return pattern.tocsr()
