@@ -148,7 +148,14 @@ def joints_along_chain(
         n_beam, n_variants = earlier.shape[:2]
         trial = np.repeat(earlier.reshape(-1, machine.n_joints), len(grid), axis=0)  # (B * K * G, J)
         trial[:, j] = np.tile(grid, n_beam * n_variants)
-        cost = _grid_cost(machine, cameras, trial, obs_camera[use], obs_marker[use], obs_xy[use])
+        # markers that joint j moves are scored at every grid value, the others once per variant
+        moving = use & moved[marker_link]
+        fixed = use & ~moved[marker_link]
+        cost = _grid_cost(machine, cameras, trial, obs_camera[moving], obs_marker[moving], obs_xy[moving])
+        if np.any(fixed):
+            still = earlier.reshape(-1, machine.n_joints)
+            still_cost = _grid_cost(machine, cameras, still, obs_camera[fixed], obs_marker[fixed], obs_xy[fixed])
+            cost += np.repeat(still_cost, len(grid))
         cost = cost.reshape(n_beam, n_variants, len(grid))
         best = np.argmin(cost, axis=1)  # (B, G): the best variant of the earlier joints
         trial = trial.reshape(n_beam, n_variants, len(grid), -1)
