@@ -25,6 +25,7 @@ import numpy as np
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine
+from mocap.progress import progress
 from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices
 
 log = logging.getLogger(__name__)
@@ -185,13 +186,14 @@ class _Problem(KinematicModel):
     def solve_all(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> FrameState:
         """Fit every frame of pixels (C, F, M, 2) in chunks."""
         chunk = self.options.chunk
+        starts = range(0, pixels.shape[1], chunk)
         return FrameState.concatenate([
             self.solve(
                 pixels[:, s : s + chunk],
                 None if start is None else start[s : s + chunk],
                 None if start_base is None else start_base[s : s + chunk],
             )
-            for s in range(0, pixels.shape[1], chunk)
+            for s in (progress(starts, desc="fit", unit="chunk") if len(starts) > 2 else starts)
         ])
 
     def key_frame_start(self, pixels: np.ndarray, start_base: np.ndarray | None) -> np.ndarray:
