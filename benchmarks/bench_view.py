@@ -101,7 +101,7 @@ def naive_replay(replay: Replay, path: Path) -> None:
     record.log_world(rec, machine)
     record.log_cameras(rec, calibration, frustum_depth(calibration))
     series = scene.link_series(machine, motion)
-    _, markers = scene.model_markers(machine, motion)
+    markers = scene.model_markers(machine, series)
     tip = motion.point("bucket_tip")
     scale, _ = scene.joint_display_units(machine)
     cycle_of = np.searchsorted(replay.cycles.start, motion.frame, side="right") - 1

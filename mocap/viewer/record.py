@@ -76,10 +76,10 @@ def log_world(rec: rr.RecordingStream, machine: Machine) -> None:
     rec.log("world", rr.AnnotationContext(labels), static=True)
 
 
-def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion) -> None:
+def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion, series: scene.LinkSeries) -> None:
     """Each link as a solid box in its own frame, moved by world_from_link per frame."""
     boxes = link_boxes(machine)  # (L, 2, 3) min and max corners in the link frame
-    series = scene.link_series(machine, motion)
+    quaternion = series.quaternion
     times = time_columns(motion.frame[series.rows], motion.time[series.rows])
     for i, name in enumerate(machine.link_names):
         path = link_path(name)
@@ -100,17 +100,22 @@ def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion) -> No
                 path,
                 indexes=times,
                 columns=rr.Transform3D.columns(
-                    translation=series.translation[:, i], quaternion=series.quaternion[:, i]
+                    translation=series.translation[:, i], quaternion=quaternion[:, i]
                 ),
             )
 
 
 def log_markers(
-    rec: rr.RecordingStream, machine: Machine, motion: Motion, points: Points | None, fps: float
+    rec: rr.RecordingStream,
+    machine: Machine,
+    motion: Motion,
+    series: scene.LinkSeries,
+    points: Points | None,
+    fps: float,
 ) -> None:
     """Model markers at the fitted joints, and the triangulated ones where given."""
     n_markers = len(machine.marker_names)
-    rows, markers = scene.model_markers(machine, motion)
+    rows, markers = series.rows, scene.model_markers(machine, series)
     path = "world/markers/model"
     rec.log(
         path,

@@ -98,9 +98,10 @@ def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
     trails = replay.trails()
     with progress(total=4 + len(calibration.cameras), desc="replay", unit="part") as bar:
         record.log_world(rec, machine)
-        record.log_machine(rec, machine, motion)
+        links = scene.link_series(machine, motion)
+        record.log_machine(rec, machine, motion, links)
         bar.update()
-        record.log_markers(rec, machine, motion, replay.points, replay.fps[0])
+        record.log_markers(rec, machine, motion, links, replay.points, replay.fps[0])
         record.log_points(rec, motion)
         bar.update()
         record.log_trails(rec, trails)

@@ -28,20 +28,34 @@ RERUN_FROM_OPENCV_PIXEL = 0.5
 class LinkSeries:
     """World-from-link transforms of the frames where the joints are known.
 
-    rows (R,) indices into the motion's frames; translation (R, L, 3) m;
-    quaternion (R, L, 4) scalar-last (x, y, z, w), as scipy and Rerun both use.
+    rows (R,) indices into the motion's frames; rotation (R, L, 3, 3); translation (R, L, 3) m.
     """
 
     rows: np.ndarray
+    rotation: np.ndarray
     translation: np.ndarray
-    quaternion: np.ndarray
 
     def __post_init__(self) -> None:
         r = len(self.rows)
         if self.translation.shape[:1] != (r,) or self.translation.shape[2:] != (3,):
             raise ValueError(f"LinkSeries.translation: expected ({r}, L, 3), got {self.translation.shape}")
-        if self.quaternion.shape != self.translation.shape[:2] + (4,):
-            raise ValueError(f"LinkSeries.quaternion: expected ({r}, L, 4), got {self.quaternion.shape}")
+        if self.rotation.shape != self.translation.shape + (3,):
+            raise ValueError(f"LinkSeries.rotation: expected ({r}, L, 3, 3), got {self.rotation.shape}")
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(R, L, 4) scalar-last (x, y, z, w), the order scipy and Rerun both use."""
+        n_rows, n_links = self.translation.shape[:2]
+        return Rotation.from_matrix(self.rotation.reshape(-1, 3, 3)).as_quat().reshape(n_rows, n_links, 4)
+
+    def points(self, links: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """World positions (R, N, 3) of points fixed in links: links (N,), positions (N, 3) in
+        the link frames; one product per link over all frames at once."""
+        out = np.empty((len(self.rows), len(links), 3))
+        for link in np.unique(links):
+            on = np.flatnonzero(links == link)
+            out[:, on] = positions[on] @ self.rotation[:, link].swapaxes(1, 2) + self.translation[:, link, None]
+        return out
 
 
 BASE_COLUMNS = ("base_x", "base_y", "base_z")
@@ -78,16 +92,12 @@ def link_series(machine: Machine, motion: Motion) -> LinkSeries:
     """Each link's pose in the world at every frame with known joints."""
     rows = known_rows(motion)
     world_from_link = machine.link_poses(motion.joints[rows], _base_at(motion, rows))  # (R, L, 4, 4)
-    n_rows, n_links = world_from_link.shape[:2]
-    rotations = world_from_link[..., :3, :3].reshape(-1, 3, 3)
-    quaternion = Rotation.from_matrix(rotations).as_quat().reshape(n_rows, n_links, 4)  # x, y, z, w
-    return LinkSeries(rows, world_from_link[..., :3, 3], quaternion)
+    return LinkSeries(rows, world_from_link[..., :3, :3], world_from_link[..., :3, 3])
 
 
-def model_markers(machine: Machine, motion: Motion) -> tuple[np.ndarray, np.ndarray]:
-    """Rows (R,) with known joints and the model's marker positions there (R, M, 3)."""
-    rows = known_rows(motion)
-    return rows, machine.markers(motion.joints[rows], _base_at(motion, rows))
+def model_markers(machine: Machine, links: LinkSeries) -> np.ndarray:
+    """The model's marker positions (R, M, 3) at the frames of `links`."""
+    return links.points(machine.marker_links, machine.marker_positions)
 
 
 def joint_display_units(machine: Machine) -> tuple[np.ndarray, tuple[str, ...]]:
