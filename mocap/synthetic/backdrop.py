@@ -66,16 +66,19 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
     along = np.array([np.cos(pile.azimuth), np.sin(pile.azimuth), 0.0])
     across = np.array([-along[1], along[0], 0.0])
 
-    # march the pile's height field up to the ground hit, then bisect the crossing
-    steps = np.geomspace(1.0, far, 160)
+    # march the pile's height field inside its bounding box (and before the ground hit),
+    # then bisect the crossing
+    enter, leave = _slabs(origin, rays, along, across, pile, reach)
+    leave = np.minimum(leave, t_hit)
     hit_pile = np.zeros(t_hit.shape, dtype=bool)
     t_pile = np.full(t_hit.shape, far)
-    prev = np.zeros(t_hit.shape)
-    for t in steps:
-        p = origin + rays * t
+    prev = enter.copy()
+    for s in np.linspace(0.0, 1.0, 160):
+        t = enter + (leave - enter) * s
+        p = origin + rays * t[..., None]
         above = p[..., 2] > pile_height(p @ along, p @ across, pile)
-        new = ~above & ~hit_pile & (t <= t_hit + 1e-9)
-        t_pile[new] = t
+        new = ~above & ~hit_pile & (leave > enter)
+        t_pile[new] = t[new]
         hit_pile |= new
         prev = np.where(hit_pile, prev, t)
     lo, hi = prev, t_pile
@@ -112,6 +115,22 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
     _draw_truck(image, camera, truck, reach, sun)
     _draw_clutter(image, camera, reach, rng)
     return image
+
+
+def _slabs(origin, rays, along, across, pile: Pile, reach: float):
+    """Where rays (h, w, 3) from `origin` enter and leave the pile's bounding box (h, w)."""
+    low = np.array([pile.toe, -0.5 * pile.width, -1.0])
+    high = np.array([pile.toe + 40.0 * reach, 0.5 * pile.width, pile.height + 0.01])
+    o = np.array([origin @ along, origin @ across, origin[2]])
+    d = np.stack([rays @ along, rays @ across, rays[..., 2]], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (low - o) / d, (high - o) / d
+    inside = (o >= low) & (o <= high)
+    flat = d == 0
+    t_low = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2)).max(axis=-1)
+    t_high = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2)).min(axis=-1)
+    enter = np.maximum(t_low, 0.0)
+    return enter, np.maximum(t_high, enter)
 
 
 def draw_boxes(image: np.ndarray, camera_matrix: np.ndarray, distortion: np.ndarray, cam_from_world: np.ndarray,
