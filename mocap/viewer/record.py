@@ -26,7 +26,6 @@ import rerun as rr
 from mocap.io.cameras_toml import Calibration
 from mocap.io.motion_csv import Motion
 from mocap.io.points_csv import Points
-from mocap.io.tracks_csv import Tracks
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
 from mocap.viewer import scene
