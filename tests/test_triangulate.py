@@ -148,3 +148,6 @@ def test_cli_triangulate(tmp_path, machine, capsys):
     code = cli.main(["triangulate", str(tmp_path / "cameras.toml"), str(tmp_path / "bad.csv"), "--out", str(out)])
     assert code == 2
     assert "lacks" in capsys.readouterr().err and load_points(out).frame.size == len(points)
+    code = cli.main(["triangulate", str(tmp_path / "cameras.toml"), paths[0], "--out", str(tmp_path / "one.csv")])
+    assert code == 2 and "no marker is seen by two cameras" in capsys.readouterr().err
+    assert not (tmp_path / "one.csv").exists()

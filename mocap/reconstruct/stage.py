@@ -73,13 +73,13 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
         part = triangulate(cameras, clock.pixels[:, start : start + _CHUNK_FRAMES], options)
         f, m = np.nonzero(np.isfinite(part.xyz[..., 0]))
         rows.append((clock.frame[start + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m], part.views[f, m]))
-    points = Points(*(np.concatenate([r[k] for r in rows]) if rows else np.zeros(0) for k in range(5)))
-    if not len(points):
+    if not sum(len(r[0]) for r in rows):
         raise InputError(
             "no marker is seen by two cameras at the same time; check the time offsets and "
             "that the tracks' camera names match the calibration",
             path=calibration_path,
         )
+    points = Points(*(np.concatenate([r[k] for r in rows]) for k in range(5)))
     save_points(points, out)
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return (
