@@ -50,6 +50,23 @@ def tip_rmse(machine_fit, truth_machine, cameras, pixels, joints):
     return float(np.sqrt(np.mean(np.sum(error**2, -1))))
 
 
+@pytest.mark.parametrize("markers", [False, True])
+def test_jacobian_matches_finite_differences(machine, markers):
+    from mocap.reconstruct.refine import _Bundle
+
+    cameras, joints, _, pixels, rng = scene(machine, 4, seed=5)
+    bundle = _Bundle(machine, tuple(perturbed(cameras, rng)), pixels, RefineOptions(markers=markers), NOISE)
+    x = np.r_[rng.normal(0, 0.01, 7 * 3), joints.ravel(), rng.normal(0, 0.05, 3 * len(machine.marker_names) * markers)]
+    analytic = bundle.jacobian(x).toarray()
+    numeric = np.empty_like(analytic)
+    for p in range(len(x)):
+        step = np.zeros_like(x)
+        step[p] = 1e-6
+        numeric[:, p] = (bundle.residuals(x + step) - bundle.residuals(x - step)) / 2e-6
+    assert np.abs(analytic).max() > 100.0
+    np.testing.assert_allclose(analytic, numeric, atol=1e-6 * np.abs(analytic).max())
+
+
 def test_refines_cameras_to_the_noise(machine):
     cameras, joints, _, pixels, rng = scene(machine, 60, seed=1)
     start = perturbed(cameras, rng)

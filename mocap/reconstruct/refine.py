@@ -4,7 +4,7 @@ joint values and, optionally, the marker positions within a stated tolerance.
 The cameras calibrated from one frame and a tape-measured machine (markers ±5 %) leave
 errors that one frame cannot reveal; many frames of a moving machine can. The problem is
 solved with scipy.optimize.least_squares (trust region, robust loss with its scale in
-pixels) and a Jacobian sparsity pattern: every residual depends on one camera, one frame
+pixels) and an analytic sparse Jacobian: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
 ``tolerance × max(|position|, 0.5 m)`` per coordinate, expressed in pixel units through
 the pixel noise. The priors also fix the gauge: a rigid motion of the base's markers
@@ -25,13 +25,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix
 
-from mocap.camera import Camera
+from mocap.camera import Camera, project_cam
 from mocap.errors import DegenerateError
 from mocap.geometry import Rigid, rotvec_to_matrix
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
+from mocap.reconstruct.kinmodel import FrameState, KinematicModel, _cross
 
 log = logging.getLogger(__name__)
 
@@ -88,11 +89,10 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     problem = _Bundle(machine, tuple(cameras), obs, options, fit.noise_px)
     x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), np.nan_to_num(fit.joints).ravel(), np.zeros(3 * n_markers * options.markers)]
     before = problem.pixel_rms(x0)
-    sparsity = problem.sparsity()
     # plain least squares first: a robust loss from a start pixels off stalls the trust region
-    start = least_squares(problem.residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", max_nfev=10)
+    start = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf", x_scale="jac", max_nfev=10)
     solution = least_squares(
-        problem.residuals, start.x, jac_sparsity=sparsity, method="trf", loss="huber",
+        problem.residuals, start.x, jac=problem.jacobian, method="trf", loss="huber",
         f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations,
     )
     cams, joints, refined = problem.unpack(solution.x)
@@ -165,24 +165,59 @@ class _Bundle:
         residual = self.pixel_residuals(x)
         return float(np.sqrt((residual**2).sum() / max(2 * self.seen.sum(), 1)))  # per coordinate
 
-    def sparsity(self):
+    def jacobian(self, x: np.ndarray):
+        """Sparse (rows, parameters) Jacobian of `residuals`, analytic: every pixel row
+        depends on its camera's parameters, its frame's joints and its marker's offset."""
         n_cams, n_frames, n_markers = self.seen.shape
         n_joints = self.machine.n_joints
-        n_pixel = n_cams * n_frames * n_markers * 2
-        n_params = self.n_camera_params * n_cams + n_frames * n_joints + 3 * n_markers * self.options.markers
-        n_rows = n_pixel + 3 * n_markers * self.options.markers
-        pattern = lil_matrix((n_rows, n_params), dtype=int)
+        cameras, joints, machine = self.unpack(x)
+        model = KinematicModel(machine, ())
+        state = FrameState(joints, None, None, np.zeros(n_frames))
+        world, d_joints = model.world_markers(state)  # (K, M, 3), (K, M, 3, J)
+        link_rotation = machine.link_poses(joints)[:, machine.marker_links, :3, :3]  # (K, M, 3, 3)
+        blocks = []
+        camera_params = x[: self.n_camera_params * n_cams].reshape(n_cams, self.n_camera_params)
+        for camera, params in zip(cameras, camera_params):
+            rot = camera.cam_from_world.rotation
+            rotated = world @ rot.T
+            uv, d_uv = project_cam(rotated + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+            d_rot = np.stack([_cross(np.eye(3)[i], rotated) for i in range(3)], -1) @ _left_jacobian(params[:3])
+            parts = [d_uv @ d_rot, d_uv]  # rotation increment, translation
+            if self.options.fit_focal:
+                parts.append((uv - camera.matrix[:2, 2])[..., None])  # d uv / d log(focal scale)
+            d_world = d_uv @ rot  # (K, M, 2, 3)
+            parts.append(d_world @ d_joints)
+            if self.options.markers:
+                parts.append(d_world @ link_rotation)
+            blocks.append(-np.concatenate(parts, -1))  # residual = observed - projected
+        values = np.stack(blocks) * self.seen[..., None, None]  # (C, K, M, 2, columns)
+        values = np.nan_to_num(values)
         c, k, m, a = np.meshgrid(np.arange(n_cams), np.arange(n_frames), np.arange(n_markers), np.arange(2), indexing="ij")
-        rows = np.arange(n_pixel).reshape(c.shape)
-        for p in range(self.n_camera_params):
-            pattern[rows.ravel(), (c * self.n_camera_params + p).ravel()] = 1
+        rows = np.arange(values[..., 0].size).reshape(c.shape)
+        columns = [c * self.n_camera_params + p for p in range(self.n_camera_params)]
         joint_start = self.n_camera_params * n_cams
-        for j in range(n_joints):
-            pattern[rows.ravel(), (joint_start + k * n_joints + j).ravel()] = 1
+        columns += [joint_start + k * n_joints + j for j in range(n_joints)]
+        marker_start = joint_start + n_frames * n_joints
         if self.options.markers:
-            marker_start = joint_start + n_frames * n_joints
-            for axis in range(3):
-                pattern[rows.ravel(), (marker_start + 3 * m + axis).ravel()] = 1
+            columns += [marker_start + 3 * m + axis for axis in range(3)]
+        column_index = np.stack(columns, -1)
+        row_index = np.broadcast_to(rows[..., None], column_index.shape)
+        data, row_list, col_list = [values.ravel()], [row_index.ravel()], [column_index.ravel()]
+        n_rows = rows.size
+        if self.options.markers:
             prior = np.arange(3 * n_markers)
-            pattern[n_pixel + prior, marker_start + prior] = 1
-        return pattern.tocsr()
+            data.append(np.repeat(self.noise_px / self.prior_sd, 3))
+            row_list.append(n_rows + prior)
+            col_list.append(marker_start + prior)
+            n_rows += 3 * n_markers
+        n_params = marker_start + 3 * n_markers * self.options.markers
+        return coo_matrix((np.concatenate(data), (np.concatenate(row_list), np.concatenate(col_list))), shape=(n_rows, n_params)).tocsr()
+
+
+def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian (3, 3): d exp(w) / d w as a left increment, for R = exp(w) R0."""
+    theta = np.linalg.norm(rotvec)
+    k = np.array([[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * k
+    return np.eye(3) + (1 - np.cos(theta)) / theta**2 * k + (theta - np.sin(theta)) / theta**3 * (k @ k)
