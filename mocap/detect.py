@@ -38,7 +38,7 @@ class DetectOptions:
     threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
     min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
     max_fill: float = 1.25
-    max_ring_spread: float = 0.5  # (ring's white - ring's 10th percentile) / contrast
+    max_ring_spread: float = 0.6  # (ring white - its 15th percentile) / contrast
     max_elongation: float = 6.0  # major / minor semi-axis
 
     def __post_init__(self) -> None:
@@ -245,7 +245,7 @@ def _refine_group(
     angle = np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1])
     contrast = background - foreground
     fill = mass / (np.pi * axes[:, 0] * axes[:, 1])
-    darkest = _masked_quantiles(patch, ring, [0.1])[0]  # a ring cut by something darker fails
+    darkest = _masked_quantiles(patch, ring, [0.15])[0]  # a ring cut by something darker fails
     spread = np.where(np.isfinite(darkest), background - darkest, np.inf) / np.maximum(contrast, 1.0)
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
     return Detections(c, axes, angle, contrast, fill, score), spread

@@ -52,6 +52,11 @@ class CameraModel:
         )
         return seen
 
+    def observed_joints(self, markers: np.ndarray) -> np.ndarray:
+        """(J,) bool: the joints that move at least one of `markers` (indices)."""
+        moved = self.machine.moves[:, self.machine.marker_links[np.asarray(markers, dtype=int)]]
+        return np.any(moved, axis=1)
+
     def normals_cam(self, joints: np.ndarray) -> np.ndarray:
         """Marker disk normals (F, M, 3) in the camera frame."""
         poses = self.machine.link_poses(np.atleast_2d(joints))[:, self.machine.marker_links, :3, :3]

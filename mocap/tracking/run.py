@@ -76,7 +76,7 @@ def track_frames(
     names = model.machine.marker_names
     rows: list[Tracks] = []
     tracker = None
-    n_frames = n_fitted = restarts = 0
+    n_frames = n_fitted = restarts = searched = 0
     for index, gray in frames:
         n_frames += 1
         if tracker is None:
@@ -88,12 +88,15 @@ def track_frames(
             log.info("frame %d: %d markers labelled, residual %.2f px", index, len(first.markers), first.rms_px)
         else:
             result = tracker.step(gray)
-            if tracker.lost >= options.lost_frames:
+            searched += 1
+            lost = tracker.lost >= options.lost_frames
+            if (lost or tracker.missing(result.joints) >= 2) and searched >= options.lost_frames:
+                searched = 0
                 again = propose_labels(
                     model, detect_disks(gray, options.detect), starts_around(model, result.joints),
                     min_markers=options.min_markers,
                 )
-                if again is not None:
+                if again is not None and (lost or len(again.markers) > len(result.markers)):
                     tracker.restart(again)
                     result = again
                     restarts += 1

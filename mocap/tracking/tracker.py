@@ -36,15 +36,19 @@ class TrackOptions:
 
     gate_px: least search radius around a prediction; gate_radii: search radius in marker
     radii; tight_px: least gate of the final assignment against the fitted model;
-    outlier_px: least residual at which the fit disowns a detection; min_markers: markers
-    needed to fit the joints; lost_frames: frames without a fit before the whole frame is
-    searched again; occlusion: predict markers hidden by the machine's links (boxes).
+    outlier_px: least residual at which the fit disowns a detection; regain_px_per_frame,
+    regain_max_px: how far the search for a marker not seen for a while reaches, growing
+    with the frames it was missed; min_markers: markers needed to fit the joints;
+    lost_frames: frames without a fit before the whole frame is searched again; occlusion:
+    predict markers hidden by the machine's links (boxes).
     """
 
     gate_px: float = 10.0
     gate_radii: float = 2.0
     tight_px: float = 2.5
     outlier_px: float = 3.0
+    regain_px_per_frame: float = 3.0
+    regain_max_px: float = 80.0
     min_markers: int = 5
     lost_frames: int = 15
     occlusion: bool = True
@@ -77,6 +81,7 @@ class TrackState:
     joints: np.ndarray  # (J,) at the last frame
     previous: np.ndarray  # (J,) at the frame before
     shape: np.ndarray  # (M, 2, 2) each marker's last image ellipse (semi-axis matrix, px²)
+    missed: np.ndarray  # (M,) int, frames since each marker was last labelled
     lost: int = 0  # frames since the last fit
 
     @property
@@ -95,7 +100,9 @@ class Tracker:
         typical = np.median(start.detections.radius) if len(start.detections) else 5.0
         shape = np.tile(np.eye(2) * typical**2, (n_markers, 1, 1))
         shape[start.markers] = start.detections.shape
-        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape)
+        missed = np.full(n_markers, 1000)
+        missed[start.markers] = 0
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed)
 
     def step(self, gray: np.ndarray) -> FrameResult:
         options, state, model = self.options, self.state, self.model
@@ -106,33 +113,63 @@ class Tracker:
         motion = np.linalg.norm(uv - model.pixels(state.joints[None])[0], axis=-1)
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * state.radius) + np.nan_to_num(motion)
-        found = self._search(gray, uv, gate, visible)
-        markers, index = assign(uv, found.xy, gate, visible, found.radius, state.radius)
+        recent = state.missed <= 2
+        if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
+            recent = np.ones_like(recent)
+        reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
+        found = self._search(gray, uv, reach, visible)
+        # the markers followed until now fix the joints they observe
+        markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, state.radius)
         if len(markers) < options.min_markers:
-            return self._coast(predicted)
+            return self._coast(predicted, uv, visible, found)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
         joints, residual = model.fit(observed[None], predicted, iterations=3)
         keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * state.radius[markers])
         if np.sum(keep) < options.min_markers:
-            return self._coast(predicted)
+            return self._coast(predicted, uv, visible, found)
         if not np.all(keep):
             observed[markers[~keep]] = np.nan
             joints, residual = model.fit(observed[None], joints[0], iterations=2)
         joints = joints[0]
+        # markers coming back (after an occlusion, or a link the camera did not see): found
+        # by narrowing gates from their reach, the others held
+        returning = self._visible(joints) & ~recent
+        if np.any(returning):
+            taken = np.zeros(len(found), dtype=bool)
+            taken[index[keep]] = True
+            held = markers[keep]
+            for g in (1.0, 0.5, 0.25):
+                back_uv = model.pixels(joints[None])[0]
+                free = np.where(taken[:, None], np.inf, found.xy)
+                back, back_index = assign(back_uv, free, np.maximum(g * reach, options.tight_px), returning, found.radius, state.radius)
+                if len(back) == 0:
+                    break
+                trial = observed.copy()
+                trial[back] = found.xy[back_index]
+                moved, moved_residual = model.fit(trial[None], joints, iterations=3)
+                if np.nanmax(moved_residual[0, held]) > options.outlier_px:
+                    break  # the returning candidates disagree with the markers held
+                joints = moved[0]
         fitted_uv = model.pixels(joints[None])[0]
         visible = self._visible(joints)
-        inlier_rms = float(np.sqrt(np.nanmean(np.where(residual[0] < options.outlier_px, residual[0], np.nan) ** 2)))
+        residual = np.linalg.norm(fitted_uv[markers[keep]] - found.xy[index[keep]], axis=-1)
+        inlier_rms = float(np.sqrt(np.mean(residual**2))) if len(residual) else 0.0
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         markers, index = assign(fitted_uv, found.xy, tight, visible, found.radius, state.radius)
         if len(markers) < options.min_markers:
-            return self._coast(predicted)
+            return self._coast(predicted, uv, visible, found)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], joints, iterations=1)
+        joints, residual = model.fit(observed[None], joints, iterations=2)
         joints = joints[0]
-        state.previous, state.joints, state.lost = state.joints, joints, 0
+        seen_joints = model.observed_joints(markers)
+        # a joint no marker shows keeps its value: it does not drift on its last velocity
+        state.previous = np.where(seen_joints, state.joints, joints)
+        state.joints, state.lost = joints, 0
         state.shape[markers] = found.shape[index]
+        state.missed += 1
+        state.missed[markers] = 0
         rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
         return FrameResult(markers, found.select(index), joints, True, rms)
 
@@ -140,11 +177,18 @@ class Tracker:
     def lost(self) -> int:
         return self.state.lost
 
+    def missing(self, joints: np.ndarray) -> int:
+        """How many markers the model shows at `joints` (J,) have not been labelled for
+        `lost_frames` frames or more (a link that came back too far from its prediction)."""
+        return int(np.sum(self._visible(joints) & (self.state.missed >= self.options.lost_frames)))
+
     def restart(self, start: FrameResult) -> None:
-        """Carry on from a fresh labelling of the current frame (after a long loss)."""
+        """Carry on from a fresh labelling of the current frame (after a loss)."""
         self.state.joints = start.joints.copy()
         self.state.previous = start.joints.copy()
         self.state.lost = 0
+        self.state.missed[start.markers] = 0
+        self.state.shape[start.markers] = start.detections.shape
 
     def _visible(self, joints: np.ndarray) -> np.ndarray:
         if self.options.occlusion:
@@ -153,11 +197,16 @@ class Tracker:
         w, h = self.model.camera.size
         return np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
 
-    def _coast(self, predicted: np.ndarray) -> FrameResult:
+    def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections) -> FrameResult:
+        """Too few markers to fit: the joints carry on as predicted; detections within the
+        tight gate of a predicted marker are still labelled."""
         state = self.state
+        markers, index = assign(uv, found.xy, np.full(len(uv), self.options.tight_px), visible, found.radius, state.radius)
         state.previous, state.joints = state.joints, predicted
         state.lost += 1
-        return FrameResult(np.zeros(0, dtype=int), Detections.empty(), predicted, False, float("nan"))
+        state.missed += 1
+        state.missed[markers] = 0
+        return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray) -> Detections:
         """Disks near the predicted markers: refined from each prediction with the marker's
