@@ -22,6 +22,8 @@ COMMANDS = (
     "triangulate",
     "fit",
     "refine",
+    "run",
+    "demo",
 )
 
 

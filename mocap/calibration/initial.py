@@ -4,7 +4,10 @@
    markers over a range of focal lengths, then refined (rotation, translation, focal).
 2. The joint values follow along the chain: each joint is searched on a grid over its
    limits, keeping a few hypotheses (a beam) scored by the reprojection of every marker on
-   the links placed so far, so that an ambiguity at one link is settled by the next.
+   the links placed so far, so that an ambiguity at one link is settled by the next. After
+   each link the cameras are posed again (PnP, focal length kept) on every marker placed so
+   far, so that the next link is searched with cameras that agree with the links before it.
+   A joint whose link shows no marker is searched together with the next one that does.
 3. Cameras that saw too few base markers are placed by PnP of all their markers, now that
    the machine's pose is known.
 """
@@ -166,7 +169,24 @@ def joints_along_chain(
         hypotheses.sort(key=lambda h: h[0])
         beam = [h[1] for h in hypotheses[:BEAM]]
         pending = []
+        if j < machine.n_joints - 1:  # the next links are searched with cameras posed on this one too
+            cameras = _reposed(machine, cameras, beam[0], obs_camera[use], obs_marker[use], obs_xy[use])
     return beam[0]
+
+
+def _reposed(machine, cameras, joints, obs_camera, obs_marker, obs_xy):
+    """The placed cameras posed again by PnP (focal length kept) on every marker reached so
+    far, at the joint values `joints` (J,) of the best hypothesis."""
+    world = machine.markers(joints[None], index=obs_marker)[0]
+    out = list(cameras)
+    for c, camera in enumerate(cameras):
+        rows = obs_camera == c
+        if camera is None or np.sum(rows) < 4:
+            continue
+        pose = _pnp(world[rows], obs_xy[rows], camera.matrix)
+        if pose is not None:
+            out[c] = camera.with_pose(Rigid(cv2.Rodrigues(pose[0])[0], pose[1]))
+    return out
 
 
 def _with_pending(machine: Machine, joints: np.ndarray, pending: list[int]) -> np.ndarray:

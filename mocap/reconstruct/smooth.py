@@ -169,13 +169,16 @@ def _rts(time, values, information, valid, q, options):
     post_cov = np.empty((n, 2 * p, 2 * p))
     transitions = np.empty((n, 2 * p, 2 * p))
     rejected = np.zeros(n, bool)
-    previous = time[0]
+    steps = np.round(np.r_[0.0, np.diff(time)], 9)  # to the nanosecond, so equal steps share a model
+    models = {}  # dt -> (transition, process noise): frames are mostly evenly spaced
     for k in range(n):
-        dt = time[k] - previous
-        previous = time[k]
-        transition = eye_s.copy()
-        transition[:p, p:] = dt * eye_p
-        noise = np.block([[dt**3 / 3 * np.diag(q), dt**2 / 2 * np.diag(q)], [dt**2 / 2 * np.diag(q), dt * np.diag(q)]])
+        dt = steps[k]
+        if dt not in models:
+            transition = eye_s.copy()
+            transition[:p, p:] = dt * eye_p
+            qd = np.diag(q)
+            models[dt] = (transition, np.block([[dt**3 / 3 * qd, dt**2 / 2 * qd], [dt**2 / 2 * qd, dt * qd]]))
+        transition, noise = models[dt]
         x = transition @ x
         cov = transition @ cov @ transition.T + noise
         transitions[k], pred_mean[k], pred_cov[k] = transition, x, cov
