@@ -4,10 +4,13 @@ marker pixels (the paper's multi-frame fit).
 All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model for
 every frame, builds each frame's small normal equations (block-diagonal over frames) and
 solves them together with numpy. Residuals are robustified by iteratively reweighted
-least squares (Huber or Cauchy, scale in pixels). Frames without a starting value start
-from the best of a coarse grid of joint values inside the limits (evaluated for all frames
-by one matrix product), and frames that end far worse than a neighbour are restarted from
-that neighbour's solution. Optionally the base (undercarriage) moves too, by a 6-DoF
+least squares (Huber or Cauchy, scale in pixels); frames that have converged leave the
+batch. Without starting values, every few frames (key frames) start from the best of a
+coarse grid of joint values inside the limits (evaluated for all key frames by one
+matrix product) and the frames between from the interpolated key solutions; a frame that
+ends far worse than is typical is fitted again from the grid, and one that ends far worse
+than a neighbour is restarted from that neighbour's solution. Joint limits are kept by
+clipping (full-circle joints wrap). Optionally the base (undercarriage) moves too, by a 6-DoF
 ``world_from_base`` per frame (bouncing, or a machine that moved since calibration).
 
 Parameters of a frame (mocap.reconstruct.kinmodel): joint values (J,) rad / m, then with
@@ -132,7 +135,8 @@ def fit_joints(
     machine : the model, M markers and J joints.
     cameras : C calibrated cameras (one is enough).
     pixels : (C, F, M, 2) observed marker pixels, NaN where a camera did not see a marker.
-    initial : (F, J) or (J,) starting joint values, or None for the coarse grid.
+    initial : (F, J) or (J,) starting joint values, or None for key frames from the
+        coarse grid (frames in time order fit faster then; any order works).
     options : FitOptions.
     initial_base : (F, 6) or (6,) starting base pose with ``options.base_motion``.
 
