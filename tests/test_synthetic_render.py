@@ -217,3 +217,35 @@ def test_same_seed_same_pictures():
     other = [image for _, image in CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(4)).frames(frames)]
     assert all(np.array_equal(a, b) for a, b in zip(first, again))
     assert not np.array_equal(first[1], other[1])
+
+
+def test_motion_blur_keeps_moving_markers_centred_on_the_truth():
+    """Blended with the previous frame, a moving marker's dark centroid stays at its true
+    position at the frame's time (the picture is drawn late by the blend's weight)."""
+    machine = load_machine("hitachi_ex3500")
+    session = make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1, seed=3, size=(960, 540), bounce=0.0)
+    camera = session.cameras[0]
+    cycle = session.plan.cycles[0]
+    swinging = int(round((cycle.dig_end + 0.4 * (cycle.end - cycle.dig_end)) * camera.fps))
+    frames = np.arange(swinging - 1, swinging + 1)
+    effects = EffectOptions(noise=0.0, blur=0.5, exposure=0.0, dust=0.0)
+    renderer = CameraRenderer(session, 0, RenderOptions(effects=effects), np.random.default_rng(0))
+    (_, image), = [item for item in renderer.frames(frames)][1:]
+    uv, seen, _ = session.observe(camera, frames[1:])
+    before, _, _ = session.observe(camera, frames[:1])
+    grey = image.astype(float).mean(axis=2)
+    errors, moves = [], []
+    for m in np.flatnonzero(seen[0]):
+        step = np.linalg.norm(uv[0, m] - before[0, m])
+        x, y = np.round(uv[0, m]).astype(int)
+        r = 4
+        window = grey[y - r : y + r + 1, x - r : x + r + 1]
+        if step < 1.0 or window.shape != (2 * r + 1, 2 * r + 1) or window.min() > 100:
+            continue
+        weight = np.clip(120.0 - window, 0, None)
+        yy, xx = np.mgrid[y - r : y + r + 1, x - r : x + r + 1]
+        found = np.array([(weight * xx).sum(), (weight * yy).sum()]) / weight.sum()
+        errors.append(np.linalg.norm(found - uv[0, m]))
+        moves.append(step)
+    assert len(errors) >= 3
+    assert np.median(errors) < 0.25 * np.median(moves)

@@ -103,15 +103,20 @@ class CameraRenderer:
 
     def frames(self, frames: np.ndarray | None = None, clean: bool = False):
         """Yield (frame, image (H, W, 3) uint8 BGR) for the camera's `frames` (all by default);
-        `clean` skips the camera's effects."""
+        `clean` skips the camera's effects. With motion blur, each picture is drawn `blur`
+        of a frame interval late, so that blended with the previous one it shows the
+        machine where the truth has it at the frame's time (to first order)."""
         frames = np.arange(self.field.frames) if frames is None else np.asarray(frames)
         session, machine = self.session, self.session.machine
         links = machine.marker_links
         previous = None
         for start in range(0, len(frames), self.options.chunk):
             chunk = frames[start : start + self.options.chunk]
-            times = self.field.times(chunk)
-            _, seen, poses = session.observe(self.field, chunk)
+            # the blur blends the previous frame in with weight b: drawing each frame b of a
+            # frame interval late puts the blended picture's centre of motion at the frame's time
+            lag = 0.0 if clean else self.options.effects.blur
+            times = self.field.times(chunk + lag)
+            _, seen, poses = session.observe(self.field, chunk + lag)
             cams = self.field.cam_from_world(times)
             centres = -np.einsum("fji,fj->fi", cams[:, :3, :3], cams[:, :3, 3])
             corners = np.einsum("flij,lkj->flki", poses[..., :3, :3], self.corners) + poses[:, :, None, :3, 3]
