@@ -172,7 +172,7 @@ def refine(
         shape = shape[:, None, None] ** 2 * np.eye(2)
     shape = shape.reshape(len(xy), 2, 2)
     size = np.sqrt(np.linalg.eigvalsh(shape)[:, -1]) if len(xy) else np.zeros(0)
-    group = np.digitize(size, [2.5, 4.0, 6.0, 9.0, 13.0, 19.0, 28.0])
+    group = np.digitize(size, [8.0, 20.0])
     order = np.argsort(group, kind="stable")
     parts, spreads = [], []
     for g in np.unique(group):
@@ -196,7 +196,7 @@ def _refine_group(
     centre = np.round(xy).astype(int)
     rows = np.clip(centre[:, 1, None] + offsets, 0, height - 1)  # (N, P)
     cols = np.clip(centre[:, 0, None] + offsets, 0, width - 1)
-    patch = gray[rows[:, :, None], cols[:, None, :]].astype(float)  # (N, P, P)
+    patch = gray[rows[:, :, None], cols[:, None, :]].astype(np.float32)  # (N, P, P)
     gx = cols[:, None, :].astype(float)  # pixel coordinates of the patch, (N, 1, P)
     gy = rows[:, :, None].astype(float)  # (N, P, 1)
     evals, evecs = np.linalg.eigh(shape)
@@ -217,9 +217,10 @@ def _refine_group(
         k_out = np.maximum(1.6, k_in + 0.35)  # mostly on the white square
         window = rho2 < (k_in**2)[:, None, None]
         ring = (rho2 >= (k_in**2)[:, None, None]) & (rho2 < (k_out**2)[:, None, None])
-        # the white of the ring (it may reach past the square's edges)
-        background = _masked_quantiles(patch, ring, [0.85])[0]
-        foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
+        if iteration in (0, 1):  # the levels, from the first and from a centred window
+            # the white of the ring (it may reach past the square's edges)
+            background = _masked_quantiles(patch, ring, [0.85])[0]
+            foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
         contrast = np.maximum(background - foreground, 1.0)[:, None, None]
         cover = (background[:, None, None] - patch) / contrast  # 0 on white, 1 on black
         if iteration > 0:  # the half-contrast area: each disk edge where it is half dark

@@ -90,7 +90,7 @@ def track_frames(
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
-            if (lost or tracker.missing(result.joints) >= 2) and searched >= options.lost_frames:
+            if (lost or tracker.missing() >= 2) and searched >= options.lost_frames:
                 searched = 0
                 again = propose_labels(
                     model, detect_disks(gray, options.detect), starts_around(model, result.joints),

@@ -82,6 +82,7 @@ class TrackState:
     previous: np.ndarray  # (J,) at the frame before
     shape: np.ndarray  # (M, 2, 2) each marker's last image ellipse (semi-axis matrix, px²)
     missed: np.ndarray  # (M,) int, frames since each marker was last labelled
+    visible: np.ndarray  # (M,) bool, the markers the model showed in the last frame
     lost: int = 0  # frames since the last fit
 
     @property
@@ -102,14 +103,14 @@ class Tracker:
         shape[start.markers] = start.detections.shape
         missed = np.full(n_markers, 1000)
         missed[start.markers] = 0
-        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed)
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed, self._visible(start.joints))
 
     def step(self, gray: np.ndarray) -> FrameResult:
         options, state, model = self.options, self.state, self.model
         velocity = state.joints - state.previous if state.lost == 0 else 0.0
         predicted = model.machine.clip_to_limits(state.joints + velocity)
         uv = model.pixels(predicted[None])[0]
-        visible = self._visible(predicted)
+        visible = state.visible = self._visible(predicted)
         motion = np.linalg.norm(uv - model.pixels(state.joints[None])[0], axis=-1)
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * state.radius) + np.nan_to_num(motion)
@@ -124,17 +125,17 @@ class Tracker:
             return self._coast(predicted, uv, visible, found)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], predicted, iterations=3)
+        joints, residual = model.fit(observed[None], predicted, iterations=2)
         keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * state.radius[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, found)
         if not np.all(keep):
             observed[markers[~keep]] = np.nan
-            joints, residual = model.fit(observed[None], joints[0], iterations=2)
+            joints, residual = model.fit(observed[None], joints[0], iterations=1)
         joints = joints[0]
         # markers coming back (after an occlusion, or a link the camera did not see): found
         # by narrowing gates from their reach, the others held
-        returning = self._visible(joints) & ~recent
+        returning = visible & ~recent  # visibility at the prediction serves the frame
         if np.any(returning):
             taken = np.zeros(len(found), dtype=bool)
             taken[index[keep]] = True
@@ -147,12 +148,11 @@ class Tracker:
                     break
                 trial = observed.copy()
                 trial[back] = found.xy[back_index]
-                moved, moved_residual = model.fit(trial[None], joints, iterations=3)
+                moved, moved_residual = model.fit(trial[None], joints, iterations=2)
                 if np.nanmax(moved_residual[0, held]) > options.outlier_px:
                     break  # the returning candidates disagree with the markers held
                 joints = moved[0]
         fitted_uv = model.pixels(joints[None])[0]
-        visible = self._visible(joints)
         residual = np.linalg.norm(fitted_uv[markers[keep]] - found.xy[index[keep]], axis=-1)
         inlier_rms = float(np.sqrt(np.mean(residual**2))) if len(residual) else 0.0
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
@@ -161,7 +161,7 @@ class Tracker:
             return self._coast(predicted, uv, visible, found)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], joints, iterations=2)
+        joints, residual = model.fit(observed[None], joints, iterations=1)
         joints = joints[0]
         seen_joints = model.observed_joints(markers)
         # a joint no marker shows keeps its value: it does not drift on its last velocity
@@ -177,10 +177,10 @@ class Tracker:
     def lost(self) -> int:
         return self.state.lost
 
-    def missing(self, joints: np.ndarray) -> int:
-        """How many markers the model shows at `joints` (J,) have not been labelled for
+    def missing(self) -> int:
+        """How many markers the model showed in the last frame have not been labelled for
         `lost_frames` frames or more (a link that came back too far from its prediction)."""
-        return int(np.sum(self._visible(joints) & (self.state.missed >= self.options.lost_frames)))
+        return int(np.sum(self.state.visible & (self.state.missed >= self.options.lost_frames)))
 
     def restart(self, start: FrameResult) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss)."""

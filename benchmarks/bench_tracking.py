@@ -1,0 +1,108 @@
+"""Tracking and synchronisation on a rendered synthetic session, against its truth.
+
+Renders a session with `mocap synth` (clutter, motion blur, dust, noise, occlusion by the
+machine's own links), then per camera: the decode floor (OpenCV reading every frame, the
+peer), detection + labelling + tracking of the same video, and the labels and centres
+against the true tracks; then the cameras' time offsets from the tracks against the truth.
+
+    python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mocap.io.cameras_toml import load_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.tracks_csv import load_tracks
+from mocap.io.video import Video
+from mocap.sync import joint_curves, synchronise
+from mocap.tracking import CameraModel, track_frames
+
+
+def decode_floor(path: Path) -> tuple[float, int]:
+    """Seconds OpenCV takes to read (decode) every frame, and the frame count."""
+    capture = cv2.VideoCapture(str(path))
+    start, count = time.perf_counter(), 0
+    while capture.read()[0]:
+        count += 1
+    capture.release()
+    return time.perf_counter() - start, count
+
+
+def score(truth, tracks):
+    """Labelled fraction of the visible markers, wrong-label fraction, centre errors (px)."""
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    errors, wrong = [], 0
+    for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy):
+        t = true_xy.get((int(f), m))
+        e = np.inf if t is None else float(np.linalg.norm(xy - t))
+        if e > 2.0:
+            wrong += 1
+        else:
+            errors.append(e)
+    return len(errors) / max(len(truth), 1), wrong / max(len(tracks), 1), np.array(errors)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--size", default="1920x1080")
+    parser.add_argument("--cameras", type=int, default=3)
+    parser.add_argument("--cycles", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--machine", default="hitachi_ex3500")
+    parser.add_argument("--session", help="use this rendered session folder instead of rendering one")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(args.session) if args.session else Path(tmp) / "session"
+        if not args.session:
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "mocap.cli", "synth", "--machine", args.machine, "--cameras",
+                            str(args.cameras), "--cycles", str(args.cycles), "--seed", str(args.seed), "--size",
+                            args.size, "--out", str(root)], check=True)
+            print(f"rendered {root.name} in {time.perf_counter() - t0:.0f} s")
+        machine = load_machine(args.machine)
+        truth_cal = load_calibration(root / "truth" / "cameras.toml")
+        truth = load_tracks(root / "truth" / "tracks.csv")
+        header = f"{'camera':>7} {'frames':>6} {'decode s':>8} {'track s':>8} {'ratio':>6} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}"
+        print(header)
+        print("-" * len(header))
+        curves, all_errors = [], []
+        for k, camera in enumerate(truth_cal.cameras):
+            video_path = root / "videos" / f"{camera.name}.mp4"
+            floor, count = decode_floor(video_path)
+            video = Video(video_path)
+            model = CameraModel(machine, camera)
+            t0 = time.perf_counter()
+            tracks, _ = track_frames(model, video.frames(prefetch=4), truth_cal.joints(machine), None, video.info.fps)
+            took = time.perf_counter() - t0
+            labelled, wrong, errors = score(truth.of_camera(camera.name), tracks)
+            all_errors.append(errors)
+            print(f"{camera.name:>7} {count:>6} {floor:>8.2f} {took:>8.2f} {took / floor:>6.2f} {labelled:>8.2%} "
+                  f"{wrong:>7.3%} {np.median(errors):>9.3f} {np.percentile(errors, 95):>7.3f}")
+            frames = np.arange(tracks.frame.max() + 1)
+            pixels = tracks.dense([camera.name], machine.marker_names, frames)[0]
+            curves.append(joint_curves(machine, camera, frames, pixels, truth_cal.joints(machine)))
+        errors = np.concatenate(all_errors)
+        print(f"all cameras: centre error median {np.median(errors):.3f} px, 95th percentile {np.percentile(errors, 95):.3f} px")
+        fps = truth_cal.fps()
+        result = synchronise(curves, fps)
+        true_offsets = truth_cal.time_offsets
+        print(f"{'camera':>7} {'fps':>6} {'true offset s':>13} {'found s':>9} {'error frames':>12}")
+        for k, camera in enumerate(truth_cal.cameras):
+            err = (result.offsets[k] - true_offsets[k]) * fps[0]
+            print(f"{camera.name:>7} {fps[k]:>6.2f} {true_offsets[k]:>13.4f} {result.offsets[k]:>9.4f} {err:>12.3f}"
+                  + (f"  ({result.reasons[k]})" if result.reasons[k] else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
