@@ -91,29 +91,38 @@ def test_guards():
         point_quantities(load_machine("hitachi_ex3500"), np.zeros((2, 3)), np.zeros((2, 3, 3)))
 
 
-def test_bucket_occlusion_filled_with_honest_uncertainty(machine):
-    rng = np.random.default_rng(3)
+def _occluded_dig(machine, seed):
+    rng = np.random.default_rng(seed)
     cameras = ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
     time, joints = dig_like(machine, 20.0, rng)
     tracks = observe(cameras, machine, joints, rng, noise_px=NOISE)
     pixels = tracks.dense([c.name for c in cameras], machine.marker_names, np.arange(len(time)))
     bucket = [i for i, n in enumerate(machine.marker_names) if n.startswith("K")]
-    hidden = slice(300, 330)  # one second
-    pixels[:, hidden][:, :, bucket] = np.nan
-    result = reconstruct_motion(machine, cameras, np.arange(len(time)), time, pixels)
-    motion = result.motion
-    tip_true = machine.points(joints)[:, 0]
-    error = np.linalg.norm(motion.points[:, 0] - tip_true, axis=-1)
-    assert motion.extra["filled"][hidden].all() and motion.extra["filled"].sum() == 30
-    assert error[hidden].max() < 0.10
-    assert (error[hidden] < 2.0 * motion.points_sd[hidden, 0]).all()  # the 3-D SD covers the gap
-    z = (motion.joints - joints) / motion.joints_sd
-    assert 0.9 < np.mean(np.abs(z) < 1.96) < 0.98
-    angle_true = machine.bucket_angles(joints)
-    z_angle = (motion.bucket_angle - angle_true) / motion.bucket_angle_sd
-    assert 0.9 < np.mean(np.abs(z_angle) < 1.96) < 0.985
-    speed_true = np.linalg.norm(np.gradient(tip_true, time, axis=0), axis=-1)
-    assert np.median(np.abs(motion.extra["bucket_tip_speed"] - speed_true)) < 0.02 * np.median(speed_true)
+    pixels[:, HIDDEN][:, :, bucket] = np.nan
+    return time, joints, reconstruct_motion(machine, cameras, np.arange(len(time)), time, pixels).motion
+
+
+HIDDEN = slice(300, 330)  # one second
+
+
+def test_bucket_occlusion_filled_with_honest_uncertainty(machine):
+    """The gap is filled within 10 cm and its SD covers the error; over three sessions the 95 %
+    intervals of the joints and the bucket angle cover 90-98 % of the truth (the smoothed
+    errors are correlated in time, so one 20 s session alone is too few samples)."""
+    z_joints, z_angles = [], []
+    for seed in (3, 4, 5):
+        time, joints, motion = _occluded_dig(machine, seed)
+        tip_true = machine.points(joints)[:, 0]
+        error = np.linalg.norm(motion.points[:, 0] - tip_true, axis=-1)
+        assert motion.extra["filled"][HIDDEN].all() and motion.extra["filled"].sum() == 30
+        assert error[HIDDEN].max() < 0.10
+        assert (error[HIDDEN] < 2.0 * motion.points_sd[HIDDEN, 0]).all()  # the 3-D SD covers the gap
+        z_joints.append((motion.joints - joints) / motion.joints_sd)
+        z_angles.append((motion.bucket_angle - machine.bucket_angles(joints)) / motion.bucket_angle_sd)
+        speed_true = np.linalg.norm(np.gradient(tip_true, time, axis=0), axis=-1)
+        assert np.median(np.abs(motion.extra["bucket_tip_speed"] - speed_true)) < 0.02 * np.median(speed_true)
+    assert 0.9 < np.mean(np.abs(np.concatenate(z_joints)) < 1.96) < 0.98
+    assert 0.9 < np.mean(np.abs(np.concatenate(z_angles)) < 1.96) < 0.98
 
 
 def test_cli_fit(tmp_path, machine, capsys):
