@@ -115,7 +115,11 @@ def test_fit_recovers_joints_from_noisy_pixels():
     noise = 0.3
     pixels = model.pixels(joints) + rng.normal(0, noise, (5, len(model.machine.marker_names), 2))
     fitted, residual = model.fit(pixels, joints + np.radians(4), iterations=10)
-    assert np.max(np.abs(np.degrees(fitted - joints))) < 0.5
+    # the joints' standard deviations from the pixel noise: noise * sqrt(diag((J^T J)^-1))
+    _, jac = model._residuals(joints, np.zeros_like(pixels), model.camera.cam_from_world.rotation)
+    information = np.einsum("fmaj,fmak->fjk", jac, jac)
+    sd = noise * np.sqrt(np.diagonal(np.linalg.inv(information), axis1=1, axis2=2))
+    assert np.all(np.abs(fitted - joints) < 4 * sd)
     assert np.sqrt(np.nanmean(residual**2)) < 2 * noise
 
 
@@ -219,3 +223,16 @@ def test_cli_errors_are_one_line(session, capsys, tmp_path):
     assert main(args) == 2
     assert "video file not found" in capsys.readouterr().err
     assert not (tmp_path / "t.csv").exists()
+
+
+def test_marker_jacobian_matches_the_machine_and_finite_differences():
+    _, _, _, model, joints = make_scene(n_frames=3, clutter=0, seed=6)
+    markers, jac = model._markers_with_jacobian(joints)
+    want_markers, want_jac = model.machine.markers_with_jacobian(joints)
+    assert np.allclose(markers, want_markers) and np.allclose(jac, want_jac)
+    step = 1e-6
+    for j in range(model.machine.n_joints):
+        moved = joints.copy()
+        moved[:, j] += step
+        numeric = (model.machine.markers(moved) - markers) / step
+        assert np.allclose(jac[..., j], numeric, atol=1e-4)

@@ -48,7 +48,7 @@ class TrackOptions:
     tight_px: float = 2.5
     outlier_px: float = 3.0
     regain_px_per_frame: float = 3.0
-    regain_max_px: float = 80.0
+    regain_max_px: float = 60.0
     min_markers: int = 5
     lost_frames: int = 15
     occlusion: bool = True
@@ -217,6 +217,8 @@ class Tracker:
         near = np.linalg.norm(found.xy[None] - uv[seeds, None], axis=-1) if len(found) else np.zeros((len(seeds), 0))
         close = 0.5 * np.maximum(self.state.radius[seeds], 2.0)
         missing = seeds[~np.any(near < close[:, None] + self.options.tight_px, axis=1)]
+        missed = self.state.missed[missing]
+        missing = missing[(missed <= 3) | (missed % 4 == 0)]  # long-missed: every 4th frame
         if len(missing) == 0:
             return found
         height, width = gray.shape
@@ -231,7 +233,8 @@ class Tracker:
             block = int(2 * np.ceil(3.0 * r) + 1)
             options = replace(self.options.detect, block=max(block, 7))
             xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
-            near = np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r
+            size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
+            near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
             shapes.append(shape[near])
         if not xys:
