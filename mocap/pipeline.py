@@ -79,11 +79,13 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
     if len(cameras) > 1:
         commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
         commands.append(("triangulate", ["triangulate", calibration, *tracks, "--out", str(session.points_path)]))
+    final = calibration
     if options.refine:
-        commands.append(("refine", ["refine", machine, calibration, *tracks, "--out", calibration]))
-    commands.append(("fit", ["fit", machine, calibration, *tracks, "--out", str(session.motion_path)]))
+        final = str(session.refined_calibration_path)
+        commands.append(("refine", ["refine", machine, calibration, *tracks, "--out", final]))
+    commands.append(("fit", ["fit", machine, final, *tracks, "--out", str(session.motion_path)]))
     if options.view:
-        commands.append(("view", ["view", str(session.root)]))
+        commands.append(("view", ["view", str(session.root), "--calibration", final]))
     return commands
 
 

@@ -52,6 +52,10 @@ class Session:
         return self.root / "calibration" / "cameras.toml"
 
     @property
+    def refined_calibration_path(self) -> Path:
+        return self.root / "calibration" / "refined.toml"
+
+    @property
     def reference_points_path(self) -> Path:
         return self.root / "calibration" / "reference_points.csv"
 
