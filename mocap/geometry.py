@@ -58,15 +58,6 @@ def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_rotvec()
 
 
-def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotation about the unit vector `axis` (3,) by `angle` (*) rad -> (*, 3, 3)."""
-    angle = np.asarray(angle, dtype=float)
-    x, y, z = np.asarray(axis, dtype=float)
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)  # Rodrigues' formula
-
-
 def rotation_angle_between(a_from_b: np.ndarray, a_from_c: np.ndarray) -> np.ndarray:
     """Angle (rad) of the rotation that takes one orientation to the other; (*, 3, 3) each."""
     rel = np.swapaxes(a_from_b, -1, -2) @ a_from_c

@@ -3,7 +3,6 @@ import pytest
 
 from mocap.geometry import (
     Rigid,
-    axis_angle_matrix,
     matrix_to_rpy,
     rot_x,
     rot_y,
@@ -27,14 +26,6 @@ def test_elementary_rotations_follow_the_right_hand_rule():
     assert np.allclose(rot_z(np.pi / 2) @ [1, 0, 0], [0, 1, 0])
     assert np.allclose(rot_x(np.pi / 2) @ [0, 1, 0], [0, 0, 1])
     assert np.allclose(rot_y(np.pi / 2) @ [0, 0, 1], [1, 0, 0])
-
-
-def test_axis_angle_matches_rotation_vectors():
-    rng = np.random.default_rng(1)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angles = rng.uniform(-3, 3, 7)
-    assert np.allclose(axis_angle_matrix(axis, angles), rotvec_to_matrix(angles[:, None] * axis))
 
 
 def test_rigid_composition_and_inverse():
