@@ -2,14 +2,17 @@
 ArUco / AprilTag markers.
 
 Disks are found in two steps. Candidates are the connected dark regions of an adaptive
-threshold (darker than their neighbourhood's mean), kept when their area is in range.
-Each candidate is then refined, all candidates at once on a stack of patches: the centre is
-the darkness-weighted centroid ``sum(w x) / sum(w)`` with ``w = max(background - I, 0)``
-inside an elliptical window a little larger than the disk, the background level being the
-median of an elliptical ring around it (on the white square); the ellipse (semi-axes,
-angle) comes from the weighted second moments (a uniform ellipse of semi-axes a, b has
-moments a^2/4, b^2/4). The tests: contrast between the ring and the disk, a filled
-ellipse (dark area / ellipse area), a uniform bright ring, a size in range.
+threshold (darker than their neighbourhood's mean), kept when their area and shape are in
+range, each with the ellipse of its region's moments. Each candidate is then refined, all
+candidates of a size together on a stack of patches: the centre is the centroid of the
+darkness ``w = clip((white - I) / (white - black), 0, 1)`` inside an elliptical window a
+little larger than the disk, "white" being the bright end (85th percentile) of an
+elliptical ring around it on the white square and "black" the median of the disk's
+middle; the ellipse (semi-axes, angle) comes from the weighted second moments (a uniform
+ellipse of semi-axes a, b has moments a²/4, b²/4), and window and ring follow it. Under
+motion blur the darkness centroid is the disk's mean place over the exposure. The tests:
+contrast, a filled ellipse (dark area / ellipse area), a white ring that nothing darker
+cuts (a partly covered marker is refused), size and elongation in range.
 
 A disk's projected centre is not the centre of its image ellipse under perspective; where
 the disk's plane is known, `disk_centre_from_ellipse` gives the exact image of the centre
@@ -93,13 +96,6 @@ class Detections:
 
 
 _FIELDS = ("xy", "axes", "angle", "contrast", "fill", "score")
-
-# After a first pass with weights proportional to darkness, a pixel's weight is its
-# darkness (0 on the white, 1 on the black) mapped through a ramp of this slope about one
-# half, clipped to [0, 1]: the centroid of the area darker than half the contrast. A
-# blurred edge is symmetric about its half level, so its place is kept, while the noise of
-# the white and the black and a fainter trail left by motion (less than half dark) drop out.
-HALF_LEVEL_SLOPE = 3.0
 
 
 def concatenate(parts: list[Detections]) -> Detections:
@@ -222,9 +218,9 @@ def _refine_group(
             background = _masked_quantiles(patch, ring, [0.85])[0]
             foreground = _masked_quantiles(patch, rho2 < 0.25, [0.5])[0]
         contrast = np.maximum(background - foreground, 1.0)[:, None, None]
-        cover = (background[:, None, None] - patch) / contrast  # 0 on white, 1 on black
-        if iteration > 0:  # the half-contrast area: each disk edge where it is half dark
-            cover = 0.5 + HALF_LEVEL_SLOPE * (cover - 0.5)
+        # darkness 0 on the white, 1 on the black: its centroid is the disk's, and under
+        # motion blur the disk's mean place over the exposure
+        cover = (background[:, None, None] - patch) / contrast
         darkness = np.where(window, np.clip(cover, 0.0, 1.0), 0.0)
         mass = darkness.sum(axis=(1, 2))
         safe = np.where(mass > 0, mass, 1.0)

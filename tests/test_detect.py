@@ -165,7 +165,7 @@ def test_detections_follow_blur_and_noise_bounds():
     assert false == 0
     assert np.all(error < 0.3) and np.median(error) < 0.1
     # blur 2 px lowers the small disks' contrast and widens their moments ellipse
-    assert np.all(found.fill > 0.9) and np.all(found.contrast > 80)
+    assert np.all(found.fill > 0.7) and np.all(found.contrast > 80)
 
 
 def test_refine_converges_from_a_few_pixels_off():
