@@ -236,3 +236,25 @@ def test_marker_jacobian_matches_the_machine_and_finite_differences():
         moved[:, j] += step
         numeric = (model.machine.markers(moved) - markers) / step
         assert np.allclose(jac[..., j], numeric, atol=1e-4)
+
+
+def test_rendered_session_is_tracked_against_its_truth():
+    from mocap.synthetic.render import CameraRenderer, RenderOptions
+    from mocap.synthetic.session import make_session
+
+    machine = load_machine("hitachi_ex3500")
+    session = make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1, size=(960, 540), seed=3)
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(0))
+    frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)) for f, image in renderer.frames(np.arange(70, 130))]
+    camera = session.cameras[0].camera
+    model = CameraModel(machine, camera)
+    start = session.calibration.joints(machine)  # the joints at the calibration frame 0
+    tracks, summary = track_frames(model, frames, start, fps=session.cameras[0].fps)
+    truth = session.tracks.select((session.tracks.frame >= 70) & (session.tracks.frame < 130))
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), np.inf)) for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
+    assert summary.fitted == len(frames)
+    assert np.all(error < 2.0)  # no wrong labels
+    assert len(tracks) >= 0.98 * len(truth)
+    # half-size pictures (not encoded) with motion blur, dust and noise 2.5 grey levels
+    assert np.median(error) < 0.12 and np.percentile(error, 95) < 0.4
