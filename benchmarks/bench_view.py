@@ -101,6 +101,7 @@ def naive_replay(replay: Replay, path: Path) -> None:
     record.log_world(rec, machine)
     record.log_cameras(rec, calibration, frustum_depth(calibration))
     series = scene.link_series(machine, motion)
+    quaternion = series.quaternions()
     markers = scene.model_markers(machine, series)
     tip = motion.point("bucket_tip")
     scale, _ = scene.joint_display_units(machine)
@@ -125,7 +126,7 @@ def naive_replay(replay: Replay, path: Path) -> None:
         rec.set_time("frame", sequence=int(frame))
         rec.set_time("time", duration=float(motion.time[r]))
         for i, link in enumerate(machine.link_names):
-            rec.log(record.link_path(link), rr.Transform3D(translation=series.translation[r, i], quaternion=series.quaternion[r, i]))
+            rec.log(record.link_path(link), rr.Transform3D(translation=series.translation[r, i], quaternion=quaternion[r, i]))
         rec.log("world/markers/model", rr.Points3D(markers[r], class_ids=np.arange(len(machine.marker_names))))
         if frame in point_rows:
             rec.log("world/markers/observed", rr.Points3D(point_rows[frame][0], class_ids=point_rows[frame][1]))

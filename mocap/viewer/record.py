@@ -78,7 +78,7 @@ def log_world(rec: rr.RecordingStream, machine: Machine) -> None:
 def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion, series: scene.LinkSeries) -> None:
     """Each link as a solid box in its own frame, moved by world_from_link per frame."""
     boxes = link_boxes(machine)  # (L, 2, 3) min and max corners in the link frame
-    quaternion = series.quaternion
+    quaternion = series.quaternions()
     times = time_columns(motion.frame[series.rows], motion.time[series.rows])
     for i, name in enumerate(machine.link_names):
         path = link_path(name)

@@ -42,9 +42,8 @@ class LinkSeries:
         if self.rotation.shape != self.translation.shape + (3,):
             raise ValueError(f"LinkSeries.rotation: expected ({r}, L, 3, 3), got {self.rotation.shape}")
 
-    @property
-    def quaternion(self) -> np.ndarray:
-        """(R, L, 4) scalar-last (x, y, z, w), the order scipy and Rerun both use."""
+    def quaternions(self) -> np.ndarray:
+        """The rotations as quaternions (R, L, 4), scalar last (x, y, z, w) as scipy and Rerun use."""
         n_rows, n_links = self.translation.shape[:2]
         return Rotation.from_matrix(self.rotation.reshape(-1, 3, 3)).as_quat().reshape(n_rows, n_links, 4)
 
