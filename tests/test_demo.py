@@ -1,0 +1,31 @@
+"""The whole chain end to end on a small rendered session, as `mocap demo` runs it, scored
+against the ground truth."""
+
+import numpy as np
+
+from mocap.cli import main
+from mocap.evaluate import score_session
+from mocap.io.cameras_toml import load_calibration
+
+
+def test_demo_chain_reaches_the_truth(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--cameras", "2", "--scale", "0.3", "--seed", "5"]) == 0
+    printed = capsys.readouterr().out
+    assert "how close it came to the ground truth" in printed and "bucket tip RMSE" in printed
+    for name in ("calibration/cameras.toml", "results/points.csv", "results/motion.csv", "results/session.rrd"):
+        assert (out / name).stat().st_size > 0
+    score = score_session(out)
+    calibration = load_calibration(out / "calibration" / "cameras.toml")
+    for camera, fitted in zip(score.cameras, calibration.cameras):
+        # one frame, 0.5 px clicking noise, cameras 30-80 m away at 576x324: the calibration
+        # places each camera within a few of its own standard deviations (about 0.5 m)
+        position_sd = np.linalg.norm(calibration.extras[calibration.names.index(camera.name)]["paper"]["sd"]["position"])
+        assert camera.centre_m < 5 * position_sd + 0.05
+        assert abs(camera.offset_frames) < 0.5  # sync to half a frame
+        assert camera.labelled_pct > 85 and camera.wrong_pct < 1.0
+        assert camera.centre_median_px < 0.3
+    assert score.frames_fitted_pct > 99
+    # the tip is 15-20 m from the base: a camera error of decimetres moves it by centimetres
+    assert score.tip_rmse_m < 0.15
+    assert score.bucket_angle_rmse_deg < 1.0
