@@ -39,13 +39,18 @@ def decode_floor(path: Path) -> tuple[float, int]:
 
 
 def score(truth, tracks):
-    """Labelled fraction of the visible markers, wrong-label fraction, centre errors (px)."""
+    """Labelled fraction of the visible markers, wrong-label fraction (the detection lies
+    nearer another visible marker's true centre than its own, or 5 px or more from it),
+    centre errors (px) of the right labels."""
     true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    by_frame = {int(f): (truth.xy[truth.frame == f], truth.marker[truth.frame == f]) for f in np.unique(truth.frame)}
     errors, wrong = [], 0
     for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy):
-        t = true_xy.get((int(f), m))
-        e = np.inf if t is None else float(np.linalg.norm(xy - t))
-        if e > 2.0:
+        own = true_xy.get((int(f), m))
+        e = np.inf if own is None else float(np.linalg.norm(xy - own))
+        others, names = by_frame.get(int(f), (np.full((1, 2), np.inf), np.array([m])))
+        other = np.linalg.norm(others[names != m] - xy, axis=1)
+        if e >= 5.0 or (len(other) and other.min() < e):
             wrong += 1
         else:
             errors.append(e)

@@ -57,6 +57,20 @@ class CameraModel:
         moved = self.machine.moves[:, self.machine.marker_links[np.asarray(markers, dtype=int)]]
         return np.any(moved, axis=1)
 
+    def supported(self, new: np.ndarray, held: np.ndarray) -> np.ndarray:
+        """(K,) bool over marker indices `new`: a new marker on a link whose own joint no
+        `held` marker shows is kept only with another new marker on that joint's links (one
+        marker alone fits any blob along its arc)."""
+        new = np.asarray(new, dtype=int)
+        moves = self.machine.moves[:, self.machine.marker_links]  # (J, M)
+        known = np.any(moves[:, np.asarray(held, dtype=int)], axis=1)  # (J,)
+        # the innermost joint moving each marker: the last joint (in chain order) that moves it
+        innermost = np.array([np.nonzero(moves[:, m])[0].max() if moves[:, m].any() else -1 for m in new], dtype=int)
+        ok = (innermost < 0) | known[np.maximum(innermost, 0)]
+        for j in np.unique(innermost[~ok]):
+            ok |= (innermost == j) & (np.sum(innermost == j) >= 2)
+        return ok
+
     def normals_cam(self, joints: np.ndarray) -> np.ndarray:
         """Marker disk normals (F, M, 3) in the camera frame."""
         poses = self.machine.link_poses(np.atleast_2d(joints))[:, self.machine.marker_links, :3, :3]

@@ -90,12 +90,14 @@ def track_frames(
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
-            if (lost or tracker.missing() >= 2) and searched >= options.lost_frames:
+            if (lost or tracker.needs_search()) and searched >= options.lost_frames:
                 searched = 0
                 again = propose_labels(
                     model, detect_disks(gray, options.detect), starts_around(model, result.joints),
                     min_markers=options.min_markers,
                 )
+                if again is not None and not lost:
+                    again = _supported(model, again, result.markers)
                 if again is not None and (lost or len(again.markers) > len(result.markers)):
                     tracker.restart(again)
                     result = again
@@ -106,6 +108,14 @@ def track_frames(
             rows.append(frame_rows(model.camera.name, index, fps, names, result))
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
+
+
+def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> FrameResult:
+    """`result` without the new markers the tracked ones do not support (`CameraModel.supported`)."""
+    new = ~np.isin(result.markers, held)
+    keep = ~new
+    keep[new] = model.supported(result.markers[new], held)
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
 
 
 def _concatenate(rows: list[Tracks]) -> Tracks:

@@ -83,6 +83,7 @@ class TrackState:
     shape: np.ndarray  # (M, 2, 2) each marker's last image ellipse (semi-axis matrix, px²)
     missed: np.ndarray  # (M,) int, frames since each marker was last labelled
     visible: np.ndarray  # (M,) bool, the markers the model showed in the last frame
+    unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
     lost: int = 0  # frames since the last fit
 
     @property
@@ -103,7 +104,8 @@ class Tracker:
         shape[start.markers] = start.detections.shape
         missed = np.full(n_markers, 1000)
         missed[start.markers] = 0
-        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed, self._visible(start.joints))
+        unseen = np.where(model.observed_joints(start.markers), 0, 1000)
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed, self._visible(start.joints), unseen)
 
     def step(self, gray: np.ndarray) -> FrameResult:
         options, state, model = self.options, self.state, self.model
@@ -144,6 +146,8 @@ class Tracker:
                 back_uv = model.pixels(joints[None])[0]
                 free = np.where(taken[:, None], np.inf, found.xy)
                 back, back_index = assign(back_uv, free, np.maximum(g * reach, options.tight_px), returning, found.radius, state.radius)
+                keep_back = model.supported(back, held)
+                back, back_index = back[keep_back], back_index[keep_back]
                 if len(back) == 0:
                     break
                 trial = observed.copy()
@@ -166,6 +170,7 @@ class Tracker:
         seen_joints = model.observed_joints(markers)
         # a joint no marker shows keeps its value: it does not drift on its last velocity
         state.previous = np.where(seen_joints, state.joints, joints)
+        state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         state.joints, state.lost = joints, 0
         state.shape[markers] = found.shape[index]
         state.missed += 1
@@ -177,10 +182,12 @@ class Tracker:
     def lost(self) -> int:
         return self.state.lost
 
-    def missing(self) -> int:
-        """How many markers the model showed in the last frame have not been labelled for
-        `lost_frames` frames or more (a link that came back too far from its prediction)."""
-        return int(np.sum(self.state.visible & (self.state.missed >= self.options.lost_frames)))
+    def needs_search(self) -> bool:
+        """Whether a full-frame search could help: two or more markers the model shows have
+        not been labelled for `lost_frames` frames, or a joint has not been seen that long
+        (its link may have come back far from where it was left, or out of the model's view)."""
+        stale = self.state.visible & (self.state.missed >= self.options.lost_frames)
+        return bool(np.sum(stale) >= 2 or np.any(self.state.unseen >= self.options.lost_frames))
 
     def restart(self, start: FrameResult) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss)."""
@@ -188,6 +195,7 @@ class Tracker:
         self.state.previous = start.joints.copy()
         self.state.lost = 0
         self.state.missed[start.markers] = 0
+        self.state.unseen[self.model.observed_joints(start.markers)] = 0
         self.state.shape[start.markers] = start.detections.shape
 
     def _visible(self, joints: np.ndarray) -> np.ndarray:
@@ -206,6 +214,7 @@ class Tracker:
         state.lost += 1
         state.missed += 1
         state.missed[markers] = 0
+        state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray) -> Detections:
