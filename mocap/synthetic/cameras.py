@@ -70,14 +70,17 @@ def place_cameras(
     """`n` cameras around the machine.
 
     working_points (N, 3) world points the cameras must see (the links over the session);
-    `avoid_azimuths` (rad) directions of the pile and the truck, kept clear by 55°; the
-    recordings cover the session's `duration` s on the reference clock.
+    `avoid_azimuths` (rad) directions of the pile and the truck, kept clear by 55°, the
+    first (the pile) also behind the machine by 50°: a crew films the digging from the front
+    and the sides, where the bucket shows; the recordings cover the session's `duration` s
+    on the reference clock.
     """
     scale = reach / 15.5
     free = np.radians(np.arange(-180, 180, 2.0))
-    for azimuth in avoid_azimuths:
+    keep_clear = [(a, 55.0) for a in avoid_azimuths] + [(avoid_azimuths[0] + np.pi, 50.0)]
+    for azimuth, clearance in keep_clear:
         gap = np.abs((free - azimuth + np.pi) % (2 * np.pi) - np.pi)
-        free = free[gap > np.radians(55.0)]
+        free = free[gap > np.radians(clearance)]
     start = rng.integers(len(free))
     picks = free[(start + np.round(np.arange(n) * len(free) / n).astype(int)) % len(free)]
     centre = 0.5 * (working_points.min(axis=0) + working_points.max(axis=0))
