@@ -16,7 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
-from mocap.geometry import axis_angle_matrix, rpy_to_matrix
+from mocap.geometry import rpy_to_matrix
 
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
@@ -233,9 +233,14 @@ def _frames(joints: np.ndarray, n_joints: int) -> np.ndarray:
     return joints
 
 
+_CHUNK = 4096  # frames at a time, so that long sessions make no (F, N, 4, 4) array
+
+
 def _points_on_links(poses: np.ndarray, links: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """Points fixed in links: poses (F, L, 4, 4), links (N,), positions (N, 3) -> (F, N, 3)."""
+    if poses.shape[0] > _CHUNK:
+        return np.concatenate(
+            [_points_on_links(poses[k : k + _CHUNK], links, positions) for k in range(0, poses.shape[0], _CHUNK)]
+        )
     on_links = poses[:, links]  # (F, N, 4, 4)
-    rot = on_links[..., :3, :3]
-    trans = on_links[..., :3, 3]
-    return np.einsum("fnij,nj->fni", rot, positions) + trans
+    return np.einsum("fnij,nj->fni", on_links[..., :3, :3], positions) + on_links[..., :3, 3]
