@@ -10,17 +10,17 @@ under ``[metadata]``.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from mocap.io import toml_writer
 
 from mocap.camera import Camera
 from mocap.errors import InputError
 from mocap.geometry import Rigid, matrix_to_rotvec, rotvec_to_matrix
+from mocap.io import toml_writer
 from mocap.io.atomic import write_text
+from mocap.io.text import read_toml
 from mocap.machine import REVOLUTE, Machine
 
 _CAMERA_KEYS = {"name", "size", "matrix", "distortions", "rotation", "translation"}
@@ -101,12 +101,7 @@ def joints_from_table(table: dict, machine: Machine) -> np.ndarray:
 
 def load_calibration(path: str | Path) -> Calibration:
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found; check the calibration path", path=path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    data = read_toml(path, "the calibration path")
     cameras, extras = [], []
     for key, table in data.items():
         if key == "metadata":

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ from mocap.calibration.solve import Guess
 from mocap.camera import PaperCamera
 from mocap.errors import InputError
 from mocap.io.cameras_toml import joints_from_table
+from mocap.io.text import read_toml
 from mocap.machine import Machine
 
 _KEYS = {"azimuth_deg", "elevation_deg", "tilt_deg", "position", "focal_px"}
@@ -29,12 +29,7 @@ _KEYS = {"azimuth_deg", "elevation_deg", "tilt_deg", "position", "focal_px"}
 
 def load_guess(path: str | Path, machine: Machine) -> Guess:
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found; check the --guess path", path=path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    data = read_toml(path, "the --guess path")
     cameras = {}
     for name, table in data.items():
         if name == "joints":

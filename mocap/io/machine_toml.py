@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 
 import numpy as np
-from mocap.io import toml_writer
 
 from mocap.errors import InputError
+from mocap.io import toml_writer
 from mocap.io.atomic import write_text
+from mocap.io.text import read_toml
 from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine
 
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
@@ -39,12 +39,7 @@ def resolve_machine_path(name_or_path: str) -> Path:
 def load_machine(name_or_path: str | Path) -> Machine:
     """Read and validate a machine model; raises InputError naming the file and entry."""
     path = resolve_machine_path(str(name_or_path))
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found; check the machine model path", path=path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    data = read_toml(path, "the machine model path")
     return machine_from_dict(data, path)
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
+from mocap.io.text import read_text
 from mocap.machine import REVOLUTE, Machine
 
 
@@ -109,10 +110,7 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
 def load_motion(path: str | Path, machine: Machine) -> Motion:
     """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found; check the motion path", path=path) from None
+    text = read_text(path, "the motion path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     joint_cols = list(machine.joint_names)

@@ -15,6 +15,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
+from mocap.io.text import read_text
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
 
@@ -60,10 +61,7 @@ def save_points(points: Points, path: str | Path) -> None:
 
 def load_points(path: str | Path) -> Points:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found; check the points path", path=path) from None
+    text = read_text(path, "the points path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in ("frame", "marker", "x", "y", "z") if c not in header]

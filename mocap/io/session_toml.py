@@ -10,14 +10,13 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mocap.io import toml_writer
-
 from mocap.errors import InputError
+from mocap.io import toml_writer
 from mocap.io.atomic import write_text
+from mocap.io.text import read_toml
 
 _TOP_KEYS = {"machine", "cameras", "options"}
 _CAMERA_KEYS = {"name", "video", "fps"}
@@ -39,12 +38,7 @@ class SessionConfig:
 
 def load_session_config(path: str | Path) -> SessionConfig:
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("file not found; is this a session folder?", path=path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    data = read_toml(path, "that this is a session folder")
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise InputError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}", path=path)

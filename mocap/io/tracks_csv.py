@@ -15,6 +15,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
+from mocap.io.text import read_text
 
 REQUIRED = ("camera", "frame", "marker", "x", "y")
 OPTIONAL = ("time", "score")
@@ -104,12 +105,7 @@ def load_tracks(paths) -> Tracks:
 
 
 def _load_one(path: Path) -> Tracks:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found; check the tracks path", path=path) from None
-    except UnicodeDecodeError:
-        raise InputError("not a text CSV file", path=path) from None
+    text = read_text(path, "the tracks path")
     reader = csv.reader(io.StringIO(text))
     header = next(reader, None)
     if header is None:
