@@ -255,7 +255,9 @@ def test_rendered_session_is_tracked_against_its_truth():
     error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), np.inf)) for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
     assert summary.fitted == len(frames)
     assert np.all(error < 2.0)  # no wrong labels
-    # every marker is labelled but those seen at a grazing angle (disks under ~1.5 px wide here)
+    # every marker is labelled but those seen at a grazing angle: a 0.3 m disk whose image is
+    # under 3.5 px across its narrow axis (at half size) leaves too thin a white ring for the
+    # detector's contrast and ring tests, and is missed
     joints = session.motion.joints[truth.frame]  # one camera: its frames are the reference's
     poses = machine.link_poses(joints)[:, machine.marker_links][np.arange(len(truth)), machine.marker_index(truth.marker)]
     world = np.einsum("nij,nj->ni", poses[:, :3, :3], machine.marker_positions[machine.marker_index(truth.marker)]) + poses[:, :3, 3]
@@ -264,7 +266,9 @@ def test_rendered_session_is_tracked_against_its_truth():
     facing = np.einsum("ni,ni->n", normal, to_camera) / np.linalg.norm(to_camera, axis=1)
     labelled = set(zip(tracks.frame.tolist(), tracks.marker.tolist()))
     found = np.array([(int(f), m) in labelled for f, m in zip(truth.frame, truth.marker)])
-    assert np.mean(found[facing > 0.3]) >= 0.98
+    depth = camera.cam_from_world.apply(world)[:, 2]
+    narrow_px = camera.focal * 0.3 * facing / depth
+    assert np.mean(found[narrow_px >= 3.5]) >= 0.98
     # half-size pictures (not encoded) with motion blur, dust and noise 2.5 grey levels
     assert np.median(error) < 0.12 and np.percentile(error, 95) < 0.4
 
