@@ -101,7 +101,7 @@ def joints_from_table(table: dict, machine: Machine) -> np.ndarray:
 
 def load_calibration(path: str | Path) -> Calibration:
     path = Path(path)
-    data = read_toml(path, "the calibration path")
+    data = read_toml(path, "check the calibration path")
     cameras, extras = [], []
     for key, table in data.items():
         if key == "metadata":

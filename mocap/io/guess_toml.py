@@ -29,7 +29,7 @@ _KEYS = {"azimuth_deg", "elevation_deg", "tilt_deg", "position", "focal_px"}
 
 def load_guess(path: str | Path, machine: Machine) -> Guess:
     path = Path(path)
-    data = read_toml(path, "the --guess path")
+    data = read_toml(path, "check the --guess path")
     cameras = {}
     for name, table in data.items():
         if name == "joints":

@@ -39,7 +39,7 @@ def resolve_machine_path(name_or_path: str) -> Path:
 def load_machine(name_or_path: str | Path) -> Machine:
     """Read and validate a machine model; raises InputError naming the file and entry."""
     path = resolve_machine_path(str(name_or_path))
-    data = read_toml(path, "the machine model path")
+    data = read_toml(path, "check the machine model path")
     return machine_from_dict(data, path)
 
 

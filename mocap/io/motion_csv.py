@@ -110,7 +110,7 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
 def load_motion(path: str | Path, machine: Machine) -> Motion:
     """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
     path = Path(path)
-    text = read_text(path, "the motion path")
+    text = read_text(path, "check the motion path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     joint_cols = list(machine.joint_names)

@@ -61,7 +61,7 @@ def save_points(points: Points, path: str | Path) -> None:
 
 def load_points(path: str | Path) -> Points:
     path = Path(path)
-    text = read_text(path, "the points path")
+    text = read_text(path, "check the points path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in ("frame", "marker", "x", "y", "z") if c not in header]

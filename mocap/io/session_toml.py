@@ -38,7 +38,7 @@ class SessionConfig:
 
 def load_session_config(path: str | Path) -> SessionConfig:
     path = Path(path)
-    data = read_toml(path, "that this is a session folder")
+    data = read_toml(path, "is this a session folder?")
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise InputError(f"unknown key(s) {unknown}; allowed: {sorted(_TOP_KEYS)}", path=path)

@@ -105,7 +105,7 @@ def load_tracks(paths) -> Tracks:
 
 
 def _load_one(path: Path) -> Tracks:
-    text = read_text(path, "the tracks path")
+    text = read_text(path, "check the tracks path")
     reader = csv.reader(io.StringIO(text))
     header = next(reader, None)
     if header is None:

@@ -9,15 +9,15 @@ marker positions at reference frames), cycles.csv and scene.toml (pile, truck, o
 
 from __future__ import annotations
 
-import csv
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from mocap.io import toml_writer
 
-from mocap.io.atomic import atomic_path, write_text
+from mocap.io import toml_writer
+from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.io.cycles_csv import save_cycles
 from mocap.io.machine_toml import MACHINES_DIR
 from mocap.io.motion_csv import Motion, save_motion
 from mocap.io.points_csv import Points, save_points
@@ -208,7 +208,7 @@ def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path 
     save_points(Points(f.ravel(), np.asarray(session.machine.marker_names, dtype=object)[m.ravel()],
                        session.markers.reshape(-1, 3), np.zeros(f.size), session.views.ravel()),
                 truth / "markers.csv")
-    save_cycles(session, truth / "cycles.csv")
+    save_session_cycles(session, truth / "cycles.csv")
     write_text(truth / "scene.toml", toml_writer.dumps(scene_table(session)))
 
 
@@ -225,21 +225,16 @@ def summary(session: SyntheticSession) -> str:
     return "\n".join(lines)
 
 
-CYCLE_COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
-                 "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
-
-
-def save_cycles(session: SyntheticSession, path: Path) -> None:
-    """cycles.csv: one row per dig cycle; frames are the reference camera's."""
+def save_session_cycles(session: SyntheticSession, path: Path) -> None:
+    """truth/cycles.csv: one row per dig cycle; frames are the reference camera's."""
     fps = session.cameras[0].fps
-    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(CYCLE_COLUMNS)
-        for c in session.plan.cycles:
-            times = (c.start, c.end, c.dig_start, c.dig_end)
-            frames = [int(round(t * fps)) for t in times]
-            writer.writerow([c.index, c.label, c.scaling, f"{c.scale[0]:.4f}", f"{c.scale[1]:.4f}", c.redirection,
-                             frames[0], frames[1], frames[2], frames[3], *(f"{t:.4f}" for t in times)])
+    rows = []
+    for c in session.plan.cycles:
+        times = (c.start, c.end, c.dig_start, c.dig_end)
+        frames = [int(round(t * fps)) for t in times]
+        rows.append((c.index, c.label, c.scaling, f"{c.scale[0]:.4f}", f"{c.scale[1]:.4f}", c.redirection,
+                     *frames, *(f"{t:.4f}" for t in times)))
+    save_cycles(rows, path)
 
 
 def scene_table(session: SyntheticSession) -> dict:

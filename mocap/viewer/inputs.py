@@ -21,7 +21,7 @@ from mocap.io.motion_csv import load_motion
 from mocap.io.points_csv import load_points
 from mocap.io.tracks_csv import load_tracks
 from mocap.session import Session
-from mocap.viewer.cycles import load_cycles
+from mocap.io.cycles_csv import load_cycles
 from mocap.viewer.replay import Replay
 
 log = logging.getLogger(__name__)

@@ -26,7 +26,7 @@ from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.viewer import record, scene
 from mocap.viewer.blueprint import default_blueprint
-from mocap.viewer.cycles import Cycles
+from mocap.io.cycles_csv import Cycles
 from mocap.viewer.video import load_video
 
 log = logging.getLogger(__name__)

@@ -1,8 +1,9 @@
-"""Dig cycles for the replay, read from a cycles CSV.
+"""The dig cycles CSV: one row per cycle.
 
-The replay needs each cycle's first and last frame: columns ``start_frame,end_frame``
-(reference-camera frames, inclusive), and optionally ``cycle`` (its number or name). Other
-columns (times, dig start/end, class, scaling) are ignored here.
+Readers need each cycle's first and last frame: columns ``start_frame,end_frame``
+(reference-camera frames, inclusive), and optionally ``cycle`` (its number or name). The
+synthetic truth writes all of `COLUMNS` (class, scaling, dig start and end, times); other
+columns are ignored when reading.
 """
 
 from __future__ import annotations
@@ -15,8 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
+from mocap.io.atomic import atomic_path
+from mocap.io.text import read_text
 
 REQUIRED = ("start_frame", "end_frame")
+COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
+           "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
 
 
 @dataclass(frozen=True)
@@ -48,12 +53,7 @@ class Cycles:
 
 def load_cycles(path: str | Path) -> Cycles:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("file not found; check the cycles path", path=path) from None
-    except UnicodeDecodeError:
-        raise InputError("not a text CSV file", path=path) from None
+    text = read_text(path, "check the cycles path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in REQUIRED if c not in header]
@@ -82,3 +82,11 @@ def load_cycles(path: str | Path) -> Cycles:
         starts.append(start)
         ends.append(end)
     return Cycles(tuple(names), np.array(starts, dtype=np.int64), np.array(ends, dtype=np.int64))
+
+
+def save_cycles(rows: list[tuple], path: str | Path) -> None:
+    """Write rows of `COLUMNS` values (frames of the reference camera, times in seconds)."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(COLUMNS)
+        writer.writerows(rows)
