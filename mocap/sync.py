@@ -28,6 +28,8 @@ from mocap.reconstruct.kinfit import FitOptions, fit_joints
 
 log = logging.getLogger(__name__)
 
+TRUNCATE = 0.3  # scaled joint-value difference beyond which a sample counts as an outlier
+
 
 @dataclass(frozen=True)
 class JointCurves:
@@ -192,7 +194,9 @@ class _Reference:
             values = joints[:, j] / self.scale[j]
             predicted, inside = curve.at(time, self.gap, linear)
             inside &= np.isfinite(values)
-            total += float(np.sum((values[inside] - predicted[inside]) ** 2))
+            # truncated at TRUNCATE: a single camera's fit can land on a mirror solution
+            # (swing seen side-on) for a stretch of frames; those count as a fixed penalty
+            total += float(np.sum(np.minimum((values[inside] - predicted[inside]) ** 2, TRUNCATE**2)))
             count += int(inside.sum())
             frames |= inside
         if frames.sum() < need or count == 0:
