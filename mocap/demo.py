@@ -3,6 +3,7 @@ against its ground truth."""
 
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,8 +48,10 @@ def run_demo(options: DemoOptions) -> int:
 
     start = time.perf_counter()
     out = options.out
-    if out.exists() and any(out.iterdir()) and not (out / "session.toml").exists():
-        raise InputError("exists and is not a session folder; choose another --out", path=out)
+    if out.exists() and any(out.iterdir()):
+        if not ((out / "session.toml").is_file() and (out / "truth").is_dir()):
+            raise InputError("exists and is not a synthetic session folder; choose another --out", path=out)
+        shutil.rmtree(out)  # an earlier demo's folder: made again from scratch
     print(f"== synth: {options.machine}, {options.cameras} cameras, {options.cycles} dig cycle(s), seed {options.seed}")
     code = cli.main([
         "synth", "--machine", options.machine, "--cameras", str(options.cameras), "--cycles", str(options.cycles),
