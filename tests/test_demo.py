@@ -1,5 +1,5 @@
-"""The whole chain end to end on a small rendered session, as `mocap demo` runs it, scored
-against the ground truth."""
+"""The whole chain end to end, as the README's first command runs it (`mocap demo` with its
+defaults: an EX3500 session, three cameras at half of 1920x1080), scored against the truth."""
 
 import numpy as np
 
@@ -10,7 +10,7 @@ from mocap.io.cameras_toml import load_calibration
 
 def test_demo_chain_reaches_the_truth(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--cameras", "2", "--scale", "0.3", "--seed", "5"]) == 0
+    assert main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "how close it came to the ground truth" in printed and "bucket tip RMSE" in printed
     for name in ("calibration/cameras.toml", "results/points.csv", "results/motion.csv", "results/session.rrd"):
@@ -23,7 +23,9 @@ def test_demo_chain_reaches_the_truth(tmp_path, capsys):
         position_sd = np.linalg.norm(calibration.extras[calibration.names.index(camera.name)]["paper"]["sd"]["position"])
         assert camera.centre_m < 5 * position_sd + 0.05
         assert abs(camera.offset_frames) < 0.5  # sync to half a frame
-        assert camera.labelled_pct > 85 and camera.wrong_pct < 1.0
+        # at 960x540 some disks are only 2-4 px across and those seen obliquely are missed
+        # (tests/test_track.py holds the tracker to 98 % of the resolvable ones); none wrong
+        assert camera.labelled_pct > 80 and camera.wrong_pct < 1.0
         assert camera.centre_median_px < 0.3
     assert score.frames_fitted_pct > 99
     # the tip is 15-20 m from the base: a camera error of decimetres moves it by centimetres
