@@ -17,7 +17,7 @@ from mocap.simulate import random_joints
 from mocap.synthetic import SessionOptions, make_session
 from mocap.synthetic.ik import PlanarChain
 from mocap.synthetic.motion import check_limits, plan_session
-from mocap.synthetic.visibility import marker_normals, segment_hits_box
+from mocap.visibility import marker_normals, segment_hits_box
 from mocap.shapes import link_boxes
 
 MACHINES = ("hitachi_ex3500", "bobcat_225")

@@ -14,7 +14,7 @@ from mocap.synthetic import make_session
 from mocap.synthetic.effects import CameraEffects, EffectOptions
 from mocap.synthetic.encode import frame_rate, video_writer
 from mocap.synthetic.render import BLACK, WHITE, CameraRenderer, RenderOptions, render_videos
-from mocap.synthetic.visibility import segment_hits_box
+from mocap.visibility import segment_hits_box
 
 
 @pytest.fixture(scope="module")

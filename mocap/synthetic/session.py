@@ -28,7 +28,7 @@ from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
-from mocap.synthetic.visibility import marker_normals, visible_markers
+from mocap.visibility import marker_normals, visible_markers
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ import numpy as np
 from mocap.camera import Camera, project_cam
 from mocap.machine import REVOLUTE, Machine
 from mocap.shapes import link_boxes
-from mocap.synthetic.visibility import marker_normals, visible_markers
+from mocap.visibility import marker_normals, visible_markers
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ class CameraModel:
 
     def visible(self, joints: np.ndarray) -> np.ndarray:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
-        box (the painting convention of `mocap.synthetic.visibility`: markers on the faces
+        box (the painting convention of `mocap.visibility`: markers on the faces
         of the links' boxes)."""
         joints = np.atleast_2d(joints)
         poses = self.machine.link_poses(joints)
