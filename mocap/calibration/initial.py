@@ -1,7 +1,8 @@
 """The automatic starting point: no initial guess needed.
 
 1. Each camera that sees at least four markers on the base link is placed by PnP of those
-   markers over a range of focal lengths, then refined (rotation, translation, focal).
+   markers over a grid of focal lengths, then a 1-D search of the focal length around the
+   best (a user's guess is refined on those markers instead).
 2. The joint values follow along the chain: each joint is searched on a grid over its
    limits, keeping a few hypotheses (a beam) scored by the reprojection of every marker on
    the links placed so far, so that an ambiguity at one link is settled by the next. After

@@ -155,7 +155,8 @@ def calibrate(
 
 
 def _start(machine, obs: Observations, templates, group, guess: Guess | None):
-    """Starting cameras (dict by index) and joint values for the cameras in `group`."""
+    """Starting cameras (a list by camera index, None outside `group`) and joint values for
+    the cameras in `group`."""
     cameras: list[Camera | None] = [None] * len(templates)
     base = machine.marker_links[obs.marker] == 0
     if guess is not None and guess.cameras:
