@@ -1,3 +1,9 @@
+import os
+
+# The replay tests stream to a port where no viewer listens, on purpose; keep the Rerun
+# SDK's own connection-retry log lines (printed when the process exits) out of the output.
+os.environ.setdefault("RUST_LOG", "off")
+
 import numpy as np
 import pytest
 
