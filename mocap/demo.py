@@ -61,7 +61,7 @@ def run_demo(options: DemoOptions) -> int:
         return code
     session = Session.open(out)
     digitise_first_frame(session, np.random.default_rng(options.seed))
-    code = run_session(out, RunOptions())
+    code = run_session(out, RunOptions(refine=True))
     if code:
         return code
     print("== how close it came to the ground truth")

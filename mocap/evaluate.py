@@ -19,9 +19,10 @@ MATCH_PX = 2.0  # a tracked marker within this of its true centre is labelled ri
 @dataclass(frozen=True)
 class CameraScore:
     name: str
-    centre_m: float
+    centre_m: float  # calibrated from one frame
     rotation_deg: float
     focal_pct: float
+    refined_centre_m: float  # after the bundle adjustment over the session (NaN if none)
     offset_frames: float
     labelled_pct: float  # of the truly visible marker-frames
     wrong_pct: float  # of the tracked marker-frames
@@ -46,6 +47,8 @@ def score_session(root) -> SessionScore:
     truth_dir = session.truth_dir
     truth_cal = load_calibration(truth_dir / "cameras.toml")
     fitted_cal = load_calibration(session.calibration_path)
+    refined = session.refined_calibration_path
+    refined_cal = load_calibration(refined) if refined.exists() else None
     truth_tracks = load_tracks(truth_dir / "tracks.csv")
     cameras = []
     for k, name in enumerate(truth_cal.names):
@@ -59,6 +62,7 @@ def score_session(root) -> SessionScore:
             float(np.linalg.norm(camera.center - true_camera.center)),
             float(np.degrees(rotation_angle_between(camera.cam_from_world.rotation, true_camera.cam_from_world.rotation))),
             float(100 * abs(camera.focal - true_camera.focal) / true_camera.focal),
+            float(np.linalg.norm(refined_cal.camera(name).center - true_camera.center)) if refined_cal else np.nan,
             float(offset),
             labelled,
             wrong,
@@ -114,10 +118,14 @@ def _wrap(angles: np.ndarray) -> np.ndarray:
 
 
 def format_score(score: SessionScore, machine) -> str:
-    lines = ["camera  centre m  rot deg  focal %  sync frames  labelled %  wrong %  centre px (median / 95th)"]
+    lines = [
+        "         one-frame calibration       refined",
+        "camera  centre m  rot deg  focal %  centre m  sync frames  labelled %  wrong %  centre px (median / 95th)",
+    ]
     for c in score.cameras:
         lines.append(
-            f"{c.name:<7} {c.centre_m:8.3f} {c.rotation_deg:8.3f} {c.focal_pct:8.2f} {c.offset_frames:+12.3f} "
+            f"{c.name:<7} {c.centre_m:8.3f} {c.rotation_deg:8.3f} {c.focal_pct:8.2f} {c.refined_centre_m:9.3f} "
+            f"{c.offset_frames:+12.3f} "
             f"{c.labelled_pct:11.2f} {c.wrong_pct:8.3f}  {c.centre_median_px:.3f} / {c.centre_p95_px:.3f}"
         )
     lines.append(f"joints at the calibration frame: worst error {score.calibration_joints_deg:.3f} deg")

@@ -1,7 +1,7 @@
 """The whole chain on a session folder, stage after stage, as the README's commands run it:
 
     calibrate (from the calibration frame's digitised labels) -> track every camera ->
-    sync -> triangulate -> fit -> view
+    sync -> refine (optional) -> triangulate -> fit -> view
 
 Each stage is the same sub-command a user would type, so `mocap run` and a hand-run session
 give the same files.
@@ -76,13 +76,14 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
         ))
     fps = [f"{c.name}={c.fps}" for c in config.cameras]
     fps_args = [arg for value in fps for arg in ("--fps", value)]
+    final = calibration
     if len(cameras) > 1:
         commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
-        commands.append(("triangulate", ["triangulate", calibration, *tracks, "--out", str(session.points_path)]))
-    final = calibration
     if options.refine:
         final = str(session.refined_calibration_path)
         commands.append(("refine", ["refine", machine, calibration, *tracks, "--out", final]))
+    if len(cameras) > 1:
+        commands.append(("triangulate", ["triangulate", final, *tracks, "--out", str(session.points_path)]))
     commands.append(("fit", ["fit", machine, final, *tracks, "--out", str(session.motion_path)]))
     if options.view:
         commands.append(("view", ["view", str(session.root), "--calibration", final]))

@@ -13,7 +13,8 @@ def test_demo_chain_reaches_the_truth(tmp_path, capsys):
     assert main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "how close it came to the ground truth" in printed and "bucket tip RMSE" in printed
-    for name in ("calibration/cameras.toml", "results/points.csv", "results/motion.csv", "results/session.rrd"):
+    for name in ("calibration/cameras.toml", "calibration/refined.toml", "results/points.csv",
+                 "results/motion.csv", "results/session.rrd"):
         assert (out / name).stat().st_size > 0
     score = score_session(out)
     calibration = load_calibration(out / "calibration" / "cameras.toml")
@@ -22,6 +23,7 @@ def test_demo_chain_reaches_the_truth(tmp_path, capsys):
         # places each camera within a few of its own standard deviations (about 0.5 m)
         position_sd = np.linalg.norm(calibration.extras[calibration.names.index(camera.name)]["paper"]["sd"]["position"])
         assert camera.centre_m < 5 * position_sd + 0.05
+        assert camera.refined_centre_m < 1.0  # 120 frames of the session: decimetres at most
         assert abs(camera.offset_frames) < 0.5  # sync to half a frame
         # at 960x540 some disks are only 2-4 px across and those seen obliquely are missed
         # (tests/test_track.py holds the tracker to 98 % of the resolvable ones); none wrong
