@@ -185,7 +185,6 @@ def refine(
 def _refine_group(
     gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, size: np.ndarray, iterations: int
 ) -> tuple[Detections, np.ndarray]:
-    n = len(xy)
     half = int(np.ceil(np.max(np.maximum(size, 1.0)) * 2.0 + 4))
     offsets = np.arange(-half, half + 1)
     height, width = gray.shape

@@ -8,7 +8,6 @@ from mocap.geometry import (
     rot_y,
     rot_z,
     rotation_angle_between,
-    rotvec_to_matrix,
     rpy_to_matrix,
 )
 
