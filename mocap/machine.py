@@ -16,7 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
-from mocap.geometry import rpy_to_matrix
+from mocap.geometry import cross, rpy_to_matrix
 
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
@@ -203,7 +203,7 @@ class Machine:
             axis_world = poses[:, link, :3, :3] @ joint.axis  # (F, 3)
             if joint.type == REVOLUTE:
                 lever = markers - poses[:, link, None, :3, 3]
-                d = np.cross(axis_world[:, None, :], lever)
+                d = cross(axis_world[:, None, :], lever)
             else:
                 d = np.broadcast_to(axis_world[:, None, :], markers.shape)
             jac[..., j] = np.where(moves[j][None, :, None], d, 0.0)

@@ -225,19 +225,6 @@ def test_cli_errors_are_one_line(session, capsys, tmp_path):
     assert not (tmp_path / "t.csv").exists()
 
 
-def test_marker_jacobian_matches_the_machine_and_finite_differences():
-    _, _, _, model, joints = make_scene(n_frames=3, clutter=0, seed=6)
-    markers, jac = model._markers_with_jacobian(joints)
-    want_markers, want_jac = model.machine.markers_with_jacobian(joints)
-    assert np.allclose(markers, want_markers) and np.allclose(jac, want_jac)
-    step = 1e-6
-    for j in range(model.machine.n_joints):
-        moved = joints.copy()
-        moved[:, j] += step
-        numeric = (model.machine.markers(moved) - markers) / step
-        assert np.allclose(jac[..., j], numeric, atol=1e-4)
-
-
 def test_rendered_session_is_tracked_against_its_truth():
     from mocap.synthetic.render import CameraRenderer, RenderOptions
     from mocap.synthetic.session import make_session

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocap.camera import Camera, project_cam
-from mocap.geometry import rotvec_to_matrix
+from mocap.geometry import cross, rotvec_to_matrix
 from mocap.machine import REVOLUTE, Machine
 
 LOSSES = ("huber", "cauchy", "linear")
@@ -75,7 +75,7 @@ class KinematicModel:
         self.wrap = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
         self.lower, self.upper = limits[:, 0], limits[:, 1]
         self.n_params = machine.n_joints + (6 if base_motion else 0)
-        self.moves = joint_moves_markers(machine)
+        self.moves = machine.moves[:, machine.marker_links]  # (J, M)
         self.link_groups = [
             (link, np.nonzero(machine.marker_links == link)[0], machine.marker_positions[machine.marker_links == link])
             for link in np.unique(machine.marker_links)
@@ -105,7 +105,7 @@ class KinematicModel:
             moved = self.moves[j]
             if joint.type == REVOLUTE:
                 lever = markers[:, moved] - poses[:, link, None, :3, 3]
-                d_world[..., j][:, moved] = _cross(axis, lever)
+                d_world[..., j][:, moved] = cross(axis, lever)
             else:
                 d_world[..., j][:, moved] = axis
         if state.rotation is not None:
@@ -114,7 +114,7 @@ class KinematicModel:
             for i in range(3):
                 unit = np.zeros(3)
                 unit[i] = 1.0
-                d_world[..., n_joints + i] = _cross(unit, lever)
+                d_world[..., n_joints + i] = cross(unit, lever)
                 d_world[..., i, n_joints + 3 + i] = 1.0
         return markers, d_world
 
@@ -161,29 +161,3 @@ class KinematicModel:
         rotation = rotvec_to_matrix(delta[:, n_joints : n_joints + 3]) @ state.rotation
         return FrameState(joints, rotation, state.translation + delta[:, n_joints + 3 :], state.cost)
 
-    # --- solver --------------------------------------------------------------------------
-
-
-def joint_moves_markers(machine: Machine, links: np.ndarray | None = None) -> np.ndarray:
-    """(J, N) bool: joint j moves the point fixed in link ``links[n]`` (the markers' links
-    by default)."""
-    links = machine.marker_links if links is None else np.asarray(links, dtype=int)
-    joint_of_link = {link: j for j, link in enumerate(machine.joint_links)}
-    moves = np.zeros((machine.n_joints, len(links)), dtype=bool)
-    for n, link in enumerate(links):
-        for ancestor in machine.ancestors(int(link)):
-            if ancestor in joint_of_link:
-                moves[joint_of_link[ancestor], n] = True
-    return moves
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for broadcastable (*, 3) arrays (faster than np.cross on small last axes)."""
-    return np.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )

@@ -29,10 +29,10 @@ from scipy.sparse import coo_matrix
 
 from mocap.camera import Camera, project_cam
 from mocap.errors import DegenerateError
-from mocap.geometry import Rigid, rotvec_to_matrix
+from mocap.geometry import Rigid, cross, rotvec_to_matrix
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
-from mocap.reconstruct.kinmodel import FrameState, KinematicModel, _cross
+from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +181,7 @@ class _Bundle:
             rot = camera.cam_from_world.rotation
             rotated = world @ rot.T
             uv, d_uv = project_cam(rotated + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
-            d_rot = np.stack([_cross(np.eye(3)[i], rotated) for i in range(3)], -1) @ _left_jacobian(params[:3])
+            d_rot = np.stack([cross(np.eye(3)[i], rotated) for i in range(3)], -1) @ _left_jacobian(params[:3])
             parts = [d_uv @ d_rot, d_uv]  # rotation increment, translation
             if self.options.fit_focal:
                 parts.append((uv - camera.matrix[:2, 2])[..., None])  # d uv / d log(focal scale)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mocap.camera import Camera, project_cam
-from mocap.machine import REVOLUTE, Machine
+from mocap.machine import Machine
 from mocap.shapes import link_boxes
 from mocap.visibility import marker_normals, visible_markers
 
@@ -120,32 +120,8 @@ class CameraModel:
         return joints, np.where(observed, np.linalg.norm(residual, axis=-1), np.nan)
 
     def _residuals(self, joints, target, rotation):
-        markers, dmarkers = self._markers_with_jacobian(joints)  # (F, M, 3), (F, M, 3, J)
+        markers, dmarkers = self.machine.markers_with_jacobian(joints)  # (F, M, 3), (F, M, 3, J)
         points_cam = self.camera.cam_from_world.apply(markers)
         uv, duv = project_cam(points_cam, self.camera.matrix, self.camera.distortion, with_jacobian=True)
         jac = np.einsum("fmac,cd,fmdj->fmaj", duv, rotation, dmarkers)  # (F, M, 2, J)
         return uv - target, jac
-
-    def _markers_with_jacobian(self, joints: np.ndarray):
-        """`Machine.markers_with_jacobian` (revolute and prismatic joints), with the cross
-        products written out: (F, M, 3) and (F, M, 3, J)."""
-        machine = self.machine
-        poses = machine.link_poses(joints)  # (F, L, 4, 4)
-        on_links = poses[:, machine.marker_links]
-        markers = np.einsum("fmij,mj->fmi", on_links[..., :3, :3], machine.marker_positions) + on_links[..., :3, 3]
-        moves = machine.moves[:, machine.marker_links]  # (J, M)
-        jac = np.zeros(markers.shape + (machine.n_joints,))
-        for j, (link, joint) in enumerate(zip(machine.joint_links, machine.joints)):
-            axis = poses[:, link, :3, :3] @ joint.axis  # (F, 3)
-            if joint.type == REVOLUTE:
-                lever = markers - poses[:, link, None, :3, 3]
-                a = axis[:, None, :]
-                d = np.stack([
-                    a[..., 1] * lever[..., 2] - a[..., 2] * lever[..., 1],
-                    a[..., 2] * lever[..., 0] - a[..., 0] * lever[..., 2],
-                    a[..., 0] * lever[..., 1] - a[..., 1] * lever[..., 0],
-                ], axis=-1)
-            else:
-                d = np.broadcast_to(axis[:, None, :], markers.shape)
-            jac[..., j] = np.where(moves[j][None, :, None], d, 0.0)
-        return markers, jac
