@@ -18,7 +18,6 @@ import uuid
 from dataclasses import replace
 from pathlib import Path
 
-import av
 import numpy as np
 import rerun as rr
 from scipy.interpolate import CubicSpline
@@ -26,6 +25,7 @@ from scipy.interpolate import CubicSpline
 from mocap.io.cameras_toml import Calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import Motion
+from mocap.synthetic.encode import video_writer
 from mocap.io.points_csv import Points
 from mocap.simulate import observe, random_joints, ring_of_cameras
 from mocap.viewer import Cycles, Replay, Sinks, run_replay
@@ -54,17 +54,9 @@ def make_motion(machine, n_frames: int, rng) -> Motion:
 
 
 def encode_video(path: Path, n_frames: int, size=(320, 240)) -> Path:
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=int(FPS))
-        stream.width, stream.height = size
-        stream.pix_fmt = "yuv420p"
-        stream.options = {"preset": "ultrafast", "bf": "0"}
+    with video_writer(path, size, FPS) as write:
         for i in range(n_frames):
-            image = np.full((size[1], size[0], 3), (3 * i) % 256, dtype=np.uint8)
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            write(np.full((size[1], size[0], 3), (3 * i) % 256, dtype=np.uint8))
     return path
 
 

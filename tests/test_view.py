@@ -8,7 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import av
 import numpy as np
 import pyarrow as pa
 import pytest
@@ -24,6 +23,7 @@ from mocap.io.points_csv import Points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
 from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.encode import video_writer
 from mocap.viewer import Cycles, Replay, Sinks, load_cycles, run_replay
 from mocap.viewer import replay as replay_module
 from mocap.viewer import scene
@@ -36,19 +36,10 @@ FLOAT32 = 2e-6  # relative precision of the recording's float32 values
 
 
 # --- scene ------------------------------------------------------------------------------
-def encode_video(path: Path, n_frames: int, codec: str = "libx264", size=(64, 48)) -> Path:
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream(codec, rate=int(FPS))
-        stream.width, stream.height = size
-        stream.pix_fmt = "yuv420p"
-        if codec == "libx264":
-            stream.options = {"preset": "ultrafast", "bf": "0"}
+def encode_video(path: Path, n_frames: int, codec: str = "h264", size=(64, 48)) -> Path:
+    with video_writer(path, size, FPS, codec) as write:
         for i in range(n_frames):
-            image = np.full((size[1], size[0], 3), (7 * i) % 256, dtype=np.uint8)
-            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+            write(np.full((size[1], size[0], 3), (7 * i) % 256, dtype=np.uint8))
     return path
 
 
@@ -99,7 +90,7 @@ def world(tmp_path_factory):
     videos = {
         "cam1": encode_video(folder / "cam1.mp4", N_FRAMES),
         "cam2": encode_video(folder / "cam2.mp4", N_FRAMES),
-        "cam3": encode_video(folder / "cam3.mp4", 10, codec="mpeg4"),
+        "cam3": encode_video(folder / "cam3.mp4", 10, codec="mp4v"),
     }
     cycles = Cycles(("1", "2"), np.array([0, 45]), np.array([44, N_FRAMES - 1]))
     replay = Replay(machine, calibration, motion, calibration.fps(), points, tracks, videos, cycles)
