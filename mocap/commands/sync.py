@@ -3,15 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import re
 
-import numpy as np
-
-from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
-from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks
-from mocap.sync import joint_curves, synchronise
+from mocap.sync_stage import run_sync
 
 EXAMPLE = """example:
   mocap sync calibration/cameras.toml tracks/cam1.csv tracks/cam2.csv tracks/cam3.csv \\
@@ -41,58 +34,5 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    if not args.max_offset > 0:
-        raise InputError(f"--max-offset {args.max_offset}: must be positive")
-    machine = load_machine(args.machine)
-    calibration = load_calibration(args.calibration)
-    tracks = load_tracks(args.tracks)
-    missing = [name for name in calibration.names if name not in tracks.cameras]
-    if missing:
-        raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(args.tracks)}; give its tracks CSV")
-    fps = frame_rates(calibration, tracks, parse_fps(args.fps, calibration.names))
-    curves = []
-    for k, camera in enumerate(calibration.cameras):
-        rows = tracks.of_camera(camera.name)
-        frames = np.arange(rows.frame.min(), rows.frame.max() + 1)
-        pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
-        curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
-    result = synchronise(curves, fps, args.max_offset)
-    failed = [f"{calibration.names[k]}: {r}" for k, r in enumerate(result.reasons) if r]
-    if failed:
-        raise InputError("cannot synchronise: " + "; ".join(failed))
-    out: Calibration = calibration
-    for k in range(len(calibration.cameras)):
-        out = out.with_extras(k, time_offset=float(result.offsets[k]), fps=float(fps[k]))
-    save_calibration(out, args.out)
-    for k, name in enumerate(calibration.names):
-        print(f"{name}: time_offset {result.offsets[k]:+.4f} s ({result.offsets[k] * fps[0]:+.3f} frames), "
-              f"fps {fps[k]:g}, residual {result.residual[k]:.3f}")
+    print(run_sync(args.machine, args.calibration, args.tracks, args.out, args.fps, args.max_offset))
     return 0
-
-
-def parse_fps(values: list[str], names) -> dict[str, float]:
-    out = {}
-    for value in values:
-        match = re.fullmatch(r"([^=]+)=([0-9.]+)", value.strip())
-        if not match or match[1] not in names or not float(match[2]) > 0:
-            raise InputError(f"--fps {value!r}: expected NAME=FPS with NAME one of {', '.join(names)}")
-        out[match[1]] = float(match[2])
-    return out
-
-
-def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float]) -> np.ndarray:
-    """(C,) frame rates: given, else the calibration's `fps`, else frame / time of the tracks."""
-    fps = []
-    for camera, extra in zip(calibration.cameras, calibration.extras):
-        if camera.name in given:
-            fps.append(given[camera.name])
-            continue
-        if "fps" in extra:
-            fps.append(float(extra["fps"]))
-            continue
-        rows = tracks.of_camera(camera.name)
-        timed = np.isfinite(rows.time) & (rows.time > 0)
-        if not np.any(timed):
-            raise InputError(f"no frame rate for camera {camera.name!r}: pass --fps {camera.name}=FPS")
-        fps.append(float(np.median(rows.frame[timed] / rows.time[timed])))
-    return np.array(fps)
