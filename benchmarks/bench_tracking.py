@@ -39,22 +39,25 @@ def decode_floor(path: Path) -> tuple[float, int]:
 
 
 def score(truth, tracks):
-    """Labelled fraction of the visible markers, wrong-label fraction (the detection lies
-    nearer another visible marker's true centre than its own, or 5 px or more from it),
-    centre errors (px) of the right labels."""
-    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    """Labelled fraction of the wholly visible markers (true score 1: all of the square in
+    view), wrong-label fraction (the detection lies nearer another visible marker's true
+    centre than its own, or 5 px or more from it, or its marker is not in view at all),
+    centre errors (px) of the right labels of wholly visible markers. A right label of a
+    partly covered marker counts neither way."""
+    true_xy = {(int(f), m): (xy, s) for f, m, xy, s in zip(truth.frame, truth.marker, truth.xy, truth.score)}
     by_frame = {int(f): (truth.xy[truth.frame == f], truth.marker[truth.frame == f]) for f in np.unique(truth.frame)}
     errors, wrong = [], 0
     for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy):
-        own = true_xy.get((int(f), m))
+        own, cover = true_xy.get((int(f), m), (None, 0.0))
         e = np.inf if own is None else float(np.linalg.norm(xy - own))
         others, names = by_frame.get(int(f), (np.full((1, 2), np.inf), np.array([m])))
         other = np.linalg.norm(others[names != m] - xy, axis=1)
         if e >= 5.0 or (len(other) and other.min() < e):
             wrong += 1
-        else:
+        elif cover >= 1.0:
             errors.append(e)
-    return len(errors) / max(len(truth), 1), wrong / max(len(tracks), 1), np.array(errors)
+    whole = max(int(np.sum(truth.score >= 1.0)), 1)
+    return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
 
 
 def main() -> int:

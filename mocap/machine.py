@@ -81,12 +81,12 @@ class Machine:
     def link_names(self) -> tuple[str, ...]:
         return tuple(link.name for link in self.links)
 
-    @property
+    @cached_property
     def joint_links(self) -> tuple[int, ...]:
         """Index of the link each joint moves, in joint order (J,)."""
         return tuple(i for i, link in enumerate(self.links) if link.joint is not None)
 
-    @property
+    @cached_property
     def joints(self) -> tuple[Joint, ...]:
         return tuple(self.links[i].joint for i in self.joint_links)
 
@@ -98,10 +98,12 @@ class Machine:
     def n_joints(self) -> int:
         return len(self.joint_links)
 
-    @property
+    @cached_property
     def joint_limits(self) -> np.ndarray:
-        """(J, 2) lower and upper limits in rad or m."""
-        return np.array([joint.limits for joint in self.joints]).reshape(-1, 2)
+        """(J, 2) lower and upper limits in rad or m (read-only)."""
+        limits = np.array([joint.limits for joint in self.joints], dtype=float).reshape(-1, 2)
+        limits.flags.writeable = False
+        return limits
 
     @property
     def house_link(self) -> int:
@@ -155,6 +157,16 @@ class Machine:
                 first[j, :3, 3] = joint.axis
         return first, second
 
+    @cached_property
+    def _chain(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per joint: revolute (J,) bool, the parent link (J,), the joint's link-at-zero in
+        its parent (J, 4, 4), its axis in its link frame (J, 3)."""
+        revolute = np.array([j.type == REVOLUTE for j in self.joints], dtype=bool)
+        parents = np.array([self.links[i].parent for i in self.joint_links], dtype=int)
+        at_zero = np.array([j.parent_from_zero for j in self.joints]).reshape(-1, 4, 4)
+        axes = np.array([j.axis for j in self.joints], dtype=float).reshape(-1, 3)
+        return revolute, parents, at_zero, axes
+
     def link_poses(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
         """World-from-link transforms for joint values (F, J) -> (F, L, 4, 4).
 
@@ -165,13 +177,13 @@ class Machine:
         poses = np.empty((n_frames, len(self.links), 4, 4))
         poses[:, 0] = np.eye(4) if world_from_base is None else world_from_base
         first, second = self._motion_terms
-        revolute = np.array([j.type == REVOLUTE for j in self.joints])
+        revolute, parents, at_zero, _ = self._chain
         a = np.where(revolute, np.sin(joints), joints)
         b = np.where(revolute, 1.0 - np.cos(joints), 0.0)
+        motion = np.eye(4) + a[..., None, None] * first + b[..., None, None] * second  # (F, J, 4, 4)
+        parent_from_link = at_zero @ motion
         for j, i in enumerate(self.joint_links):
-            link = self.links[i]
-            motion = np.eye(4) + a[:, j, None, None] * first[j] + b[:, j, None, None] * second[j]
-            poses[:, i] = (poses[:, link.parent] @ link.joint.parent_from_zero) @ motion
+            poses[:, i] = poses[:, parents[j]] @ parent_from_link[:, j]
         return poses
 
     def markers(
@@ -197,17 +209,18 @@ class Machine:
         """
         poses = self.link_poses(joints)
         markers = _points_on_links(poses, self.marker_links, self.marker_positions)
-        moves = self.moves[:, self.marker_links]  # (J, M)
-        jac = np.zeros(markers.shape + (self.n_joints,))
-        for j, (link, joint) in enumerate(zip(self.joint_links, self.joints)):
-            axis_world = poses[:, link, :3, :3] @ joint.axis  # (F, 3)
-            if joint.type == REVOLUTE:
-                lever = markers - poses[:, link, None, :3, 3]
-                d = cross(axis_world[:, None, :], lever)
-            else:
-                d = np.broadcast_to(axis_world[:, None, :], markers.shape)
-            jac[..., j] = np.where(moves[j][None, :, None], d, 0.0)
-        return markers, jac
+        revolute, _, _, axes = self._chain
+        on_joints = poses[:, list(self.joint_links)]  # (F, J, 4, 4)
+        axis_world = np.einsum("fjab,jb->fja", on_joints[..., :3, :3], axes)[:, :, None]  # (F, J, 1, 3)
+        lever = markers[:, None] - on_joints[:, :, None, :3, 3]  # (F, J, M, 3)
+        d = np.where(revolute[:, None, None], cross(axis_world, lever), axis_world)
+        d *= self._marker_moves[None, :, :, None]
+        return markers, np.moveaxis(d, 1, -1)
+
+    @cached_property
+    def _marker_moves(self) -> np.ndarray:
+        """(J, M) 1.0 where joint j moves marker m, else 0.0."""
+        return self.moves[:, self.marker_links].astype(float)
 
     def bucket_angles(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
         """Bucket angle (rad) for joint values (F, J) -> (F,): the angle of the bucket

@@ -3,7 +3,8 @@
 Markers are painted on the faces of the links' boxes (mocap.shapes.link_boxes): each
 marker's surface normal is the outward normal of the nearest face of its own link's box.
 A marker is hidden when the segment from it to the camera centre passes through another
-link's box (its own box never hides it: the paint is on the surface).
+link's box (its own box never hides it: the paint is on the surface). How much of a
+marker is in view (`marker_cover`) asks the same of the corners and edges of its square.
 
 Shapes: F frames, L links, M markers.
 """
@@ -54,30 +55,89 @@ def visible_markers(
     distortion: np.ndarray,
     size: tuple[int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Marker pixels (F, M, 2) and visibility (F, M) bool in one camera.
+    """Marker pixels (F, M, 2) and visibility (F, M) bool in one camera: the centre is in
+    the image and unhidden, the marker facing the camera.
 
     boxes (L, 2, 3) and normals (M, 3) in link frames; link_poses (F, L, 4, 4)
     world_from_link; cam_from_world (F, 4, 4) the camera's pose per frame.
     """
-    links = machine.marker_links
-    on_link = link_poses[:, links]  # (F, M, 4, 4)
+    centres = machine.marker_positions[:, None]
+    uv, in_view = _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, size, centres)
+    seen = in_view[..., 0] & _facing(machine, normals, link_poses, cam_from_world)
+    return uv[:, :, 0], seen
+
+
+def marker_cover(
+    machine: Machine,
+    boxes: np.ndarray,
+    normals: np.ndarray,
+    link_poses: np.ndarray,
+    cam_from_world: np.ndarray,
+    matrix: np.ndarray,
+    distortion: np.ndarray,
+    size: tuple[int, int],
+    outline: np.ndarray,
+) -> np.ndarray:
+    """(F, M) how much of each marker is in view, 0 to 1: the share of the points of its
+    `outline` (M, K, 3), in its link frame (e.g. `square_outline`), that are in the image
+    and unhidden; 0 for a marker facing away. 1 means the whole marker can be measured."""
+    _, in_view = _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, size, outline)
+    return np.mean(in_view, axis=-1) * _facing(machine, normals, link_poses, cam_from_world)
+
+
+def _facing(machine: Machine, normals: np.ndarray, link_poses: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
+    """(F, M) bool: each marker's face turns towards the camera by more than MIN_FACING_COS."""
+    on_link = link_poses[:, machine.marker_links]  # (F, M, 4, 4)
     world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], machine.marker_positions) + on_link[..., :3, 3]
     rotation, translation = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
     centre = -np.einsum("fji,fj->fi", rotation, translation)  # camera centre in the world (F, 3)
-    points_cam = np.einsum("fij,fmj->fmi", rotation, world) + translation[:, None]
+    normal_world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], normals)
+    to_camera = centre[:, None] - world
+    facing = np.einsum("fmi,fmi->fm", normal_world, to_camera) / np.linalg.norm(to_camera, axis=-1)
+    return facing > MIN_FACING_COS
+
+
+def _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, size, points):
+    """Pixels (F, M, P, 2) of points (M, P, 3) fixed in the markers' links, and whether
+    each is in the image and not hidden behind another link's box (F, M, P) bool."""
+    links = machine.marker_links
+    on_link = link_poses[:, links]  # (F, M, 4, 4)
+    world = np.einsum("fmij,mpj->fmpi", on_link[..., :3, :3], points) + on_link[..., None, :3, 3]
+    rotation, translation = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
+    centre = -np.einsum("fji,fj->fi", rotation, translation)  # camera centre in the world (F, 3)
+    points_cam = np.einsum("fij,fmpj->fmpi", rotation, world) + translation[:, None, None]
     uv = project_cam(points_cam, matrix, distortion)
     w, h = size
     seen = np.all(np.isfinite(uv), axis=-1)
     seen &= (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    normal_world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], normals)
-    to_camera = centre[:, None] - world
-    facing = np.einsum("fmi,fmi->fm", normal_world, to_camera) / np.linalg.norm(to_camera, axis=-1)
-    seen &= facing > MIN_FACING_COS
     for l in range(len(machine.links)):
-        link_from_world = np.linalg.inv(link_poses[:, l])  # (F, 4, 4)
-        r, t = link_from_world[:, :3, :3], link_from_world[:, :3, 3]
-        start = np.einsum("fij,fmj->fmi", r, world) + t[:, None]
+        r = np.swapaxes(link_poses[:, l, :3, :3], 1, 2)  # link_from_world, (F, 3, 3)
+        t = -np.einsum("fij,fj->fi", r, link_poses[:, l, :3, 3])
+        start = np.einsum("fij,fmpj->fmpi", r, world) + t[:, None, None]
         end = np.einsum("fij,fj->fi", r, centre) + t
-        hidden = segment_hits_box(start, np.broadcast_to(end[:, None], start.shape), boxes[l])
-        seen &= ~(hidden & (links != l)[None])
+        hidden = segment_hits_box(start, np.broadcast_to(end[:, None, None], start.shape), boxes[l])
+        seen &= ~(hidden & (links != l)[None, :, None])
     return uv, seen
+
+
+def marker_outlines(
+    machine: Machine, normals: np.ndarray, disk: float, square: float, n_points: int = 48
+) -> tuple[np.ndarray, np.ndarray]:
+    """Square corners (M, 4, 3) and disk outlines (M, n_points, 3) of the painted markers
+    in their link frames, in the plane of each marker's face (normals (M, 3)), centred on
+    the marker; `disk` and `square` are the disk's diameter and the square's side (m)."""
+    axis = np.argmax(np.abs(normals), axis=1)
+    first = np.eye(3)[(axis + 1) % 3]
+    second = np.cross(normals, first)
+    centre = machine.marker_positions[:, None]
+    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * 0.5 * square
+    squares = centre + corners[None, :, :1] * first[:, None] + corners[None, :, 1:] * second[:, None]
+    angles = np.linspace(0, 2 * np.pi, n_points, endpoint=False)
+    c, s = 0.5 * disk * np.cos(angles), 0.5 * disk * np.sin(angles)
+    disks = centre + c[None, :, None] * first[:, None] + s[None, :, None] * second[:, None]
+    return squares, disks
+
+
+def square_outline(squares: np.ndarray) -> np.ndarray:
+    """The corners and edge midpoints (M, 8, 3) of squares given by their corners (M, 4, 3)."""
+    return np.concatenate([squares, 0.5 * (squares + np.roll(squares, -1, axis=1))], axis=1)

@@ -34,19 +34,16 @@ log = logging.getLogger(__name__)
 PALETTE = np.array([[72.0, 75.0, 80.0], [20.0, 110.0, 230.0], [25.0, 125.0, 240.0], [30.0, 120.0, 225.0],
                     [62.0, 66.0, 72.0]])  # BGR: dark undercarriage, orange house, boom and arm, grey bucket
 WHITE, BLACK = (235, 235, 235), (18, 18, 18)
-OUTLINE_POINTS = 48
 
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """`disk` and `square` marker sizes (m; default 0.3 and 0.5 for a machine of the
-    EX3500's reach, scaled with it), `codec` one of CODECS, the camera `effects`, the fine
-    grid's `supersample` factor, frames per batch `chunk`, encoder `threads` (0: automatic)."""
+    """`codec` one of CODECS, the camera `effects`, the fine grid's `supersample` factor,
+    frames per batch `chunk`, encoder `threads` (0: automatic). The markers' sizes are the
+    session's (`mocap.synthetic.session.marker_sizes`)."""
 
     codec: str = "h264"
     effects: EffectOptions = field(default_factory=EffectOptions)
-    disk: float | None = None
-    square: float | None = None
     supersample: int = 8
     chunk: int = 32
     threads: int = 0
@@ -56,22 +53,6 @@ class RenderOptions:
             raise ValueError(f"codec must be one of {CODECS}, got {self.codec!r}")
         if not 1 <= self.supersample <= 8:
             raise ValueError(f"supersample must be 1..8, got {self.supersample}")
-
-
-def marker_outlines(session: SyntheticSession, disk: float, square: float) -> tuple[np.ndarray, np.ndarray]:
-    """Square corners (M, 4, 3) and disk outlines (M, N, 3) in the markers' link frames,
-    in the plane of each marker's face, centred on the marker."""
-    normals = session.normals
-    axis = np.argmax(np.abs(normals), axis=1)
-    first = np.eye(3)[(axis + 1) % 3]
-    second = np.cross(normals, first)
-    centre = session.machine.marker_positions[:, None]
-    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * 0.5 * square
-    squares = centre + corners[None, :, :1] * first[:, None] + corners[None, :, 1:] * second[:, None]
-    angles = np.linspace(0, 2 * np.pi, OUTLINE_POINTS, endpoint=False)
-    c, s = 0.5 * disk * np.cos(angles), 0.5 * disk * np.sin(angles)
-    disks = centre + c[None, :, None] * first[:, None] + s[None, :, None] * second[:, None]
-    return squares, disks
 
 
 class CameraRenderer:
@@ -88,9 +69,7 @@ class CameraRenderer:
         self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
         self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
         self.colours = PALETTE[np.arange(len(session.boxes)) % len(PALETTE)]
-        disk = 0.3 * reach / 15.5 if options.disk is None else options.disk
-        square = 0.5 * reach / 15.5 if options.square is None else options.square
-        self.squares, self.disks = marker_outlines(session, disk, square)
+        self.squares, self.disks = session.marker_outlines()
         self.effects = CameraEffects(camera.size, options.effects, rng)
         self.dust_radius = 0.2 * reach
 

@@ -3,7 +3,8 @@
 `make_session` plans the dig cycles, places the cameras and computes every camera's true
 marker pixels and visibility at its own frames; `write_truth` writes the session folder
 (DESIGN.md) with ``truth/``: cameras.toml, motion.csv (reference-camera frames),
-tracks.csv (true centres of visible markers, each camera's own frames), markers.csv (3-D
+tracks.csv (true centres of visible markers, each camera's own frames; score: the share of
+the marker's square in view), markers.csv (3-D
 marker positions at reference frames), cycles.csv and scene.toml (pile, truck, options).
 """
 
@@ -28,7 +29,7 @@ from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
-from mocap.visibility import marker_normals, visible_markers
+from mocap.visibility import marker_cover, marker_normals, marker_outlines, square_outline, visible_markers
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,11 @@ class SyntheticSession:
         """The machine's reach (m): boom, arm and bucket lengths added."""
         return float(np.linalg.norm(self.plan.chain.offsets, axis=1).sum())
 
+    def marker_outlines(self) -> tuple[np.ndarray, np.ndarray]:
+        """The painted markers' square corners (M, 4, 3) and disk outlines (M, N, 3) in
+        their link frames (`marker_sizes`)."""
+        return marker_outlines(self.machine, self.normals, *marker_sizes(self.reach))
+
     def plan_tips(self, times: np.ndarray) -> np.ndarray:
         """World positions (T, 3) of the bucket tip at `times` (T,) s."""
         joints = self.plan.joints(times)
@@ -120,6 +126,12 @@ class SyntheticSession:
         """True marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) of
         `camera` at its `frames` (F,) (fractional frames allowed)."""
         return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames)
+
+
+def marker_sizes(reach: float) -> tuple[float, float]:
+    """The painted disk's diameter and its white square's side (m) on a machine of `reach`
+    (m): 0.3 and 0.5 on one of the EX3500's 15.5 m, scaled with it."""
+    return 0.3 * reach / 15.5, 0.5 * reach / 15.5
 
 
 def observe_camera(machine: Machine, plan: DigMotion, boxes: np.ndarray, normals: np.ndarray,
@@ -167,14 +179,18 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                     extra={"base_z": world_from_base[:, 2, 3]})
     markers = machine.markers(joints, world_from_base)
 
+    # each true row's score: how much of the marker's painted square is in view (1: all)
+    outline = square_outline(marker_outlines(machine, normals, *marker_sizes(reach))[0])
     parts, views = [], np.zeros(markers.shape[:2], dtype=int)
     names = np.asarray(machine.marker_names, dtype=object)
     for camera in cameras:
         own = np.arange(camera.frames)
-        uv, seen, _ = observe_camera(machine, plan, boxes, normals, camera, own)
+        uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own)
+        cover = marker_cover(machine, boxes, normals, poses, camera.cam_from_world(camera.times(own)),
+                             camera.camera.matrix, camera.camera.distortion, camera.camera.size, outline)
         f, m = np.nonzero(seen)
         parts.append(Tracks.from_rows(np.full(len(f), camera.name, dtype=object), own[f], names[m], uv[f, m],
-                                      time=camera.times(own[f])))
+                                      time=camera.times(own[f]), score=cover[f, m]))
         at_reference = (times - camera.time_offset) * camera.fps  # this camera's (fractional) frames
         _, seen_ref, _ = observe_camera(machine, plan, boxes, normals, camera, at_reference)
         views += seen_ref

@@ -49,16 +49,33 @@ def propose_labels(
     tight_px: float = 3.0,
     min_markers: int = 5,
 ) -> FrameResult | None:
-    """Label detections by fitting the model from each of `starts` (S, J); None when no
-    start explains at least `min_markers` detections."""
+    """Label detections by fitting the model from each of `starts` (S, J), all starts
+    together; None when no start explains at least `min_markers` detections."""
+    joints = np.array(np.atleast_2d(starts), dtype=float)
+    n_starts, n_markers = len(joints), len(model.machine.marker_names)
+    alive = np.ones(n_starts, dtype=bool)
+    for gate in _GATES_PX + (tight_px,):
+        view = model.view(joints)
+        observed = np.full((n_starts, n_markers, 2), np.nan)
+        for k in np.flatnonzero(alive):
+            markers, index = assign(view.uv[k], detections.xy, np.full(n_markers, gate), view.visible[k])
+            alive[k] = len(markers) >= 3
+            observed[k, markers] = detections.xy[index]
+        if not np.any(alive):
+            return None
+        fitted, _ = model.fit(observed[alive], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0))
+        joints[alive] = fitted
+    view = model.view(joints)
     best, best_key = None, None
-    for start in np.atleast_2d(starts):
-        result = _fit_from(model, detections, start, tight_px)
-        if result is None:
+    for k in np.flatnonzero(alive):
+        uv = view.uv[k]
+        markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), view.visible[k])
+        if len(markers) == 0:
             continue
-        key = (len(result.markers), -result.rms_px)
+        rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1))))
+        key = (len(markers), -rms)
         if best_key is None or key > best_key:
-            best, best_key = result, key
+            best, best_key = FrameResult(markers, detections.select(index), joints[k], True, rms), key
     if best is None or len(best.markers) < min_markers:
         return None
     return best
@@ -79,13 +96,11 @@ def labels_from_pixels(
     markers, index = assign(labelled, detections.xy, np.full(len(labelled), snap_px), given)
     observed = np.where(given[:, None], labelled, np.nan)
     observed[markers] = detections.xy[index]
-    best = None
-    for s in starts_around(model, start):
-        joints, residual = model.fit(observed[None], s, iterations=15)
-        rms = float(np.sqrt(np.nanmean(residual**2)))
-        if best is None or rms < best[1]:
-            best = (joints[0], rms)
-    joints, rms = best
+    starts = starts_around(model, start)
+    fitted, residual = model.fit(np.broadcast_to(observed, (len(starts),) + observed.shape), starts, iterations=15)
+    rms_of = np.sqrt(np.nanmean(residual**2, axis=1))
+    best = int(np.nanargmin(rms_of))
+    joints, rms = fitted[best], float(rms_of[best])
     # the markers not given: found by widening the model's reach, the given ones kept
     n_markers = len(labelled)
     for gate in (40.0, 20.0, 10.0, max(tight_px, 3 * rms)):
@@ -104,25 +119,4 @@ def labels_from_pixels(
     markers, index = markers[order], index[order]
     uv = model.pixels(joints[None])[0]
     rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1)))) if len(markers) else np.nan
-    return FrameResult(markers, detections.select(index), joints, True, rms)
-
-
-def _fit_from(model: CameraModel, detections: Detections, start: np.ndarray, tight_px: float) -> FrameResult | None:
-    joints = start
-    n_markers = len(model.machine.marker_names)
-    for gate in _GATES_PX + (tight_px,):
-        uv = model.pixels(joints[None])[0]
-        visible = model.visible(joints[None])[0]
-        markers, index = assign(uv, detections.xy, np.full(n_markers, gate), visible)
-        if len(markers) < 3:
-            return None
-        observed = np.full((n_markers, 2), np.nan)
-        observed[markers] = detections.xy[index]
-        fitted, _ = model.fit(observed[None], joints, iterations=8, scale_px=max(gate / 4, 1.0))
-        joints = fitted[0]
-    uv = model.pixels(joints[None])[0]
-    markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), model.visible(joints[None])[0])
-    if len(markers) == 0:
-        return None
-    rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1))))
     return FrameResult(markers, detections.select(index), joints, True, rms)

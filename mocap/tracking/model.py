@@ -18,6 +18,18 @@ from mocap.visibility import marker_normals, visible_markers
 
 
 @dataclass(frozen=True)
+class View:
+    """The machine seen by a camera at some joint values: marker pixels `uv` (F, M, 2),
+    `visible` (F, M) bool, and `scale` (F, M) px per metre: a disk of radius R m on the
+    marker's face shows as an ellipse of geometric-mean radius about ``scale * R`` px
+    (f / depth, times the square root of the cosine of the viewing angle)."""
+
+    uv: np.ndarray
+    visible: np.ndarray
+    scale: np.ndarray
+
+
+@dataclass(frozen=True)
 class CameraModel:
     """A machine model and one calibrated camera; `boxes` (L, 2, 3) link solids in link
     frames (default: `mocap.shapes.link_boxes`), `normals` (M, 3) each marker's disk normal
@@ -43,19 +55,37 @@ class CameraModel:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
         box (the painting convention of `mocap.visibility`: markers on the faces
         of the links' boxes)."""
+        return self.view(joints).visible
+
+    def view(self, joints: np.ndarray) -> View:
+        """What the camera sees of the machine at joint values (F, J), from one pass of
+        the forward kinematics."""
         joints = np.atleast_2d(joints)
         poses = self.machine.link_poses(joints)
-        cam_from_world = np.broadcast_to(self.camera.cam_from_world.matrix, (len(joints), 4, 4))
         camera = self.camera
-        _, seen = visible_markers(
+        cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
+        uv, seen = visible_markers(
             self.machine, self.boxes, self.normals, poses, cam_from_world, camera.matrix, camera.distortion, camera.size
         )
-        return seen
+        on_link = poses[:, self.machine.marker_links]  # (F, M, 4, 4)
+        world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], self.machine.marker_positions) + on_link[..., :3, 3]
+        points_cam = camera.cam_from_world.apply(world)
+        normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], self.normals)
+        distance = np.linalg.norm(points_cam, axis=-1)
+        facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / distance
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
+        return View(uv, seen, scale)
 
     def observed_joints(self, markers: np.ndarray) -> np.ndarray:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
         moved = self.machine.moves[:, self.machine.marker_links[np.asarray(markers, dtype=int)]]
         return np.any(moved, axis=1)
+
+    def known_markers(self, held: np.ndarray) -> np.ndarray:
+        """(M,) bool: the markers whose every moving joint some `held` marker (indices) shows."""
+        seen = self.observed_joints(held)
+        return ~np.any(self.machine.moves[:, self.machine.marker_links] & ~seen[:, None], axis=0)
 
     def supported(self, new: np.ndarray, held: np.ndarray) -> np.ndarray:
         """(K,) bool over marker indices `new`: a new marker on a link whose own joint no
@@ -116,12 +146,11 @@ class CameraModel:
             gradient = np.einsum("fm,fmaj,fma->fj", weight, jac, residual)
             gradient += prior_weight * (joints - start)
             joints = self.machine.clip_to_limits(joints - np.linalg.solve(normal, gradient[..., None])[..., 0])
-        residual, _ = self._residuals(joints, target, rotation)
+        residual = self.pixels(joints) - target
         return joints, np.where(observed, np.linalg.norm(residual, axis=-1), np.nan)
 
     def _residuals(self, joints, target, rotation):
         markers, dmarkers = self.machine.markers_with_jacobian(joints)  # (F, M, 3), (F, M, 3, J)
         points_cam = self.camera.cam_from_world.apply(markers)
         uv, duv = project_cam(points_cam, self.camera.matrix, self.camera.distortion, with_jacobian=True)
-        jac = np.einsum("fmac,cd,fmdj->fmaj", duv, rotation, dmarkers)  # (F, M, 2, J)
-        return uv - target, jac
+        return uv - target, (duv @ rotation) @ dmarkers  # (F, M, 2), (F, M, 2, J)

@@ -16,6 +16,8 @@ from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
 
 log = logging.getLogger(__name__)
 
+_MAX_SEARCH_INTERVAL = 8  # full-frame searches that find nothing back off to 8 x lost_frames
+
 
 @dataclass(frozen=True)
 class TrackSummary:
@@ -70,13 +72,15 @@ def track_frames(
     `start` (J,) joint values near the first frame's (the calibration's); `labelled`
     (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
     tracks of the frames read and a summary; raises ValueError if the first frame cannot
-    be labelled.
+    be labelled. After a loss, or while a joint goes unseen, the whole frame is searched
+    again every `lost_frames` frames, less often while those searches find nothing new.
     """
     options = options or TrackOptions()
     names = model.machine.marker_names
     rows: list[Tracks] = []
     tracker = None
     n_frames = n_fitted = restarts = searched = 0
+    interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
         if tracker is None:
@@ -90,7 +94,7 @@ def track_frames(
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
-            if (lost or tracker.needs_search()) and searched >= options.lost_frames:
+            if (lost or tracker.needs_search()) and searched >= interval:
                 searched = 0
                 again = propose_labels(
                     model, detect_disks(gray, options.detect), starts_around(model, result.joints),
@@ -102,7 +106,12 @@ def track_frames(
                     tracker.restart(again)
                     result = again
                     restarts += 1
+                    interval = options.lost_frames
                     log.info("frame %d: markers found again by a full-frame search", index)
+                else:
+                    interval = min(2 * interval, _MAX_SEARCH_INTERVAL * options.lost_frames)
+            elif not (lost or tracker.needs_search()):
+                interval = options.lost_frames
         n_fitted += bool(result.fitted)
         if len(result.markers):
             rows.append(frame_rows(model.camera.name, index, fps, names, result))

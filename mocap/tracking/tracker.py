@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept, unique
-from mocap.tracking.model import CameraModel
+from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
 
@@ -80,15 +80,17 @@ class TrackState:
 
     joints: np.ndarray  # (J,) at the last frame
     previous: np.ndarray  # (J,) at the frame before
+    uv: np.ndarray  # (M, 2) the markers' pixels at the last frame's joints
     shape: np.ndarray  # (M, 2, 2) each marker's last image ellipse (semi-axis matrix, px²)
     missed: np.ndarray  # (M,) int, frames since each marker was last labelled
     visible: np.ndarray  # (M,) bool, the markers the model showed in the last frame
     unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
+    disk_m: float  # the disks' radius (m), estimated from the labelled ellipses
     lost: int = 0  # frames since the last fit
 
     @property
     def radius(self) -> np.ndarray:
-        """(M,) expected marker radii: the geometric mean of the semi-axes (px)."""
+        """(M,) the markers' last radii: the geometric mean of the semi-axes (px)."""
         return np.sqrt(np.sqrt(np.maximum(np.linalg.det(self.shape), 1e-12)))
 
 
@@ -105,77 +107,75 @@ class Tracker:
         missed = np.full(n_markers, 1000)
         missed[start.markers] = 0
         unseen = np.where(model.observed_joints(start.markers), 0, 1000)
-        self.state = TrackState(start.joints.copy(), start.joints.copy(), shape, missed, self._visible(start.joints), unseen)
+        view = model.view(start.joints[None])
+        visible = self._visible(view)
+        self.state = TrackState(start.joints.copy(), start.joints.copy(), view.uv[0], shape, missed, visible, unseen,
+                                np.nan)
+        self._update_disk(view.scale[0], start.markers, start.detections.radius)
 
     def step(self, gray: np.ndarray) -> FrameResult:
         options, state, model = self.options, self.state, self.model
         velocity = state.joints - state.previous if state.lost == 0 else 0.0
         predicted = model.machine.clip_to_limits(state.joints + velocity)
-        uv = model.pixels(predicted[None])[0]
-        visible = state.visible = self._visible(predicted)
-        motion = np.linalg.norm(uv - model.pixels(state.joints[None])[0], axis=-1)
+        view = model.view(predicted[None])
+        uv = view.uv[0]
+        visible = state.visible = self._visible(view)
+        expected = self._expected_radius(view.scale[0])
+        motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
         widen = 1.0 + min(state.lost, 10)
-        gate = widen * np.maximum(options.gate_px, options.gate_radii * state.radius) + np.nan_to_num(motion)
+        gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
         recent = state.missed <= 2
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
-        found = self._search(gray, uv, reach, visible)
+        found = self._search(gray, uv, reach, visible, expected, recent)
         # the markers followed until now fix the joints they observe
-        markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, state.radius)
+        markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found)
+            return self._coast(predicted, uv, visible, found, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
         joints, residual = model.fit(observed[None], predicted, iterations=2)
-        keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * state.radius[markers])
+        keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
-            return self._coast(predicted, uv, visible, found)
+            return self._coast(predicted, uv, visible, found, expected)
+        joints = joints[0]
         if not np.all(keep):
             observed[markers[~keep]] = np.nan
-            joints, residual = model.fit(observed[None], joints[0], iterations=1)
-        joints = joints[0]
-        # markers coming back (after an occlusion, or a link the camera did not see): found
-        # by narrowing gates from their reach, the others held
-        returning = visible & ~recent  # visibility at the prediction serves the frame
+            joints = model.fit(observed[None], joints, iterations=1)[0][0]
+        held, held_index = markers[keep], index[keep]
+        # markers coming back on links the held markers fix are where the fitted model puts
+        # them; those on a link whose joint no held marker shows are found by narrowing
+        # gates from their reach, and kept only if the held markers agree
+        known = model.known_markers(held)
+        returning = visible & ~recent & ~known
         if np.any(returning):
-            taken = np.zeros(len(found), dtype=bool)
-            taken[index[keep]] = True
-            held = markers[keep]
-            for g in (1.0, 0.5, 0.25):
-                back_uv = model.pixels(joints[None])[0]
-                free = np.where(taken[:, None], np.inf, found.xy)
-                back, back_index = assign(back_uv, free, np.maximum(g * reach, options.tight_px), returning, found.radius, state.radius)
-                keep_back = model.supported(back, held)
-                back, back_index = back[keep_back], back_index[keep_back]
-                if len(back) == 0:
-                    break
-                trial = observed.copy()
-                trial[back] = found.xy[back_index]
-                moved, moved_residual = model.fit(trial[None], joints, iterations=2)
-                if np.nanmax(moved_residual[0, held]) > options.outlier_px:
-                    break  # the returning candidates disagree with the markers held
-                joints = moved[0]
+            joints, known = self._regain(found, observed, joints, held, held_index, returning, reach, expected, known)
         fitted_uv = model.pixels(joints[None])[0]
-        residual = np.linalg.norm(fitted_uv[markers[keep]] - found.xy[index[keep]], axis=-1)
-        inlier_rms = float(np.sqrt(np.mean(residual**2))) if len(residual) else 0.0
+        residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
+        inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
-        markers, index = assign(fitted_uv, found.xy, tight, visible, found.radius, state.radius)
+        markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found)
-        observed = np.full(uv.shape, np.nan)
-        observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], joints, iterations=1)
-        joints = joints[0]
+            return self._coast(predicted, uv, visible, found, expected)
+        final = np.full(uv.shape, np.nan)
+        final[markers] = found.xy[index]
+        if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
+            fitted, residual = model.fit(final[None], joints, iterations=1)
+            joints, fitted_uv = fitted[0], None
+            rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
+        else:
+            rms = inlier_rms
         seen_joints = model.observed_joints(markers)
         # a joint no marker shows keeps its value: it does not drift on its last velocity
         state.previous = np.where(seen_joints, state.joints, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         state.joints, state.lost = joints, 0
+        state.uv = model.pixels(joints[None])[0] if fitted_uv is None else fitted_uv
         state.shape[markers] = found.shape[index]
         state.missed += 1
         state.missed[markers] = 0
-        rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
+        self._update_disk(view.scale[0], markers, found.radius[index])
         return FrameResult(markers, found.select(index), joints, True, rms)
 
     @property
@@ -183,57 +183,104 @@ class Tracker:
         return self.state.lost
 
     def needs_search(self) -> bool:
-        """Whether a full-frame search could help: two or more markers the model shows have
-        not been labelled for `lost_frames` frames, or a joint has not been seen that long
-        (its link may have come back far from where it was left, or out of the model's view)."""
-        stale = self.state.visible & (self.state.missed >= self.options.lost_frames)
-        return bool(np.sum(stale) >= 2 or np.any(self.state.unseen >= self.options.lost_frames))
+        """Whether a full-frame search could help: a joint has not been seen by any labelled
+        marker for `lost_frames` frames (its link may have come back far from where it was
+        left, or out of the model's view)."""
+        return bool(np.any(self.state.unseen >= self.options.lost_frames))
 
     def restart(self, start: FrameResult) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss)."""
-        self.state.joints = start.joints.copy()
-        self.state.previous = start.joints.copy()
-        self.state.lost = 0
-        self.state.missed[start.markers] = 0
-        self.state.unseen[self.model.observed_joints(start.markers)] = 0
-        self.state.shape[start.markers] = start.detections.shape
+        state = self.state
+        state.joints = start.joints.copy()
+        state.previous = start.joints.copy()
+        state.uv = self.model.pixels(start.joints[None])[0]
+        state.lost = 0
+        state.missed[start.markers] = 0
+        state.unseen[self.model.observed_joints(start.markers)] = 0
+        state.shape[start.markers] = start.detections.shape
 
-    def _visible(self, joints: np.ndarray) -> np.ndarray:
+    def _visible(self, view: View) -> np.ndarray:
         if self.options.occlusion:
-            return self.model.visible(joints[None])[0]
-        uv = self.model.pixels(joints[None])[0]
+            return view.visible[0]
+        uv = view.uv[0]
         w, h = self.model.camera.size
         return np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
 
-    def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections) -> FrameResult:
+    def _expected_radius(self, scale: np.ndarray) -> np.ndarray:
+        """(M,) radii (px) to expect: a marker's last one while it is followed, else the
+        model's (the disk's size at the marker's distance and angle), else the last one."""
+        state = self.state
+        modelled = scale * state.disk_m
+        use_model = (state.missed > 2) & np.isfinite(modelled) & (modelled > 0)
+        return np.where(use_model, modelled, state.radius)
+
+    def _update_disk(self, scale: np.ndarray, markers: np.ndarray, radius: np.ndarray) -> None:
+        """Refresh the disks' radius in metres from labelled radii (px), by the median."""
+        ratio = radius / scale[markers]
+        ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
+        if len(ratio) >= 3:
+            now = float(np.median(ratio))
+            self.state.disk_m = now if not np.isfinite(self.state.disk_m) else 0.9 * self.state.disk_m + 0.1 * now
+
+    def _regain(self, found, observed, joints, held, held_index, returning, reach, expected, known):
+        """Markers back on links whose joint no held marker shows: assigned within gates
+        narrowing from their reach, each step refitting the joints, and taken only while
+        the held markers still agree. Returns the joints and the markers now known."""
+        options, model = self.options, self.model
+        taken = np.zeros(len(found), dtype=bool)
+        taken[held_index] = True
+        free = np.where(taken[:, None], np.inf, found.xy)
+        for g in (1.0, 0.5, 0.25):
+            back_uv = model.pixels(joints[None])[0]
+            gate = np.maximum(g * reach, options.tight_px)
+            back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
+            keep_back = model.supported(back, held)
+            back, back_index = back[keep_back], back_index[keep_back]
+            if len(back) == 0:
+                break
+            trial = observed.copy()
+            trial[back] = found.xy[back_index]
+            moved, moved_residual = model.fit(trial[None], joints, iterations=2)
+            if np.nanmax(moved_residual[0, held]) > options.outlier_px:
+                break  # the returning candidates disagree with the markers held
+            joints = moved[0]
+            known = known | (returning & model.known_markers(np.r_[held, back]))
+        return joints, known
+
+    def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,
+               expected: np.ndarray) -> FrameResult:
         """Too few markers to fit: the joints carry on as predicted; detections within the
         tight gate of a predicted marker are still labelled."""
         state = self.state
-        markers, index = assign(uv, found.xy, np.full(len(uv), self.options.tight_px), visible, found.radius, state.radius)
-        state.previous, state.joints = state.joints, predicted
+        markers, index = assign(uv, found.xy, np.full(len(uv), self.options.tight_px), visible, found.radius, expected)
+        state.previous, state.joints, state.uv = state.joints, predicted, uv
         state.lost += 1
         state.missed += 1
         state.missed[markers] = 0
         state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
-    def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray) -> Detections:
-        """Disks near the predicted markers: refined from each prediction with the marker's
-        last ellipse; for markers not found so, searched in a window (gate) around the
-        prediction. Duplicates merged."""
-        seeds = np.nonzero(visible)[0]
-        found = refine_and_accept(gray, uv[seeds], self.state.shape[seeds], self.options.detect)
+    def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
+                expected: np.ndarray, recent: np.ndarray) -> Detections:
+        """Disks near the predicted markers: refined from each prediction (with the marker's
+        last ellipse while it is followed, else a circle of the expected radius); for
+        markers not found so (those missed for long only every 4th frame), searched in a
+        window (gate) around the prediction. Duplicates merged."""
+        missed = self.state.missed
+        seeds = np.flatnonzero(visible)
+        circles = expected[seeds, None, None] ** 2 * np.eye(2)
+        shapes = np.where((missed[seeds] <= 2)[:, None, None], self.state.shape[seeds], circles)
+        found = refine_and_accept(gray, uv[seeds], shapes, self.options.detect)
         near = np.linalg.norm(found.xy[None] - uv[seeds, None], axis=-1) if len(found) else np.zeros((len(seeds), 0))
-        close = 0.5 * np.maximum(self.state.radius[seeds], 2.0)
+        close = 0.5 * np.maximum(expected[seeds], 2.0)
         missing = seeds[~np.any(near < close[:, None] + self.options.tight_px, axis=1)]
-        missed = self.state.missed[missing]
-        missing = missing[(missed <= 3) | (missed % 4 == 0)]  # long-missed: every 4th frame
+        missing = missing[(missed[missing] <= 3) | (missed[missing] % 4 == 0)]
         if len(missing) == 0:
             return found
         height, width = gray.shape
         xys, shapes = [], []
         for m in missing:
-            r = self.state.radius[m]
+            r = expected[m]
             half = gate[m] + 2.6 * r + 3
             x0, y0 = int(max(uv[m, 0] - half, 0)), int(max(uv[m, 1] - half, 0))
             x1, y1 = int(min(uv[m, 0] + half + 1, width)), int(min(uv[m, 1] + half + 1, height))
