@@ -3,8 +3,8 @@ ArUco / AprilTag markers.
 
 Disks are found in two steps. Candidates are the connected dark regions of an adaptive
 threshold (darker than their neighbourhood's mean), kept when their area and shape are in
-range, each with the ellipse of its region's moments. Each candidate is then refined, all
-candidates of a size together on a stack of patches: the centre is the centroid of the
+range, each with the ellipse of its region's moments. Each candidate is then refined on
+its own window (compiled: `mocap.disk_kernel`): the centre is the centroid of the
 darkness ``w = clip((white - I) / (white - black), 0, 1)`` inside an elliptical window a
 little larger than the disk, "white" being the bright end (85th percentile) of an
 elliptical ring around it on the white square and "black" the mean of the disk's
@@ -19,7 +19,7 @@ the disk's plane is known, `disk_centre_from_ellipse` gives the exact image of t
 (the pole of the plane's vanishing line with respect to the ellipse).
 
 Pixels are in the OpenCV convention (centre of the top-left pixel at 0, 0). Shapes: N
-detections, P patch side.
+detections.
 """
 
 from __future__ import annotations
@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from mocap.disk_kernel import refine_disks
 
 
 @dataclass(frozen=True)
@@ -152,134 +154,28 @@ def find_candidates(
     return mean + np.asarray(origin, dtype=float), shape
 
 
-def refine(
-    gray: np.ndarray,
-    xy: np.ndarray,
-    shape: np.ndarray,
-    iterations: int = 3,
-    again: bool = True,
-    options: DetectOptions | None = None,
-) -> tuple[Detections, np.ndarray]:
+def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int = 3) -> tuple[Detections, np.ndarray]:
     """Sub-pixel centres and ellipses of dark disks near `xy` (N, 2), of about `shape`:
     semi-axis matrices (N, 2, 2) or radii (N,).
 
-    Candidates are refined in groups of similar size, each group together on a stack of
-    square patches just large enough for its outer ring. If `again`, a disk that outgrew
-    its patch is refined once more on a larger one (with `options`, only one whose contrast
-    and ring pass their tests). Returns the Detections without
-    any test applied (see `accept`) and how far each one's surrounding ring falls short of
-    white, relative to its contrast (N,).
+    Each candidate is refined on its own window, which follows the ellipse as it moves and
+    grows (to twice its starting size and 4 px). Returns the Detections without any test
+    applied (see `accept`) and how far each one's surrounding ring falls short of white,
+    relative to its contrast (N,).
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     shape = np.asarray(shape, dtype=float)
     if shape.ndim == 1:
         shape = shape[:, None, None] ** 2 * np.eye(2)
-    shape = shape.reshape(len(xy), 2, 2)
+    shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
     if len(xy) == 0:
         return Detections.empty(), np.zeros(0)
-    evals = np.clip(np.linalg.eigvalsh(shape), 0.25, None)
-    major, minor = np.sqrt(evals[:, 1]), np.sqrt(evals[:, 0])
-    # the patch holds the outer ring (k_out major semi-axes) and the centre's drift
-    half = np.ceil(_ring_radii(minor)[1] * major + 3.0)
-    group = np.floor(np.log(half) / np.log(1.5)).astype(int)  # patch sides within 50 %
-    order = np.argsort(group, kind="stable")
-    parts, spreads, grown = [], [], []
-    for g in np.unique(group):
-        pick = order[group[order] == g]
-        found, spread, outgrown = _refine_group(gray, xy[pick], shape[pick], int(half[pick].max()), iterations)
-        parts.append(found)
-        spreads.append(spread)
-        grown.append(outgrown)
-    inverse = np.argsort(order, kind="stable")
-    found, spread = concatenate(parts).select(inverse), np.concatenate(spreads)[inverse]
-    outgrown = np.concatenate(grown)[inverse]
-    if options is not None:
-        outgrown &= (found.contrast >= options.min_contrast) & (spread <= options.max_ring_spread)
-    outgrown = np.flatnonzero(outgrown)
-    if len(outgrown) and again:  # moved or grew past its patch's margin: a larger patch
-        redo, redo_spread = refine(gray, found.xy[outgrown], 1.5 * found.shape[outgrown], iterations, again=False)
-        for name in _FIELDS:
-            getattr(found, name)[outgrown] = getattr(redo, name)
-        spread[outgrown] = redo_spread
-    return found, spread
-
-
-def _ring_radii(minor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The window's edge k_in (just past the blurred edge) and the ring's outer edge k_out
-    (mostly on the white square), in semi-axes, for minor semi-axes `minor` (px)."""
-    k_in = 1.0 + np.maximum(0.7 / np.maximum(minor, 0.5), 0.15)
-    return k_in, np.maximum(1.6, k_in + 0.35)
-
-
-def _refine_group(
-    gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, half: int, iterations: int
-) -> tuple[Detections, np.ndarray, np.ndarray]:
-    """Refine N candidates on (N, P, P) patches of side P = 2 half + 1, in float32 and in
-    patch coordinates (pixel offsets from each patch's centre pixel). Also returns (N,)
-    bool: the ring outgrew the patch (the ellipse was held at the patch's limit, or the
-    centre moved too far)."""
-    offsets = np.arange(-half, half + 1)
-    height, width = gray.shape
-    centre = np.round(xy).astype(int)
-    rows = np.clip(centre[:, 1, None] + offsets, 0, height - 1)  # (N, P)
-    cols = np.clip(centre[:, 0, None] + offsets, 0, width - 1)
-    levels = gray[rows[:, :, None], cols[:, None, :]]  # (N, P, P) uint8
-    patch = levels.astype(np.float32)
-    grid = offsets.astype(np.float32)
-    limit = ((half - 1.0) / 1.6) ** 2  # keep the ring (at least 1.6 semi-axes) inside the patch
-    evals, evecs = np.linalg.eigh(shape)
-    evals = np.clip(evals, 0.25, limit)
-    c = xy - centre  # (N, 2) in patch coordinates
-    for iteration in range(iterations):
-        inv_shape = (evecs @ (np.swapaxes(evecs, 1, 2) / evals[:, :, None])).astype(np.float32)
-        dx = grid[None, None, :] - c[:, 0, None, None].astype(np.float32)  # (N, 1, P)
-        dy = grid[None, :, None] - c[:, 1, None, None].astype(np.float32)  # (N, P, 1)
-        rho2 = inv_shape[:, 0, 0, None, None] * (dx * dx) + inv_shape[:, 1, 1, None, None] * (dy * dy)
-        rho2 += (2.0 * inv_shape[:, 0, 1, None, None]) * (dx * dy)
-        k_in, k_out = _ring_radii(np.sqrt(evals[:, 0]))
-        k_in2 = (k_in**2).astype(np.float32)[:, None, None]
-        k_out2 = (k_out**2).astype(np.float32)[:, None, None]
-        window = rho2 < k_in2
-        ring = ~window & (rho2 < k_out2)
-        if iteration in (0, 1):  # the levels, from the first and from a centred window
-            # the white of the ring (it may reach past the square's edges), and its dark
-            # end: a ring cut by something darker fails the tests
-            darkest, background = _masked_quantiles(levels, ring, [0.15, 0.85])
-            middle = rho2 < 0.25
-            foreground = np.sum(patch * middle, axis=(1, 2)) / np.maximum(np.sum(middle, axis=(1, 2)), 1)
-            foreground = np.where(np.any(middle, axis=(1, 2)), foreground, np.nan)
-            contrast = np.maximum(background - foreground, 1.0).astype(np.float32)
-            white = background.astype(np.float32)
-        # darkness 0 on the white, 1 on the black: its centroid is the disk's, and under
-        # motion blur the disk's mean place over the exposure
-        darkness = (white[:, None, None] - patch) / contrast[:, None, None]
-        np.clip(darkness, 0.0, 1.0, out=darkness)
-        darkness *= window
-        by_column = darkness.sum(axis=1, dtype=np.float64)  # (N, P) over rows
-        by_row = darkness.sum(axis=2, dtype=np.float64)
-        mass = by_column.sum(axis=1)
-        safe = np.where(mass > 0, mass, 1.0)
-        cx = by_column @ offsets / safe
-        cy = by_row @ offsets / safe
-        sxx = by_column @ offsets**2 / safe - cx**2
-        syy = by_row @ offsets**2 / safe - cy**2
-        sxy = np.einsum("nij,i,j->n", darkness, grid, grid, dtype=np.float64) / safe - cx * cy
-        moments = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
-        new_shape = 4.0 * moments + 1e-3 * np.eye(2)
-        good = (mass > 0) & np.all(np.isfinite(new_shape), axis=(1, 2))
-        c = np.where(good[:, None], np.c_[cx, cy], c)
-        shape = np.where(good[:, None, None], new_shape, shape)
-        evals, evecs = np.linalg.eigh(shape)
-        evals = np.clip(evals, 0.25, limit)
-    held = np.linalg.eigvalsh(shape)[:, 1] > limit
-    axes = np.sqrt(np.maximum(evals[:, ::-1], 1e-9))
-    outgrown = held | (np.max(np.abs(c), axis=1) + _ring_radii(axes[:, 1])[1] * axes[:, 0] > half)
-    angle = np.arctan2(evecs[:, 1, 1], evecs[:, 0, 1])
-    contrast = background - foreground
-    fill = mass / (np.pi * axes[:, 0] * axes[:, 1])
-    spread = np.where(np.isfinite(darkest), background - darkest, np.inf) / np.maximum(contrast, 1.0)
+    major = np.sqrt(np.clip(np.linalg.eigvalsh(shape)[:, 1], 0.25, None))
+    centre, axes, angle, contrast, fill, spread = refine_disks(
+        np.ascontiguousarray(gray, dtype=np.uint8), np.ascontiguousarray(xy), shape, 2.0 * major + 4.0, iterations
+    )
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
-    return Detections(c + centre, axes, angle, contrast, fill, score), spread, outgrown
+    return Detections(centre, axes, angle, contrast, fill, score), spread
 
 
 def accept(detections: Detections, spread: np.ndarray, options: DetectOptions) -> np.ndarray:
@@ -309,7 +205,7 @@ def detect_disks(
 
 def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:
     """`refine` then `accept`, duplicates merged (centres closer than half a radius)."""
-    found, spread = refine(gray, xy, shape, options=options)
+    found, spread = refine(gray, xy, shape)
     found = found.select(accept(found, spread, options))
     return unique(found)
 
@@ -324,20 +220,6 @@ def unique(detections: Detections) -> Detections:
     close = dist < 0.5 * np.minimum(d.radius[:, None], d.radius[None])
     keep = ~np.any(np.triu(close, 1), axis=0)
     return d.select(keep)
-
-
-def _masked_quantiles(levels: np.ndarray, mask: np.ndarray, quantiles) -> np.ndarray:
-    """Quantiles (Q, N) of uint8 `levels` (N, P, P) over `mask` (N, P, P) per item; NaN if
-    empty. Pixels outside the mask sort last as 255, which leaves the quantiles of those
-    inside unchanged (a 255 inside ties with them); uint8 sorts by counting."""
-    flat = np.sort(np.where(mask, levels, np.uint8(255)).reshape(len(levels), -1), axis=1, kind="stable")
-    count = mask.reshape(len(levels), -1).sum(axis=1)
-    out = np.full((len(quantiles), len(levels)), np.nan)
-    ok = count > 0
-    for k, q in enumerate(quantiles):
-        index = np.floor(q * np.maximum(count - 1, 0)).astype(int)
-        out[k, ok] = np.take_along_axis(flat, index[:, None], axis=1)[ok, 0]
-    return out
 
 
 # --- perspective: the image of a disk's centre -------------------------------------------

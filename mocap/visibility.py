@@ -31,14 +31,16 @@ def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
 
 
 def segment_hits_box(start: np.ndarray, end: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """Whether segments from `start` to `end` (*, 3) pass through the box (2, 3) (both in
-    the box's frame); a start point inside the box counts as a hit."""
+    """Whether segments from `start` to `end` (*, 3) pass through the box (2, 3), or boxes
+    (*, 2, 3) broadcast with them (both in the box's frame); a start point inside the box
+    counts as a hit."""
+    low_corner, high_corner = box[..., 0, :], box[..., 1, :]
     d = end - start
     with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (box[0] - start) / d
-        t2 = (box[1] - start) / d
+        t1 = (low_corner - start) / d
+        t2 = (high_corner - start) / d
     parallel = d == 0
-    inside_slab = (start >= box[0]) & (start <= box[1])
+    inside_slab = (start >= low_corner) & (start <= high_corner)
     low = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
     high = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
     enter, leave = low.max(axis=-1), high.min(axis=-1)
@@ -110,14 +112,22 @@ def _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, siz
     w, h = size
     seen = np.all(np.isfinite(uv), axis=-1)
     seen &= (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    for l in range(len(machine.links)):
-        r = np.swapaxes(link_poses[:, l, :3, :3], 1, 2)  # link_from_world, (F, 3, 3)
-        t = -np.einsum("fij,fj->fi", r, link_poses[:, l, :3, 3])
-        start = np.einsum("fij,fmpj->fmpi", r, world) + t[:, None, None]
-        end = np.einsum("fij,fj->fi", r, centre) + t
-        hidden = segment_hits_box(start, np.broadcast_to(end[:, None, None], start.shape), boxes[l])
-        seen &= ~(hidden & (links != l)[None, :, None])
+    # the segments to the camera in every link's frame at once, a few frames at a time
+    n_links = len(machine.links)
+    rotation_t = np.swapaxes(link_poses[..., :3, :3], -1, -2)  # link_from_world (F, L, 3, 3)
+    shift = -np.einsum("flij,flj->fli", rotation_t, link_poses[..., :3, 3])
+    other = (links[None, :] != np.arange(n_links)[:, None])[:, :, None]  # (L, M, 1): its own box never hides
+    step = max(1, _CHUNK_POINTS // max(n_links * points.shape[0] * points.shape[1], 1))
+    for k in range(0, len(world), step):
+        part = slice(k, k + step)
+        start = np.einsum("flij,fmpj->flmpi", rotation_t[part], world[part]) + shift[part, :, None, None]
+        end = np.einsum("flij,fj->fli", rotation_t[part], centre[part]) + shift[part]
+        hit = segment_hits_box(start, np.broadcast_to(end[:, :, None, None], start.shape), boxes[None, :, None, None])
+        seen[part] &= ~np.any(hit & other[None], axis=1)
     return uv, seen
+
+
+_CHUNK_POINTS = 1 << 16  # link x marker x point segments tested at once
 
 
 def marker_outlines(

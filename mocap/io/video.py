@@ -1,4 +1,5 @@
-"""Reading videos frame by frame (OpenCV's VideoCapture), grey or colour.
+"""Reading videos frame by frame: grey from the decoder's luma plane (PyAV), colour
+through OpenCV's VideoCapture; the video's size, rate and frame count from OpenCV.
 
 A video that cannot be opened is an InputError. A video that breaks part-way (a corrupt or
 truncated file) stops the iteration with a warning naming the frame where it broke; the
@@ -13,7 +14,9 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import av
 import cv2
+import numpy as np
 
 from mocap.errors import InputError
 
@@ -98,6 +101,9 @@ class Video:
             thread.join()
 
     def _read(self, gray: bool, start: int, stop: int | None):
+        if gray:
+            yield from self._read_luma(start, stop)
+            return
         capture = cv2.VideoCapture(str(self.path))
         self.broken_at = None
         try:
@@ -107,21 +113,56 @@ class Video:
             while stop is None or index < stop:
                 ok, image = capture.read()
                 if not ok or image is None:
-                    expected = self.info.frame_count if stop is None else min(stop, self.info.frame_count)
-                    if index < expected:
-                        self.broken_at = index
-                        log.warning(
-                            "%s: the video broke at frame %d of %d (corrupt or truncated); "
-                            "frames before it are kept",
-                            self.path,
-                            index,
-                            self.info.frame_count,
-                        )
+                    self._check_end(index, stop)
                     return
-                if gray:
-                    image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
                 yield index, image
                 index += 1
         finally:
             capture.release()
 
+    def _read_luma(self, start: int, stop: int | None):
+        """Grey frames straight from the decoder's luma plane (PyAV, threaded decoding): no
+        conversion to colour and back. Limited-range luma (16-235) is stretched to 0-255,
+        as OpenCV's grey conversion of the decoded colours gives."""
+        self.broken_at = None
+        index = 0
+        try:
+            with av.open(str(self.path)) as container:
+                stream = container.streams.video[0]
+                stream.thread_type = "AUTO"
+                for frame in container.decode(stream):
+                    if stop is not None and index >= stop:
+                        return
+                    if index >= start:
+                        yield index, _luma(frame)
+                    index += 1
+        except av.error.FFmpegError:
+            pass
+        self._check_end(index, stop)
+
+    def _check_end(self, index: int, stop: int | None) -> None:
+        """Reading stopped at frame `index`: a warning and `broken_at` if that is before the end."""
+        expected = self.info.frame_count if stop is None else min(stop, self.info.frame_count)
+        if index < expected:
+            self.broken_at = index
+            log.warning(
+                "%s: the video broke at frame %d of %d (corrupt or truncated); frames before it are kept",
+                self.path,
+                index,
+                self.info.frame_count,
+            )
+
+
+_LIMITED_TO_FULL = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+
+
+def _luma(frame) -> np.ndarray:
+    """A decoded frame's grey image (H, W) uint8: its luma plane for YUV formats (stretched
+    from limited range), else the frame converted to grey."""
+    name = frame.format.name
+    if not (name.startswith("yuv") or name in ("nv12", "nv21", "gray")):
+        return frame.to_ndarray(format="gray")
+    plane = frame.planes[0]
+    luma = np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)[:, : plane.width]
+    full = name.startswith("yuvj") or name == "gray" or getattr(frame, "color_range", 1) == 2
+    return np.ascontiguousarray(luma) if full else cv2.LUT(luma, _LIMITED_TO_FULL)

@@ -144,11 +144,12 @@ class Tracker:
             observed[markers[~keep]] = np.nan
             joints = model.fit(observed[None], joints, iterations=1)[0][0]
         held, held_index = markers[keep], index[keep]
-        # markers coming back on links the held markers fix are where the fitted model puts
-        # them; those on a link whose joint no held marker shows are found by narrowing
-        # gates from their reach, and kept only if the held markers agree
+        # markers coming back (after an occlusion, or a link the camera did not see, or
+        # where the single camera fixes the joints poorly): found by gates narrowing from
+        # their reach, kept only while the held markers agree; markers on links whose
+        # joints the held markers show may also be picked up by the final assignment
         known = model.known_markers(held)
-        returning = visible & ~recent & ~known
+        returning = visible & ~recent
         if np.any(returning):
             joints, known = self._regain(found, observed, joints, held, held_index, returning, reach, expected, known)
         fitted_uv = model.pixels(joints[None])[0]
@@ -223,9 +224,11 @@ class Tracker:
             self.state.disk_m = now if not np.isfinite(self.state.disk_m) else 0.9 * self.state.disk_m + 0.1 * now
 
     def _regain(self, found, observed, joints, held, held_index, returning, reach, expected, known):
-        """Markers back on links whose joint no held marker shows: assigned within gates
-        narrowing from their reach, each step refitting the joints, and taken only while
-        the held markers still agree. Returns the joints and the markers now known."""
+        """Returning markers: assigned within gates narrowing from their reach, each step
+        refitting the joints, and taken only while the held markers still agree (a marker
+        alone on a link whose joint no held marker shows only if it is the one blob in its
+        reach: `CameraModel.supported`).
+        Returns the joints and the markers now known."""
         options, model = self.options, self.model
         taken = np.zeros(len(found), dtype=bool)
         taken[held_index] = True
@@ -234,7 +237,9 @@ class Tracker:
             back_uv = model.pixels(joints[None])[0]
             gate = np.maximum(g * reach, options.tight_px)
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
-            keep_back = model.supported(back, held)
+            # a marker alone on its link fits any blob along its arc: only the one blob in reach
+            alone = np.sum(np.linalg.norm(back_uv[back, None] - free[None], axis=-1) <= gate[back, None], axis=1) == 1
+            keep_back = model.supported(back, held) | alone
             back, back_index = back[keep_back], back_index[keep_back]
             if len(back) == 0:
                 break
@@ -244,7 +249,8 @@ class Tracker:
             if np.nanmax(moved_residual[0, held]) > options.outlier_px:
                 break  # the returning candidates disagree with the markers held
             joints = moved[0]
-            known = known | (returning & model.known_markers(np.r_[held, back]))
+            observed = trial
+            known = known | model.known_markers(np.r_[held, back])
         return joints, known
 
     def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,

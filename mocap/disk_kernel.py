@@ -1,0 +1,138 @@
+"""The disk refinement's inner loop, compiled (numba): each candidate on its own window.
+
+For one candidate at a time, each iteration visits the pixels of the ellipse's outer ring
+and inside it twice: for the ring's grey levels (a 256-bin histogram, for the 15th and 85th
+percentiles) and the mean of the disk's middle, then for the darkness centroid and second
+moments inside the window; a last pass takes the levels around the final ellipse. The window follows the ellipse as
+it moves and grows, up to `max_major` px of major semi-axis. `mocap.detect` describes the
+method; this module only computes it.
+
+Shapes: N candidates.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_MIN_EVAL = 0.25  # px², the least squared semi-axis
+
+
+@njit(cache=True, nogil=True)
+def _eigen(sxx: float, sxy: float, syy: float):
+    """Eigenvalues (minor, major) of a symmetric 2x2 matrix and the major axis's angle."""
+    mean = 0.5 * (sxx + syy)
+    half_gap = math.sqrt(0.25 * (sxx - syy) ** 2 + sxy * sxy)
+    return mean - half_gap, mean + half_gap, 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+
+
+@njit(cache=True, nogil=True)
+def _ring_radii(minor: float):
+    k_in = 1.0 + max(0.7 / max(minor, 0.5), 0.15)
+    return k_in, max(1.6, k_in + 0.35)
+
+
+@njit(cache=True, nogil=True)
+def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
+    rank = math.floor(q * max(total - 1, 0))
+    seen = 0
+    for level in range(256):
+        seen += histogram[level]
+        if seen > rank:
+            return float(level)
+    return 255.0
+
+
+@njit(cache=True, nogil=True)
+def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major: np.ndarray, iterations: int):
+    """Refine N candidates: start centres xy (N, 2), semi-axis matrices shape (N, 2, 2),
+    the largest major semi-axis allowed (N,) px. Returns centres (N, 2), semi-axes (N, 2)
+    a >= b, angle (N,), contrast (N,), fill (N,) and the ring's spread (N,) (see
+    `mocap.detect.refine`)."""
+    n = xy.shape[0]
+    height, width = gray.shape
+    out_xy = xy.copy()
+    out_axes = np.zeros((n, 2))
+    out_angle = np.zeros(n)
+    out_contrast = np.zeros(n)
+    out_fill = np.zeros(n)
+    out_spread = np.full(n, np.inf)
+    histogram = np.zeros(256, dtype=np.int64)
+    for i in range(n):
+        cx, cy = xy[i, 0], xy[i, 1]
+        minor2, major2, angle = _eigen(shape[i, 0, 0], shape[i, 0, 1], shape[i, 1, 1])
+        limit = max_major[i] ** 2
+        minor2 = min(max(minor2, _MIN_EVAL), limit)
+        major2 = min(max(major2, _MIN_EVAL), limit)
+        darkest = background = foreground = math.nan
+        mass = 0.0
+        for iteration in range(iterations + 1):
+            c, s = math.cos(angle), math.sin(angle)
+            # inverse shape: R diag(1/major², 1/minor²) R^T, R's first column the major axis
+            ia = c * c / major2 + s * s / minor2
+            ib = c * s / major2 - c * s / minor2
+            ic = s * s / major2 + c * c / minor2
+            k_in, k_out = _ring_radii(math.sqrt(minor2))
+            k_in2, k_out2 = k_in * k_in, k_out * k_out
+            reach = k_out * math.sqrt(major2) + 1.0
+            x0, x1 = max(int(math.floor(cx - reach)), 0), min(int(math.ceil(cx + reach)), width - 1)
+            y0, y1 = max(int(math.floor(cy - reach)), 0), min(int(math.ceil(cy + reach)), height - 1)
+            # the levels around the current ellipse (the last pass: around the final one)
+            histogram[:] = 0
+            ring_count = middle_count = 0
+            middle_sum = 0.0
+            for y in range(y0, y1 + 1):
+                dy = y - cy
+                for x in range(x0, x1 + 1):
+                    dx = x - cx
+                    rho2 = ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy
+                    if rho2 < 0.25:
+                        middle_sum += gray[y, x]
+                        middle_count += 1
+                    elif k_in2 <= rho2 < k_out2:
+                        histogram[gray[y, x]] += 1
+                        ring_count += 1
+            if ring_count == 0:
+                darkest = background = math.nan
+            else:
+                darkest = _quantile(histogram, ring_count, 0.15)
+                background = _quantile(histogram, ring_count, 0.85)
+            foreground = middle_sum / middle_count if middle_count > 0 else math.nan
+            contrast = max(background - foreground, 1.0)
+            if iteration == iterations or not math.isfinite(contrast):
+                break
+            m0 = mx = my = mxx = mxy = myy = 0.0
+            for y in range(y0, y1 + 1):
+                dy = y - cy
+                for x in range(x0, x1 + 1):
+                    dx = x - cx
+                    if ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy < k_in2:
+                        w = min(max((background - gray[y, x]) / contrast, 0.0), 1.0)
+                        m0 += w
+                        mx += w * dx
+                        my += w * dy
+                        mxx += w * dx * dx
+                        mxy += w * dx * dy
+                        myy += w * dy * dy
+            mass = m0
+            if m0 <= 0:
+                break
+            ux, uy = mx / m0, my / m0
+            sxx = 4.0 * (mxx / m0 - ux * ux) + 1e-3
+            sxy = 4.0 * (mxy / m0 - ux * uy)
+            syy = 4.0 * (myy / m0 - uy * uy) + 1e-3
+            cx, cy = cx + ux, cy + uy
+            minor2, major2, angle = _eigen(sxx, sxy, syy)
+            minor2 = min(max(minor2, _MIN_EVAL), limit)
+            major2 = min(max(major2, _MIN_EVAL), limit)
+        a, b = math.sqrt(major2), math.sqrt(minor2)
+        out_xy[i, 0], out_xy[i, 1] = cx, cy
+        out_axes[i, 0], out_axes[i, 1] = a, b
+        out_angle[i] = angle
+        out_contrast[i] = background - foreground
+        out_fill[i] = mass / (math.pi * a * b)
+        if math.isfinite(darkest):
+            out_spread[i] = (background - darkest) / max(background - foreground, 1.0)
+    return out_xy, out_axes, out_angle, out_contrast, out_fill, out_spread
