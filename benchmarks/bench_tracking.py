@@ -2,8 +2,10 @@
 
 Renders a session with `mocap synth` (clutter, motion blur, dust, noise, occlusion by the
 machine's own links), then per camera: the decode floor (OpenCV reading every frame, the
-peer), detection + labelling + tracking of the same video, and the labels and centres
-against the true tracks; then the cameras' time offsets from the tracks against the truth.
+peer), detection + labelling + tracking of the same video (decoding included; the least
+of `--repeat` interleaved runs of each), and the labels and centres against the true
+tracks; then the cameras' time offsets from the tracks against the truth. A marker counts
+as visible when all of its painted square is in view (the true tracks' score is 1).
 
     python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
 """
@@ -68,6 +70,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--machine", default="hitachi_ex3500")
     parser.add_argument("--session", help="use this rendered session folder instead of rendering one")
+    parser.add_argument("--repeat", type=int, default=2, help="timed runs per camera (the least counts)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.session) if args.session else Path(tmp) / "session"
@@ -86,12 +89,17 @@ def main() -> int:
         curves, all_errors = [], []
         for k, camera in enumerate(truth_cal.cameras):
             video_path = root / "videos" / f"{camera.name}.mp4"
-            floor, count = decode_floor(video_path)
             video = Video(video_path)
             model = CameraModel(machine, camera)
-            t0 = time.perf_counter()
-            tracks, _ = track_frames(model, video.frames(prefetch=4), truth_cal.joints(machine), None, video.info.fps)
-            took = time.perf_counter() - t0
+            floors, tooks = [], []
+            for _ in range(args.repeat):  # interleaved, the least of each: the machine is shared
+                floor, count = decode_floor(video_path)
+                t0 = time.perf_counter()
+                tracks, _ = track_frames(model, video.frames(prefetch=4), truth_cal.joints(machine), None,
+                                         video.info.fps)
+                floors.append(floor)
+                tooks.append(time.perf_counter() - t0)
+            floor, took = min(floors), min(tooks)
             labelled, wrong, errors = score(truth.of_camera(camera.name), tracks)
             all_errors.append(errors)
             print(f"{camera.name:>7} {count:>6} {floor:>8.2f} {took:>8.2f} {took / floor:>6.2f} {labelled:>8.2%} "

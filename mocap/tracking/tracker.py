@@ -135,7 +135,7 @@ class Tracker:
             return self._coast(predicted, uv, visible, found, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], predicted, iterations=2)
+        joints, residual = model.fit(observed[None], predicted, iterations=1)
         keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, found, expected)
@@ -233,6 +233,9 @@ class Tracker:
         taken = np.zeros(len(found), dtype=bool)
         taken[held_index] = True
         free = np.where(taken[:, None], np.inf, found.xy)
+        near = np.linalg.norm(self.state.uv[returning, None] - free[None], axis=-1) <= 2.0 * reach[returning, None]
+        if not np.any(near):  # no free detection anywhere near a returning marker
+            return joints, known
         for g in (1.0, 0.5, 0.25):
             back_uv = model.pixels(joints[None])[0]
             gate = np.maximum(g * reach, options.tight_px)
