@@ -156,13 +156,25 @@ def project_cam(
     z_safe = np.where(behind, np.nan, z)
     x = p[..., 0] / z_safe
     y = p[..., 1] / z_safe
+    fx, s, cx = matrix[0]
+    fy, cy = matrix[1, 1], matrix[1, 2]
+    if not np.any(distortion):  # the pinhole alone
+        uv = np.stack([fx * x + s * y + cx, fy * y + cy], axis=-1)
+        if not with_jacobian:
+            return uv
+        inv_z = 1.0 / z_safe
+        jac = np.zeros(p.shape[:-1] + (2, 3))
+        jac[..., 0, 0] = fx * inv_z
+        jac[..., 0, 1] = s * inv_z
+        jac[..., 0, 2] = -(fx * x + s * y) * inv_z
+        jac[..., 1, 1] = fy * inv_z
+        jac[..., 1, 2] = -fy * y * inv_z
+        return uv, jac
     k1, k2, p1, p2, k3 = distortion
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    fx, s, cx = matrix[0]
-    fy, cy = matrix[1, 1], matrix[1, 2]
     uv = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=-1)
     if not with_jacobian:
         return uv

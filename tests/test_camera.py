@@ -35,8 +35,8 @@ def test_projection_is_batched_and_nan_behind_the_camera():
     assert project([camera, camera], points).shape == (2, 2, 2, 2)
 
 
-def test_projection_jacobian_matches_finite_differences():
-    dist = np.array([-0.2, 0.08, 0.002, -0.001, 0.02])
+@pytest.mark.parametrize("dist", [np.array([-0.2, 0.08, 0.002, -0.001, 0.02]), np.zeros(5)], ids=["distorted", "pinhole"])
+def test_projection_jacobian_matches_finite_differences(dist):
     matrix = np.array([[1500.0, 0.5, 950.0], [0.0, 1490.0, 530.0], [0, 0, 1]])
     rng = np.random.default_rng(1)
     points = np.c_[rng.uniform(-3, 3, (10, 2)), rng.uniform(8, 20, 10)]

@@ -114,7 +114,7 @@ def test_fit_recovers_joints_from_noisy_pixels():
     _, _, _, model, joints = make_scene(n_frames=5, clutter=0, seed=3)
     noise = 0.3
     pixels = model.pixels(joints) + rng.normal(0, noise, (5, len(model.machine.marker_names), 2))
-    fitted, residual = model.fit(pixels, joints + np.radians(4), iterations=10)
+    fitted, residual, _ = model.fit(pixels, joints + np.radians(4), iterations=10)
     # the joints' standard deviations from the pixel noise: noise * sqrt(diag((J^T J)^-1))
     _, jac = model._residuals(joints, np.zeros_like(pixels), model.camera.cam_from_world.rotation)
     information = np.einsum("fmaj,fmak->fjk", jac, jac)

@@ -63,8 +63,7 @@ def propose_labels(
             observed[k, markers] = detections.xy[index]
         if not np.any(alive):
             return None
-        fitted, _ = model.fit(observed[alive], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0))
-        joints[alive] = fitted
+        joints[alive] = model.fit(observed[alive], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0)).joints
     view = model.view(joints)
     best, best_key = None, None
     for k in np.flatnonzero(alive):
@@ -97,7 +96,7 @@ def labels_from_pixels(
     observed = np.where(given[:, None], labelled, np.nan)
     observed[markers] = detections.xy[index]
     starts = starts_around(model, start)
-    fitted, residual = model.fit(np.broadcast_to(observed, (len(starts),) + observed.shape), starts, iterations=15)
+    fitted, residual, _ = model.fit(np.broadcast_to(observed, (len(starts),) + observed.shape), starts, iterations=15)
     rms_of = np.sqrt(np.nanmean(residual**2, axis=1))
     best = int(np.nanargmin(rms_of))
     joints, rms = fitted[best], float(rms_of[best])
@@ -111,7 +110,7 @@ def labels_from_pixels(
         extra, extra_index = assign(uv, np.where(taken[:, None], np.inf, detections.xy), np.full(n_markers, gate), free)
         combined = observed.copy()
         combined[extra] = detections.xy[extra_index]
-        fitted, residual = model.fit(combined[None], joints, iterations=8)
+        fitted, residual, _ = model.fit(combined[None], joints, iterations=8)
         joints, rms = fitted[0], float(np.sqrt(np.nanmean(residual**2)))
     markers = np.r_[markers, extra]
     index = np.r_[index, extra_index]

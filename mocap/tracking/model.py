@@ -8,6 +8,7 @@ Shapes: F frames, M markers, J joints, L links.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -15,6 +16,15 @@ from mocap.camera import Camera, project_cam
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
 from mocap.visibility import marker_normals, visible_markers
+
+
+class Fit(NamedTuple):
+    """A fit of the joint values: `joints` (F, J), `residual` (F, M) px (NaN where not
+    observed) and the fitted marker pixels `uv` (F, M, 2)."""
+
+    joints: np.ndarray
+    residual: np.ndarray
+    uv: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -114,7 +124,7 @@ class CameraModel:
         iterations: int = 6,
         scale_px: float = 2.0,
         prior_weight: float = 1e-2,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> Fit:
         """Joint values that best explain labelled pixels, by robust Gauss-Newton.
 
         Parameters
@@ -127,7 +137,8 @@ class CameraModel:
 
         Returns
         -------
-        joints (F, J), clipped to the limits, and residuals (F, M) px (NaN where not observed).
+        Fit: joints (F, J), clipped to the limits, residuals (F, M) px (NaN where not
+        observed) and the fitted pixels (F, M, 2).
         """
         pixels = np.asarray(pixels, dtype=float)
         start = np.broadcast_to(np.asarray(start, dtype=float), (len(pixels), self.machine.n_joints))
@@ -146,8 +157,8 @@ class CameraModel:
             gradient = np.einsum("fm,fmaj,fma->fj", weight, jac, residual)
             gradient += prior_weight * (joints - start)
             joints = self.machine.clip_to_limits(joints - np.linalg.solve(normal, gradient[..., None])[..., 0])
-        residual = self.pixels(joints) - target
-        return joints, np.where(observed, np.linalg.norm(residual, axis=-1), np.nan)
+        uv = self.pixels(joints)
+        return Fit(joints, np.where(observed, np.linalg.norm(uv - target, axis=-1), np.nan), uv)
 
     def _residuals(self, joints, target, rotation):
         markers, dmarkers = self.machine.markers_with_jacobian(joints)  # (F, M, 3), (F, M, 3, J)

@@ -135,14 +135,15 @@ class Tracker:
             return self._coast(predicted, uv, visible, found, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual = model.fit(observed[None], predicted, iterations=1)
+        joints, residual, fitted_uv = model.fit(observed[None], predicted, iterations=1)
         keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, found, expected)
-        joints = joints[0]
+        joints, fitted_uv = joints[0], fitted_uv[0]
         if not np.all(keep):
             observed[markers[~keep]] = np.nan
-            joints = model.fit(observed[None], joints, iterations=1)[0][0]
+            refit = model.fit(observed[None], joints, iterations=1)
+            joints, fitted_uv = refit.joints[0], refit.uv[0]
         held, held_index = markers[keep], index[keep]
         # markers coming back (after an occlusion, or a link the camera did not see, or
         # where the single camera fixes the joints poorly): found by gates narrowing from
@@ -151,8 +152,9 @@ class Tracker:
         known = model.known_markers(held)
         returning = visible & ~recent
         if np.any(returning):
-            joints, known = self._regain(found, observed, joints, held, held_index, returning, reach, expected, known)
-        fitted_uv = model.pixels(joints[None])[0]
+            joints, known, moved_uv = self._regain(found, observed, joints, held, held_index, returning, reach, expected,
+                                                   known)
+            fitted_uv = fitted_uv if moved_uv is None else moved_uv
         residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
@@ -162,8 +164,8 @@ class Tracker:
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
-            fitted, residual = model.fit(final[None], joints, iterations=1)
-            joints, fitted_uv = fitted[0], None
+            refit = model.fit(final[None], joints, iterations=1)
+            joints, fitted_uv, residual = refit.joints[0], refit.uv[0], refit.residual
             rms = float(np.sqrt(np.nanmean(residual[0] ** 2)))
         else:
             rms = inlier_rms
@@ -172,7 +174,7 @@ class Tracker:
         state.previous = np.where(seen_joints, state.joints, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         state.joints, state.lost = joints, 0
-        state.uv = model.pixels(joints[None])[0] if fitted_uv is None else fitted_uv
+        state.uv = fitted_uv
         state.shape[markers] = found.shape[index]
         state.missed += 1
         state.missed[markers] = 0
@@ -228,16 +230,18 @@ class Tracker:
         refitting the joints, and taken only while the held markers still agree (a marker
         alone on a link whose joint no held marker shows only if it is the one blob in its
         reach: `CameraModel.supported`).
-        Returns the joints and the markers now known."""
+        Returns the joints, the markers now known and the fitted pixels (None if the
+        joints did not move)."""
         options, model = self.options, self.model
         taken = np.zeros(len(found), dtype=bool)
         taken[held_index] = True
         free = np.where(taken[:, None], np.inf, found.xy)
         near = np.linalg.norm(self.state.uv[returning, None] - free[None], axis=-1) <= 2.0 * reach[returning, None]
         if not np.any(near):  # no free detection anywhere near a returning marker
-            return joints, known
+            return joints, known, None
+        moved_uv = None
+        back_uv = model.pixels(joints[None])[0]
         for g in (1.0, 0.5, 0.25):
-            back_uv = model.pixels(joints[None])[0]
             gate = np.maximum(g * reach, options.tight_px)
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
             # a marker alone on its link fits any blob along its arc: only the one blob in reach
@@ -248,13 +252,14 @@ class Tracker:
                 break
             trial = observed.copy()
             trial[back] = found.xy[back_index]
-            moved, moved_residual = model.fit(trial[None], joints, iterations=2)
-            if np.nanmax(moved_residual[0, held]) > options.outlier_px:
+            moved = model.fit(trial[None], joints, iterations=2)
+            if np.nanmax(moved.residual[0, held]) > options.outlier_px:
                 break  # the returning candidates disagree with the markers held
-            joints = moved[0]
+            joints, back_uv = moved.joints[0], moved.uv[0]
+            moved_uv = back_uv
             observed = trial
             known = known | model.known_markers(np.r_[held, back])
-        return joints, known
+        return joints, known, moved_uv
 
     def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,
                expected: np.ndarray) -> FrameResult:
