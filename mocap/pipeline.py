@@ -10,6 +10,7 @@ give the same files.
 from __future__ import annotations
 
 import logging
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,9 +97,17 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
     from mocap import cli  # the stages are the sub-commands
 
     session = Session.open(root)
+    refined, calibration = str(session.refined_calibration_path), str(session.calibration_path)
+    fallback = False
     for name, args in stage_commands(session, options):
+        if fallback:  # the refinement was refused: the stages after it use the one-frame calibration
+            args = [calibration if arg == refined else arg for arg in args]
         print(f"== {name}", flush=True)
         code = cli.main(args)
-        if code != 0:
+        if code != 0 and name == "refine":
+            print("refinement refused: carrying on with the one-frame calibration", file=sys.stderr, flush=True)
+            session.refined_calibration_path.unlink(missing_ok=True)  # a stale one from an earlier run
+            fallback = True
+        elif code != 0:
             return code
     return 0

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mocap import cli
-from mocap.errors import DegenerateError
+from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import Rigid, rotvec_to_matrix
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine, save_machine
@@ -117,3 +117,18 @@ def test_cli_refine(tmp_path, machine, capsys):
     assert "residual RMS" in capsys.readouterr().out
     assert cli.main(args + ["--out-machine", str(tmp_path / "m.toml")]) == 2
     assert "--out-machine needs --markers" in capsys.readouterr().err
+
+
+def test_refuses_to_move_cameras_onto_consistently_wrong_labels(machine):
+    """One camera's labels permuted in every frame (a tracker locked onto the wrong
+    markers): no camera pose explains them, and moving the cameras to fit them would spoil
+    the calibration, so refine refuses instead of returning cameras metres off."""
+    cameras, joints, _, pixels, rng = scene(machine, 60, seed=4)
+    wrong = pixels.copy()
+    swap = rng.permutation(len(machine.marker_names))
+    wrong[1] = pixels[1][:, swap]
+    with pytest.raises(ConvergenceError, match=r"camera .*tracks lie .* px \(median\)"):
+        refine(machine, perturbed(cameras, rng), wrong, RefineOptions(frames=40))
+    # the same tracks with the right labels refine, within the same bound
+    result = refine(machine, perturbed(cameras, rng), pixels, RefineOptions(frames=40))
+    assert result.rms_after == pytest.approx(NOISE, rel=0.2)

@@ -123,6 +123,29 @@ def test_fit_recovers_joints_from_noisy_pixels():
     assert np.sqrt(np.nanmean(residual**2)) < 2 * noise
 
 
+def test_centre_offsets_are_the_perspective_shift_of_each_disk():
+    """The model's offset from each marker's image ellipse centre to the image of its disk's
+    centre: the ellipse fitted to the projected rim, shifted by it, lands on the projected
+    centre exactly."""
+    from test_detect import _fit_conic, disk_frame
+
+    _, _, _, model, joints = make_scene(n_frames=1, clutter=0, seed=4)
+    machine, camera = model.machine, model.camera
+    offsets = model.centre_offsets(joints[:1], MARKER_RADIUS)[0]
+    poses = machine.link_poses(joints[:1])[0]
+    world = machine.markers(joints[:1])[0]
+    normals = np.einsum("mij,mj->mi", poses[machine.marker_links, :3, :3], model.normals)
+    t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    shifts = []
+    for m in np.flatnonzero(model.visible(joints[:1])[0]):
+        e1, e2 = disk_frame(camera, world[m], normals[m], MARKER_RADIUS)
+        outline = camera.project(world[m] + MARKER_RADIUS * (np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2))
+        centre = _fit_conic(outline)[0]
+        np.testing.assert_allclose(centre + offsets[m], camera.project(world[m]), atol=1e-6)
+        shifts.append(np.linalg.norm(offsets[m]))
+    assert max(shifts) > 0.01  # there is a shift to correct at this range
+
+
 def test_assignment_is_optimal_and_gated():
     predicted = np.array([[0.0, 0.0], [3.0, 0.0], [100.0, 100.0]])
     detected = np.array([[2.0, 0.0], [5.0, 0.0], [300.0, 300.0]])

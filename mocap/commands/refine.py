@@ -34,6 +34,9 @@ def add_parser(sub) -> None:
     p.add_argument("--frames", type=int, default=120, help="frames used, at most (default 120)")
     p.add_argument("--fixed-focal", action="store_true", help="keep the focal lengths")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
+    p.add_argument("--max-median", type=float, default=1.0, metavar="PX",
+                   help="refuse the refinement when a camera's tracks lie further than this from the refined "
+                   "cameras, median (default 1 px)")
     p.set_defaults(run=run)
 
 
@@ -42,7 +45,8 @@ def run(args) -> int:
         raise InputError("--out-machine needs --markers (without it the model is not changed)")
     try:
         options = RefineOptions(frames=args.frames, markers=args.markers, tolerance=args.tolerance,
-                                fit_focal=not args.fixed_focal, scale_px=args.loss_scale)
+                                fit_focal=not args.fixed_focal, scale_px=args.loss_scale,
+                                max_median_px=args.max_median)
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
     print(run_refine(args.machine, args.calibration, args.tracks, args.out, args.out_machine, options))

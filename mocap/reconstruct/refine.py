@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
 from mocap.camera import Camera, project_cam
-from mocap.errors import DegenerateError
+from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import Rigid, cross, rotvec_to_matrix
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
@@ -50,10 +50,13 @@ class RefineOptions:
     fit_focal: bool = True
     scale_px: float = 2.0
     max_evaluations: int = 100
+    max_median_px: float = 1.0
 
     def __post_init__(self) -> None:
         if self.frames < 2 or not self.tolerance > 0 or not self.scale_px > 0 or self.max_evaluations < 1:
             raise ValueError("frames >= 2, tolerance > 0, scale_px > 0 and max_evaluations >= 1 are required")
+        if not self.max_median_px > 0:
+            raise ValueError("max_median_px must be positive")
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,15 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     cams, joints, refined = problem.unpack(solution.x)
     after = problem.pixel_rms(solution.x)
     log.info("bundle adjustment over %d frames: %.3f -> %.3f px (%s)", len(frames), before, after, solution.message)
+    distance = np.linalg.norm(problem.pixel_residuals(solution.x), axis=-1)  # (C, K, M), 0 where not seen
+    for camera, d, seen in zip(cameras, distance, problem.seen):
+        median = float(np.median(d[seen])) if np.any(seen) else 0.0
+        if median > options.max_median_px:
+            raise ConvergenceError(
+                f"camera {camera.name}'s tracks lie {median:.1f} px (median) from the refined cameras, more than "
+                f"{options.max_median_px:g} px: the tracks disagree with each other (wrong labels or a bad sync?); "
+                "the calibration is left as it is (check the tracks, or raise --max-median)"
+            )
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message))
 
 

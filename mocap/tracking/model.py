@@ -87,6 +87,32 @@ class CameraModel:
             scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
         return View(uv, seen, scale)
 
+    def centre_offsets(self, joints: np.ndarray, radius_m: float) -> np.ndarray:
+        """(F, M, 2) px from the centre of each disk's image ellipse to the image of the
+        disk's centre, for disks of `radius_m` on the markers' faces: under perspective the
+        two differ (the near side looks larger), and a detector finds the ellipse's.
+
+        The disk's image is the conic ``C = H^-T diag(1, 1, -r²) H^-1`` with H the
+        homography from the disk's plane to the (pinhole) image; the ellipse's centre is
+        ``C^-1 (0, 0, 1)``. Distortion is left out: it bends the offset negligibly."""
+        joints = np.atleast_2d(joints)
+        poses = self.machine.link_poses(joints)[:, self.machine.marker_links]  # (F, M, 4, 4)
+        rotation, translation = self.camera.cam_from_world.rotation, self.camera.cam_from_world.translation
+        centre = np.einsum("ij,fmjk,mk->fmi", rotation, poses[..., :3, :3], self.machine.marker_positions)
+        centre += np.einsum("ij,fmj->fmi", rotation, poses[..., :3, 3]) + translation
+        normal = np.einsum("ij,fmjk,mk->fmi", rotation, poses[..., :3, :3], self.normals)
+        first = np.cross(normal, np.where(np.abs(normal[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
+        first /= np.linalg.norm(first, axis=-1, keepdims=True)
+        second = np.cross(normal, first)
+        homography = self.camera.matrix @ np.stack([first, second, centre], axis=-1)  # (F, M, 3, 3)
+        inverse = np.linalg.inv(homography)
+        conic = np.swapaxes(inverse, -1, -2) @ (np.diag([1.0, 1.0, -radius_m**2]) @ inverse)
+        ellipse = np.linalg.solve(conic, np.broadcast_to([0.0, 0.0, 1.0], conic.shape[:-1])[..., None])[..., 0]
+        image = np.einsum("ij,fmj->fmi", self.camera.matrix, centre)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            offset = image[..., :2] / image[..., 2:] - ellipse[..., :2] / ellipse[..., 2:]
+        return np.where(centre[..., 2:] > 0, offset, np.nan)
+
     def observed_joints(self, markers: np.ndarray) -> np.ndarray:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
         moved = self.machine.moves[:, self.machine.marker_links[np.asarray(markers, dtype=int)]]

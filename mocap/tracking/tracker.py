@@ -40,7 +40,9 @@ class TrackOptions:
     regain_max_px: how far the search for a marker not seen for a while reaches, growing
     with the frames it was missed; min_markers: markers needed to fit the joints;
     lost_frames: frames without a fit before the whole frame is searched again; occlusion:
-    predict markers hidden by the machine's links (boxes).
+    predict markers hidden by the machine's links (boxes); perspective: move each labelled
+    centre from its image ellipse's centre to the image of the disk's centre, by the
+    fitted model (`CameraModel.centre_offsets`).
     """
 
     gate_px: float = 10.0
@@ -52,6 +54,7 @@ class TrackOptions:
     min_markers: int = 5
     lost_frames: int = 15
     occlusion: bool = True
+    perspective: bool = True
     detect: DetectOptions = field(default_factory=DetectOptions)
 
     def __post_init__(self) -> None:
@@ -179,7 +182,11 @@ class Tracker:
         state.missed += 1
         state.missed[markers] = 0
         self._update_disk(view.scale[0], markers, found.radius[index])
-        return FrameResult(markers, found.select(index), joints, True, rms)
+        labelled = found.select(index)
+        if options.perspective and np.isfinite(state.disk_m):
+            offset = model.centre_offsets(joints[None], state.disk_m)[0, markers]
+            labelled = replace(labelled, xy=labelled.xy + np.nan_to_num(offset))
+        return FrameResult(markers, labelled, joints, True, rms)
 
     @property
     def lost(self) -> int:
