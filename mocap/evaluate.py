@@ -97,20 +97,25 @@ def score_session(root) -> SessionScore:
 
 
 def _labelling(truth, tracked) -> tuple[float, float, np.ndarray]:
-    """Percent of true marker-frames labelled, percent of tracked ones wrong, and the centre
-    errors (px) of the right ones."""
-    true_xy = {(f, m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    """Percent of the wholly visible true marker-frames (true score 1, or no score)
+    labelled, percent of tracked ones wrong (not within MATCH_PX of their marker's true
+    centre, partly covered markers included), and the centre errors (px) of the right
+    labels of wholly visible markers."""
+    whole = ~(truth.score < 1.0)  # NaN (no score): whole
+    true_xy = {(f, m): (xy, w) for f, m, xy, w in zip(truth.frame, truth.marker, truth.xy, whole)}
     frames = set(tracked.frame.tolist())
-    in_range = [key for key in true_xy if key[0] in frames or not frames]
-    right, errors = 0, []
+    in_range = [key for key, (_, w) in true_xy.items() if w and (key[0] in frames or not frames)]
+    right, right_whole, errors = 0, 0, []
     for f, m, xy in zip(tracked.frame, tracked.marker, tracked.xy):
-        expected = true_xy.get((f, m))
+        expected, w = true_xy.get((f, m), (None, False))
         if expected is not None and np.linalg.norm(xy - expected) <= MATCH_PX:
             right += 1
-            errors.append(np.linalg.norm(xy - expected))
+            if w:
+                right_whole += 1
+                errors.append(np.linalg.norm(xy - expected))
     total = max(len(in_range), 1)
     wrong = len(tracked) - right
-    return 100 * right / total, 100 * wrong / max(len(tracked), 1), np.array(errors)
+    return 100 * right_whole / total, 100 * wrong / max(len(tracked), 1), np.array(errors)
 
 
 def _wrap(angles: np.ndarray) -> np.ndarray:

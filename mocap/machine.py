@@ -75,8 +75,17 @@ class Machine:
     point_links: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     point_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     bucket_angle: BucketAngle | None = None
+    marker_tags: np.ndarray | None = None  # (M,) ArUco / AprilTag id of each marker, -1 for a painted disk
+    tag_dictionary: str | None = None  # the tags' OpenCV dictionary, e.g. "DICT_4X4_50"
 
     # --- structure -------------------------------------------------------------------
+    @property
+    def tags(self) -> np.ndarray:
+        """(M,) the tag id each marker carries, -1 for a painted disk."""
+        if self.marker_tags is None:
+            return np.full(len(self.marker_names), -1, dtype=int)
+        return np.asarray(self.marker_tags, dtype=int)
+
     @property
     def link_names(self) -> tuple[str, ...]:
         return tuple(link.name for link in self.links)

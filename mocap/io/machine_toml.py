@@ -14,10 +14,13 @@ from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine
 
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
 
-_TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle"}
+_TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags"}
 _LINK_KEYS = {"name", "parent", "joint"}
 _JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
 _ITEM_KEYS = {"name", "link", "position"}
+_MARKER_KEYS = _ITEM_KEYS | {"tag"}
+_TAGS_KEYS = {"dictionary"}
+DEFAULT_TAG_DICTIONARY = "DICT_4X4_50"
 _BUCKET_KEYS = {"link", "direction"}
 
 
@@ -54,10 +57,10 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
     links = _links(raw_links, path)
     link_index = {link.name: i for i, link in enumerate(links)}
 
-    markers = _items(data.get("markers", []), "markers", link_index, path)
+    markers = _items(data.get("markers", []), "markers", link_index, path, _MARKER_KEYS)
     if not markers[0]:
         raise InputError("no [[markers]]: calibration needs markers on the links", path=path)
-    points = _items(data.get("points", []), "points", link_index, path)
+    points = _items(data.get("points", []), "points", link_index, path, _ITEM_KEYS)
     names = markers[0] + points[0]
     _no_duplicates(names, path, "markers and points")
 
@@ -74,6 +77,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         direction = _unit(_vector(raw, "direction", path, where), path, where, "direction")
         bucket = BucketAngle(link_index[link], direction)
 
+    tags, dictionary = _tags(data, markers[3], path)
     return Machine(
         name=name,
         source=str(source),
@@ -85,7 +89,38 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         point_links=np.array(points[1], dtype=int),
         point_positions=np.array(points[2], dtype=float).reshape(-1, 3),
         bucket_angle=bucket,
+        marker_tags=tags,
+        tag_dictionary=dictionary,
     )
+
+
+def _tags(data: dict, tags: list, path) -> tuple[np.ndarray | None, str | None]:
+    """The markers' tag ids (None if no marker carries one) and the [tags] dictionary."""
+    raw = data.get("tags")
+    if raw is not None:
+        if not isinstance(raw, dict):
+            raise InputError("[tags] must be a table with the tag dictionary", path=path, where="[tags]")
+        _check_keys(raw, _TAGS_KEYS, path, "[tags]")
+    if all(t < 0 for t in tags):
+        return None, None
+    from mocap.detect import tag_dictionary  # OpenCV's, only for a machine with tags
+
+    dictionary = str((raw or {}).get("dictionary", DEFAULT_TAG_DICTIONARY))
+    try:
+        size = tag_dictionary(dictionary).bytesList.shape[0]
+    except ValueError as exc:
+        raise InputError(str(exc), path=path, where="[tags] dictionary") from None
+    seen: dict[int, int] = {}
+    for k, t in enumerate(tags):
+        if t < 0:
+            continue
+        if t >= size:
+            raise InputError(f"tag {t} is not in {dictionary} (ids 0 to {size - 1})", path=path, where=f"markers[{k}]")
+        if t in seen:
+            raise InputError(f"tag {t} is on markers[{seen[t]}] too: each tag id marks one marker", path=path,
+                             where=f"markers[{k}]")
+        seen[t] = k
+    return np.array(tags, dtype=int), dictionary
 
 
 def _links(raw_links: list, path) -> list[Link]:
@@ -175,24 +210,29 @@ def _joint(raw, path, where) -> Joint:
     return Joint(name, kind, axis, origin, rpy, limits)
 
 
-def _items(raw_items, section, link_index, path):
-    names, links, positions = [], [], []
+def _items(raw_items, section, link_index, path, keys):
+    """Named points on links: names, link indices, positions and tag ids (-1: none)."""
+    names, links, positions, tags = [], [], [], []
     if not isinstance(raw_items, list):
         raise InputError(f"{section} must be an array of tables [[{section}]]", path=path)
     for k, raw in enumerate(raw_items):
         where = f"{section}[{k}]"
         if not isinstance(raw, dict):
             raise InputError("must be a table", path=path, where=where)
-        _check_keys(raw, _ITEM_KEYS, path, where)
+        _check_keys(raw, keys, path, where)
         name = _string(raw, "name", path, where)
         where = f"{section[:-1]} {name!r}"
         link = _string(raw, "link", path, where)
         if link not in link_index:
             raise InputError(f"unknown link {link!r}", path=path, where=where)
+        tag = raw.get("tag", -1)
+        if "tag" in raw and (isinstance(tag, bool) or not isinstance(tag, int) or tag < 0):
+            raise InputError(f"tag {tag!r} must be a whole number >= 0 (the tag's id)", path=path, where=where)
         names.append(name)
         links.append(link_index[link])
         positions.append(_vector(raw, "position", path, where))
-    return names, links, positions
+        tags.append(tag)
+    return names, links, positions, tags
 
 
 def _check_keys(raw: dict, allowed: set, path, where) -> None:
@@ -267,14 +307,20 @@ def machine_to_dict(machine: Machine) -> dict:
                 entry["joint"]["limits"] = np.asarray(limits).tolist()
         links.append(entry)
 
-    def items(names, link_ids, positions):
-        return [
+    def items(names, link_ids, positions, tags=None):
+        out = [
             {"name": n, "link": machine.links[l].name, "position": p.tolist()}
             for n, l, p in zip(names, link_ids, positions)
         ]
+        for entry, tag in zip(out, tags if tags is not None else []):
+            if tag >= 0:
+                entry["tag"] = int(tag)
+        return out
 
     data = {"name": machine.name, "source": machine.source, "links": links}
-    data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions)
+    if machine.tag_dictionary is not None and np.any(machine.tags >= 0):
+        data["tags"] = {"dictionary": machine.tag_dictionary}
+    data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions, machine.tags)
     if machine.point_names:
         data["points"] = items(machine.point_names, machine.point_links, machine.point_positions)
     if machine.bucket_angle is not None:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.detect import detect_disks
+from mocap.detect import detect_disks, detect_tags
 from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
@@ -38,11 +38,38 @@ def label_first_frame(
     options: TrackOptions,
 ) -> FrameResult | None:
     """The first frame's labels: from digitised pixels `labelled` (M, 2) NaN where not
-    given, or proposed by the model search from joint values `start` (J,)."""
+    given (the machine's tags found in the frame count as given), or proposed by the model
+    search from joint values `start` (J,)."""
     found = detect_disks(gray, options.detect)
+    tags = tag_pixels(model, gray)
+    if tags is not None and np.any(np.isfinite(tags[:, 0])):
+        labelled = tags if labelled is None else np.where(np.isfinite(tags), tags, labelled)
     if labelled is not None:
         return labels_from_pixels(model, found, labelled, start)
     return propose_labels(model, found, starts_around(model, start), min_markers=options.min_markers)
+
+
+def tag_pixels(model: CameraModel, gray: np.ndarray) -> np.ndarray | None:
+    """(M, 2) the centres of the machine's tags found in the frame, by their ids (NaN for
+    the markers not found and those that are disks); None if the machine carries no tags."""
+    tags = model.machine.tags
+    if not np.any(tags >= 0):
+        return None
+    found = detect_tags(gray, model.machine.tag_dictionary)
+    pixels = np.full((len(tags), 2), np.nan)
+    marker_of = {int(t): m for m, t in enumerate(tags) if t >= 0}
+    for tag_id, xy in zip(found.ids, found.xy):
+        if int(tag_id) in marker_of:
+            pixels[marker_of[int(tag_id)]] = xy
+    return pixels
+
+
+def tag_rows(camera: str, frame: int, fps: float, names, pixels: np.ndarray) -> Tracks:
+    """The tags found in a frame as tracks rows (score 1: a tag names itself)."""
+    markers = np.flatnonzero(np.isfinite(pixels[:, 0]))
+    time = np.full(len(markers), frame / fps) if fps > 0 else None
+    return Tracks.from_rows(np.full(len(markers), camera, dtype=object), np.full(len(markers), frame),
+                            np.asarray(names, dtype=object)[markers], pixels[markers], time, np.ones(len(markers)))
 
 
 def frame_rows(camera: str, frame: int, fps: float, names, result: FrameResult) -> Tracks:
@@ -77,12 +104,21 @@ def track_frames(
     """
     options = options or TrackOptions()
     names = model.machine.marker_names
+    camera = model.camera.name
     rows: list[Tracks] = []
+    if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
+        n_frames = 0
+        for index, gray in frames:
+            n_frames += 1
+            rows.append(tag_rows(camera, index, fps, names, tag_pixels(model, gray)))
+        tracks = _concatenate(rows)
+        return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
     tracker = None
     n_frames = n_fitted = restarts = searched = 0
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
+        tags = tag_pixels(model, gray)
         if tracker is None:
             first = label_first_frame(model, gray, start, labelled, options)
             if first is None:
@@ -113,8 +149,11 @@ def track_frames(
             elif not (lost or tracker.needs_search()):
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)
-        if len(result.markers):
-            rows.append(frame_rows(model.camera.name, index, fps, names, result))
+        disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
+        if np.any(disks):
+            rows.append(frame_rows(camera, index, fps, names, _select(result, disks)))
+        if tags is not None:
+            rows.append(tag_rows(camera, index, fps, names, tags))
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
 
@@ -124,6 +163,10 @@ def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> Fra
     new = ~np.isin(result.markers, held)
     keep = ~new
     keep[new] = model.supported(result.markers[new], held)
+    return _select(result, keep)
+
+
+def _select(result: FrameResult, keep: np.ndarray) -> FrameResult:
     return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
 
 

@@ -210,11 +210,14 @@ class Tracker:
         state.shape[start.markers] = start.detections.shape
 
     def _visible(self, view: View) -> np.ndarray:
+        """(M,) the disks the model shows (markers that carry tags are found by their ids)."""
+        disks = self.model.machine.tags < 0
         if self.options.occlusion:
-            return view.visible[0]
+            return view.visible[0] & disks
         uv = view.uv[0]
         w, h = self.model.camera.size
-        return np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        inside = np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+        return inside & (uv[:, 1] <= h - 1) & disks
 
     def _expected_radius(self, scale: np.ndarray) -> np.ndarray:
         """(M,) radii (px) to expect: a marker's last one while it is followed, else the
