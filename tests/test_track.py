@@ -284,14 +284,17 @@ def test_rendered_session_is_tracked_against_its_truth():
     assert np.median(error) < 0.12 and np.percentile(error, 95) < 0.4
 
 
-def test_a_link_comes_back_only_with_two_markers_when_nothing_else_shows_its_joint():
+def test_markers_come_back_only_when_they_over_determine_their_unseen_joints():
     _, _, _, model, _ = make_scene(n_frames=1, clutter=0, seed=7)
     index = {name: i for i, name in enumerate(model.machine.marker_names)}
-    base = [index[n] for n in ("U1", "U2", "U3", "H1", "H2")]
-    k1, k2, a1 = index["K1"], index["K2"], index["A1"]
-    assert model.supported([k1], base).tolist() == [False]  # the bucket joint unseen: one is not enough
-    assert model.supported([k1, k2], base).tolist() == [True, True]
-    assert model.supported([k1], base + [k2]).tolist() == [True]  # K2 held shows the bucket joint
+    base = [index[n] for n in ("U1", "U2", "U3", "H1", "H2")]  # they show the swing only
+    k1, k2, a1, a2 = index["K1"], index["K2"], index["A1"], index["A2"]
+    arm_held = base + [index["B1"], a2]  # boom and arm shown as well
+    assert model.supported([k1], arm_held).tolist() == [False]  # the bucket joint unseen: one is not enough
+    assert model.supported([k1, k2], arm_held).tolist() == [True, True]  # 4 coordinates, 1 joint
+    assert model.supported([k1, k2], base).tolist() == [False, False]  # 4 coordinates, 3 joints: too loose
+    assert model.supported([a1, a2, k1], base).tolist() == [True, True, True]  # 6 coordinates, 3 joints
+    assert model.supported([k1], arm_held + [k2]).tolist() == [True]  # K2 held shows the bucket joint
     assert model.supported([index["U4"], a1], base).tolist() == [True, False]
 
 

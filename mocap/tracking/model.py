@@ -124,18 +124,18 @@ class CameraModel:
         return ~np.any(self.machine.moves[:, self.machine.marker_links] & ~seen[:, None], axis=0)
 
     def supported(self, new: np.ndarray, held: np.ndarray) -> np.ndarray:
-        """(K,) bool over marker indices `new`: a new marker on a link whose own joint no
-        `held` marker shows is kept only with another new marker on that joint's links (one
-        marker alone fits any blob along its arc)."""
+        """(K,) bool over marker indices `new`: the new markers that depend on joints no
+        `held` marker shows are kept only if, together, they over-determine those joints by
+        two or more coordinates (2 per marker >= unknown joints + 2): a marker alone fits
+        any blob along its arc, and two markers at the end of three unseen joints fit
+        almost any two blobs."""
         new = np.asarray(new, dtype=int)
         moves = self.machine.moves[:, self.machine.marker_links]  # (J, M)
-        known = np.any(moves[:, np.asarray(held, dtype=int)], axis=1)  # (J,)
-        # the innermost joint moving each marker: the last joint (in chain order) that moves it
-        innermost = np.array([np.nonzero(moves[:, m])[0].max() if moves[:, m].any() else -1 for m in new], dtype=int)
-        ok = (innermost < 0) | known[np.maximum(innermost, 0)]
-        for j in np.unique(innermost[~ok]):
-            ok |= (innermost == j) & (np.sum(innermost == j) >= 2)
-        return ok
+        known = self.observed_joints(held)
+        unknown = moves[:, new] & ~known[:, None]  # (J, K)
+        needs = np.any(unknown, axis=0)
+        n_unknown = int(np.any(unknown[:, needs], axis=1).sum())
+        return ~needs | (2 * int(needs.sum()) >= n_unknown + 2)
 
     def normals_cam(self, joints: np.ndarray) -> np.ndarray:
         """Marker disk normals (F, M, 3) in the camera frame."""
