@@ -13,34 +13,40 @@ import sys
 
 from mocap.errors import InputError
 
-COMMANDS = (
-    "calibrate",
-    "view",
-    "synth",
-    "track",
-    "sync",
-    "triangulate",
-    "fit",
-    "refine",
-    "run",
-    "demo",
-)
+COMMANDS = {  # name: one line of help; each command's module is imported only when it runs
+    "calibrate": "calibrate cameras against the machine's markers in one frame",
+    "view": "record the 3-D replay of a dig in Rerun",
+    "synth": "write a synthetic session (videos and truth) of a machine digging",
+    "track": "detect, label and track the machine's markers in one camera's video",
+    "sync": "estimate each camera's time offset from the machine's motion",
+    "triangulate": "triangulate every marker in every frame seen by two or more cameras",
+    "fit": "fit the machine model to all cameras' marker pixels in every frame",
+    "refine": "refine cameras (and marker positions) over many frames",
+    "run": "run the whole chain on a session folder",
+    "demo": "make a synthetic session, run the whole chain and score it against the truth",
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser, with the full arguments of `command` (None: of every command)."""
     parser = argparse.ArgumentParser(
         prog="mocap",
         description="Motion capture of mining machines, calibrated against the machine itself.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        importlib.import_module(f"mocap.commands.{name}").add_parser(sub)
+    for name, summary in COMMANDS.items():
+        if command is None or name == command:
+            importlib.import_module(f"mocap.commands.{name}").add_parser(sub)
+        else:
+            sub.add_parser(name, help=summary)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((arg for arg in argv if not arg.startswith("-")), None)
+    parser = build_parser(command if command in COMMANDS else "")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,

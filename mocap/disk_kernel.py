@@ -20,7 +20,7 @@ from numba import njit
 _MIN_EVAL = 0.25  # px², the least squared semi-axis
 
 
-@njit(cache=True, nogil=True)
+@njit("UniTuple(f8, 3)(f8, f8, f8)", cache=True, nogil=True)
 def _eigen(sxx: float, sxy: float, syy: float):
     """Eigenvalues (minor, major) of a symmetric 2x2 matrix and the major axis's angle."""
     mean = 0.5 * (sxx + syy)
@@ -28,13 +28,13 @@ def _eigen(sxx: float, sxy: float, syy: float):
     return mean - half_gap, mean + half_gap, 0.5 * math.atan2(2.0 * sxy, sxx - syy)
 
 
-@njit(cache=True, nogil=True)
+@njit("UniTuple(f8, 2)(f8)", cache=True, nogil=True)
 def _ring_radii(minor: float):
     k_in = 1.0 + max(0.7 / max(minor, 0.5), 0.15)
     return k_in, max(1.6, k_in + 0.35)
 
 
-@njit(cache=True, nogil=True)
+@njit("f8(i8[::1], i8, f8)", cache=True, nogil=True)
 def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
     rank = math.floor(q * max(total - 1, 0))
     seen = 0
@@ -45,7 +45,12 @@ def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
     return 255.0
 
 
-@njit(cache=True, nogil=True)
+@njit(
+    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
+    "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[::1], i8)",
+    cache=True,
+    nogil=True,
+)
 def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major: np.ndarray, iterations: int):
     """Refine N candidates: start centres xy (N, 2), semi-axis matrices shape (N, 2, 2),
     the largest major semi-axis allowed (N,) px. Returns centres (N, 2), semi-axes (N, 2)

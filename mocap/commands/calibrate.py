@@ -7,6 +7,7 @@ import re
 
 from mocap.calibration.solve import CalibrationOptions
 from mocap.calibration.stage import CalibrateRequest, run_calibrate
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
 
 EXAMPLE = """example:
@@ -17,7 +18,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "calibrate",
-        help="calibrate cameras against the machine's markers in one frame",
+        help=COMMANDS["calibrate"],
         description="Fit each camera's parameters and the machine's joint values together to the "
         "marker pixels of one frame (no surveyed control points), or calibrate by the classic DLT.",
         epilog=EXAMPLE,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mocap.cli import COMMANDS
 from mocap.demo import DemoOptions, run_demo
 
 
@@ -11,7 +12,7 @@ def add_parser(sub) -> None:
     defaults = DemoOptions()
     p = sub.add_parser(
         "demo",
-        help="make a synthetic session, run the whole chain and score it against the truth",
+        help=COMMANDS["demo"],
         description="Render a synthetic field session (an EX3500 front shovel filmed by three cameras), "
         "calibrate each camera against the machine, track the markers, synchronise, triangulate, fit "
         "the motion, record the Rerun replay, and print how close it all came to the ground truth.",

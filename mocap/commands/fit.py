@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.reconstruct.smooth import SmoothOptions
@@ -17,7 +18,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "fit",
-        help="fit the machine model to all cameras' marker pixels in every frame",
+        help=COMMANDS["fit"],
         description="Per frame, the joint values that best explain every camera's observations "
         "(one camera is enough), robust to wrong detections; then a smoother fills short gaps. "
         "Writes joint values, named points (bucket tip), bucket angle, their standard deviations, "

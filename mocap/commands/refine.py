@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.reconstruct.refine import RefineOptions
 from mocap.reconstruct.stage import run_refine
@@ -16,7 +17,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "refine",
-        help="refine cameras (and marker positions) over many frames",
+        help=COMMANDS["refine"],
         description="Bundle adjustment over many frames of the session: the cameras calibrated "
         "from one frame, the per-frame joint values and, with --markers, the tape-measured marker "
         "positions within --tolerance. Writes the refined calibration and, with --out-machine, model.",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mocap.cli import COMMANDS
 from mocap.pipeline import RunOptions, run_session
 
 EXAMPLE = """example:
@@ -14,7 +15,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "run",
-        help="run the whole chain on a session folder",
+        help=COMMANDS["run"],
         description="Calibrate every camera against the machine from the calibration frame's labels, "
         "track every video, synchronise the cameras, triangulate, fit the machine's motion and "
         "record the replay, inside the session folder.",

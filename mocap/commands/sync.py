@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from mocap.cli import COMMANDS
 from mocap.sync_stage import run_sync
 
 EXAMPLE = """example:
@@ -14,7 +15,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "sync",
-        help="estimate each camera's time offset from the machine's motion",
+        help=COMMANDS["sync"],
         description="Fit the machine model to each camera's tracks alone (joint values over the "
         "camera's own clock) and align the joint-value curves with the first camera's, to a "
         "fraction of a frame. Writes the calibration with each camera's time_offset (s) and fps; "

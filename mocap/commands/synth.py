@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.synthetic import CLASSES, SessionOptions, make_session, summary, write_truth
@@ -19,7 +20,7 @@ log = logging.getLogger(__name__)
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "synth",
-        help="write a synthetic session (videos and truth) of a machine digging",
+        help=COMMANDS["synth"],
         description="Plan dig cycles of a machine model, place field cameras around it and write "
         "a session folder: session.toml, videos/<camera>.mp4 and truth/ (cameras.toml, motion.csv, "
         "tracks.csv, markers.csv, cycles.csv, scene.toml). Deterministic for a seed.",

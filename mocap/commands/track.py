@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mocap.cli import COMMANDS
 from mocap.detect import DetectOptions
 from mocap.errors import InputError
 from mocap.tracking.stage import TrackRequest, run_track
@@ -20,7 +21,7 @@ EXAMPLE = """examples:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "track",
-        help="detect, label and track the machine's markers in one camera's video",
+        help=COMMANDS["track"],
         description="Find the painted disk markers in every frame, name them with the model's "
         "markers and follow them through the video, guided by the calibrated camera and the "
         "machine model. The first frame is labelled from --labels (digitised marker pixels) or "

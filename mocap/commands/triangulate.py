@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from mocap.reconstruct.stage import run_triangulate
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
+from mocap.reconstruct.stage import run_triangulate
 from mocap.reconstruct.triangulate import TriangulateOptions
 
 EXAMPLE = """example:
@@ -16,7 +17,7 @@ EXAMPLE = """example:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "triangulate",
-        help="triangulate every marker in every frame seen by two or more cameras",
+        help=COMMANDS["triangulate"],
         description="Multi-view triangulation (the APAS replacement): tracks resampled to the "
         "reference camera's frames with the calibration's time offsets, undistorted, DLT, then "
         "reprojection-error refinement; with three or more views a wrong view is found and dropped.",

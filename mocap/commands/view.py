@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.session import Session
 from mocap.viewer import Sinks, run_replay
@@ -22,7 +23,7 @@ EXAMPLES = """examples:
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "view",
-        help="record the 3-D replay of a dig in Rerun",
+        help=COMMANDS["view"],
         description="Record the machine, markers, cameras with their videos and 2-D tracks, "
         "the bucket tip's trail per dig cycle and time series into a Rerun recording.",
         epilog=EXAMPLES,

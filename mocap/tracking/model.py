@@ -92,26 +92,26 @@ class CameraModel:
         disk's centre, for disks of `radius_m` on the markers' faces: under perspective the
         two differ (the near side looks larger), and a detector finds the ellipse's.
 
-        The disk's image is the conic ``C = H^-T diag(1, 1, -r²) H^-1`` with H the
-        homography from the disk's plane to the (pinhole) image; the ellipse's centre is
-        ``C^-1 (0, 0, 1)``. Distortion is left out: it bends the offset negligibly."""
+        The disk's image is the conic of the homography H = K [e1 e2 c] from its plane;
+        the ellipse's centre, the pole of the line at infinity, is the image of
+        ``c - r² / c_z (z - n n_z)`` (c the disk's centre and n its normal in the camera
+        frame, z the optical axis). Distortion is left out: it bends the offset negligibly."""
         joints = np.atleast_2d(joints)
         poses = self.machine.link_poses(joints)[:, self.machine.marker_links]  # (F, M, 4, 4)
         rotation, translation = self.camera.cam_from_world.rotation, self.camera.cam_from_world.translation
-        centre = np.einsum("ij,fmjk,mk->fmi", rotation, poses[..., :3, :3], self.machine.marker_positions)
-        centre += np.einsum("ij,fmj->fmi", rotation, poses[..., :3, 3]) + translation
-        normal = np.einsum("ij,fmjk,mk->fmi", rotation, poses[..., :3, :3], self.normals)
-        first = np.cross(normal, np.where(np.abs(normal[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
-        first /= np.linalg.norm(first, axis=-1, keepdims=True)
-        second = np.cross(normal, first)
-        homography = self.camera.matrix @ np.stack([first, second, centre], axis=-1)  # (F, M, 3, 3)
-        inverse = np.linalg.inv(homography)
-        conic = np.swapaxes(inverse, -1, -2) @ (np.diag([1.0, 1.0, -radius_m**2]) @ inverse)
-        ellipse = np.linalg.solve(conic, np.broadcast_to([0.0, 0.0, 1.0], conic.shape[:-1])[..., None])[..., 0]
-        image = np.einsum("ij,fmj->fmi", self.camera.matrix, centre)
+        on_link = rotation @ poses[..., :3, :3]  # camera_from_link rotations (F, M, 3, 3)
+        centre = np.einsum("fmij,mj->fmi", on_link, self.machine.marker_positions)
+        centre += poses[..., :3, 3] @ rotation.T + translation
+        normal = np.einsum("fmij,mj->fmi", on_link, self.normals)
+        in_plane = np.array([0.0, 0.0, 1.0]) - normal * normal[..., 2:]  # the optical axis, in the disk's plane
         with np.errstate(divide="ignore", invalid="ignore"):
-            offset = image[..., :2] / image[..., 2:] - ellipse[..., :2] / ellipse[..., 2:]
+            ellipse = centre - (radius_m**2 / centre[..., 2:]) * in_plane
+            offset = self._pinhole(centre) - self._pinhole(ellipse)
         return np.where(centre[..., 2:] > 0, offset, np.nan)
+
+    def _pinhole(self, points_cam: np.ndarray) -> np.ndarray:
+        image = points_cam @ self.camera.matrix.T
+        return image[..., :2] / image[..., 2:]
 
     def observed_joints(self, markers: np.ndarray) -> np.ndarray:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
