@@ -16,7 +16,7 @@ from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
 
 log = logging.getLogger(__name__)
 
-_MAX_SEARCH_INTERVAL = 8  # full-frame searches that find nothing back off to 8 x lost_frames
+_MAX_SEARCH_INTERVAL = 16  # full-frame searches that find nothing back off to 16 x lost_frames
 
 
 @dataclass(frozen=True)
