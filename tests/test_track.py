@@ -326,19 +326,17 @@ def draw_tags(image, camera, centres, normals, ids, side: float, dictionary: str
     return camera.project(np.asarray(centres, float))
 
 
-def test_tags_name_their_markers_and_label_the_first_frame():
-    """The house, arm and bucket carry ArUco tags instead of disks: they are found by their
-    ids in every frame, with centres to a fraction of a pixel, and they label the first
-    frame from joint values far off, without digitised labels or a model search; the disks
-    on the undercarriage and the boom are tracked."""
-    rng = np.random.default_rng(6)
+def tag_scene(n_frames: int = 12, seed: int = 6):
+    """The Bobcat with ArUco tags on its house, arm and bucket, disks elsewhere, drawn over
+    `n_frames`: frames, true pixels (F, M, 2), visibility (F, M), the model, joints, tags (M,)."""
+    rng = np.random.default_rng(seed)
     bobcat = load_machine("bobcat_225")
     tagged = np.isin(bobcat.marker_links, [bobcat.link_names.index(n) for n in ("house", "arm", "bucket")])
     tags = np.where(tagged, np.cumsum(tagged) - 1, -1)
     machine = replace(bobcat, marker_tags=tags, tag_dictionary="DICT_4X4_50")
     camera = look_at_camera("cam1", (800, 450), 0.95 * 800, [5.5, -6.5, 2.8], [1.6, 0.0, 0.9])
     model = CameraModel(machine, camera)
-    joints = joint_path(machine, 12, rng)
+    joints = joint_path(machine, n_frames, rng)
     frames, truth_uv, truth_seen = [], [], []
     for f in range(len(joints)):
         image = background(camera.size, rng)
@@ -346,13 +344,22 @@ def test_tags_name_their_markers_and_label_the_first_frame():
         poses = machine.link_poses(joints[f : f + 1])[0]
         world = machine.markers(joints[f : f + 1])[0]
         normals = np.einsum("mij,mj->mi", poses[machine.marker_links, :3, :3], model.normals)
-        disks, tagged = visible & (tags < 0), visible & (tags >= 0)
+        disks, on_tags = visible & (tags < 0), visible & (tags >= 0)
         draw_markers(image, camera, world[disks], normals[disks], MARKER_RADIUS)
-        draw_tags(image, camera, world[tagged], normals[tagged], tags[tagged], 4 * MARKER_RADIUS)
+        draw_tags(image, camera, world[on_tags], normals[on_tags], tags[on_tags], 4 * MARKER_RADIUS)
         frames.append((f, finish(image, rng, blur=0.7, noise=2.0)))
         truth_uv.append(camera.project(world))
         truth_seen.append(visible)
-    truth_uv, truth_seen = np.array(truth_uv), np.array(truth_seen)
+    return frames, np.array(truth_uv), np.array(truth_seen), model, joints, tags
+
+
+def test_tags_name_their_markers_and_label_the_first_frame():
+    """The house, arm and bucket carry ArUco tags instead of disks: they are found by their
+    ids in every frame, with centres to a fraction of a pixel, and they label the first
+    frame from joint values far off, without digitised labels or a model search; the disks
+    on the undercarriage and the boom are tracked."""
+    frames, truth_uv, truth_seen, model, joints, tags = tag_scene()
+    machine = model.machine
     far = machine.clip_to_limits(joints[0] + np.radians([35, -20, 25, 30]))  # the tags fix the joints
     tracks, summary = track_frames(model, frames, far, fps=30.0)
     index = machine.marker_index(tracks.marker)
@@ -367,3 +374,25 @@ def test_tags_name_their_markers_and_label_the_first_frame():
     assert summary.fitted == len(frames)
     seen_disks = truth_seen & (tags < 0)[None]
     assert np.sum(~tagged_rows) >= 0.95 * seen_disks.sum()
+
+
+def test_cli_tracks_a_machine_with_tags(tmp_path, capsys):
+    """`mocap track` with a model whose markers carry tag ids: no labels file needed."""
+    from mocap.io.machine_toml import save_machine
+
+    frames, truth_uv, truth_seen, model, joints, tags = tag_scene(n_frames=8, seed=8)
+    write_video(tmp_path / "cam1.mp4", frames)
+    save_machine(model.machine, tmp_path / "tagged.toml")
+    far = model.machine.clip_to_limits(joints[0] + np.radians([30, -15, 20, 25]))
+    save_calibration(Calibration((model.camera,), ({"fps": 30.0},), {
+        "machine": "tagged", "frame": 0, "joints": joints_to_table(far, model.machine)}), tmp_path / "cameras.toml")
+    args = ["track", str(tmp_path / "cam1.mp4"), "--machine", str(tmp_path / "tagged.toml"), "--calibration",
+            str(tmp_path / "cameras.toml"), "--camera", "cam1", "--out", str(tmp_path / "tracks.csv")]
+    assert main(args) == 0
+    assert "8 frames, 8 with a model fit" in capsys.readouterr().out
+    tracks = load_tracks(tmp_path / "tracks.csv")
+    index = model.machine.marker_index(tracks.marker)
+    error = np.linalg.norm(tracks.xy - truth_uv[tracks.frame, index], axis=1)
+    assert np.all(error < 2.0)  # no wrong labels (the mp4v encoding blurs the tags' corners)
+    on_tags = tags[index] >= 0
+    assert np.sum(on_tags) >= 0.9 * (truth_seen & (tags >= 0)[None]).sum() and np.median(error[on_tags]) < 0.3

@@ -24,8 +24,9 @@ def add_parser(sub) -> None:
         help=COMMANDS["track"],
         description="Find the painted disk markers in every frame, name them with the model's "
         "markers and follow them through the video, guided by the calibrated camera and the "
-        "machine model. The first frame is labelled from --labels (digitised marker pixels) or "
-        "by fitting the model; --propose-labels writes that proposal for checking and stops.",
+        "machine model; markers the model gives a tag id (ArUco / AprilTag) are found by their "
+        "ids. The first frame is labelled from --labels (digitised marker pixels), from the tags, "
+        "or by fitting the model; --propose-labels writes that proposal for checking and stops.",
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
