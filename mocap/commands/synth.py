@@ -42,7 +42,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="scale the image size, e.g. 0.5 for fast tests")
     p.add_argument("--codec", choices=CODECS, default="h264", help="h264 (PyAV) or mp4v (OpenCV); default h264")
     p.add_argument("--noise", type=float, default=2.5, help="sensor noise SD in grey levels (0: none)")
-    p.add_argument("--blur", type=float, default=0.3, help="motion blur: weight of the previous frame, 0..0.9")
+    p.add_argument("--blur", type=float, default=0.5,
+                   help="motion blur: the exposure as a share of the frame interval, 0..0.9 (default 0.5)")
     p.add_argument("--exposure", type=float, default=0.08, help="SD of the exposure's slow drift (0: none)")
     p.add_argument("--dust", type=float, default=0.55, help="opacity of the densest dust, 0..0.9 (0: none)")
     p.add_argument("--clean", action="store_true", help="no camera effects at all (noise, blur, exposure, dust)")

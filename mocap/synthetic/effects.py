@@ -1,7 +1,8 @@
-"""What a field camera adds to a clean picture: motion blur, exposure drift, dust, noise.
+"""What a field camera adds to a clean picture: exposure drift, dust, noise; and how long
+its shutter stays open (`blur`), which the renderer turns into the smear of moving parts
+(`mocap.synthetic.render`).
 
-Each effect is cheap per frame at 1080p: blur blends the previous clean frame (the
-shutter's smear) where the machine moved, dust is a soft plume blended into a small region
+Each effect is cheap per frame at 1080p: dust is a soft plume blended into a small region
 around the bucket while it digs, and the exposure's gain and the sensor noise (from a bank
 of noise images drawn once) are one saturating pass over the frame.
 """
@@ -21,11 +22,11 @@ DUST = np.array([150.0, 170.0, 185.0])  # BGR
 @dataclass(frozen=True)
 class EffectOptions:
     """Strengths of the effects; 0 turns one off. `noise` is the sensor noise SD (grey
-    levels), `blur` the weight of the previous frame, `exposure` the SD of the gain's drift,
-    `dust` the densest plume's opacity."""
+    levels), `blur` the exposure as a share of the frame interval (motion blur), `exposure`
+    the SD of the gain's drift, `dust` the densest plume's opacity."""
 
     noise: float = 2.5
-    blur: float = 0.3
+    blur: float = 0.5
     exposure: float = 0.08
     dust: float = 0.55
 
@@ -41,13 +42,11 @@ class EffectOptions:
 
 
 class CameraEffects:
-    """Per-camera effect state: the noise bank, the gain's drift, the dust plume's shape,
-    the previous clean frame."""
+    """Per-camera effect state: the noise bank, the gain's drift, the dust plume's shape."""
 
     def __init__(self, size: tuple[int, int], options: EffectOptions, rng: np.random.Generator):
         w, h = size
         self.options = options
-        self.previous: np.ndarray | None = None
         self.rng = rng
         self.bank = []  # noise images offset by 128, added with one saturating pass
         if options.noise > 0:
@@ -60,20 +59,11 @@ class CameraEffects:
         lumps = (lumps - lumps.min()) / max(np.ptp(lumps), 1e-6)
         self.plume = (np.clip(1 - (xx**2 + yy**2), 0, 1) ** 1.5 * (0.5 + 0.5 * lumps)).astype(np.float32)
 
-    def apply(self, image: np.ndarray, time: float, moving: tuple[int, int, int, int] | None,
-              dust_centre: np.ndarray | None, dust_radius: float, dust_density: float) -> np.ndarray:
+    def apply(self, image: np.ndarray, time: float, dust_centre: np.ndarray | None, dust_radius: float,
+              dust_density: float) -> np.ndarray:
         """The camera's picture of the clean `image` (H, W, 3) uint8 at `time` s, changed in
-        place. `moving` (x0, y0, x1, y1) bounds what changed since the previous frame (the
-        only region the blur touches); the dust plume (radius px) around `dust_centre` (2,)
-        px has a density in [0, 1]."""
-        if self.options.blur > 0 and self.previous is not None and moving is not None:
-            x0, y0, x1, y1 = moving
-            clean = image[y0:y1, x0:x1].copy()
-            cv2.addWeighted(clean, 1.0 - self.options.blur, self.previous[y0:y1, x0:x1], self.options.blur, 0.0,
-                            dst=image[y0:y1, x0:x1])
-            self.previous[y0:y1, x0:x1] = clean
-        elif self.options.blur > 0:
-            self.previous = image.copy()
+        place: the dust plume (radius px) around `dust_centre` (2,) px with a density in
+        [0, 1], the exposure's gain, the sensor noise."""
         if self.options.dust > 0 and dust_centre is not None and dust_density > 0 and np.all(np.isfinite(dust_centre)):
             self._dust(image, dust_centre, dust_radius, dust_density)
         gain = 1.0 + float(self.gain(np.array([time]))[0, 0]) if self.options.exposure > 0 else 1.0

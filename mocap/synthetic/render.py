@@ -7,7 +7,8 @@ the camera and then its markers. A marker is drawn only where the truth calls it
 (facing the camera, in the image, not behind another link's box), so the truth tracks
 and the pictures agree. Marker squares and disks are filled on an 8x finer grid over a
 small region and area-averaged back, so their centres are exact to a few hundredths of a
-pixel.
+pixel. Motion blur is the shutter's: a frame whose markers move is the average of the
+machine drawn at instants spread over the exposure.
 
 Shapes: F frames, L links, M markers, N outline points.
 """
@@ -28,6 +29,9 @@ from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
 from mocap.synthetic.effects import CameraEffects, EffectOptions
 from mocap.synthetic.encode import CODECS, video_writer
 from mocap.synthetic.session import SyntheticSession
+
+SMEAR_STEP_PX = 1.5  # the most a marker moves between two instants of an exposure
+MAX_SMEAR_SAMPLES = 6
 
 log = logging.getLogger(__name__)
 
@@ -82,45 +86,76 @@ class CameraRenderer:
 
     def frames(self, frames: np.ndarray | None = None, clean: bool = False):
         """Yield (frame, image (H, W, 3) uint8 BGR) for the camera's `frames` (all by default);
-        `clean` skips the camera's effects. With motion blur, each picture is drawn `blur`
-        of a frame interval late, so that blended with the previous one it shows the
-        machine where the truth has it at the frame's time (to first order)."""
+        `clean` skips the camera's effects. With motion blur, the shutter stays open `blur`
+        of a frame interval, centred on the frame's time: the machine is drawn at instants
+        spread over the exposure (enough that no marker moves more than SMEAR_STEP_PX
+        between them) and the pictures averaged, so that a moving marker smears as a camera
+        shows it and its darkness centroid stays where the truth has it at the frame's time."""
         frames = np.arange(self.field.frames) if frames is None else np.asarray(frames)
-        session, machine = self.session, self.session.machine
-        links = machine.marker_links
-        previous = None
+        session = self.session
+        exposure = 0.0 if clean else self.options.effects.blur
         for start in range(0, len(frames), self.options.chunk):
             chunk = frames[start : start + self.options.chunk]
-            # the blur blends the previous frame in with weight b: drawing each frame b of a
-            # frame interval late puts the blended picture's centre of motion at the frame's time
-            lag = 0.0 if clean else self.options.effects.blur
-            times = self.field.times(chunk + lag)
-            _, seen, poses = session.observe(self.field, chunk + lag)
+            times = self.field.times(chunk)
             cams = self.field.cam_from_world(times)
-            centres = -np.einsum("fji,fj->fi", cams[:, :3, :3], cams[:, :3, 3])
-            corners = np.einsum("flij,lkj->flki", poses[..., :3, :3], self.corners) + poses[:, :, None, :3, 3]
-            normals = np.einsum("flij,kj->flki", poses[..., :3, :3], BOX_NORMALS)  # (F, L, 6, 3)
-            on_link = poses[:, links]
-            squares = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.squares) + on_link[..., None, :3, 3]
-            disks = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.disks) + on_link[..., None, :3, 3]
-            uv_corners = self._project(cams, corners)
-            uv_squares = self._project(cams, squares)
-            uv_disks = self._project(cams, disks)
+            view = self._view(chunk)
+            samples = self._exposure_samples(chunk, exposure)
             tip = session.plan_tips(times)
             uv_tip = self._project(cams, tip[:, None])[:, 0]
             depth = np.einsum("fi,fi->f", cams[:, 2, :3], tip) + cams[:, 2, 3]
             density = session.dust_density(times)
             for k, frame in enumerate(chunk):
                 image = self._backdrop(cams[k])
-                self._draw_machine(image, centres[k], corners[k], normals[k], uv_corners[k], uv_squares[k],
-                                   uv_disks[k], seen[k])
+                if samples[k] == 1:
+                    self._draw_machine(image, *(v[k] for v in view))
+                else:  # the instants of the exposure, spread evenly over it
+                    offsets = exposure * ((np.arange(samples[k]) + 0.5) / samples[k] - 0.5)
+                    instants = self._view(frame + offsets)
+                    self._draw_smear(image, [[v[i] for v in instants] for i in range(samples[k])])
                 if not clean:
-                    box = self._bounds(uv_corners[k])
-                    moving = box if previous is None or box is None else _union(box, previous)
-                    previous = box
                     radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
-                    image = self.effects.apply(image, float(times[k]), moving, uv_tip[k], radius, float(density[k]))
+                    image = self.effects.apply(image, float(times[k]), uv_tip[k], radius, float(density[k]))
                 yield int(frame), image
+
+    def _exposure_samples(self, chunk: np.ndarray, exposure: float) -> np.ndarray:
+        """(F,) instants to draw each frame at: as many as its fastest marker needs to move
+        no more than SMEAR_STEP_PX between them over the exposure (1: no smear)."""
+        if exposure <= 0:
+            return np.ones(len(chunk), dtype=int)
+        early = self.session.observe(self.field, chunk - exposure / 2)[0]
+        late = self.session.observe(self.field, chunk + exposure / 2)[0]
+        travel = np.nanmax(np.nan_to_num(np.linalg.norm(late - early, axis=-1)), axis=1, initial=0.0)
+        return np.clip(np.ceil(travel / SMEAR_STEP_PX), 1, MAX_SMEAR_SAMPLES).astype(int)
+
+    def _view(self, at: np.ndarray):
+        """What `_draw_machine` needs at (fractional) frames `at` (F,): camera centres, box
+        corners and face normals, their pixels, the markers' squares and disks in pixels and
+        which markers are seen, each with the frame first."""
+        machine = self.session.machine
+        cams = self.field.cam_from_world(self.field.times(at))
+        _, seen, poses = self.session.observe(self.field, at)
+        centres = -np.einsum("fji,fj->fi", cams[:, :3, :3], cams[:, :3, 3])
+        corners = np.einsum("flij,lkj->flki", poses[..., :3, :3], self.corners) + poses[:, :, None, :3, 3]
+        normals = np.einsum("flij,kj->flki", poses[..., :3, :3], BOX_NORMALS)  # (F, L, 6, 3)
+        on_link = poses[:, machine.marker_links]
+        squares = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.squares) + on_link[..., None, :3, 3]
+        disks = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.disks) + on_link[..., None, :3, 3]
+        uv_corners = self._project(cams, corners)
+        return (centres, corners, normals, uv_corners, self._project(cams, squares), self._project(cams, disks), seen)
+
+    def _draw_smear(self, image: np.ndarray, views: list) -> None:
+        """The machine drawn at each instant of the exposure and the pictures averaged, over
+        the region the machine covers at any of them."""
+        box = self._bounds(np.concatenate([view[3].reshape(-1, 2) for view in views]))
+        if box is None:
+            return
+        x0, y0, x1, y1 = box
+        total = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+        for view in views:
+            picture = image.copy()
+            self._draw_machine(picture, *view)
+            total += picture[y0:y1, x0:x1]
+        image[y0:y1, x0:x1] = np.round(total / len(views)).astype(np.uint8)
 
     def _bounds(self, uv: np.ndarray) -> tuple[int, int, int, int] | None:
         """Pixel bounds (x0, y0, x1, y1) of the machine's projected boxes, clipped to the image."""
@@ -158,10 +193,6 @@ class CameraRenderer:
                              lineType=cv2.LINE_AA, shift=4)
             for m in np.flatnonzero(seen & (links == l)):
                 draw_marker(image, uv_squares[m], uv_disks[m], self.options.supersample)
-
-
-def _union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
-    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
 
 
 def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor: int) -> None:
