@@ -121,7 +121,7 @@ class Video:
             capture.release()
 
     def _read_luma(self, start: int, stop: int | None):
-        """Grey frames straight from the decoder's luma plane (PyAV, threaded decoding): no
+        """Grey frames straight from the decoder's luma plane (PyAV, one decoding thread): no
         conversion to colour and back. Limited-range luma (16-235) is stretched to 0-255,
         as OpenCV's grey conversion of the decoded colours gives."""
         self.broken_at = None
@@ -129,7 +129,8 @@ class Video:
         try:
             with av.open(str(self.path)) as container:
                 stream = container.streams.video[0]
-                stream.thread_type = "AUTO"
+                # one decoding thread: with the tracker on the other core, more only compete
+                stream.codec_context.thread_count = 1
                 for frame in container.decode(stream):
                     if stop is not None and index >= stop:
                         return
