@@ -79,12 +79,15 @@ class Machine:
     tag_dictionary: str | None = None  # the tags' OpenCV dictionary, e.g. "DICT_4X4_50"
 
     # --- structure -------------------------------------------------------------------
-    @property
+    @cached_property
     def tags(self) -> np.ndarray:
-        """(M,) the tag id each marker carries, -1 for a painted disk."""
+        """(M,) the tag id each marker carries, -1 for a painted disk (read-only)."""
         if self.marker_tags is None:
-            return np.full(len(self.marker_names), -1, dtype=int)
-        return np.asarray(self.marker_tags, dtype=int)
+            tags = np.full(len(self.marker_names), -1, dtype=int)
+        else:
+            tags = np.array(self.marker_tags, dtype=int)
+        tags.flags.writeable = False
+        return tags
 
     @property
     def link_names(self) -> tuple[str, ...]:
@@ -138,6 +141,13 @@ class Machine:
         for l in range(len(self.links)):
             for a in self.ancestors(l)[:-1]:  # every ancestor but the base carries a joint
                 moves[a - 1, l] = True
+        return moves
+
+    @cached_property
+    def marker_moves(self) -> np.ndarray:
+        """(J, M) bool: joint j moves marker m (read-only)."""
+        moves = self.moves[:, self.marker_links]
+        moves.flags.writeable = False
         return moves
 
     def marker_index(self, names) -> np.ndarray:
@@ -223,13 +233,8 @@ class Machine:
         axis_world = np.einsum("fjab,jb->fja", on_joints[..., :3, :3], axes)[:, :, None]  # (F, J, 1, 3)
         lever = markers[:, None] - on_joints[:, :, None, :3, 3]  # (F, J, M, 3)
         d = np.where(revolute[:, None, None], cross(axis_world, lever), axis_world)
-        d *= self._marker_moves[None, :, :, None]
+        d *= self.marker_moves[None, :, :, None]
         return markers, np.moveaxis(d, 1, -1)
-
-    @cached_property
-    def _marker_moves(self) -> np.ndarray:
-        """(J, M) 1.0 where joint j moves marker m, else 0.0."""
-        return self.moves[:, self.marker_links].astype(float)
 
     def bucket_angles(self, joints: np.ndarray, world_from_base: np.ndarray | None = None) -> np.ndarray:
         """Bucket angle (rad) for joint values (F, J) -> (F,): the angle of the bucket

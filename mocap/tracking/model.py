@@ -115,13 +115,12 @@ class CameraModel:
 
     def observed_joints(self, markers: np.ndarray) -> np.ndarray:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
-        moved = self.machine.moves[:, self.machine.marker_links[np.asarray(markers, dtype=int)]]
-        return np.any(moved, axis=1)
+        return np.any(self.machine.marker_moves[:, np.asarray(markers, dtype=int)], axis=1)
 
     def known_markers(self, held: np.ndarray) -> np.ndarray:
         """(M,) bool: the markers whose every moving joint some `held` marker (indices) shows."""
         seen = self.observed_joints(held)
-        return ~np.any(self.machine.moves[:, self.machine.marker_links] & ~seen[:, None], axis=0)
+        return ~np.any(self.machine.marker_moves & ~seen[:, None], axis=0)
 
     def supported(self, new: np.ndarray, held: np.ndarray) -> np.ndarray:
         """(K,) bool over marker indices `new`: the new markers that depend on joints no
@@ -130,18 +129,11 @@ class CameraModel:
         any blob along its arc, and two markers at the end of three unseen joints fit
         almost any two blobs."""
         new = np.asarray(new, dtype=int)
-        moves = self.machine.moves[:, self.machine.marker_links]  # (J, M)
         known = self.observed_joints(held)
-        unknown = moves[:, new] & ~known[:, None]  # (J, K)
+        unknown = self.machine.marker_moves[:, new] & ~known[:, None]  # (J, K)
         needs = np.any(unknown, axis=0)
         n_unknown = int(np.any(unknown[:, needs], axis=1).sum())
         return ~needs | (2 * int(needs.sum()) >= n_unknown + 2)
-
-    def normals_cam(self, joints: np.ndarray) -> np.ndarray:
-        """Marker disk normals (F, M, 3) in the camera frame."""
-        poses = self.machine.link_poses(np.atleast_2d(joints))[:, self.machine.marker_links, :3, :3]
-        world = np.einsum("fmij,mj->fmi", poses, self.normals)
-        return world @ self.camera.cam_from_world.rotation.T
 
     def fit(
         self,
