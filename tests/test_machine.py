@@ -131,6 +131,12 @@ def test_round_trip(tmp_path, ex3500):
         (lambda t: t.replace('name = "two-link arm"', 'name = "x"\ncolour = "red"'), "unknown key\\(s\\) 'colour'"),
         (lambda t: t.replace("limits = [0, 2]", "limits = [2, 0]"), "lower < upper"),
         (lambda t: t + "\n[[links]]\nname = \"extra\"\nparent = \"base\"\n", "link 'extra': no joint"),
+        (lambda t: t.replace("position = [1, 0, 0]", "position = [1, 0, 0]\ntag = 50", 1), "tag 50 is not in DICT_4X4_50"),
+        (lambda t: t.replace("position = [1, 0, 0]", "position = [1, 0, 0]\ntag = 3"), "tag 3 is on markers\\[0\\] too"),
+        (lambda t: t.replace("position = [1, 0, 0]", "position = [1, 0, 0]\ntag = -2", 1), "tag -2 must be a whole number"),
+        (lambda t: t.replace("position = [1, 0, 0]", "position = [1, 0, 0]\ntag = 1", 1) + '[tags]\ndictionary = "DICT_9X9"\n',
+         "unknown tag dictionary 'DICT_9X9'"),
+        (lambda t: t.replace("position = [2, 0, 0]", "position = [2, 0, 0]\ntag = 1"), "points\\[0\\]: unknown key\\(s\\) 'tag'"),
     ],
 )
 def test_bad_models_are_rejected_naming_file_and_entry(tmp_path, change, message):
@@ -138,6 +144,17 @@ def test_bad_models_are_rejected_naming_file_and_entry(tmp_path, change, message
     with pytest.raises(InputError, match=message) as info:
         load_machine(path)
     assert str(path) in str(info.value)
+
+
+def test_tags_round_trip(tmp_path):
+    text = textwrap.dedent(ARM).replace("position = [1, 0, 0]", "position = [1, 0, 0]\ntag = 7", 1)
+    machine = load_machine(write(tmp_path, text + '[tags]\ndictionary = "DICT_APRILTAG_36h11"\n'))
+    assert machine.tags.tolist() == [7, -1] and machine.tag_dictionary == "DICT_APRILTAG_36h11"
+    save_machine(machine, tmp_path / "again.toml")
+    again = load_machine(tmp_path / "again.toml")
+    assert again.tags.tolist() == [7, -1] and again.tag_dictionary == "DICT_APRILTAG_36h11"
+    plain = load_machine(write(tmp_path, ARM, "plain.toml"))
+    assert plain.tags.tolist() == [-1, -1] and plain.tag_dictionary is None
 
 
 def test_unreadable_and_unknown_models(tmp_path):
