@@ -5,7 +5,7 @@ import pytest
 from conftest import scene
 
 from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate, template_camera
-from mocap.calibration.dlt import dlt_camera
+from mocap.calibration.dlt import decompose_projection, dlt_camera
 from mocap.calibration.problem import Layout, Problem
 from mocap.camera import Camera, PaperCamera
 from mocap.errors import ConvergenceError, DegenerateError
@@ -221,6 +221,20 @@ def test_dlt_recovers_a_camera_from_control_points(cube_pair):
     assert result.rms_px < 1e-6
     assert np.linalg.norm(result.camera.center - camera.center) < 1e-6
     assert np.allclose(result.camera.matrix, camera.matrix, atol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [-3.0, 1e-4])
+def test_decompose_projection_gives_positive_focal_lengths_and_a_proper_rotation(scale):
+    rng = np.random.default_rng(4)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    rotation *= np.linalg.det(rotation)  # det +1
+    matrix = np.array([[2500.0, 3.0, 960.0], [0.0, 2400.0, 540.0], [0.0, 0.0, 1.0]])
+    center = rng.normal(size=3) * 30
+    projection = scale * matrix @ np.c_[rotation, -rotation @ center]
+    got_matrix, got_rotation, got_center = decompose_projection(projection)
+    np.testing.assert_allclose(got_matrix, matrix, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(got_rotation, rotation, atol=1e-12)
+    np.testing.assert_allclose(got_center, center, atol=1e-9)
 
 
 def test_dlt_guards(cube_pair):

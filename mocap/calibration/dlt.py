@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
+import scipy.linalg
 
 from mocap.camera import Camera
 from mocap.errors import DegenerateError
@@ -55,22 +55,31 @@ def dlt_camera(name: str, size: tuple[int, int], points: np.ndarray, pixels: np.
     _, _, vt = np.linalg.svd(rows)
     projection = np.linalg.inv(t_image) @ vt[-1].reshape(3, 4) @ t_world
     projection /= np.linalg.norm(projection[2, :3])
-    matrix, rotation, center_h = cv2.decomposeProjectionMatrix(projection)[:3]
-    center = (center_h[:3] / center_h[3]).reshape(3)
-    # cv2 returns K with positive diagonal; make the rotation proper (det +1)
-    if np.linalg.det(rotation) < 0:
-        rotation = -rotation
-    matrix = matrix / matrix[2, 2]
+    matrix, rotation, center = decompose_projection(projection)
     camera = Camera(name, size, matrix, np.zeros(5), Rigid(rotation, -rotation @ center))
     projected = camera.project(points)
-    if not np.all(np.isfinite(projected)):
-        rotation = np.diag([-1.0, -1.0, 1.0]) @ rotation
-        matrix = matrix @ np.diag([-1.0, -1.0, 1.0])
-        camera = Camera(name, size, matrix, np.zeros(5), Rigid(rotation, -rotation @ center))
-        projected = camera.project(points)
     residuals = projected - pixels
     rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
     return DltResult(camera, projection, residuals, rms)
+
+
+def decompose_projection(projection: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split P (3, 4) = s·K·[R | −R·C] into K (3, 3) with positive diagonal and K[2, 2] = 1,
+    R (3, 3) with det +1, and the centre C (3,).
+
+    P is known only up to a scale of either sign; flipping it flips det(M) of its left 3 × 3
+    block M = s·K·R, so the sign that makes det(M) > 0 is the one with a proper rotation
+    and a positive K (Hartley & Zisserman, 6.2.4). The RQ split is done here, not by
+    OpenCV's decomposeProjectionMatrix, whose signs changed between OpenCV 4 and 5.
+    """
+    if np.linalg.det(projection[:, :3]) < 0:
+        projection = -projection
+    left = projection[:, :3]
+    matrix, rotation = scipy.linalg.rq(left)
+    signs = np.diag(np.sign(np.diag(matrix)))  # K·R = (K·D)·(D·R) with D = D⁻¹
+    matrix, rotation = matrix @ signs, signs @ rotation
+    center = -np.linalg.solve(left, projection[:, 3])
+    return matrix / matrix[2, 2], rotation, center
 
 
 def _normaliser(points: np.ndarray) -> np.ndarray:
