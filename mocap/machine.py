@@ -117,6 +117,15 @@ class Machine:
         limits.flags.writeable = False
         return limits
 
+    @cached_property
+    def wraps(self) -> np.ndarray:
+        """(J,) bool: revolute joints whose limits span a full turn (angles modulo 2 pi)."""
+        limits = self.joint_limits
+        revolute = np.array([joint.type == REVOLUTE for joint in self.joints], dtype=bool)
+        wraps = revolute & ((limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9)
+        wraps.flags.writeable = False
+        return wraps
+
     @property
     def house_link(self) -> int:
         """The link whose forward axis defines the bucket angle's vertical plane: the base's

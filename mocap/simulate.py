@@ -74,7 +74,7 @@ def random_joints(machine: Machine, n: int, rng: np.random.Generator, margin: fl
     limits = machine.joint_limits.copy()
     limits[:, 0] = np.where(np.isfinite(limits[:, 0]), limits[:, 0], -1.0)
     limits[:, 1] = np.where(np.isfinite(limits[:, 1]), limits[:, 1], 1.0)
-    full_circle = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
+    full_circle = machine.wraps
     limits[full_circle] = np.radians([-60.0, 60.0])
     span = limits[:, 1] - limits[:, 0]
     low, high = limits[:, 0] + margin * span, limits[:, 1] - margin * span

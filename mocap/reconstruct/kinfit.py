@@ -24,6 +24,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import chdtri
 
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
@@ -83,7 +84,10 @@ class JointFit:
     where a joint is unobserved); residuals (C, F, M, 2) observed minus predicted px, NaN
     where not observed; weights (C, F, M) final robust weights; rms_px (F,) RMS residual
     of the inlier-weighted observations; n_observations (F,) 2-D observations used; noise_px
-    the pixel SD behind the covariance; valid (F,) frames with enough observations.
+    the pixel SD behind the covariance (given, or estimated robustly from the residuals);
+    valid (F,) frames with enough observations; explained (F,) False for a valid frame
+    whose residuals are far beyond the noise after every restart (the model, the labels
+    or the calibration is wrong there, not the noise).
     """
 
     joints: np.ndarray
@@ -96,6 +100,7 @@ class JointFit:
     n_observations: np.ndarray
     noise_px: float
     valid: np.ndarray
+    explained: np.ndarray
 
     def __post_init__(self) -> None:
         n, j = np.shape(self.joints)
@@ -104,7 +109,7 @@ class JointFit:
             raise ValueError(f"JointFit covariance and information must be ({n}, {p}, {p})")
         if self.base is not None and np.shape(self.base) != (n, 6):
             raise ValueError(f"JointFit.base must be ({n}, 6), got {np.shape(self.base)}")
-        for name in ("rms_px", "n_observations", "valid"):
+        for name in ("rms_px", "n_observations", "valid", "explained"):
             if np.shape(getattr(self, name)) != (n,):
                 raise ValueError(f"JointFit.{name} must be ({n},)")
 
@@ -168,7 +173,17 @@ def fit_joints(
     for _ in range(options.repair_passes):
         if not problem.repair(pixels, state):
             break
-    return problem.result(pixels, state)
+    noise = options.noise_px or problem.noise(pixels, state)
+    suspect = problem.misfit(pixels, state, noise, tail=1e-4, far_share=0.0)
+    unexplained = np.zeros(n_frames, bool)
+    if suspect.any():
+        problem.multistart(pixels, state, np.nonzero(suspect)[0])
+        noise = options.noise_px or problem.noise(pixels, state)
+        unexplained = problem.misfit(pixels, state, noise)
+        if unexplained.any():
+            log.warning("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
+                        unexplained.sum(), noise)
+    return problem.result(pixels, state, noise, unexplained)
 
 
 def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
@@ -280,13 +295,17 @@ class _Problem(KinematicModel):
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
         squared pixel residuals, computed as matrix products over frames and candidates."""
         candidates = self.grid()
+        return candidates[np.argmin(self.grid_costs(pixels, candidates), axis=1)]
+
+    def grid_costs(self, pixels: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """(F, K) sum of squared pixel residuals (up to a per-frame constant) of every frame
+        of pixels (F, C, M, 2) at every candidate (K, J), as matrix products."""
         predicted = np.stack([c.project(self.machine.markers(candidates)) for c in self.cameras], 1)
         predicted = np.where(np.isfinite(predicted), predicted, _BEHIND_PX).reshape(len(candidates), -1)
         observed = pixels.reshape(len(pixels), -1)
         seen = np.isfinite(observed)
         obs = np.where(seen, observed, 0.0)
-        cost = -2.0 * obs @ predicted.T + seen.astype(float) @ (predicted**2).T
-        return candidates[np.argmin(cost, axis=1)]
+        return -2.0 * obs @ predicted.T + seen.astype(float) @ (predicted**2).T
 
     def grid(self) -> np.ndarray:
         """(K, J) candidates: a regular grid inside the limits (unbounded joints ±1 m)."""
@@ -323,8 +342,70 @@ class _Problem(KinematicModel):
             improved |= bool(better.any())
         return improved
 
+    # --- frames nothing explains -------------------------------------------------------
+    def noise(self, pixels: np.ndarray, state: FrameState) -> float:
+        """Pixel noise SD per axis from the median residual length of all frames (Rayleigh:
+        median = 1.1774 sigma), corrected for the parameters fitted: a few wild pixels or
+        wrong frames do not move it."""
+        seen = np.isfinite(pixels[..., 0]).transpose(1, 0, 2).reshape(pixels.shape[1], -1)  # (F, C*M)
+        length = np.hypot(*np.moveaxis(state.residual.reshape(len(seen), -1, 2), -1, 0))
+        n_obs = seen.sum(1)
+        valid = 2 * n_obs > self.n_params
+        if not valid.any():
+            return 1.0
+        sigma = np.median(length[seen & valid[:, None]]) / np.sqrt(2 * np.log(2))
+        dof_share = 1.0 - self.n_params * valid.sum() / (2.0 * n_obs[valid].sum())
+        return float(max(sigma / np.sqrt(max(dof_share, 0.1)), 1e-6))
+
+    def misfit(self, pixels: np.ndarray, state: FrameState, noise: float, tail: float = 1e-6,
+               far_share: float = 0.25) -> np.ndarray:
+        """(F,) frames whose residuals the pixel noise does not explain: more than
+        `far_share` of their observations beyond 4 sigma (a chance of 3e-4 each), or the
+        others' chi-square beyond its `tail` quantile. With the defaults a few wild pixels
+        (outliers) leave a frame explained; with far_share 0 any far pixel makes it suspect."""
+        seen = np.isfinite(pixels[..., 0]).transpose(1, 0, 2).reshape(pixels.shape[1], -1)
+        e2 = (state.residual.reshape(len(seen), -1, 2) ** 2).sum(-1) / noise**2
+        far = seen & (e2 > 16.0)
+        n_obs, n_far = seen.sum(1), far.sum(1)
+        dof = 2 * (n_obs - n_far) - self.n_params
+        inlier_chi2 = np.where(seen & ~far, e2, 0.0).sum(1)
+        limit = chdtri(np.maximum(dof, 1), tail)  # the chi-square upper quantile
+        return (2 * n_obs > self.n_params) & ((n_far > far_share * n_obs) | ((dof > 0) & (inlier_chi2 > limit)))
+
+    def multistart(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> None:
+        """Fit `frames` again from many starts and keep each frame's best: the solutions of
+        frames 1 to 32 away (a wrong stretch is left from both ends), the best grid
+        candidates, and each joint swept over its range with the others kept (a joint's
+        mirror solutions)."""
+        n_frames, n_joints = pixels.shape[1], self.machine.n_joints
+        bad = np.zeros(n_frames, bool)
+        bad[frames] = True
+        sources = [np.clip(frames + shift, 0, n_frames - 1) for step in (1, 2, 4, 8, 16, 32) for shift in (step, -step)]
+        sources = [s for s in sources if not np.all(bad[s])]
+        starts = [state.take(s) for s in sources]
+        own = state.take(frames)
+        grid = self.grid()
+        predicted = self.grid_costs(np.moveaxis(pixels[:, frames], 1, 0), grid)
+        for k in np.argsort(predicted, axis=1)[:, :8].T:
+            starts.append(FrameState(grid[k], own.rotation, own.translation, own.cost))
+        lower = np.where(np.isfinite(self.lower), self.lower, -1.0)
+        upper = np.where(np.isfinite(self.upper), self.upper, 1.0)
+        for j in range(n_joints):
+            for level in (np.arange(6) + 0.5) / 6:
+                joints = own.joints.copy()
+                joints[:, j] = lower[j] + level * (upper[j] - lower[j])
+                starts.append(FrameState(joints, own.rotation, own.translation, own.cost))
+        tries = FrameState.concatenate([
+            FrameState(s.joints, s.rotation, s.translation, s.cost) for s in starts
+        ])
+        repeated = np.tile(frames, len(starts))
+        fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, repeated], 1, 0), tries)
+        best = np.argmin(fitted.cost.reshape(len(starts), len(frames)), axis=0)
+        chosen = fitted.take(best * len(frames) + np.arange(len(frames)))
+        state.put(frames, chosen, chosen.cost < state.cost[frames])
+
     # --- result --------------------------------------------------------------------------
-    def result(self, pixels: np.ndarray, state: FrameState) -> JointFit:
+    def result(self, pixels: np.ndarray, state: FrameState, noise: float, unexplained: np.ndarray) -> JointFit:
         n_cams, n_frames, n_markers, _ = pixels.shape
         hessian, residual, weight = state.hessian, state.residual, state.weight
         seen = np.isfinite(pixels).all(-1)  # (C, F, M)
@@ -334,11 +415,7 @@ class _Problem(KinematicModel):
         weighted = (weight * residual**2).sum(1)
         inlier_weight = (weight * seen_rows).sum(1)
         rms = np.sqrt(weighted / np.maximum(inlier_weight, 1e-12))
-        noise = self.options.noise_px
-        if noise is None:
-            dof = inlier_weight[valid].sum() - self.n_params * valid.sum()
-            noise = float(np.sqrt(weighted[valid].sum() / dof)) if dof > 0 else 1.0
-            log.info("pixel noise estimated from the residuals: %.3f px", noise)
+        log.info("pixel noise: %.3f px", noise)
         eye = np.eye(self.n_params)
         covariance = noise**2 * np.linalg.inv(hessian + _EPS_INFO * eye)
         information = hessian / noise**2
@@ -359,4 +436,5 @@ class _Problem(KinematicModel):
             n_observations=n_obs,
             noise_px=noise,
             valid=valid,
+            explained=~unexplained,
         )

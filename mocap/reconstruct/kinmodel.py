@@ -72,7 +72,7 @@ class KinematicModel:
         self.cameras = cameras
         self.loss, self.scale_px = loss, scale_px
         limits = machine.joint_limits.astype(float)
-        self.wrap = (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9
+        self.wrap = machine.wraps
         self.lower, self.upper = limits[:, 0], limits[:, 1]
         self.n_params = machine.n_joints + (6 if base_motion else 0)
         self.moves = machine.moves[:, machine.marker_links]  # (J, M)

@@ -4,7 +4,8 @@ with uncertainties, velocities; the pure core of `mocap fit`.
 Motion extra columns (DESIGN.md motion CSV): ``filled`` (1 where the smoother predicted
 a frame across a gap or a joint that was not observed), ``<point>_speed`` (m/s) and
 ``<point>_acceleration`` (m/s², magnitude) with smoothing, ``rms_px`` (the fit's residual
-RMS) and ``observations`` (2-D observations used).
+RMS), ``observations`` (2-D observations used) and ``unexplained`` (1 where no solution
+explains the frame's pixels within the noise: the smoother treats the frame as missing).
 """
 
 from __future__ import annotations
@@ -50,18 +51,22 @@ def reconstruct_motion(
     base_motion = fit.base is not None
     values = fit.joints if not base_motion else np.c_[fit.joints, fit.base]
     n_joints = machine.n_joints
-    extra = {"rms_px": fit.rms_px, "observations": fit.n_observations.astype(float)}
+    extra = {
+        "rms_px": fit.rms_px,
+        "observations": fit.n_observations.astype(float),
+        "unexplained": (fit.valid & ~fit.explained).astype(float),
+    }
     smoothed = None
     if smoothing and len(frame) > 1:
-        wrap = np.r_[_wraps(machine), np.zeros(6 * base_motion, bool)]
-        smoothed = smooth(time, values, fit.information, fit.valid, wrap=wrap, options=smooth_options)
+        wrap = np.r_[machine.wraps, np.zeros(6 * base_motion, bool)]
+        smoothed = smooth(time, values, fit.information, fit.valid & fit.explained, wrap=wrap, options=smooth_options)
         values = smoothed.values
         covariance = smoothed.covariance
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
         joints = values[:, :n_joints]
-        wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(_wraps(machine), span, 1.0))
-        values = np.c_[np.where(_wraps(machine), wrapped, joints), values[:, n_joints:]]
+        wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(machine.wraps, span, 1.0))
+        values = np.c_[np.where(machine.wraps, wrapped, joints), values[:, n_joints:]]
         quantities = point_quantities(machine, values, covariance, base_motion, smoothed.velocities)
         extra["filled"] = smoothed.filled.astype(float)
         for k, name in enumerate(machine.point_names):
@@ -87,8 +92,3 @@ def reconstruct_motion(
         extra=extra,
     )
     return MotionResult(motion, fit, smoothed)
-
-
-def _wraps(machine: Machine) -> np.ndarray:
-    limits = machine.joint_limits
-    return (limits[:, 1] - limits[:, 0]) >= 2 * np.pi - 1e-9

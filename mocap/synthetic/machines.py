@@ -1,0 +1,278 @@
+"""Random articulated machines nobody designed by hand, and random scenes of them.
+
+`random_machine_document` writes a machine model as a user's TOML document would: 0-6
+moving links on revolute or prismatic joints, links 0.5-20 m long, random origins and
+`rpy_deg` (frames turned upside down), joint axes of either sign and not of unit length,
+joint names unlike the link names, 1-4 markers per moving link (down to the paper's minimum
+of one), 4-8 non-coplanar base markers, a named tip point on the last link and a
+`[bucket_angle]` direction that is not a unit vector. `random_scene` puts such a machine in
+front of 1-4 random cameras at 10-90 m and observes it with noise, occlusion, gross
+outliers and a tape-measured model (every marker coordinate off by up to ±`tolerance`).
+All randomness comes through `rng`.
+
+Shapes: F frames, J joints, M markers, C cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.calibration import identify
+from mocap.camera import Camera
+from mocap.errors import DegenerateError
+from mocap.io.machine_toml import machine_from_dict
+from mocap.io.tracks_csv import Tracks
+from mocap.machine import Machine
+from mocap.simulate import look_at_camera
+
+IMAGE_SIZES = ((1280, 720), (1920, 1080), (2560, 1440), (3840, 2160))
+_WORDS = ("alder", "birch", "cedar", "dogwood", "elm", "fir", "ginkgo", "hazel", "ivy", "juniper")
+
+
+def random_machine_document(rng: np.random.Generator, n_moving: int | None = None) -> dict:
+    """A machine model as a parsed TOML document (see the module docstring)."""
+    n_moving = int(rng.integers(0, 7)) if n_moving is None else n_moving
+    half = rng.uniform(0.5, 4.0) * np.array([1.0, rng.uniform(0.4, 0.9), rng.uniform(0.2, 0.5)])
+    links = [{"name": f"{_WORDS[0]}_frame"}]
+    ends = [np.array([0.0, 0.0, 2.0 * half[2]])]  # where a child of each link attaches
+    markers = [
+        {"name": f"B{k + 1}", "link": links[0]["name"], "position": p.tolist()}
+        for k, p in enumerate(_base_markers(rng, half))
+    ]
+    for i in range(1, n_moving + 1):
+        parent = i - 1 if i == 1 or rng.random() < 0.8 else int(rng.integers(0, i))
+        length = float(np.exp(rng.uniform(np.log(0.5), np.log(20.0))))
+        prismatic = rng.random() < 0.2
+        axis = _signed_axis(rng)
+        end = _link_end(rng, axis, length, prismatic)
+        origin = ends[parent] * rng.uniform(0.6, 1.0) + rng.normal(0.0, 0.05 * length, 3)
+        joint = {
+            "name": f"q{10 * i + int(rng.integers(0, 10))}",
+            "type": "prismatic" if prismatic else "revolute",
+            "axis": (axis * rng.uniform(0.5, 2.0)).round(6).tolist(),
+            "origin": origin.round(4).tolist(),
+            "rpy_deg": _rpy(rng).round(3).tolist(),
+            "limits": _limits(rng, length, prismatic),
+        }
+        name = f"{_WORDS[i % len(_WORDS)]}_{i}"
+        links.append({"name": name, "parent": links[parent]["name"], "joint": joint})
+        ends.append(end)
+        for k in range(int(rng.integers(1, 5))):
+            along = end * rng.uniform(0.25, 1.0)
+            lateral = _perpendicular(rng, end) * rng.uniform(0.0, 0.15 * length)
+            markers.append({"name": f"M{i}{k + 1}", "link": name, "position": (along + lateral).round(4).tolist()})
+    last = links[-1]["name"]
+    document = {
+        "name": f"Random machine {int(rng.integers(0, 10**6)):06d}",
+        "source": "mocap.synthetic.machines.random_machine_document",
+        "links": links,
+        "markers": markers,
+        "points": [{"name": "tip", "link": last, "position": (ends[-1] * 1.05).round(4).tolist()}],
+        "bucket_angle": {"link": last, "direction": (_unit(ends[-1] + rng.normal(0, 0.1, 3)) * rng.uniform(0.3, 3.0)).round(6).tolist()},
+    }
+    return document
+
+
+def random_machine(rng: np.random.Generator, n_moving: int | None = None) -> Machine:
+    """A random machine model, built through the model file's own validation."""
+    return machine_from_dict(random_machine_document(rng, n_moving), "<random machine>")
+
+
+def _base_markers(rng: np.random.Generator, half: np.ndarray) -> np.ndarray:
+    """4-8 points on the faces of the base's box (half sizes `half`), spread in depth."""
+    n = int(rng.integers(4, 9))
+    while True:
+        points = rng.uniform(-1.0, 1.0, (n, 3))
+        face = rng.integers(0, 3, n)
+        points[np.arange(n), face] = np.sign(points[np.arange(n), face])
+        points = points * half + np.array([0.0, 0.0, half[2]])
+        s = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+        if s[2] > 0.15 * s[0]:
+            return points.round(4)
+
+
+def _signed_axis(rng: np.random.Generator) -> np.ndarray:
+    """A joint axis: mostly a link-frame axis of either sign, sometimes any direction."""
+    if rng.random() < 0.7:
+        axis = np.zeros(3)
+        axis[rng.integers(0, 3)] = rng.choice([-1.0, 1.0])
+        return axis
+    return _unit(rng.normal(size=3))
+
+
+def _link_end(rng, axis, length, prismatic) -> np.ndarray:
+    """The vector (link frame) from the joint to the link's far end: along the axis for a
+    prismatic joint, mostly across it for a revolute one (a marker on the axis fixes nothing)."""
+    if prismatic:
+        return axis * length
+    return _perpendicular(rng, axis) * length + axis * rng.uniform(-0.2, 0.2) * length
+
+
+def _perpendicular(rng, vector) -> np.ndarray:
+    v = rng.normal(size=3)
+    v -= v @ vector / (vector @ vector) * vector
+    return _unit(v)
+
+
+def _rpy(rng: np.random.Generator) -> np.ndarray:
+    """Frames as people write them: none, turned by right angles (upside down), or anything."""
+    pick = rng.random()
+    if pick < 0.3:
+        return np.zeros(3)
+    if pick < 0.6:
+        return rng.choice([-90.0, 0.0, 90.0, 180.0], 3) + rng.normal(0.0, 10.0, 3) * (rng.random(3) < 0.3)
+    return rng.uniform(-180.0, 180.0, 3)
+
+
+def _limits(rng, length, prismatic) -> list[float]:
+    if prismatic:
+        return [0.0, round(float(length * rng.uniform(0.3, 0.8)), 4)]
+    if rng.random() < 0.15:
+        return [-180.0, 180.0]
+    width = rng.uniform(60.0, 300.0)
+    centre = rng.uniform(-180.0 + width / 2, 180.0 - width / 2)
+    return [round(centre - width / 2, 3), round(centre + width / 2, 3)]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+# --- scenes ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SceneOptions:
+    """What a random scene adds to the truth.
+
+    noise_px: pixel noise SD per axis; occlusion: share of observations hidden; outliers:
+    share of observations moved by 10-100 px; tolerance: every marker coordinate of the
+    user's model off by up to ±tolerance (a fraction, uniform), 0 for the exact model;
+    cameras: (least, most) number of cameras; distance_m: camera distances.
+    """
+
+    noise_px: float = 0.5
+    occlusion: float = 0.0
+    outliers: float = 0.0
+    tolerance: float = 0.0
+    cameras: tuple[int, int] = (1, 4)
+    distance_m: tuple[float, float] = (10.0, 90.0)
+
+    @classmethod
+    def field(cls) -> SceneOptions:
+        """Field conditions: the paper's tape measurement, occlusion and wrong detections."""
+        return cls(noise_px=0.8, occlusion=0.15, outliers=0.02, tolerance=0.05)
+
+
+@dataclass(frozen=True)
+class RandomScene:
+    """A random machine filmed by random cameras.
+
+    machine: the exact model (the truth); model: the model as measured (tape error);
+    cameras: C true cameras; joints: (F, J) true joint values; tracks: the observations;
+    outlier: (R,) bool, the tracks' rows moved by a gross error.
+    """
+
+    machine: Machine
+    model: Machine
+    cameras: tuple[Camera, ...]
+    joints: np.ndarray
+    tracks: Tracks
+    outlier: np.ndarray
+    options: SceneOptions
+
+
+def random_scene(rng: np.random.Generator, options: SceneOptions = SceneOptions(), n_frames: int = 1,
+                 machine: Machine | None = None) -> RandomScene:
+    """A random machine (or `machine`) moving through `n_frames` poses, seen by random
+    cameras; every camera sees >= 4 markers and the scene satisfies the calibration's counts
+    (occlusion is drawn again until it does)."""
+    machine = random_machine(rng) if machine is None else machine
+    joints = random_motion(machine, n_frames, rng)
+    world = machine.markers(joints)  # (F, M, 3)
+    n_cameras = int(rng.integers(options.cameras[0], options.cameras[1] + 1))
+    cameras = tuple(_random_camera(f"cam{k + 1}", world, options.distance_m, rng) for k in range(n_cameras))
+    for _ in range(100):
+        tracks, outlier = _observe(cameras, machine, world, rng, options)
+        if _identifiable(machine, cameras, tracks):
+            break
+    else:
+        raise DegenerateError("no occlusion draw leaves the scene identifiable")
+    return RandomScene(machine, _measured(machine, rng, options.tolerance), cameras, joints, tracks, outlier, options)
+
+
+def random_motion(machine: Machine, n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(F, J) smooth joint trajectories inside the middle 70 % of each joint's range (the
+    first frame drawn uniformly there)."""
+    limits = machine.joint_limits
+    low, high = limits[:, 0], limits[:, 1]
+    full = machine.wraps
+    low = np.where(full, -np.pi / 3, low)
+    high = np.where(full, np.pi / 3, high)
+    centre, half = (low + high) / 2, 0.35 * (high - low)
+    t = np.linspace(0.0, 1.0, n_frames)[:, None]
+    phase = rng.uniform(0, 2 * np.pi, (2, machine.n_joints))
+    rate = rng.uniform(0.5, 2.0, (2, machine.n_joints))
+    wave = 0.6 * np.sin(2 * np.pi * rate[0] * t + phase[0]) + 0.4 * np.sin(2 * np.pi * rate[1] * t + phase[1])
+    return centre + half * wave
+
+
+def _random_camera(name: str, world: np.ndarray, distance_m, rng) -> Camera:
+    """A camera looking at the markers' centre from a random direction, far enough that
+    every marker of every frame is in front of it, zoomed so they fill 40-90 % of the image."""
+    points = world.reshape(-1, 3)
+    target = points.mean(axis=0)
+    radius = np.linalg.norm(points - target, axis=1).max()
+    distance = max(rng.uniform(*distance_m), 2.5 * radius)
+    azimuth = rng.uniform(0, 2 * np.pi)
+    elevation = np.radians(rng.uniform(3.0, 35.0))
+    direction = np.array([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)])
+    center = target + distance * direction
+    size = IMAGE_SIZES[int(rng.integers(0, len(IMAGE_SIZES)))]
+    probe = look_at_camera(name, size, 1000.0, center, target, roll=rng.normal(0, 0.03))
+    uv = probe.project(points) - probe.matrix[:2, 2]
+    spread = np.abs(uv).max(axis=0) / (np.array(size) / 2)  # at f = 1000 px
+    focal = 1000.0 * rng.uniform(0.4, 0.9) / max(spread.max(), 1e-9)
+    return look_at_camera(name, size, focal, center, target + rng.normal(0, 0.02 * radius, 3), roll=rng.normal(0, 0.03))
+
+
+def _observe(cameras, machine: Machine, world: np.ndarray, rng, options: SceneOptions):
+    rows = []
+    for camera in cameras:
+        uv = camera.project(world)
+        uv = uv + rng.normal(0.0, options.noise_px, uv.shape)
+        w, h = camera.size
+        seen = np.all(np.isfinite(uv), axis=-1) & (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1)
+        seen &= (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1) & (rng.random(seen.shape) >= options.occlusion)
+        f, m = np.nonzero(seen)
+        rows.append((np.full(len(f), camera.name, dtype=object), f, np.asarray(machine.marker_names, dtype=object)[m], uv[f, m]))
+    xy = np.concatenate([r[3] for r in rows])
+    outlier = rng.random(len(xy)) < options.outliers
+    angle = rng.uniform(0, 2 * np.pi, outlier.sum())
+    xy[outlier] += np.c_[np.cos(angle), np.sin(angle)] * rng.uniform(10.0, 100.0, outlier.sum())[:, None]
+    tracks = Tracks.from_rows(*(np.concatenate([r[k] for r in rows]) for k in range(3)), xy)
+    return tracks, outlier
+
+
+def _identifiable(machine: Machine, cameras, tracks: Tracks) -> bool:
+    """Every frame satisfies the calibration's counts with all cameras together."""
+    names = [c.name for c in cameras]
+    index = {n: i for i, n in enumerate(names)}
+    for f in np.unique(tracks.frame):
+        rows = tracks.frame == f
+        try:
+            identify.check_counts(machine, names, np.array([index[c] for c in tracks.camera[rows]]),
+                                  machine.marker_index(tracks.marker[rows]), False, 7)
+        except DegenerateError:
+            return False
+    return len(tracks) > 0 and set(tracks.camera) == set(names)
+
+
+def _measured(machine: Machine, rng, tolerance: float) -> Machine:
+    """The model as a tape measure gives it: every marker coordinate off by up to ±tolerance."""
+    if tolerance == 0:
+        return machine
+    from dataclasses import replace
+
+    scale = 1.0 + rng.uniform(-tolerance, tolerance, machine.marker_positions.shape)
+    return replace(machine, marker_positions=machine.marker_positions * scale)
