@@ -15,11 +15,12 @@ Shapes: F frames, J joints, M markers, C cameras.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mocap.calibration import identify
+from mocap.calibration.problem import Observations
 from mocap.camera import Camera
 from mocap.errors import DegenerateError
 from mocap.io.machine_toml import machine_from_dict
@@ -181,6 +182,21 @@ class RandomScene:
     outlier: np.ndarray
     options: SceneOptions
 
+    def pixels(self) -> np.ndarray:
+        """(C, F, M, 2) the observed pixels, NaN where not seen."""
+        names = [c.name for c in self.cameras]
+        out = np.full((len(names), len(self.joints), len(self.machine.marker_names), 2), np.nan)
+        camera = np.array([names.index(c) for c in self.tracks.camera], dtype=int)
+        out[camera, self.tracks.frame, self.machine.marker_index(self.tracks.marker)] = self.tracks.xy
+        return out
+
+    def observations(self, frame: int = 0, inliers_only: bool = False) -> Observations:
+        """One frame's observations as the calibration takes them."""
+        rows = (self.tracks.frame == frame) & ~(self.outlier & inliers_only)
+        names = [c.name for c in self.cameras]
+        camera = np.array([names.index(c) for c in self.tracks.camera[rows]], dtype=int)
+        return Observations(camera, self.machine.marker_index(self.tracks.marker[rows]), self.tracks.xy[rows])
+
 
 def random_scene(rng: np.random.Generator, options: SceneOptions = SceneOptions(), n_frames: int = 1,
                  machine: Machine | None = None) -> RandomScene:
@@ -272,7 +288,5 @@ def _measured(machine: Machine, rng, tolerance: float) -> Machine:
     """The model as a tape measure gives it: every marker coordinate off by up to ±tolerance."""
     if tolerance == 0:
         return machine
-    from dataclasses import replace
-
     scale = 1.0 + rng.uniform(-tolerance, tolerance, machine.marker_positions.shape)
     return replace(machine, marker_positions=machine.marker_positions * scale)

@@ -1,0 +1,76 @@
+"""Cramér–Rao bounds at the truth: the least error any unbiased estimator can reach from
+pixels with Gaussian noise of `noise_px` per axis. Tests and benchmarks divide the
+errors of calibration, kinematic fit and triangulation by these.
+
+Shapes: C cameras, F frames, M markers, J joints, N points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocap.calibration.problem import Layout, Observations, Problem
+from mocap.camera import Camera, project_cam
+from mocap.geometry import rotvec_to_matrix
+from mocap.machine import Machine
+from mocap.reconstruct.kinmodel import FrameState, KinematicModel
+from mocap.reconstruct.uncertainty import point_quantities
+
+
+def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, obs: Observations,
+                          noise_px: float) -> np.ndarray:
+    """(C,) bound on each camera centre's error (m, root of the trace of its covariance) of
+    a one-frame calibration of focal length, pose and shared joint values from `obs`."""
+    layout = Layout(len(cameras), machine.n_joints)
+    x = layout.pack(cameras, joints)
+    jac = Problem(machine, obs, layout, list(cameras)).jacobian(x)
+    covariance = noise_px**2 * np.linalg.pinv(jac.T @ jac)
+    out = np.empty(len(cameras))
+    for c in range(len(cameras)):
+        s = layout.camera_slice(c)
+        gradient = _numeric_jacobian(_centre, x[s])
+        out[c] = np.sqrt(np.trace(gradient @ covariance[s, s] @ gradient.T))
+    return out
+
+
+def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, seen: np.ndarray,
+                 noise_px: float) -> np.ndarray:
+    """(F, P) bound on each named point's error (m, root of the trace) of a per-frame fit
+    of the joint values at the true joints (F, J) from the observations `seen` (C, F, M)."""
+    model = KinematicModel(machine, tuple(cameras))
+    truth = np.stack([c.project(machine.markers(joints)) for c in cameras], 1)  # (F, C, M, 2)
+    pixels = np.where(np.moveaxis(seen, 0, 1)[..., None], truth, np.nan)
+    _, jac = model.evaluate(pixels, FrameState(joints, None, None, np.zeros(len(joints))))
+    information = np.swapaxes(jac, 1, 2) @ jac / noise_px**2
+    covariance = np.linalg.pinv(information)
+    return point_quantities(machine, joints, covariance).points_sd
+
+
+def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray, noise_px: float) -> np.ndarray:
+    """(N,) bound on each point's error (m, root of the trace) from the cameras that see
+    it: points (N, 3) world, seen (C, N) bool. NaN for a point seen by fewer than two."""
+    information = np.zeros((len(points), 3, 3))
+    for camera, mine in zip(cameras, seen):
+        rotation = camera.cam_from_world.rotation
+        points_cam = points @ rotation.T + camera.cam_from_world.translation
+        _, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, True)
+        d_uv_world = d_uv @ rotation  # (N, 2, 3)
+        information += np.where(mine[:, None, None], np.swapaxes(d_uv_world, 1, 2) @ d_uv_world, 0.0)
+    enough = seen.sum(0) >= 2
+    covariance = np.linalg.pinv(information / noise_px**2)
+    return np.where(enough, np.sqrt(np.trace(covariance, axis1=1, axis2=2)), np.nan)
+
+
+def _centre(block: np.ndarray) -> np.ndarray:
+    """A camera's centre (3,) from its parameter block (rotation vector, translation, ...)."""
+    return -rotvec_to_matrix(block[:3]).T @ block[3:6]
+
+
+def _numeric_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    base = function(x)
+    out = np.empty((len(base), len(x)))
+    for i in range(len(x)):
+        dx = np.zeros_like(x)
+        dx[i] = step * max(1.0, abs(x[i]))
+        out[:, i] = (function(x + dx) - function(x - dx)) / (2 * dx[i])
+    return out

@@ -1,0 +1,106 @@
+"""The chain on machines nobody designed by hand: random articulated machines (0-6 moving
+links, revolute and prismatic joints, flipped frames, axes of either sign, 1-4 markers per
+link) seen by 1-4 random cameras at 10-90 m. Errors are held to the Cramér–Rao bound at
+the truth (`mocap.synthetic.bounds`), 0.5 px noise."""
+
+import numpy as np
+import pytest
+
+from mocap.calibration import calibrate, template_camera
+from mocap.io.machine_toml import machine_from_dict, machine_to_dict
+from mocap.reconstruct.kinfit import FitOptions, fit_joints
+from mocap.reconstruct.triangulate import triangulate
+from mocap.reconstruct.uncertainty import point_quantities
+from mocap.synthetic.bounds import calibration_centre_sd, fit_point_sd, triangulation_sd
+from mocap.synthetic.machines import SceneOptions, random_machine_document, random_scene
+
+SCENES = range(50)
+NOISE_PX = 0.5
+
+
+def test_random_machine_documents_load_round_trip_and_vary():
+    joints, prismatic, flipped = [], 0, 0
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        document = random_machine_document(rng)
+        machine = machine_from_dict(document)
+        again = machine_from_dict(machine_to_dict(machine))
+        q = rng.uniform(-0.5, 0.5, (3, machine.n_joints))
+        np.testing.assert_allclose(again.markers(q), machine.markers(q), atol=1e-9)
+        np.testing.assert_allclose(again.points(q), machine.points(q), atol=1e-9)
+        assert not set(machine.joint_names) & set(machine.link_names)
+        assert 4 <= int(np.sum(machine.marker_links == 0)) <= 8
+        assert np.all(np.bincount(machine.marker_links, minlength=len(machine.links))[1:] >= 1)
+        assert np.linalg.norm(document["bucket_angle"]["direction"]) != pytest.approx(1.0)
+        joints.append(machine.n_joints)
+        prismatic += sum(j.type == "prismatic" for j in machine.joints)
+        flipped += sum(abs(abs(link["joint"]["rpy_deg"][0]) - 180) < 15 for link in document["links"][1:])
+    assert min(joints) == 0 and max(joints) == 6
+    assert prismatic > 5 and flipped > 2
+
+
+def test_one_frame_calibration_of_random_machines_reaches_the_bound():
+    ratios = []
+    for seed in SCENES:
+        scene = random_scene(np.random.default_rng(seed), SceneOptions(noise_px=NOISE_PX))
+        obs = scene.observations()
+        templates = [template_camera(c.name, c.size) for c in scene.cameras]
+        result = calibrate(scene.model, obs, templates)
+        assert not result.outliers, f"scene {seed}: good observations dropped"
+        assert result.rms_px < 2 * NOISE_PX, f"scene {seed}: rms {result.rms_px:.2f} px"
+        bound = calibration_centre_sd(scene.machine, list(scene.cameras), scene.joints[0], obs, NOISE_PX)
+        error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
+        assert np.all(error < 5 * bound), f"scene {seed}: camera centres {error / bound} x the bound"
+        ratios += list(error / bound)
+    assert np.median(ratios) < 1.3
+
+
+def test_kinematic_fit_of_random_machines_keeps_no_wrong_minimum():
+    """Two or more cameras: every frame within 5 of its stated SDs and the tip near the
+    bound. (One camera can leave two solutions that explain the pixels equally well.)"""
+    for seed in SCENES:
+        scene = random_scene(np.random.default_rng(100 + seed), SceneOptions(noise_px=NOISE_PX, cameras=(2, 4)), n_frames=40)
+        machine = scene.machine
+        if not machine.point_names or machine.n_joints == 0:
+            continue
+        pixels = scene.pixels()
+        fit = fit_joints(machine, list(scene.cameras), pixels)
+        assert fit.explained.all(), f"scene {seed}: frames left unexplained"
+        assert fit.noise_px == pytest.approx(NOISE_PX, rel=0.25)
+        tip = point_quantities(machine, fit.joints, fit.covariance)
+        error = np.linalg.norm(tip.points[:, 0] - machine.points(scene.joints)[:, 0], axis=1)
+        assert np.all(error < 5 * tip.points_sd[:, 0] + 1e-9), f"scene {seed}: tip {np.max(error / tip.points_sd[:, 0]):.1f} SDs off"
+        bound = fit_point_sd(machine, list(scene.cameras), scene.joints, np.isfinite(pixels[..., 0]), NOISE_PX)[:, 0]
+        ratio = np.sqrt(np.mean(error**2) / np.mean(bound**2))
+        assert ratio < 1.6, f"scene {seed}: tip RMSE {ratio:.2f} x the bound"
+
+
+def test_one_camera_fit_of_random_machines_ends_no_worse_than_at_the_truth():
+    for seed in range(20):
+        scene = random_scene(np.random.default_rng(300 + seed), SceneOptions(noise_px=NOISE_PX, cameras=(1, 1)), n_frames=40)
+        machine = scene.machine
+        if machine.n_joints == 0:
+            continue
+        pixels = scene.pixels()
+        options = FitOptions(noise_px=NOISE_PX)
+        fit = fit_joints(machine, list(scene.cameras), pixels, options=options)
+        at_truth = fit_joints(machine, list(scene.cameras), pixels, initial=scene.joints, options=options)
+        cost = np.nansum(fit.residuals**2, axis=(0, 2, 3))
+        cost_at_truth = np.nansum(at_truth.residuals**2, axis=(0, 2, 3))
+        worse = cost > cost_at_truth + 9 * NOISE_PX**2  # 9: a chi-square difference of 9
+        assert not worse.any(), f"scene {seed}: frames {np.nonzero(worse)[0]} kept a worse minimum"
+
+
+def test_triangulation_of_random_machines_reaches_the_bound():
+    for seed in SCENES:
+        scene = random_scene(np.random.default_rng(500 + seed), SceneOptions(noise_px=NOISE_PX, cameras=(2, 4)), n_frames=5)
+        pixels = scene.pixels()
+        result = triangulate(list(scene.cameras), pixels)
+        truth = scene.machine.markers(scene.joints)
+        seen = np.isfinite(pixels[..., 0]).reshape(len(scene.cameras), -1)
+        bound = triangulation_sd(list(scene.cameras), truth.reshape(-1, 3), seen, NOISE_PX)
+        error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth.reshape(-1, 3), axis=1)
+        ok = np.isfinite(bound)
+        assert np.all(np.isfinite(error[ok]))
+        ratio = np.sqrt(np.mean(error[ok] ** 2) / np.mean(bound[ok] ** 2))
+        assert ratio < 1.5, f"scene {seed}: triangulation RMSE {ratio:.2f} x the bound"
