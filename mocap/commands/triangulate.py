@@ -27,15 +27,19 @@ def add_parser(sub) -> None:
     p.add_argument("calibration", help="camera calibration TOML")
     p.add_argument("tracks", nargs="+", help="tracks CSV file(s), one per camera or all in one")
     p.add_argument("--out", required=True, help="points CSV to write")
-    p.add_argument("--max-error-px", type=float, default=4.0, metavar="PX",
-                   help="a view off by more than this is dropped when 3+ views remain (default 4)")
+    p.add_argument("--max-error-px", type=float, default=None, metavar="PX",
+                   help="a view off by more than this is dropped when 3+ views remain, and a point whose "
+                   "two views disagree by more is dropped (default: --sigmas times the pixel noise the "
+                   "data have)")
+    p.add_argument("--sigmas", type=float, default=5.0,
+                   help="outlier threshold in units of the estimated pixel noise (default 5)")
     p.add_argument("--min-views", type=int, default=2, help="views needed for a point (default 2)")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
     try:
-        options = TriangulateOptions(max_error_px=args.max_error_px, min_views=args.min_views)
+        options = TriangulateOptions(max_error_px=args.max_error_px, sigmas=args.sigmas, min_views=args.min_views)
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
     print(run_triangulate(args.calibration, args.tracks, args.out, options))

@@ -173,16 +173,20 @@ def fit_joints(
     for _ in range(options.repair_passes):
         if not problem.repair(pixels, state):
             break
-    noise = options.noise_px or problem.noise(pixels, state)
-    suspect = problem.misfit(pixels, state, noise, tail=1e-4, far_share=0.0)
-    unexplained = np.zeros(n_frames, bool)
-    if suspect.any():
-        problem.multistart(pixels, state, np.nonzero(suspect)[0])
+    for _ in range(2):  # a second round starts from the frames the first one mended
         noise = options.noise_px or problem.noise(pixels, state)
-        unexplained = problem.misfit(pixels, state, noise)
-        if unexplained.any():
-            log.warning("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
-                        unexplained.sum(), noise)
+        suspect = problem.misfit(pixels, state, noise, tail=1e-4, far_share=0.0)
+        if not suspect.any():
+            break
+        problem.multistart(pixels, state, np.nonzero(suspect)[0])
+        for _ in range(n_frames):  # mended frames hand their solution on along a wrong stretch
+            if not problem.repair(pixels, state):
+                break
+    noise = options.noise_px or problem.noise(pixels, state)
+    unexplained = problem.misfit(pixels, state, noise)
+    if unexplained.any():
+        log.warning("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
+                    unexplained.sum(), noise)
     return problem.result(pixels, state, noise, unexplained)
 
 
@@ -378,10 +382,7 @@ class _Problem(KinematicModel):
         candidates, and each joint swept over its range with the others kept (a joint's
         mirror solutions)."""
         n_frames, n_joints = pixels.shape[1], self.machine.n_joints
-        bad = np.zeros(n_frames, bool)
-        bad[frames] = True
         sources = [np.clip(frames + shift, 0, n_frames - 1) for step in (1, 2, 4, 8, 16, 32) for shift in (step, -step)]
-        sources = [s for s in sources if not np.all(bad[s])]
         starts = [state.take(s) for s in sources]
         own = state.take(frames)
         grid = self.grid()

@@ -85,7 +85,8 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
     return (
         f"{len(points)} points in {len(np.unique(points.frame))} frames written to {out}; "
         f"median reprojection error {np.median(points.error_px):.2f} px; "
-        f"{seen - len(points)} marker-frames seen by fewer than 2 cameras"
+        f"{seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
+        + _dropped(clock)
     )
 
 
@@ -104,9 +105,17 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
         f"{len(result.motion)} frames written to {out}; {int(fit.valid.sum())} fitted, "
         f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
     )
+    unexplained = int((fit.valid & ~fit.explained).sum())
+    if unexplained:
+        report += (f"; {unexplained} frame(s) that no joint values explain within the noise (column "
+                   "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
     if result.smoothed is not None:
         report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
-    return report
+    return report + _dropped(clock)
+
+
+def _dropped(clock: Resampled) -> str:
+    return f"; {clock.dropped} pixel(s) dropped that their own tracks contradict" if clock.dropped else ""
 
 
 def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, out_machine,

@@ -10,11 +10,12 @@ outside the camera's recording) it is NaN: nothing is extrapolated.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mocap.io.tracks_csv import Tracks
+from mocap.reconstruct.outliers import track_outliers
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,7 @@ class Resampled:
     frame: np.ndarray
     time: np.ndarray
     pixels: np.ndarray
+    dropped: int = 0  # pixels dropped as contradicted by their own tracks
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -99,18 +101,27 @@ def _sample(pixels: np.ndarray, first_frame: int, fps: float, offset: float, tim
 
 
 def tracks_on_reference_clock(
-    tracks: Tracks, camera_names, marker_names, fps: np.ndarray, offsets: np.ndarray
+    tracks: Tracks, camera_names, marker_names, fps: np.ndarray, offsets: np.ndarray,
+    drop_outliers: bool = True,
 ) -> Resampled:
     """Tracks of the named cameras and markers on the first camera's clock; cameras with
-    no rows give NaN pixels."""
-    pixels, first_frames = [], []
+    no rows give NaN pixels. With `drop_outliers`, pixels their own track contradicts
+    (`mocap.reconstruct.outliers.track_outliers`) are dropped first, and counted."""
+    pixels, first_frames, dropped = [], [], 0
     for name in camera_names:
         own = tracks.of_camera(name)
         if len(own):
             frames = np.arange(own.frame.min(), own.frame.max() + 1)
-            pixels.append(own.dense([name], marker_names, frames)[0])
+            dense = own.dense([name], marker_names, frames)[0]
+            if drop_outliers:
+                wild = track_outliers(dense)
+                dense[wild] = np.nan
+                dropped += int(wild.sum())
+            pixels.append(dense)
             first_frames.append(int(frames[0]))
         else:
             pixels.append(np.zeros((0, len(marker_names), 2)))
             first_frames.append(0)
-    return resample(pixels, np.array(first_frames), fps, offsets)
+    if dropped:
+        log.info("%d pixel(s) dropped: their own tracks contradict them", dropped)
+    return replace(resample(pixels, np.array(first_frames), fps, offsets), dropped=dropped)

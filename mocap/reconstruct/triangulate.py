@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from mocap.camera import Camera, project_cam
+from mocap.reconstruct.outliers import noise_from_fits
 
 _EPS = 1e-9
 
@@ -25,15 +26,20 @@ _EPS = 1e-9
 @dataclass(frozen=True)
 class TriangulateOptions:
     """iterations: Gauss-Newton steps; max_error_px: a view whose reprojection error
-    exceeds this is an outlier candidate (with >= 3 views); min_views: views needed."""
+    exceeds this is an outlier candidate (with >= 3 views), and a point seen by two views
+    whose views disagree by more is dropped; None: `sigmas` times the pixel noise the data
+    have (estimated robustly from every point's residuals); min_views: views needed."""
 
     iterations: int = 2
-    max_error_px: float = 4.0
+    max_error_px: float | None = None
+    sigmas: float = 5.0
     min_views: int = 2
 
     def __post_init__(self) -> None:
-        if self.iterations < 0 or self.min_views < 2 or not self.max_error_px > 0:
-            raise ValueError("iterations >= 0, min_views >= 2 and max_error_px > 0 are required")
+        if self.iterations < 0 or self.min_views < 2 or not self.sigmas > 0:
+            raise ValueError("iterations >= 0, min_views >= 2 and sigmas > 0 are required")
+        if self.max_error_px is not None and not self.max_error_px > 0:
+            raise ValueError("max_error_px must be positive")
 
 
 @dataclass(frozen=True)
@@ -75,9 +81,10 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     normalised = undistort(cameras, flat)
     used = seen.copy()
     xyz, residual, jac = _solve(cameras, flat, normalised, used, options.iterations)
+    limit = options.max_error_px or options.sigmas * _noise(residual, used)
     for _ in range(len(cameras) - 2):
         error = np.where(used, np.linalg.norm(residual, axis=-1), 0.0)
-        suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > options.max_error_px))[0]
+        suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > limit))[0]
         if not len(suspect):
             break
         drop, moved = _leave_one_out(xyz[suspect], residual[:, suspect], jac[suspect], used[:, suspect])
@@ -90,8 +97,12 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
             start=moved[drop >= 0],
         )
     views = used.sum(0)
-    enough = views >= options.min_views
     squared = np.where(used, (residual**2).sum(-1), 0.0).sum(0)
+    # two views that disagree: one of them is wrong and nothing tells which
+    disagree = (views == 2) & (squared > limit**2)
+    used[:, disagree] = False
+    views = used.sum(0)
+    enough = views >= options.min_views
     error_px = np.where(enough, np.sqrt(squared / np.maximum(views, 1)), np.nan)
     xyz = np.where(enough[:, None], xyz, np.nan)
     return Triangulation(
@@ -100,6 +111,15 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
         views.reshape(shape),
         used.reshape((len(cameras),) + shape),
     )
+
+
+def _noise(residual: np.ndarray, used: np.ndarray) -> float:
+    """Pixel noise SD per axis from the residuals (C, N, 2) of points with views `used`
+    (C, N): each point's chi-square has 2 v - 3 degrees of freedom."""
+    views = used.sum(0)
+    squared = np.where(used, (residual**2).sum(-1), 0.0).sum(0)
+    sigma = noise_from_fits(squared, 2 * views - 3)
+    return sigma if np.isfinite(sigma) and sigma > 0 else 1.0
 
 
 def undistort(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:

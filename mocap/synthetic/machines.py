@@ -200,9 +200,9 @@ class RandomScene:
 
 def random_scene(rng: np.random.Generator, options: SceneOptions = SceneOptions(), n_frames: int = 1,
                  machine: Machine | None = None) -> RandomScene:
-    """A random machine (or `machine`) moving through `n_frames` poses, seen by random
-    cameras; every camera sees >= 4 markers and the scene satisfies the calibration's counts
-    (occlusion is drawn again until it does)."""
+    """A random machine (or `machine`) moving for `n_frames` frames at 30 fps, seen by
+    random cameras; the first frame satisfies the calibration's counts (occlusion is drawn
+    again until it does)."""
     machine = random_machine(rng) if machine is None else machine
     joints = random_motion(machine, n_frames, rng)
     world = machine.markers(joints)  # (F, M, 3)
@@ -217,18 +217,21 @@ def random_scene(rng: np.random.Generator, options: SceneOptions = SceneOptions(
     return RandomScene(machine, _measured(machine, rng, options.tolerance), cameras, joints, tracks, outlier, options)
 
 
-def random_motion(machine: Machine, n_frames: int, rng: np.random.Generator) -> np.ndarray:
-    """(F, J) smooth joint trajectories inside the middle 70 % of each joint's range (the
-    first frame drawn uniformly there)."""
+def random_motion(machine: Machine, n_frames: int, rng: np.random.Generator, fps: float = 30.0) -> np.ndarray:
+    """(F, J) smooth joint trajectories at `fps` inside the middle 70 % of each joint's
+    range: two sines per joint of random phases, slow enough that no joint turns faster
+    than 0.4 rad/s or slides faster than 0.5 m/s (a machine's pace)."""
     limits = machine.joint_limits
     low, high = limits[:, 0], limits[:, 1]
     full = machine.wraps
     low = np.where(full, -np.pi / 3, low)
     high = np.where(full, np.pi / 3, high)
     centre, half = (low + high) / 2, 0.35 * (high - low)
-    t = np.linspace(0.0, 1.0, n_frames)[:, None]
+    t = np.arange(n_frames)[:, None] / fps
     phase = rng.uniform(0, 2 * np.pi, (2, machine.n_joints))
-    rate = rng.uniform(0.5, 2.0, (2, machine.n_joints))
+    top_speed = np.where(np.array([j.type == "revolute" for j in machine.joints], bool), 0.4, 0.5)
+    fastest = top_speed / (2 * np.pi * np.maximum(half, 1e-9))  # Hz at which a full-amplitude sine reaches it
+    rate = fastest * rng.uniform(0.2, 1.0, (2, machine.n_joints))
     wave = 0.6 * np.sin(2 * np.pi * rate[0] * t + phase[0]) + 0.4 * np.sin(2 * np.pi * rate[1] * t + phase[1])
     return centre + half * wave
 
@@ -271,17 +274,17 @@ def _observe(cameras, machine: Machine, world: np.ndarray, rng, options: SceneOp
 
 
 def _identifiable(machine: Machine, cameras, tracks: Tracks) -> bool:
-    """Every frame satisfies the calibration's counts with all cameras together."""
+    """The first frame (the calibration frame) satisfies the calibration's counts with all
+    cameras together."""
     names = [c.name for c in cameras]
     index = {n: i for i, n in enumerate(names)}
-    for f in np.unique(tracks.frame):
-        rows = tracks.frame == f
-        try:
-            identify.check_counts(machine, names, np.array([index[c] for c in tracks.camera[rows]]),
-                                  machine.marker_index(tracks.marker[rows]), False, 7)
-        except DegenerateError:
-            return False
-    return len(tracks) > 0 and set(tracks.camera) == set(names)
+    rows = tracks.frame == 0
+    try:
+        identify.check_counts(machine, names, np.array([index[c] for c in tracks.camera[rows]], dtype=int),
+                              machine.marker_index(tracks.marker[rows]), False, 7)
+    except DegenerateError:
+        return False
+    return True
 
 
 def _measured(machine: Machine, rng, tolerance: float) -> Machine:
