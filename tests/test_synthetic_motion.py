@@ -9,7 +9,7 @@ from mocap.cli import main
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.motion_csv import load_motion
+from mocap.io.motion_csv import load_motion, world_from_base_of
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import load_session_config
 from mocap.io.tracks_csv import load_tracks
@@ -145,7 +145,7 @@ def test_clocks_and_calibration_hold(session):
     still = session.motion.time < session.options.hold
     assert still.sum() >= 50
     np.testing.assert_array_equal(session.motion.joints[still], np.repeat(session.motion.joints[:1], still.sum(), 0))
-    assert np.all(session.motion.extra["base_z"][still] == 0.0)
+    assert np.all(session.motion.extra["base_z"][still] == 0.0) and np.all(session.motion.extra["base_pitch_deg"][still] == 0.0)
     assert np.ptp(session.motion.extra["base_z"]) > 0  # the base bounces later
 
 
@@ -160,6 +160,23 @@ def test_truth_pixels_are_projections_of_visible_markers(session):
         w, h = camera.camera.size
         assert np.all((rows.xy >= 0) & (rows.xy <= [w - 1, h - 1]))
     assert session.views.max() >= 2 and session.views.mean() > 0.5
+
+
+def test_truth_motion_pushed_through_the_model_gives_the_truth_pixels(session):
+    """The truth motion's columns alone (joints and the base's full pose) reproduce every
+    true pixel: nothing of the base's bounce is left out of the motion CSV."""
+    motion = session.motion
+    base = world_from_base_of(motion.extra, len(motion))
+    assert {"base_x", "base_y", "base_z", "base_roll_deg", "base_pitch_deg", "base_yaw_deg"} <= set(motion.extra)
+    assert np.ptp(motion.extra["base_pitch_deg"]) > 0 and np.ptp(motion.extra["base_roll_deg"]) > 0
+    camera = session.cameras[0]  # the reference clock: its frames are the motion's frames
+    rows = session.tracks.of_camera(camera.name)
+    frames = np.unique(rows.frame)[::37]
+    world = session.machine.markers(motion.joints[frames], base[frames])
+    uv = camera.camera.project(world)
+    dense = rows.dense([camera.name], session.machine.marker_names, frames)[0]
+    seen = np.isfinite(dense[..., 0])
+    np.testing.assert_allclose(dense[seen], uv[seen], atol=1e-6)
 
 
 def test_segment_box_test_agrees_with_sampling():

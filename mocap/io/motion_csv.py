@@ -5,7 +5,9 @@ prismatic joints), ``<point>_x,<point>_y,<point>_z`` for every named point (metr
 frame), ``bucket_angle_deg``; then, where computed, uncertainty columns (``<joint>_sd``,
 ``<point>_sd`` — the standard deviation of the 3-D position, metres, the root of the
 covariance's trace — and ``bucket_angle_sd_deg``) and extra per-frame columns (e.g.
-``filled`` for gap-filled frames, ``<point>_speed`` in m/s).
+``filled`` for gap-filled frames, ``<point>_speed`` in m/s). A base that moves (bouncing,
+walking) adds its pose ``world_from_base`` as ``base_x, base_y, base_z`` (m) and
+``base_roll_deg, base_pitch_deg, base_yaw_deg`` with their SDs (`base_columns`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,48 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
 from mocap.io.text import read_text
+from mocap.geometry import matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
 from mocap.machine import REVOLUTE, Machine
+
+
+BASE_POSITION = ("base_x", "base_y", "base_z")  # m
+BASE_ANGLES = ("base_roll_deg", "base_pitch_deg", "base_yaw_deg")  # R = Rz(yaw) Ry(pitch) Rx(roll)
+
+
+def base_columns(world_from_base: np.ndarray, covariance: np.ndarray | None = None) -> dict:
+    """Motion columns of base poses (F, 4, 4): ``base_x, base_y, base_z`` (m) and
+    ``base_roll_deg, base_pitch_deg, base_yaw_deg`` (the model's rpy convention); with the
+    covariance (F, 6, 6) of a left rotation increment (rad) and the translation (m), their
+    SDs ``base_x_sd`` ... ``base_roll_sd_deg`` ... by first-order propagation."""
+    rotation = world_from_base[:, :3, :3]
+    rpy = matrix_to_rpy(rotation)
+    out = {name: world_from_base[:, k, 3] for k, name in enumerate(BASE_POSITION)}
+    out.update({name: np.degrees(rpy[:, k]) for k, name in enumerate(BASE_ANGLES)})
+    if covariance is not None:
+        step = 1e-6
+        gradient = np.stack([  # (F, 3 rpy, 3 increment): d rpy / d w
+            (matrix_to_rpy(rotvec_to_matrix(step * np.eye(3)[i]) @ rotation) - rpy) / step for i in range(3)
+        ], axis=-1)
+        gradient = (gradient + np.pi) % (2 * np.pi) - np.pi
+        angle_cov = gradient @ covariance[:, :3, :3] @ np.swapaxes(gradient, 1, 2)
+        for k, name in enumerate(BASE_POSITION):
+            out[f"{name}_sd"] = np.sqrt(covariance[:, 3 + k, 3 + k])
+        for k, name in enumerate(BASE_ANGLES):
+            out[name.replace("_deg", "_sd_deg")] = np.degrees(np.sqrt(angle_cov[:, k, k]))
+    return out
+
+
+def world_from_base_of(extra: dict, n_frames: int) -> np.ndarray | None:
+    """(F, 4, 4) base poses from motion columns (`base_columns`; missing ones 0), or None
+    if the motion has none."""
+    names = BASE_POSITION + BASE_ANGLES
+    if not any(name in extra for name in names):
+        return None
+    value = {name: np.asarray(extra.get(name, np.zeros(n_frames)), dtype=float) for name in names}
+    poses = np.tile(np.eye(4), (n_frames, 1, 1))
+    poses[:, :3, :3] = rpy_to_matrix(np.radians(np.stack([value[n] for n in BASE_ANGLES], axis=1)))
+    poses[:, :3, 3] = np.stack([value[n] for n in BASE_POSITION], axis=1)
+    return poses
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocap.camera import Camera
-from mocap.io.motion_csv import Motion
+from mocap.io.motion_csv import Motion, base_columns
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
+from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.smooth import Smoothed, SmoothOptions, smooth
 from mocap.reconstruct.uncertainty import point_quantities
 
@@ -77,6 +78,8 @@ def reconstruct_motion(
     else:
         covariance = fit.covariance
         quantities = point_quantities(machine, values, covariance, base_motion)
+    if base_motion:
+        extra.update(base_columns(base_matrices(values[:, n_joints:]), covariance[:, n_joints:, n_joints:]))
     joints_sd = np.sqrt(np.diagonal(covariance, axis1=1, axis2=2)[:, :n_joints])
     motion = Motion(
         joint_names=machine.joint_names,

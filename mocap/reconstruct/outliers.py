@@ -41,8 +41,9 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     judged, scaled, raw = _deviations(pixels)
     if not judged.any():
         return np.zeros(pixels.shape[:2], bool)
-    with np.errstate(all="ignore"):
-        scale = np.nanmedian(np.where(judged, scaled, np.nan), axis=0) / RAYLEIGH_MEDIAN  # (M,) per track
+    tracked = judged.any(0)
+    scale = np.full(judged.shape[1], np.inf)  # (M,) each track's own scale
+    scale[tracked] = np.nanmedian(np.where(judged, scaled, np.nan)[:, tracked], axis=0) / RAYLEIGH_MEDIAN
     smooth = scale <= rough_px  # a rough track (frames too far apart in time) cannot tell a wild pixel
     calm = judged & smooth[None]
     limit = factor * np.maximum(scale, np.median(scaled[calm]) / RAYLEIGH_MEDIAN if calm.any() else 0.0)

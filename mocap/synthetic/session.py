@@ -20,7 +20,7 @@ from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.cycles_csv import save_cycles
 from mocap.io.machine_toml import MACHINES_DIR
-from mocap.io.motion_csv import Motion, save_motion
+from mocap.io.motion_csv import Motion, base_columns, save_motion
 from mocap.io.points_csv import Points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
@@ -176,7 +176,7 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     world_from_base = plan.world_from_base(times)
     motion = Motion(machine.joint_names, machine.point_names, frames, times, joints,
                     machine.points(joints, world_from_base), machine.bucket_angles(joints, world_from_base),
-                    extra={"base_z": world_from_base[:, 2, 3]})
+                    extra=base_columns(world_from_base))
     markers = machine.markers(joints, world_from_base)
 
     # each true row's score: how much of the marker's painted square is in view (1: all)

@@ -32,7 +32,7 @@ def default_blueprint(
     cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[str]
 ) -> rrb.Blueprint:
     """`plot_groups` the groups under plots/ beyond joints, bucket angle and speed that have
-    series: "uncertainty", "base", "extra"."""
+    series: "uncertainty", "base", "base_angles", "extra"."""
     scene_3d = rrb.Spatial3DView(
         origin="world",
         name="machine",
@@ -44,7 +44,8 @@ def default_blueprint(
         rrb.TimeSeriesView(origin="plots/bucket", name="bucket angle (deg)"),
         rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
     ]
-    names = {"uncertainty": "uncertainty (sd)", "base": "base position (m)", "extra": "other columns"}
+    names = {"uncertainty": "uncertainty (sd)", "base": "base position (m)", "base_angles": "base attitude (deg)",
+             "extra": "other columns"}
     plots += [rrb.TimeSeriesView(origin=f"plots/{group}", name=names[group]) for group in plot_groups]
     left = rrb.Vertical(scene_3d, rrb.Horizontal(*images), row_shares=[3, 1]) if images else scene_3d
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]))

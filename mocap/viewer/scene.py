@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocap.camera import Camera
-from mocap.io.motion_csv import Motion
+from mocap.io.motion_csv import BASE_ANGLES, BASE_POSITION, Motion, world_from_base_of
 from mocap.io.tracks_csv import Tracks
 from mocap.machine import REVOLUTE, Machine
 
@@ -57,20 +57,10 @@ class LinkSeries:
         return out
 
 
-BASE_COLUMNS = ("base_x", "base_y", "base_z")
-
-
 def world_from_base(motion: Motion) -> np.ndarray | None:
-    """(F, 4, 4) base poses from the motion's ``base_x, base_y, base_z`` columns (m; a base
-    that bounces or has moved since calibration), missing ones 0; None if it has none."""
-    present = [name in motion.extra for name in BASE_COLUMNS]
-    if not any(present):
-        return None
-    poses = np.tile(np.eye(4), (len(motion), 1, 1))
-    for axis, name in enumerate(BASE_COLUMNS):
-        if name in motion.extra:
-            poses[:, axis, 3] = motion.extra[name]
-    return poses
+    """(F, 4, 4) base poses from the motion's base columns (a base that bounces or has
+    moved since calibration), missing ones 0; None if it has none."""
+    return world_from_base_of(motion.extra, len(motion))
 
 
 def known_rows(motion: Motion) -> np.ndarray:
@@ -155,8 +145,10 @@ def plot_series(machine: Machine, motion: Motion, tip: str | None) -> list[PlotS
         out.append(PlotSeries("uncertainty", "bucket_angle_sd", "bucket angle sd (deg)", sd))
     speeds = {f"{p}_speed": p for p in motion.point_names}
     for name, values in motion.extra.items():
-        if name in BASE_COLUMNS:
+        if name in BASE_POSITION:
             out.append(PlotSeries("base", name, f"{name} (m)", values))
+        elif name in BASE_ANGLES:
+            out.append(PlotSeries("base_angles", name, f"{name} (deg)", values))
         elif name in speeds and speeds[name] != tip:
             out.append(PlotSeries("speed", speeds[name], f"{speeds[name]} speed (m/s)", values))
         elif name not in speeds:
