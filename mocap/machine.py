@@ -62,6 +62,47 @@ class BucketAngle:
 
 
 @dataclass(frozen=True)
+class Tolerance:
+    """How far the measured marker positions may be off: each marker by up to `fraction`
+    of its distance from its link's origin (at least 0.5 m) plus `metres`, in any
+    direction (a tape measure's error, the paper's ±5 %)."""
+
+    fraction: float = 0.0
+    metres: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.fraction < 1 and 0 <= self.metres < 100):
+            raise ValueError(f"tolerance must be a fraction in [0, 1) or metres in [0, 100), got {self}")
+
+    def __bool__(self) -> bool:
+        return self.fraction > 0 or self.metres > 0
+
+    def sd(self, positions: np.ndarray) -> np.ndarray:
+        """(M,) the SD (m) of each coordinate of markers at positions (M, 3) in their link
+        frames: the bound over sqrt(3), as for an error uniform within it."""
+        reach = np.maximum(np.linalg.norm(positions, axis=-1), 0.5)
+        return np.hypot(self.fraction * reach, self.metres) / np.sqrt(3.0)
+
+    @classmethod
+    def parse(cls, text: str | float) -> Tolerance:
+        """"5%" or 0.05 (a fraction), "0.03m", "3cm" or "30mm" (metres); ValueError otherwise."""
+        if isinstance(text, (int, float)) and not isinstance(text, bool):
+            return cls(fraction=float(text))
+        value = str(text).strip().lower().replace(" ", "")
+        for unit, factor in (("%", 0.01), ("mm", 0.001), ("cm", 0.01), ("m", 1.0)):
+            if value.endswith(unit):
+                number = float(value[: -len(unit)])
+                if not np.isfinite(number):
+                    raise ValueError(f"tolerance {text!r} is not finite")
+                return cls(fraction=number * factor) if unit == "%" else cls(metres=number * factor)
+        return cls(fraction=float(value))
+
+    def __str__(self) -> str:
+        parts = ([f"{100 * self.fraction:g}%"] if self.fraction else []) + ([f"{self.metres:g}m"] if self.metres else [])
+        return " + ".join(parts) or "0"
+
+
+@dataclass(frozen=True)
 class Machine:
     """An articulated machine model. Links are in topological order (parents first)."""
 
@@ -77,6 +118,7 @@ class Machine:
     bucket_angle: BucketAngle | None = None
     marker_tags: np.ndarray | None = None  # (M,) ArUco / AprilTag id of each marker, -1 for a painted disk
     tag_dictionary: str | None = None  # the tags' OpenCV dictionary, e.g. "DICT_4X4_50"
+    tolerance: Tolerance | None = None  # how far the measured marker positions may be off, if stated
 
     # --- structure -------------------------------------------------------------------
     @cached_property

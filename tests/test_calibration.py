@@ -134,12 +134,16 @@ def test_fitting_distortion_and_principal_point(ex3500):
     assert abs(fitted.cameras[0].distortion[0] - (-0.08)) < 4 * fitted.std[7]
 
 
-def test_analytic_jacobian_matches_finite_differences(ex3500):
+@pytest.mark.parametrize("offsets", [False, True])
+def test_analytic_jacobian_matches_finite_differences(ex3500, offsets):
     cameras, q, obs, _ = scene(ex3500, 2, seed=4)
-    layout = Layout(2, 4, per_camera=True, fit_principal_point=True, distortion="full")
+    n_markers = len(ex3500.marker_names) if offsets else 0
+    layout = Layout(2, 4, per_camera=True, fit_principal_point=True, distortion="full", n_markers=n_markers)
     cams = [Camera(c.name, c.size, c.matrix, np.array([-0.05, 0.01, 0.001, -0.002, 0.003]), c.cam_from_world) for c in cameras]
-    problem = Problem(ex3500, obs, layout, cams)
+    marker_sd = np.full(n_markers, 0.1) if offsets else None
+    problem = Problem(ex3500, obs, layout, cams, marker_sd, prior_px=0.7)
     x = layout.pack(cams, np.stack([q, q + 0.01]))
+    x[layout.offset_slice] = np.random.default_rng(1).normal(0, 0.05, 3 * n_markers)
     analytic = problem.jacobian(x)
     numeric = np.empty_like(analytic)
     for i in range(len(x)):

@@ -9,7 +9,7 @@ Residuals are projected minus observed pixels, (2N,) for N observations.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -50,6 +50,7 @@ class Layout:
     per_camera: bool = False
     fit_principal_point: bool = False
     distortion: str = "none"
+    n_markers: int = 0  # M markers whose offsets from their measured positions are unknowns too
 
     @property
     def distortion_terms(self) -> tuple[int, ...]:
@@ -62,7 +63,12 @@ class Layout:
     @property
     def size(self) -> int:
         joints = self.n_joints * (self.n_cameras if self.per_camera else 1)
-        return self.n_cameras * self.camera_size + joints
+        return self.n_cameras * self.camera_size + joints + 3 * self.n_markers
+
+    @property
+    def offset_slice(self) -> slice:
+        """The markers' offsets (M * 3,), m in their links' frames, last in the vector."""
+        return slice(self.size - 3 * self.n_markers, self.size)
 
     def camera_slice(self, c: int) -> slice:
         return slice(c * self.camera_size, (c + 1) * self.camera_size)
@@ -71,7 +77,7 @@ class Layout:
         start = self.n_cameras * self.camera_size + (c * self.n_joints if self.per_camera else 0)
         return slice(start, start + self.n_joints)
 
-    def names(self, camera_names, joint_names) -> list[str]:
+    def names(self, camera_names, joint_names, marker_names=()) -> list[str]:
         out = []
         for name in camera_names:
             out += [f"{name}.r{a}" for a in "xyz"] + [f"{name}.t{a}" for a in "xyz"] + [f"{name}.f"]
@@ -81,15 +87,19 @@ class Layout:
         for c in range(self.n_cameras if self.per_camera else 1):
             prefix = f"{camera_names[c]}." if self.per_camera else ""
             out += [prefix + j for j in joint_names]
+        out += [f"{m}.d{a}" for m in list(marker_names)[: self.n_markers] for a in "xyz"]
         return out
 
-    def kinds(self, camera_names, joint_names) -> list[tuple]:
-        """Per parameter: ("camera", camera, parameter) or ("joint", camera or None, joint)."""
+    def kinds(self, camera_names, joint_names, marker_names=()) -> list[tuple]:
+        """Per parameter: ("camera", camera, parameter), ("joint", camera or None, joint) or
+        ("marker", None, offset)."""
+        first_offset = self.offset_slice.start
         return [
-            ("joint", name.split(".")[0] if self.per_camera else None, name.rsplit(".", 1)[-1])
+            ("marker", None, name) if i >= first_offset
+            else ("joint", name.split(".")[0] if self.per_camera else None, name.rsplit(".", 1)[-1])
             if i >= self.n_cameras * self.camera_size
             else ("camera", camera_names[i // self.camera_size], name.split(".", 1)[1])
-            for i, name in enumerate(self.names(camera_names, joint_names))
+            for i, name in enumerate(self.names(camera_names, joint_names, marker_names))
         ]
 
     def pack(self, cameras: list[Camera], joints: np.ndarray) -> np.ndarray:
@@ -104,6 +114,7 @@ class Layout:
         joints = np.asarray(joints, dtype=float)
         for c in range(self.n_cameras if self.per_camera else 1):
             x[self.joint_slice(c)] = joints[c] if self.per_camera else joints
+        x[self.offset_slice] = 0.0
         return x
 
     def unpack(self, x: np.ndarray, templates: list[Camera]) -> tuple[list[Camera], np.ndarray]:
@@ -137,23 +148,52 @@ class Layout:
 
 
 class Problem:
-    """Residuals and Jacobian of one frame's marker pixels for a machine and cameras."""
+    """Residuals and Jacobian of one frame's marker pixels for a machine and cameras.
 
-    def __init__(self, machine, observations: Observations, layout: Layout, templates: list[Camera]):
+    With `layout.n_markers`, the markers' offsets from their measured positions are
+    unknowns too, each coordinate with a Gaussian prior of SD `marker_sd` (M,) m: 3M rows
+    ``prior_px * offset / sd`` follow the 2N pixel rows (the prior in pixel units at a
+    pixel noise of `prior_px`).
+    """
+
+    def __init__(self, machine, observations: Observations, layout: Layout, templates: list[Camera],
+                 marker_sd: np.ndarray | None = None, prior_px: float = 1.0):
         self.machine = machine
         self.obs = observations
         self.layout = layout
         self.templates = templates
         self._rows = [np.nonzero(observations.camera == c)[0] for c in range(layout.n_cameras)]
+        if layout.n_markers and (marker_sd is None or np.shape(marker_sd) != (layout.n_markers,)):
+            raise ValueError(f"marker offsets need marker_sd of shape ({layout.n_markers},)")
+        self.prior_px = prior_px
+        self._prior = None if not layout.n_markers else prior_px / np.repeat(np.asarray(marker_sd, float), 3)
+
+    @property
+    def n_pixel_rows(self) -> int:
+        return 2 * len(self.obs)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        return self._evaluate(x, jacobian=False)
+        out = self._evaluate(x, jacobian=False)
+        return out if self._prior is None else np.r_[out, self._prior * x[self.layout.offset_slice]]
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        return self._evaluate(x, jacobian=True)
+        out = self._evaluate(x, jacobian=True)
+        if self._prior is None:
+            return out
+        prior = np.zeros((len(self._prior), self.layout.size))
+        prior[:, self.layout.offset_slice] = np.diag(self._prior)
+        return np.r_[out, prior]
+
+    def machine_at(self, x: np.ndarray):
+        """The machine with its markers moved by the offsets in `x` (itself without)."""
+        if not self.layout.n_markers:
+            return self.machine
+        offsets = x[self.layout.offset_slice].reshape(-1, 3)
+        return replace(self.machine, marker_positions=self.machine.marker_positions + offsets)
 
     def _evaluate(self, x: np.ndarray, jacobian: bool) -> np.ndarray:
         layout, obs = self.layout, self.obs
+        machine = self.machine_at(x)
         n = len(obs)
         residuals = np.empty((n, 2))
         jac = np.zeros((n, 2, layout.size)) if jacobian else None
@@ -161,10 +201,12 @@ class Problem:
         for g in groups:
             q = x[layout.joint_slice(0 if g is None else g)]
             if jacobian:
-                world, d_world_d_q = self.machine.markers_with_jacobian(q[None])
+                world, d_world_d_q = machine.markers_with_jacobian(q[None])
                 world, d_world_d_q = world[0], d_world_d_q[0]
+                if layout.n_markers:  # d world / d offset: the marker's link's rotation
+                    world_from_link = machine.link_poses(q[None])[0, :, :3, :3][machine.marker_links]
             else:
-                world = self.machine.markers(q[None])[0]
+                world = machine.markers(q[None])[0]
             for c, template in enumerate(self.templates):
                 if g is not None and c != g:
                     continue
@@ -185,6 +227,11 @@ class Problem:
                     d_uv_d_world = d_uv_d_cam @ rotation
                     cols = layout.joint_slice(c if layout.per_camera else 0)
                     jac[rows, :, cols] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]
+                    if layout.n_markers:
+                        first = layout.offset_slice.start + 3 * obs.marker[rows]
+                        d_offset = d_uv_d_world @ world_from_link[obs.marker[rows]]  # (n, 2, 3)
+                        for a in range(3):
+                            jac[rows, :, first + a] = d_offset[:, :, a]
         return jac.reshape(2 * n, layout.size) if jacobian else residuals.reshape(-1)
 
     def _camera_jacobian(self, jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam):

@@ -158,6 +158,11 @@ def format_report(result: CalibrationResult, frame: int) -> str:
                 parts.append(f"{joint.name} {v:.4f} ± {e:.4f} m")
         if parts:
             lines.append(f"joints{who}: " + ", ".join(parts))
+    if result.marker_offsets is not None:
+        moved = np.linalg.norm(result.marker_offsets, axis=1)
+        worst = np.argsort(-moved)[:3]
+        lines.append("markers fitted within the model's tolerance, largest moves: " + ", ".join(
+            f"{machine.marker_names[m]} {moved[m]:.3f} m" for m in worst))
     if result.outliers:
         lines.append("outliers (dropped): " + ", ".join(
             f"{r.camera}:{r.marker} {np.linalg.norm(r.residual):.1f} px" for r in result.outliers))

@@ -18,7 +18,7 @@ from mocap.calibration import identify, initial
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
-from mocap.machine import Machine
+from mocap.machine import Machine, Tolerance
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,10 @@ class CalibrationOptions:
     observation is named an outlier and dropped (default: max(4 px, 5 sigma)).
     max_rms_px: residual RMS beyond which the fit is reported as not converged (default: 1 %
     of the largest image diagonal, 22 px at 1920x1080; a model error of a few per cent
-    stays below it, a wrong solution or wrong labels do not).
+    stays below it, a wrong solution or wrong labels do not). tolerance: how far the
+    model's marker positions may be off (None: the model's own statement, if any); each
+    residual is then weighted by the pixel noise plus the tolerance projected into the
+    image, so that model error is not taken for outliers and far markers count less.
     """
 
     per_camera: bool = False
@@ -42,6 +45,7 @@ class CalibrationOptions:
     f_scale_px: float = 2.0
     outlier_px: float | None = None
     max_rms_px: float | None = None
+    tolerance: Tolerance | None = None
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -95,6 +99,8 @@ class CalibrationResult:
     condition: float
     markers_world: np.ndarray
     marker_views: np.ndarray  # (M,) number of cameras that saw each marker (inliers)
+    marker_offsets: np.ndarray | None = None  # (M, 3) m, link frames: fitted within the tolerance
+    marker_offsets_sd: np.ndarray | None = None  # (M, 3)
 
     @property
     def std(self) -> np.ndarray:
@@ -128,8 +134,10 @@ def calibrate(
     and distortion used when they are not fitted).
     """
     names = [t.name for t in templates]
+    tolerance = machine.tolerance if options.tolerance is None else options.tolerance
     layout = Layout(
-        len(templates), machine.n_joints, options.per_camera, options.fit_principal_point, options.distortion
+        len(templates), machine.n_joints, options.per_camera, options.fit_principal_point, options.distortion,
+        n_markers=len(machine.marker_names) if tolerance else 0,
     )
     identify.check_counts(
         machine, names, observations.camera, observations.marker, options.per_camera, layout.camera_size
@@ -151,7 +159,8 @@ def calibrate(
         else:
             joints = q
     x0 = layout.pack(cameras, joints)
-    return _fit(machine, observations, layout, templates, x0, options)
+    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
+    return _fit(machine, observations, layout, templates, x0, options, marker_sd)
 
 
 def _start(machine, obs: Observations, templates, group, guess: Guess | None):
@@ -212,52 +221,61 @@ def _bounds(layout: Layout, machine: Machine, x0: np.ndarray):
     return (lower, upper), x0
 
 
-def _fit(machine, observations, layout, templates, x0, options) -> CalibrationResult:
+def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) -> CalibrationResult:
     """Least squares from x0; if some residuals are implausible, a robust fit names the
-    outliers and the least-squares fit is repeated without them."""
+    outliers and the least-squares fit is repeated without them. With `marker_sd` the
+    markers' offsets are fitted too, within their prior (the model's tolerance): the prior
+    is weighed at the pixel noise estimated from a first fit."""
     names = [t.name for t in templates]
     bounds, x0 = _bounds(layout, machine, x0)
-    problem = Problem(machine, observations, layout, templates)
+
+    def problem_of(obs, prior_px=1.0):
+        return Problem(machine, obs, layout, templates, marker_sd, prior_px)
+
+    problem = problem_of(observations)
     final = _least_squares(problem, x0, bounds)
+    if marker_sd is not None:
+        prior_px = float(np.clip(_robust_sigma(_pixel_errors(final.fun, problem)), 0.2, 5.0))
+        problem = problem_of(observations, prior_px)
+        final = _least_squares(problem, final.x, bounds)
     inlier = np.ones(len(observations), dtype=bool)
-    err = np.linalg.norm(final.fun.reshape(-1, 2), axis=1)
-    if options.outlier_px is not None or np.max(err) > max(4.0, 5.0 * _robust_sigma(err)):
-        robust = _least_squares(problem, x0, bounds, loss="soft_l1", f_scale=options.f_scale_px)
-        err = np.linalg.norm(robust.fun.reshape(-1, 2), axis=1)
-        threshold = options.outlier_px or max(4.0, 5.0 * _robust_sigma(err))
-        inlier = err <= threshold
+    if options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem), options).any():
+        robust = _least_squares(problem, x0 if marker_sd is None else final.x, bounds, loss="soft_l1",
+                                f_scale=options.f_scale_px)
+        errors = _pixel_errors(robust.fun, problem)
+        inlier = _drop_while_identifiable(machine, names, observations, layout, _suspects(errors, options), errors)
         if np.all(inlier):
             final = _least_squares(problem, robust.x, bounds)
         else:
-            log.info("%d outlier(s) beyond %.1f px", np.sum(~inlier), threshold)
-            kept = observations.select(inlier)
-            try:
-                identify.check_counts(
-                    machine, names, kept.camera, kept.marker, layout.per_camera, layout.camera_size
-                )
-            except DegenerateError as exc:
-                raise DegenerateError(
-                    f"after dropping {np.sum(~inlier)} outlier(s): {exc.detail}"
-                ) from None
-            problem = Problem(machine, kept, layout, templates)
+            log.info("%d outlier(s) dropped", np.sum(~inlier))
+            problem = problem_of(observations.select(inlier), problem.prior_px)
             final = _least_squares(problem, robust.x, bounds)
-    rms = float(np.sqrt(np.mean(final.fun**2) * 2))
+    pixel_fun = final.fun[: problem.n_pixel_rows]
+    rms = float(np.sqrt(np.mean(pixel_fun**2) * 2))
     diagonal = max(np.hypot(*t.size) for t in templates)
     if rms > (options.max_rms_px or 0.01 * diagonal):
         raise ConvergenceError(
-            f"the fit did not converge: {rms:.1f} px rms over {len(final.fun) // 2} observations "
+            f"the fit did not converge: {rms:.1f} px rms over {len(pixel_fun) // 2} observations "
             "(expected about the pixel noise); check the marker labels, or give a --guess "
             "(or a larger --max-rms)"
         )
     jacobian = final.jac
-    parameter_names = layout.names(names, machine.joint_names)
-    rank, condition = identify.check_jacobian(jacobian, parameter_names, layout.kinds(names, machine.joint_names))
+    all_names = layout.names(names, machine.joint_names, machine.marker_names)
+    rank, condition = identify.check_jacobian(
+        jacobian, all_names, layout.kinds(names, machine.joint_names, machine.marker_names)
+    )
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
     sigma2 = float(final.fun @ final.fun) / dof
     covariance = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
+    fitted = problem.machine_at(final.x)
+    offsets, offsets_sd = None, None
+    core = slice(0, layout.size - 3 * layout.n_markers)  # cameras and joints
+    if layout.n_markers:
+        offsets = final.x[layout.offset_slice].reshape(-1, 3)
+        offsets_sd = np.sqrt(np.diag(covariance)[layout.offset_slice]).reshape(-1, 3)
 
     cameras, joints = layout.unpack(final.x, templates)
-    all_residuals = Problem(machine, observations, layout, templates).residuals(final.x).reshape(-1, 2)
+    all_residuals = problem_of(observations).residuals(final.x)[: 2 * len(observations)].reshape(-1, 2)
     residuals = tuple(
         Residual(names[c], machine.marker_names[m], observations.xy[k], all_residuals[k], not inlier[k])
         for k, (c, m) in enumerate(zip(observations.camera, observations.marker))
@@ -265,7 +283,7 @@ def _fit(machine, observations, layout, templates, x0, options) -> CalibrationRe
     inlier_err = all_residuals[inlier]
     rms = float(np.sqrt(np.mean(np.sum(inlier_err**2, axis=1))))
     first_joints = joints[0] if layout.per_camera else joints
-    markers_world = machine.markers(first_joints[None])[0]
+    markers_world = fitted.markers(first_joints[None])[0]
     views = np.zeros(len(machine.marker_names), dtype=int)
     for m in range(len(views)):
         views[m] = len(np.unique(observations.camera[inlier & (observations.marker == m)]))
@@ -274,17 +292,19 @@ def _fit(machine, observations, layout, templates, x0, options) -> CalibrationRe
         cameras=tuple(cameras),
         joints=joints,
         per_camera=layout.per_camera,
-        parameter_names=tuple(parameter_names),
-        parameters=final.x,
-        covariance=covariance,
+        parameter_names=tuple(all_names[core]),
+        parameters=final.x[core],
+        covariance=covariance[core, core],
         paper_sd=tuple(_paper_sd(layout, final.x, covariance, templates, c) for c in range(len(templates))),
         residuals=residuals,
         rms_px=rms,
         sigma_px=float(np.sqrt(sigma2)),
-        rank=rank,
+        rank=rank - 3 * layout.n_markers,  # of the cameras and joints: the offsets' priors fix them
         condition=condition,
         markers_world=markers_world,
         marker_views=views,
+        marker_offsets=offsets,
+        marker_offsets_sd=offsets_sd,
     )
 
 
@@ -299,6 +319,38 @@ def _least_squares(problem: Problem, x0, bounds, loss: str = "linear", f_scale: 
         x_scale="jac",
         method="trf",
     )
+
+
+def _pixel_errors(fun: np.ndarray, problem: Problem) -> np.ndarray:
+    """(N,) residual lengths (px) of the observations (the prior rows left out)."""
+    return np.linalg.norm(fun[: problem.n_pixel_rows].reshape(-1, 2), axis=1)
+
+
+def _suspects(errors: np.ndarray, options: CalibrationOptions) -> np.ndarray:
+    """(N,) observations whose residual (px) is implausible: beyond `outlier_px` if given,
+    else beyond 5 sigma of the noise the residuals show and beyond 4 px."""
+    if options.outlier_px is not None:
+        return errors > options.outlier_px
+    return errors > max(4.0, 5.0 * _robust_sigma(errors))
+
+
+def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
+    """(N,) inliers: the suspects dropped worst first (by `errors` (N,)), each only while
+    the rest still satisfy the counts (a camera's fourth base marker stays, its residual
+    reported)."""
+    inlier = np.ones(len(observations), dtype=bool)
+    for k in np.argsort(-errors):
+        if not suspect[k]:
+            break
+        inlier[k] = False
+        kept = observations.select(inlier)
+        try:
+            identify.check_counts(machine, names, kept.camera, kept.marker, layout.per_camera, layout.camera_size)
+        except DegenerateError:
+            inlier[k] = True
+            log.warning("camera %s, marker %s: residual beyond the noise, kept (the fit needs it)",
+                        names[observations.camera[k]], machine.marker_names[observations.marker[k]])
+    return inlier
 
 
 def _robust_sigma(err: np.ndarray) -> float:

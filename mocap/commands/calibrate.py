@@ -8,6 +8,7 @@ import re
 from mocap.calibration.solve import CalibrationOptions
 from mocap.calibration.stage import CalibrateRequest, run_calibrate
 from mocap.cli import COMMANDS
+from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 
 EXAMPLE = """example:
@@ -44,6 +45,8 @@ def add_parser(sub) -> None:
                    help="robust loss scale in pixels (default 2)")
     p.add_argument("--outlier-px", type=float, help="residual beyond which an observation is "
                    "dropped (default max(4 px, 5 sigma))")
+    p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; the markers are then "
+                   "fitted within it (default: the model file's tolerance, else exact)")
     p.add_argument("--max-rms", type=float, metavar="PX", help="residual RMS beyond which the fit "
                    "counts as not converged (default 1 %% of the image diagonal)")
     p.set_defaults(run=run)
@@ -67,6 +70,7 @@ def run(args) -> int:
         f_scale_px=args.loss_scale,
         outlier_px=args.outlier_px,
         max_rms_px=args.max_rms,
+        tolerance=args.tolerance,
     )
     request = CalibrateRequest(
         machine=args.machine, tracks=tuple(args.tracks), sizes=parse_sizes(args.size), out=args.out,

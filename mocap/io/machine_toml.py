@@ -10,11 +10,11 @@ from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
 from mocap.io.text import read_toml
-from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine
+from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine, Tolerance
 
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
 
-_TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags"}
+_TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags", "tolerance"}
 _LINK_KEYS = {"name", "parent", "joint"}
 _JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
 _ITEM_KEYS = {"name", "link", "position"}
@@ -78,6 +78,16 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         bucket = BucketAngle(link_index[link], direction)
 
     tags, dictionary = _tags(data, markers[3], path)
+    tolerance = None
+    if "tolerance" in data:
+        try:
+            tolerance = Tolerance.parse(data["tolerance"])
+        except (TypeError, ValueError):
+            raise InputError(
+                f"tolerance {data['tolerance']!r} must be a fraction (0.05, \"5%\") or a length (\"0.03 m\", "
+                "\"3 cm\"): how far the measured marker positions may be off",
+                path=path, where="top level",
+            ) from None
     return Machine(
         name=name,
         source=str(source),
@@ -91,6 +101,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         bucket_angle=bucket,
         marker_tags=tags,
         tag_dictionary=dictionary,
+        tolerance=tolerance,
     )
 
 
@@ -318,6 +329,8 @@ def machine_to_dict(machine: Machine) -> dict:
         return out
 
     data = {"name": machine.name, "source": machine.source, "links": links}
+    if machine.tolerance:
+        data["tolerance"] = str(machine.tolerance) if machine.tolerance.metres else machine.tolerance.fraction
     if machine.tag_dictionary is not None and np.any(machine.tags >= 0):
         data["tags"] = {"dictionary": machine.tag_dictionary}
     data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions, machine.tags)

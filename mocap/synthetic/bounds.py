@@ -7,6 +7,8 @@ Shapes: C cameras, F frames, M markers, J joints, N points.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from mocap.calibration.problem import Layout, Observations, Problem
@@ -18,13 +20,27 @@ from mocap.reconstruct.uncertainty import point_quantities
 
 
 def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, obs: Observations,
-                          noise_px: float) -> np.ndarray:
+                          noise_px: float, marker_sd: np.ndarray | None = None) -> np.ndarray:
     """(C,) bound on each camera centre's error (m, root of the trace of its covariance) of
-    a one-frame calibration of focal length, pose and shared joint values from `obs`."""
+    a one-frame calibration of focal length, pose and shared joint values from `obs`.
+
+    marker_sd (M, 3): SDs (m) of the model's marker coordinates (link frames) when the
+    model is only measured: the markers' offsets are then unknowns with that prior (a
+    Bayesian bound), so the bound holds what the model's error costs as well.
+    """
     layout = Layout(len(cameras), machine.n_joints)
     x = layout.pack(cameras, joints)
-    jac = Problem(machine, obs, layout, list(cameras)).jacobian(x)
-    covariance = noise_px**2 * np.linalg.pinv(jac.T @ jac)
+    problem = Problem(machine, obs, layout, list(cameras))
+    jac = problem.jacobian(x) / noise_px
+    information = jac.T @ jac
+    if marker_sd is not None:
+        d_marker = _marker_jacobian(machine, obs, layout, list(cameras), x) / noise_px  # (2N, 3M)
+        sd = np.maximum(np.asarray(marker_sd, dtype=float).reshape(-1), 1e-6)
+        cross_term = jac.T @ d_marker
+        markers_information = d_marker.T @ d_marker + np.diag(1.0 / sd**2)
+        # the offsets marginalised out: the Schur complement of their block
+        information = information - cross_term @ np.linalg.solve(markers_information, cross_term.T)
+    covariance = np.linalg.pinv(information)
     out = np.empty(len(cameras))
     for c in range(len(cameras)):
         s = layout.camera_slice(c)
@@ -59,6 +75,21 @@ def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray
     enough = seen.sum(0) >= 2
     covariance = np.linalg.pinv(information / noise_px**2)
     return np.where(enough, np.sqrt(np.trace(covariance, axis1=1, axis2=2)), np.nan)
+
+
+def _marker_jacobian(machine: Machine, obs: Observations, layout: Layout, cameras, x: np.ndarray,
+                     step: float = 1e-6) -> np.ndarray:
+    """(2N, 3M) derivatives of the pixels by the markers' link-frame coordinates."""
+    out = np.empty((2 * len(obs), machine.marker_positions.size))
+    for i in range(machine.marker_positions.size):
+        shifted = []
+        for sign in (1.0, -1.0):
+            positions = machine.marker_positions.copy()
+            positions.flat[i] += sign * step
+            moved = replace(machine, marker_positions=positions)
+            shifted.append(Problem(moved, obs, layout, cameras).residuals(x))
+        out[:, i] = (shifted[0] - shifted[1]) / (2 * step)
+    return out
 
 
 def _centre(block: np.ndarray) -> np.ndarray:

@@ -1,0 +1,22 @@
+"""Argument types shared by several commands."""
+
+from __future__ import annotations
+
+import argparse
+
+from mocap.machine import Tolerance
+
+
+def tolerance(text: str) -> Tolerance:
+    """--tolerance: "5%" or 0.05 (a fraction of each marker's distance from its link's
+    origin), or "0.03m" / "3cm" / "30mm" (a length)."""
+    try:
+        return Tolerance.parse(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected a fraction (0.05 or 5%) or a length (0.03m, 3cm, 30mm) in [0, 100 m)"
+        ) from None
+
+
+TOLERANCE_HELP = ("how far the model's marker positions may be off: a fraction (0.05 or 5%%) of "
+                  "each marker's distance from its link's origin, or a length (0.03m, 3cm)")
