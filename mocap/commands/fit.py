@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from mocap.cli import COMMANDS
+from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.reconstruct.smooth import SmoothOptions
@@ -37,6 +38,8 @@ def add_parser(sub) -> None:
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
     p.add_argument("--noise-px", type=float, help="pixel noise SD for the uncertainties "
                    "(default: estimated from the residuals)")
+    p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; each residual is weighted by "
+                   "the pixel noise plus it (default: the model file's tolerance, else exact)")
     p.add_argument("--no-smooth", action="store_true", help="per-frame fit only, no smoothing or gap filling")
     p.add_argument("--max-gap", type=float, default=2.0, metavar="S",
                    help="longest gap the smoother fills, seconds (default 2)")
@@ -48,7 +51,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     try:
         fit_options = FitOptions(loss=args.loss, scale_px=args.loss_scale, noise_px=args.noise_px,
-                                 base_motion=args.base_motion)
+                                 base_motion=args.base_motion, tolerance=args.tolerance)
         smooth_options = None if args.no_smooth else SmoothOptions(
             process_noise=args.process_noise, max_gap_s=args.max_gap
         )

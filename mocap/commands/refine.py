@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from mocap.cli import COMMANDS
+from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.reconstruct.refine import RefineOptions
 from mocap.reconstruct.stage import run_refine
@@ -30,8 +31,8 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, help="refined calibration TOML to write")
     p.add_argument("--markers", action="store_true", help="also refine the marker positions")
     p.add_argument("--out-machine", help="refined machine model TOML to write (with --markers)")
-    p.add_argument("--tolerance", type=float, default=0.05,
-                   help="relative tolerance of the marker positions (default 0.05 = 5 %%)")
+    p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; the markers are then refined "
+                   "within it (default: the model file's tolerance; 5%% with --markers)")
     p.add_argument("--frames", type=int, default=120, help="frames used, at most (default 120)")
     p.add_argument("--fixed-focal", action="store_true", help="keep the focal lengths")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")

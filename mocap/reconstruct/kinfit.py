@@ -28,7 +28,7 @@ from scipy.special import chdtri
 
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.machine import Machine, Tolerance
 from mocap.progress import progress
 from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices
 
@@ -50,7 +50,9 @@ class FitOptions:
     solved together (memory); repair_passes: restarts from neighbours' solutions;
     key_stride: without a start, every key_stride-th frame is fitted from the grid and the
     frames between start from the interpolated key solutions (a frame that then ends badly
-    is fitted again from the grid).
+    is fitted again from the grid); tolerance: how far the model's markers may be off (None:
+    the model's own statement): residuals are weighted by the noise plus that tolerance
+    projected into each camera (the pixel noise taken as noise_px, or 0.5 px, for that).
     """
 
     iterations: int = 12
@@ -62,6 +64,7 @@ class FitOptions:
     chunk: int = 2048
     repair_passes: int = 3
     key_stride: int = 8
+    tolerance: Tolerance | None = None
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -82,7 +85,8 @@ class JointFit:
     translation, or None without base motion; covariance (F, P, P) of the parameters from
     the pixel noise; information (F, P, P) its inverse without regularisation (singular
     where a joint is unobserved); residuals (C, F, M, 2) observed minus predicted px, NaN
-    where not observed; weights (C, F, M) final robust weights; rms_px (F,) RMS residual
+    where not observed (divided by the tolerance's weight, if any); weights (C, F, M) final
+    robust weights; rms_px (F,) RMS residual
     of the inlier-weighted observations; n_observations (F,) 2-D observations used; noise_px
     the pixel SD behind the covariance (given, or estimated robustly from the residuals);
     valid (F,) frames with enough observations; explained (F,) False for a valid frame
@@ -203,7 +207,10 @@ class _Problem(KinematicModel):
     """The model, cameras and options of one fit, and the batched solver."""
 
     def __init__(self, machine: Machine, cameras: tuple[Camera, ...], options: FitOptions):
-        super().__init__(machine, cameras, options.base_motion, options.loss, options.scale_px)
+        tolerance = machine.tolerance if options.tolerance is None else options.tolerance
+        marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
+        super().__init__(machine, cameras, options.base_motion, options.loss, options.scale_px,
+                         marker_sd, options.noise_px or 0.5)
         self.options = options
 
     def solve_all(self, pixels: np.ndarray, start: np.ndarray | None, start_base: np.ndarray | None) -> FrameState:

@@ -67,10 +67,17 @@ class KinematicModel:
     parameters, robust weights, and parameter steps that respect the joint limits."""
 
     def __init__(self, machine: Machine, cameras: tuple[Camera, ...], base_motion: bool = False,
-                 loss: str = "huber", scale_px: float = 2.0):
+                 loss: str = "huber", scale_px: float = 2.0, marker_sd: np.ndarray | None = None,
+                 noise_px: float = 0.5):
+        """`marker_sd` (M,) m: each marker's position uncertainty (the model's tolerance);
+        each residual is then divided by sqrt(1 + (t / noise_px)²), t the SD (px) of that
+        uncertainty projected into the camera (focal / depth), so that the residuals stay
+        in pixels at the noise level and far or uncertain markers weigh less."""
         self.machine = machine
         self.cameras = cameras
         self.loss, self.scale_px = loss, scale_px
+        self.marker_sd = None if marker_sd is None else np.asarray(marker_sd, dtype=float)
+        self.noise_px = noise_px
         limits = machine.joint_limits.astype(float)
         self.wrap = machine.wraps
         self.lower, self.upper = limits[:, 0], limits[:, 1]
@@ -130,8 +137,12 @@ class KinematicModel:
             points_cam = markers @ rot.T + camera.cam_from_world.translation
             uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, with_jacobian=True)
             seen = np.isfinite(pixels[:, c, :, 0]) & np.isfinite(uv[..., 0])
-            residual[:, c] = np.where(seen[..., None], pixels[:, c] - uv, 0.0)
-            d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * seen[..., None, None]
+            weight = seen.astype(float)  # (F, M)
+            if self.marker_sd is not None:
+                model_px = self.marker_sd * camera.focal / np.abs(points_cam[..., 2])
+                weight = weight / np.sqrt(1.0 + (model_px / self.noise_px) ** 2)
+            residual[:, c] = np.where(seen[..., None], (pixels[:, c] - uv) * weight[..., None], 0.0)
+            d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * weight[..., None, None]
             np.matmul(d_uv_world, d_world, out=jac[:, c])
         return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
 

@@ -6,7 +6,7 @@ errors that one frame cannot reveal; many frames of a moving machine can. The pr
 solved with scipy.optimize.least_squares (trust region, robust loss with its scale in
 pixels) and an analytic sparse Jacobian: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
-``tolerance × max(|position|, 0.5 m)`` per coordinate, expressed in pixel units through
+``Tolerance.sd`` per coordinate (mocap.machine), expressed in pixel units through
 the pixel noise. The priors also fix the gauge: a rigid motion of the base's markers
 together with the cameras, or a turn of a link's markers about its joint together with
 that joint's values, leaves the pixels unchanged and is resolved towards the measured
@@ -30,31 +30,34 @@ from scipy.sparse import coo_matrix
 from mocap.camera import Camera, project_cam
 from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import Rigid, cross, rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.machine import Machine, Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 
 log = logging.getLogger(__name__)
 
+DEFAULT_TOLERANCE = Tolerance(0.05)  # the paper's tape measurement, when nothing is stated
+
 
 @dataclass(frozen=True)
 class RefineOptions:
     """frames: at most this many frames (the best-observed, spread over the session);
-    markers: also refine the marker positions; tolerance: their relative measurement
-    tolerance; fit_focal: refine each camera's focal length; scale_px: robust loss scale;
+    markers: also refine the marker positions (always, when the tolerance is stated here or
+    in the model); tolerance: how far they may be off (default: the model's, else 5 %);
+    fit_focal: refine each camera's focal length; scale_px: robust loss scale;
     max_evaluations: residual evaluations allowed to the solver."""
 
     frames: int = 120
     markers: bool = False
-    tolerance: float = 0.05
+    tolerance: Tolerance | None = None
     fit_focal: bool = True
     scale_px: float = 2.0
     max_evaluations: int = 100
     max_median_px: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.frames < 2 or not self.tolerance > 0 or not self.scale_px > 0 or self.max_evaluations < 1:
-            raise ValueError("frames >= 2, tolerance > 0, scale_px > 0 and max_evaluations >= 1 are required")
+        if self.frames < 2 or not self.scale_px > 0 or self.max_evaluations < 1:
+            raise ValueError("frames >= 2, scale_px > 0 and max_evaluations >= 1 are required")
         if not self.max_median_px > 0:
             raise ValueError("max_median_px must be positive")
 
@@ -88,7 +91,9 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
             "or refine with the calibration as it is"
         )
     obs = pixels[:, frames]
-    fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px))
+    stated = options.tolerance or machine.tolerance
+    options = replace(options, markers=options.markers or bool(stated), tolerance=stated or DEFAULT_TOLERANCE)
+    fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px, tolerance=stated))
     problem = _Bundle(machine, tuple(cameras), obs, options, fit.noise_px)
     x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), np.nan_to_num(fit.joints).ravel(), np.zeros(3 * n_markers * options.markers)]
     before = problem.pixel_rms(x0)
@@ -131,7 +136,7 @@ class _Bundle:
         self.machine, self.cameras, self.pixels, self.options = machine, cameras, pixels, options
         self.seen = np.isfinite(pixels[..., 0])  # (C, K, M)
         self.n_camera_params = 7 if options.fit_focal else 6
-        self.prior_sd = options.tolerance * np.maximum(np.linalg.norm(machine.marker_positions, axis=1), 0.5)
+        self.prior_sd = (options.tolerance or machine.tolerance or DEFAULT_TOLERANCE).sd(machine.marker_positions)
         self.noise_px = noise_px
 
     def unpack(self, x: np.ndarray):

@@ -50,14 +50,30 @@ def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.nd
 
 
 def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, seen: np.ndarray,
-                 noise_px: float) -> np.ndarray:
+                 noise_px: float, marker_sd: np.ndarray | None = None) -> np.ndarray:
     """(F, P) bound on each named point's error (m, root of the trace) of a per-frame fit
-    of the joint values at the true joints (F, J) from the observations `seen` (C, F, M)."""
-    model = KinematicModel(machine, tuple(cameras))
+    of the joint values at the true joints (F, J) from the observations `seen` (C, F, M);
+    with marker_sd (M, 3) the model's marker coordinates are uncertain too (marginalised
+    frame by frame, as in `calibration_centre_sd`)."""
+    state = FrameState(joints, None, None, np.zeros(len(joints)))
     truth = np.stack([c.project(machine.markers(joints)) for c in cameras], 1)  # (F, C, M, 2)
     pixels = np.where(np.moveaxis(seen, 0, 1)[..., None], truth, np.nan)
-    _, jac = model.evaluate(pixels, FrameState(joints, None, None, np.zeros(len(joints))))
-    information = np.swapaxes(jac, 1, 2) @ jac / noise_px**2
+    _, jac = KinematicModel(machine, tuple(cameras)).evaluate(pixels, state)  # d predicted / d joints
+    jac = jac / noise_px
+    information = np.swapaxes(jac, 1, 2) @ jac
+    if marker_sd is not None:
+        step = 1e-6
+        columns = []
+        for i in range(machine.marker_positions.size):
+            positions = machine.marker_positions.copy()
+            positions.flat[i] += step
+            moved, _ = KinematicModel(replace(machine, marker_positions=positions), tuple(cameras)).evaluate(pixels, state)
+            columns.append(-moved / step / noise_px)  # residual = observed - predicted, 0 at the truth
+        d_marker = np.stack(columns, -1)  # (F, N, 3M): d predicted / d marker coordinates
+        sd = np.maximum(np.asarray(marker_sd, dtype=float).reshape(-1), 1e-6)
+        cross_term = np.swapaxes(jac, 1, 2) @ d_marker
+        markers_information = np.swapaxes(d_marker, 1, 2) @ d_marker + np.diag(1.0 / sd**2)
+        information = information - cross_term @ np.linalg.solve(markers_information, np.swapaxes(cross_term, 1, 2))
     covariance = np.linalg.pinv(information)
     return point_quantities(machine, joints, covariance).points_sd
 
@@ -105,3 +121,4 @@ def _numeric_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray
         dx[i] = step * max(1.0, abs(x[i]))
         out[:, i] = (function(x + dx) - function(x - dx)) / (2 * dx[i])
     return out
+
