@@ -90,3 +90,31 @@ def save_cycles(rows: list[tuple], path: str | Path) -> None:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(COLUMNS)
         writer.writerows(rows)
+
+
+def save_cycle_table(table: dict, path: str | Path) -> None:
+    """Write the analysis' cycles CSV: one column per entry of `table` {name: (K,)}, in its
+    order; integers as integers, other numbers with 4 decimals, NaN as an empty field."""
+    names = list(table)
+    columns = []
+    for name in names:
+        values = np.asarray(table[name])
+        if values.dtype.kind in "iub":
+            columns.append([str(int(v)) for v in values])
+        elif values.dtype.kind == "f":
+            columns.append(["" if not np.isfinite(v) else f"{v:.4f}" for v in values])
+        else:
+            columns.append([str(v) for v in values])
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(names)
+        writer.writerows(zip(*columns))
+
+
+def load_cycle_table(path: str | Path) -> dict[str, np.ndarray]:
+    """Every column of a cycles CSV as text (K,) arrays, checked like `load_cycles`."""
+    load_cycles(path)
+    rows = list(csv.reader(io.StringIO(read_text(Path(path), "check the cycles path"))))
+    header = [h.strip() for h in rows[0]]
+    body = [r for r in rows[1:] if r and any(v.strip() for v in r)]
+    return {h: np.array([r[i].strip() for r in body], dtype=object) for i, h in enumerate(header)}
