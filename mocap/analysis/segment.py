@@ -33,15 +33,16 @@ class SegmentOptions:
     """Thresholds of the segmentation (degrees, seconds, shares)."""
 
     swing_rate_deg_s: float = 6.0
+    onset_deg_s: float = 1.5
     min_swing_deg: float = 30.0
     merge_s: float = 0.5
     prominence: float = 0.05
     horizon_s: float = 1.5
-    pause_s: float = 1.0
+    pause_s: float = 2.0
     min_dig_s: float = 1.5
 
     def __post_init__(self) -> None:
-        for name in ("swing_rate_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s"):
+        for name in ("swing_rate_deg_s", "onset_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SegmentOptions.{name} must be positive, got {getattr(self, name)}")
 
@@ -71,7 +72,8 @@ class Segments:
 
 def find_swings(series: TipSeries, options: SegmentOptions) -> np.ndarray:
     """Swings (S, 2) as [start, end] indices: runs of swing rate above the threshold,
-    merged across short stops, turning the house by more than `min_swing_deg`."""
+    merged across short stops, turning the house by more than `min_swing_deg`, widened to
+    where the rate falls below `onset_deg_s`."""
     moving = np.abs(series.swing_rate) > np.radians(options.swing_rate_deg_s)
     edges = np.diff(np.concatenate([[0], moving.astype(np.int8), [0]]))
     runs = np.stack([np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1], axis=-1)
@@ -86,6 +88,12 @@ def find_swings(series: TipSeries, options: SegmentOptions) -> np.ndarray:
         else:
             merged.append(np.array([a, b]))
     swings = np.array(merged)
+    onset = np.abs(series.swing_rate) > np.radians(options.onset_deg_s)
+    for row in swings:  # widen to where the house starts and stops turning
+        while row[0] > 0 and onset[row[0] - 1]:
+            row[0] -= 1
+        while row[1] < len(onset) - 1 and onset[row[1] + 1]:
+            row[1] += 1
     turn = np.abs(series.azimuth[swings[:, 1]] - series.azimuth[swings[:, 0]])
     return swings[turn > np.radians(options.min_swing_deg)]
 
@@ -99,7 +107,7 @@ def _dwells(swings: np.ndarray, n: int) -> np.ndarray:
 
 def _rest_edge(speed: np.ndarray, k: int, low: float, forward: bool, pause: int) -> int:
     """From a speed minimum at `k`, the bucket's rest around it (speed below `low`): its
-    end (forward) or start when it lasts longer than `pause` frames, else its middle."""
+    end (forward) or start when it lasts longer than `pause` frames, else `k`."""
     rest = speed < max(low, speed[k] + 0.5 * low)
     lo, hi = k, k
     while lo > 0 and rest[lo - 1]:
@@ -107,7 +115,7 @@ def _rest_edge(speed: np.ndarray, k: int, low: float, forward: bool, pause: int)
     while hi < len(speed) - 1 and rest[hi + 1]:
         hi += 1
     if hi - lo + 1 < pause:
-        return (lo + hi) // 2
+        return k
     return hi if forward else lo
 
 

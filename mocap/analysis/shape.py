@@ -93,6 +93,21 @@ def fit_scales(path: np.ndarray, template: np.ndarray) -> np.ndarray:
     return num / np.maximum((template**2).sum(axis=0), 1e-12)
 
 
+def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Digs' paths (K, N, 2) resampled at even arc length of the paths divided by their
+    scales (K, 2), so that a stretched dig's points meet the template's at the same place."""
+    out = np.empty_like(xy)
+    n = xy.shape[1]
+    even = np.linspace(0.0, 1.0, n)
+    for k in range(len(xy)):
+        q = xy[k] / scale[k]
+        u = _arc(q[:, 0], q[:, 1])
+        u, keep = np.unique(u, return_index=True)
+        for d in range(2):
+            out[k, :, d] = np.interp(even, u, xy[k, keep, d])
+    return out
+
+
 def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray,
                     iterations: int = 4) -> tuple[dict[str, Template], np.ndarray]:
     """Per-label templates and every dig's scale (K, 2) against its label's template.
@@ -105,10 +120,12 @@ def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray,
         pick = labels == label
         xy = paths.path[pick, :, :2]
         template = np.median(xy, axis=0)
+        sc = np.ones((len(xy), 2))
         for _ in range(iterations):
-            sc = np.clip(fit_scales(xy, template), 0.05, 20.0)
+            even = _descaled(xy, sc)
+            sc = np.clip(fit_scales(even, template), 0.05, 20.0)
             sc /= np.exp(np.log(sc).mean(axis=0))
-            template = np.median(xy / sc[:, None, :], axis=0)
+            template = np.median(_descaled(xy, sc) / sc[:, None, :], axis=0)
         scales[pick] = sc
         angle = np.median(paths.path[pick, :, 2], axis=0)
         templates[label] = Template(label, int(pick.sum()), paths.s, np.column_stack([template, angle]),
@@ -143,9 +160,11 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: np.ndarray,
-               templates: dict[str, Template], scales: np.ndarray, min_angle_deg: float = 5.0,
-               cutoff_hz: float = 0.6) -> Deviations:
-    """Reactive RMS and operator redirections of every dig [start, end] (indices)."""
+               templates: dict[str, Template], scales: np.ndarray, min_angle_deg: float = 4.5,
+               max_unexplained: float = 0.36, cutoff_hz: float = 0.6) -> Deviations:
+    """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
+    of at least `min_angle_deg` that leaves at most `max_unexplained` of the template's
+    squared residual is a redirection."""
     k = len(starts)
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
@@ -167,7 +186,7 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: 
         shapes, kept, centre, width = _events(tau)
         sse, amp, sse0 = _fit_event(series.angle[a:b + 1], base_a, shapes)
         g = int(np.argmin(sse))
-        if abs(np.degrees(amp[g])) < min_angle_deg or sse[g] > 0.5 * sse0:
+        if abs(np.degrees(amp[g])) < min_angle_deg or sse[g] > max_unexplained * sse0:
             continue
         base_z = np.column_stack([np.ones_like(u), shape_z, u])
         _, amp_z, _ = _fit_event(series.height[a:b + 1], base_z, shapes[g:g + 1])
