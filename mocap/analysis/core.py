@@ -6,7 +6,7 @@ Shapes: K cycles, N arc-length samples.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -41,6 +41,16 @@ class Analysis:
 
     def __len__(self) -> int:
         return len(self.segments)
+
+    def take(self, keep: np.ndarray) -> Analysis:
+        """The analysis of the cycles where `keep` (K,) is true (templates and relations stay
+        those of all cycles)."""
+        dev = Deviations(*(np.asarray(getattr(self.deviations, f.name))[keep] for f in fields(Deviations)))
+        grouping = Grouping(self.grouping.groups[keep], self.grouping.count, self.grouping.silhouette)
+        return replace(self, segments=self.segments.take(keep), table={k: v[keep] for k, v in self.table.items()},
+                       paths=DigPaths(self.paths.s, self.paths.path[keep]), deviations=dev,
+                       distance=self.distance[np.ix_(keep, keep)], grouping=grouping,
+                       correlation=correlations({k: v[keep] for k, v in self.table.items()}, RELATED))
 
 
 def analyze(series: TipSeries, rules: ClassRules = ClassRules(), options: SegmentOptions = SegmentOptions()) -> Analysis:

@@ -5,7 +5,7 @@ Class rules, for a front shovel's dig (the tip moves out and up, away from the m
 - **Type 1**: starts at the base of the pile, initial bucket angle significantly negative;
 - **Type 2**: starts at the base of the pile, initial bucket angle near zero;
 - **Type 3**: starts midway up the pile, initial bucket angle near zero;
-- **other**: no rule fits (a dig that pulls the bucket towards the machine, as a
+- **other**: no rule fits, or the dig is cut by the start or end of the data (a dig that pulls the bucket towards the machine, as a
   backhoe's does; a start high on the pile; a negative angle midway up).
 
 "Base of the pile" and "midway up" compare the dig's start height with the highest point
@@ -107,6 +107,8 @@ def cycle_parameters(series: TipSeries, seg: Segments, rules: ClassRules = Class
     rise = series.height[seg.dig_end] - series.height[seg.dig_start]
     for i in range(k):
         label, text = classify(ratio[i], start_angle[i], advance[i], rise[i], rules)
+        if seg.partial[i]:
+            label, text = OTHER, "dig cut by the start or end of the data"
         labels.append(label)
         rule_text.append(text)
     cols["class"] = np.array(labels, dtype=object)
@@ -136,8 +138,7 @@ def cycle_parameters(series: TipSeries, seg: Segments, rules: ClassRules = Class
     cols["class_rule"] = np.array(rule_text, dtype=object)
     gap = np.array([series.gap[s:e + 1].sum() + series.filled[s:e + 1].sum() for s, e in zip(seg.start, seg.end)])
     cols["gap_frames"] = gap
-    complete = (seg.truck_leave >= 0) & (np.arange(k) < k - 1)
-    complete &= ~((seg.dig_start < 1.0 * series.rate) & (series.speed[0] > 0.02 * np.percentile(series.speed, 95)))
+    complete = (seg.truck_leave >= 0) & (np.arange(k) < k - 1) & ~seg.partial
     cols["complete"] = complete.astype(int)
     cols["start_from_toe_m"] = cols["start_reach_m"] - toe_estimate(series, seg, ratio < rules.base_ratio)
     return cols

@@ -55,7 +55,7 @@ class AnalysisScore:
 
 
 def _numbers(values: np.ndarray) -> np.ndarray:
-    return np.array([float(v) if v not in ("", None) else np.nan for v in values])
+    return np.array([np.nan if isinstance(v, str) and not v.strip() else float(v) for v in values])
 
 
 def score_analysis(found: dict, truth: dict, tolerance_s: float = 3.0) -> AnalysisScore:
@@ -107,3 +107,23 @@ def format_analysis_score(score: AnalysisScore) -> str:
             f"dig start error median {r['start_med_s']:.2f} s (95th {r['start_p95_s']:.2f}), end {r['end_med_s']:.2f} s "
             f"(95th {r['end_p95_s']:.2f}); class accuracy {r['class_acc']:.0%}; redirections precision "
             f"{r['redir_precision']:.0%} recall {r['redir_recall']:.0%}; scale error median {r['scale_med']:.1%}")
+
+
+def planned_truth(machine, plan, fps: float = 30.0):
+    """The truth motion (Motion at `fps`, base bouncing included) and truth cycles table of
+    a planned synthetic session (`mocap.synthetic.motion.plan_session`), without cameras."""
+    from mocap.io.motion_csv import Motion
+
+    times = np.arange(0.0, plan.duration, 1.0 / fps)
+    joints = plan.joints(times)
+    world_from_base = plan.world_from_base(times)
+    motion = Motion(machine.joint_names, machine.point_names, np.arange(len(times)), times, joints,
+                    machine.points(joints, world_from_base), machine.bucket_angles(joints, world_from_base))
+    cycles = plan.cycles
+    truth = {
+        "class": np.array([c.label for c in cycles], dtype=object),
+        "redirection": np.array([c.redirection for c in cycles], dtype=object),
+        "scale_x": np.array([c.scale[0] for c in cycles]), "scale_z": np.array([c.scale[1] for c in cycles]),
+        "dig_start_time": np.array([c.dig_start for c in cycles]), "dig_end_time": np.array([c.dig_end for c in cycles]),
+    }
+    return motion, truth

@@ -53,8 +53,10 @@ class Segments:
     phase was not seen.
 
     start, end (K,) first and last index of each cycle; dig_start, dig_end (K,);
-    truck_arrive, truck_leave (K,) the dump dwell; swings (S, 2) start and end index of
-    every swing; face (S + 1,) whether each dwell is at the face.
+    truck_arrive, truck_leave (K,) the dump dwell; partial (K,) digs cut by the start or
+    end of the data (no return swing before a moving first frame, no swing after);
+    swings (S, 2) start and end index of every swing; face (S + 1,) whether each dwell is
+    at the face.
     """
 
     start: np.ndarray
@@ -63,11 +65,17 @@ class Segments:
     dig_end: np.ndarray
     truck_arrive: np.ndarray
     truck_leave: np.ndarray
+    partial: np.ndarray
     swings: np.ndarray
     face: np.ndarray
 
     def __len__(self) -> int:
         return len(self.start)
+
+    def take(self, keep: np.ndarray) -> Segments:
+        """The cycles where `keep` (K,) is true."""
+        return Segments(self.start[keep], self.end[keep], self.dig_start[keep], self.dig_end[keep],
+                        self.truck_arrive[keep], self.truck_leave[keep], self.partial[keep], self.swings, self.face)
 
 
 def find_swings(series: TipSeries, options: SegmentOptions) -> np.ndarray:
@@ -94,13 +102,16 @@ def find_swings(series: TipSeries, options: SegmentOptions) -> np.ndarray:
             row[0] -= 1
         while row[1] < len(onset) - 1 and onset[row[1] + 1]:
             row[1] += 1
+    keep = np.concatenate([[True], swings[1:, 0] > swings[:-1, 1] + 1])  # widened into each other: one swing
+    ends = np.maximum.reduceat(swings[:, 1], np.flatnonzero(keep))
+    swings = np.stack([swings[keep, 0], ends], axis=-1)
     turn = np.abs(series.azimuth[swings[:, 1]] - series.azimuth[swings[:, 0]])
     return swings[turn > np.radians(options.min_swing_deg)]
 
 
 def _dwells(swings: np.ndarray, n: int) -> np.ndarray:
     """Dwells (S + 1, 2) [start, end] indices between swings, the first from 0, the last to n - 1."""
-    starts = np.concatenate([[0], swings[:, 1] + 1])
+    starts = np.minimum(np.concatenate([[0], swings[:, 1] + 1]), n - 1)
     ends = np.concatenate([swings[:, 0] - 1, [n - 1]])
     return np.stack([starts, np.maximum(ends, starts)], axis=-1)
 
@@ -127,20 +138,20 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
     lead = int(round(1.0 * rate))
     candidates = minima[(minima >= a - lead) & (minima < b)]
     horizon = int(round(options.horizon_s * rate))
+    pause = int(round(options.pause_s * rate))
     start = None
     for k in candidates:
+        k = _rest_edge(series.speed, int(k), low, True, pause)
         e = min(k + horizon, b)
         if e <= k:
             continue
         dr = series.reach[e] - series.reach[k]
         dz = series.height[e] - series.height[k]
         if (dr > 0 or dz > 0) and dz > -0.3 * abs(dr):
-            start = int(k)
+            start = k
             break
     if start is None:
         return None
-    pause = int(round(options.pause_s * rate))
-    start = _rest_edge(series.speed, start, low, True, pause)
     ends = candidates[candidates > start + options.min_dig_s * rate]
     if len(ends):
         end = _rest_edge(series.speed, int(ends[-1]), low, False, pause)
@@ -161,7 +172,7 @@ def segment(series: TipSeries, options: SegmentOptions = SegmentOptions()) -> Se
     minima, _ = find_peaks(-series.speed, prominence=options.prominence * scale,
                            distance=max(1, int(0.3 * series.rate)))
     low = 0.02 * scale
-    digs, trucks = [], []
+    digs, trucks, partial = [], [], []
     for d, (a, b) in enumerate(dwells):
         if not face[d]:
             continue
@@ -169,14 +180,15 @@ def segment(series: TipSeries, options: SegmentOptions = SegmentOptions()) -> Se
         if found is None:
             continue
         digs.append(found)
+        partial.append((d == 0 and series.speed[0] > low) or d == len(dwells) - 1)
         truck = (-1, -1)
         if d + 1 < len(dwells) and not face[d + 1]:
             truck = (int(dwells[d + 1][0]), int(dwells[d + 1][1]) if d + 2 < len(dwells) else -1)
         trucks.append(truck)
     if not digs:
         empty = np.zeros(0, dtype=int)
-        return Segments(empty, empty, empty, empty, empty, empty, swings, face)
+        return Segments(empty, empty, empty, empty, empty, empty, empty.astype(bool), swings, face)
     dig = np.array(digs)
     truck = np.array(trucks).reshape(-1, 2)
     end = np.concatenate([dig[1:, 0] - 1, [n - 1]])
-    return Segments(dig[:, 0], end, dig[:, 0], dig[:, 1], truck[:, 0], truck[:, 1], swings, face)
+    return Segments(dig[:, 0], end, dig[:, 0], dig[:, 1], truck[:, 0], truck[:, 1], np.array(partial), swings, face)

@@ -9,10 +9,11 @@ stretch of the template onto it, normalised so that each class's scales have a g
 mean of 1 (the template's size is the class's typical size). Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
-- **operator redirection**: an angle change the template cannot explain, found by fitting
-  the bucket angle over time with the template plus one event — a pulse (temporary) or a
-  step (kept) — at every place and width of a grid and keeping the best; an event of at
-  least `min_angle_deg` is a redirection. Its kind says lift or lower (the same event in
+- **operator redirection**: an angle change the general shape cannot explain, found by
+  fitting the bucket angle with a cubic in arc length (the classes' angle profiles are
+  smooth in it) plus one event in time — a pulse (temporary) or a step (kept) — at every
+  place and width of a grid and keeping the best; an event of at least `min_angle_deg`
+  that leaves at most `max_unexplained` of the cubic's squared residual is a redirection. Its kind says lift or lower (the same event in
   the height), the angle change, temporary or kept, and reversal when the tip moved back.
 
 Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
@@ -161,7 +162,7 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: np.ndarray,
                templates: dict[str, Template], scales: np.ndarray, min_angle_deg: float = 4.5,
-               max_unexplained: float = 0.36, cutoff_hz: float = 0.6) -> Deviations:
+               max_unexplained: float = 0.4, cutoff_hz: float = 0.6) -> Deviations:
     """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
     of at least `min_angle_deg` that leaves at most `max_unexplained` of the template's
     squared residual is a redirection."""
@@ -180,9 +181,8 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: 
         template = templates[labels[i]]
         u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
         tau = np.linspace(0.0, 1.0, len(u))
-        shape_angle = np.interp(u, template.s, template.path[:, 2])
         shape_z = np.interp(u, template.s, template.path[:, 1])
-        base_a = np.column_stack([np.ones_like(u), shape_angle, u])
+        base_a = np.column_stack([np.ones_like(u), u, u**2, u**3])
         shapes, kept, centre, width = _events(tau)
         sse, amp, sse0 = _fit_event(series.angle[a:b + 1], base_a, shapes)
         g = int(np.argmin(sse))

@@ -75,7 +75,7 @@ def silhouette(d: np.ndarray, groups: np.ndarray) -> float:
     return float(s.mean())
 
 
-def group_digs(d: np.ndarray, max_groups: int = 8, min_silhouette: float = 0.25) -> Grouping:
+def group_digs(d: np.ndarray, max_groups: int = 8, min_silhouette: float = 0.5) -> Grouping:
     """Hierarchical grouping of digs under distances d (K, K)."""
     k = len(d)
     if k < 3:

@@ -50,21 +50,12 @@ def run_analyze(machine_path: str | Path, motion_path: str | Path, out: str | Pa
     if cycles_path is not None:
         given = load_cycles(cycles_path)
         check_cycles_within(Path(cycles_path), np.concatenate([given.start, given.end]), series.frame)
-        analysis = _within(analysis, given.start, given.end)
+        dig = analysis.table["dig_start_frame"]
+        analysis = analysis.take(((dig[:, None] >= given.start) & (dig[:, None] <= given.end)).any(axis=1))
     save_cycle_table(analysis.table, out / CYCLES)
     write_text(out / REPORT, render_report(analysis, f"Dig cycles of {machine.name}: {Path(motion_path).name}"))
     save_templates(templates_table(analysis, machine), out / TEMPLATES)
     return summary(analysis, out)
-
-
-def _within(analysis: Analysis, starts: np.ndarray, ends: np.ndarray) -> Analysis:
-    """The analysis restricted to digs that start inside one of the given cycles."""
-    dig = analysis.table["dig_start_frame"]
-    keep = ((dig[:, None] >= starts[None]) & (dig[:, None] <= ends[None])).any(axis=1)
-    table = {k: v[keep] for k, v in analysis.table.items()}
-    return Analysis(analysis.series, analysis.segments, table, analysis.paths, analysis.templates,
-                    analysis.deviations, analysis.distance[np.ix_(keep, keep)], analysis.grouping,
-                    analysis.relations, analysis.correlation) if keep.any() else analysis
 
 
 def summary(analysis: Analysis, out: Path) -> str:

@@ -51,9 +51,9 @@ def templates_table(analysis: Analysis, machine: Machine) -> dict:
             "dx": np.round(t.path[:, 0], 4).tolist(),
             "dz": np.round(t.path[:, 1], 4).tolist(),
             "angle_deg": np.round(np.degrees(t.path[:, 2]), 3).tolist(),
-            "scale_x": np.round([analysis.table["scale_x"][pick].min(), analysis.table["scale_x"][pick].max()], 4).tolist(),
-            "scale_z": np.round([analysis.table["scale_z"][pick].min(), analysis.table["scale_z"][pick].max()], 4).tolist(),
         }
+        for axis in ("scale_x", "scale_z") if pick.any() else ():
+            item[axis] = np.round([analysis.table[axis][pick].min(), analysis.table[axis][pick].max()], 4).tolist()
         rel = relations.get(label)
         if rel is not None and np.isfinite(rel.slope):
             item["relation"] = {"slope": round(rel.slope, 4), "intercept_deg": round(float(np.degrees(rel.intercept)), 3),
