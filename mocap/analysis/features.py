@@ -112,6 +112,8 @@ def cycle_parameters(series: TipSeries, seg: Segments, rules: ClassRules = Class
         labels.append(label)
         rule_text.append(text)
     cols["class"] = np.array(labels, dtype=object)
+    cols["dump_start_frame"] = np.where(seg.truck_arrive >= 0, series.frame[np.maximum(seg.truck_arrive, 0)], -1)
+    cols["swing_back_start_frame"] = np.where(seg.truck_leave >= 0, series.frame[np.maximum(seg.truck_leave, 0)], -1)
     arrive, leave = _at(t, seg.truck_arrive), _at(t, seg.truck_leave)
     dig_start_t, dig_end_t = t[seg.dig_start], t[seg.dig_end]
     next_dig = np.concatenate([dig_start_t[1:], [np.nan]])
