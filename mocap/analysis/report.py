@@ -35,7 +35,7 @@ def _png(fig) -> str:
 
 def _class_figures(a: Analysis) -> str:
     labels = list(a.templates)
-    fig, axes = plt.subplots(2, len(labels), figsize=(4.2 * len(labels), 7.5), squeeze=False)
+    fig, axes = plt.subplots(2, len(labels), figsize=(4.6 * len(labels), 8), squeeze=False, layout="constrained")
     t, series = a.table, a.series
     for col, label in enumerate(labels):
         idx = np.flatnonzero(t["class"] == label)[:OVERLAID]
@@ -55,7 +55,7 @@ def _class_figures(a: Analysis) -> str:
         tpl = a.templates[label]
         path_ax.plot(tpl.path[:, 0], tpl.path[:, 1], "k--", lw=2, label="template")
         angle_ax.plot(tpl.path[:, 0], np.degrees(tpl.path[:, 2]), "k--", lw=2)
-        path_ax.set(title=f"{label}: tip path from the dig start ({tpl.count} digs)",
+        path_ax.set(title=f"{label}: tip path ({tpl.count} digs)",
                     xlabel="horizontal displacement (m)", ylabel="vertical displacement (m)")
         path_ax.set_aspect("equal", adjustable="datalim")
         angle_ax.set(title=f"{label}: bucket angle", xlabel="horizontal displacement (m)",
@@ -63,7 +63,7 @@ def _class_figures(a: Analysis) -> str:
         path_ax.legend(fontsize=7)
         for ax in (path_ax, angle_ax):
             ax.grid(alpha=0.3)
-    fig.suptitle("Dig paths per class (x: operator redirection; dashed: template)")
+    fig.suptitle("Dig paths from the dig start, per class (x: operator redirection; dashed: template)")
     return _png(fig)
 
 

@@ -7,7 +7,7 @@ Definitions (the README states them too):
   is at the **face**; the dwell after a face dwell is at the **truck**.
 - The **dig** runs from the bucket's first cutting motion after the return swing has
   stopped at the face (the tip speed's minimum at the end of the lowering, after which the
-  tip moves forward or up, not down) to its lift-out as the swing toward the truck begins
+  tip moves forward or up, not down, by more than the base's bouncing) to its lift-out as the swing toward the truck begins
   (the last tip-speed minimum before that swing). When the bucket rests longer than
   `pause_s` at either end, the dig starts when it leaves the rest and ends when it comes to
   rest.
@@ -147,7 +147,8 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
             continue
         dr = series.reach[e] - series.reach[k]
         dz = series.height[e] - series.height[k]
-        if (dr > 0 or dz > 0) and dz > -0.3 * abs(dr):
+        moved = np.hypot(dr, dz) > 0.5 * low * options.horizon_s  # more than the base's bouncing
+        if moved and (dr > 0 or dz > 0) and dz > -0.3 * abs(dr):
             start = k
             break
     if start is None:

@@ -9,11 +9,12 @@ stretch of the template onto it, normalised so that each class's scales have a g
 mean of 1 (the template's size is the class's typical size). Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
-- **operator redirection**: an angle change the general shape cannot explain, found by
+- **operator redirection**: a sudden change the general shape cannot explain, found by
   fitting the bucket angle with a cubic in arc length (the classes' angle profiles are
-  smooth in it) plus one event in time — a pulse (temporary) or a step (kept) — at every
-  place and width of a grid and keeping the best; an event of at least `min_angle_deg`
-  that leaves at most `max_unexplained` of the cubic's squared residual is a redirection. Its kind says lift or lower (the same event in
+  smooth in it) and the tip's height with a quintic in time, each plus the same event in
+  time — a pulse (temporary) or a step (kept) — at every place and width of a grid, and
+  keeping the event that explains most of both together (an operator's correction lifts
+  or lowers the bucket and turns it). Its kind says lift or lower (the same event in
   the height), the angle change, temporary or kept, and reversal when the tip moved back.
 
 Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
@@ -160,12 +161,13 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
     return sse, coef[:, -1], float(((base @ base_coef - y) ** 2).sum())
 
 
-def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: np.ndarray,
-               templates: dict[str, Template], scales: np.ndarray, min_angle_deg: float = 4.5,
-               max_unexplained: float = 0.4, cutoff_hz: float = 0.6) -> Deviations:
+def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
+               scales: np.ndarray, min_angle_deg: float = 3.0,
+               max_unexplained: float = 1.15, cutoff_hz: float = 0.6) -> Deviations:
     """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
-    of at least `min_angle_deg` that leaves at most `max_unexplained` of the template's
-    squared residual is a redirection."""
+    that turns the bucket by at least `min_angle_deg` and leaves at most `max_unexplained`
+    of the smooth fits' squared residuals (the angle's and the height's shares added, of 2)
+    is a redirection."""
     k = len(starts)
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
@@ -178,21 +180,18 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray, labels: 
             low = [sosfiltfilt(sos, v, padlen=min(len(v) - 1, 3 * 6)) for v in (r, z, angle)]
             reactive_m[i] = np.sqrt(((r - low[0]) ** 2 + (z - low[1]) ** 2).mean())
             reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
-        template = templates[labels[i]]
         u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
         tau = np.linspace(0.0, 1.0, len(u))
-        shape_z = np.interp(u, template.s, template.path[:, 1])
-        base_a = np.column_stack([np.ones_like(u), u, u**2, u**3])
         shapes, kept, centre, width = _events(tau)
-        sse, amp, sse0 = _fit_event(series.angle[a:b + 1], base_a, shapes)
-        g = int(np.argmin(sse))
-        if abs(np.degrees(amp[g])) < min_angle_deg or sse[g] > max_unexplained * sse0:
+        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
+        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], np.vander(tau, 6, increasing=True), shapes)
+        unexplained = sse_a / max(sse0_a, 1e-12) + sse_z / max(sse0_z, 1e-12)
+        g = int(np.argmin(unexplained))
+        if unexplained[g] > max_unexplained or abs(np.degrees(amp[g])) < min_angle_deg:
             continue
-        base_z = np.column_stack([np.ones_like(u), shape_z, u])
-        _, amp_z, _ = _fit_event(series.height[a:b + 1], base_z, shapes[g:g + 1])
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
-        d_angle[i], lift[i] = amp[g], amp_z[0]
+        d_angle[i], lift[i] = amp[g], amp_z[g]
         length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
         words = []
         if abs(lift[i]) > 0.015 * length:

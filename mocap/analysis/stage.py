@@ -3,7 +3,6 @@ templates.toml -> a short summary."""
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +17,6 @@ from mocap.io.cycles_csv import load_cycles, save_cycle_table
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.templates_toml import save_templates
-
-log = logging.getLogger(__name__)
 
 CYCLES, REPORT, TEMPLATES = "cycles.csv", "report.html", "templates.toml"
 
