@@ -37,7 +37,7 @@ class SegmentOptions:
     min_swing_deg: float = 30.0
     merge_s: float = 0.5
     prominence: float = 0.05
-    horizon_s: float = 1.5
+    horizon_s: float = 3.0
     pause_s: float = 2.0
     min_dig_s: float = 1.5
 
@@ -147,7 +147,7 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
             continue
         dr = series.reach[e] - series.reach[k]
         dz = series.height[e] - series.height[k]
-        moved = np.hypot(dr, dz) > 0.5 * low * options.horizon_s  # more than the base's bouncing
+        moved = np.hypot(dr, dz) > 0.25 * low * options.horizon_s  # more than the base's bouncing
         if moved and (dr > 0 or dz > 0) and dz > -0.3 * abs(dr):
             start = k
             break

@@ -152,13 +152,15 @@ def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
 
 def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Least squares of y (T,) on base columns (T, B) plus each event (G, T): the SSE (G,)
-    and event amplitudes (G,), and the SSE with the base alone."""
-    design = np.concatenate([np.broadcast_to(base, (len(shapes), *base.shape)), shapes[:, :, None]], axis=2)
-    gram = np.einsum("gtb,gtc->gbc", design, design) + 1e-9 * np.eye(design.shape[2])
-    coef = np.linalg.solve(gram, np.einsum("gtb,t->gb", design, y)[..., None])[..., 0]
-    sse = ((np.einsum("gtb,gb->gt", design, coef) - y) ** 2).sum(axis=1)
-    base_coef = np.linalg.lstsq(base, y, rcond=None)[0]
-    return sse, coef[:, -1], float(((base @ base_coef - y) ** 2).sum())
+    and event amplitudes (G,), and the SSE with the base alone. The base is projected out
+    of y and of every event first (Frisch-Waugh), so each event is a one-column fit."""
+    q, _ = np.linalg.qr(base)
+    ry = y - q @ (q.T @ y)
+    rs = shapes - (shapes @ q) @ q.T
+    sy = rs @ ry
+    amp = sy / np.maximum(np.einsum("gt,gt->g", rs, rs), 1e-12)
+    sse0 = float(ry @ ry)
+    return sse0 - sy * amp, amp, sse0
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
