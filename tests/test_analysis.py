@@ -234,3 +234,18 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
         tip_series(replace(motion, points=points))
     with pytest.raises(InputError, match="time does not increase"):
         tip_series(replace(motion, time=motion.time[::-1].copy()))
+
+
+def test_a_machine_that_walks_between_cycles():
+    machine, motion, truth = truth_session("hitachi_ex3500", 8)
+    # after the third dig the machine tracks 4 m forward and 2 m left within 10 s
+    t0 = truth["dig_end_time"][2] + 6.0
+    ramp = np.clip((motion.time - t0) / 10.0, 0.0, 1.0)
+    shift = np.column_stack([4.0 * ramp, 2.0 * ramp, np.zeros_like(ramp)])
+    walked = replace(motion, points=motion.points + shift[:, None, :],
+                     extra={"base_x": shift[:, 0], "base_y": shift[:, 1]})
+    a = analyze(tip_series(walked))
+    score = score_analysis(a.table, truth)
+    assert score.missed == 0 and score.extra == 0 and score.class_correct == score.true
+    np.testing.assert_allclose(a.table["start_reach_m"], analysed("hitachi_ex3500", 8)[0].table["start_reach_m"],
+                               atol=0.2)
