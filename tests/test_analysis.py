@@ -249,3 +249,14 @@ def test_a_machine_that_walks_between_cycles():
     assert score.missed == 0 and score.extra == 0 and score.class_correct == score.true
     np.testing.assert_allclose(a.table["start_reach_m"], analysed("hitachi_ex3500", 8)[0].table["start_reach_m"],
                                atol=0.2)
+
+
+def test_a_machine_at_rest_has_no_cycle(tmp_path, capsys):
+    machine, motion, _ = truth_session("hitachi_ex3500", 3)
+    path = tmp_path / "idle.csv"
+    save_motion(_with(motion, np.arange(50)), machine, path)  # the hold at the start only
+    assert cli.main(["analyze", "hitachi_ex3500", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert "no dig cycle found" in capsys.readouterr().out
+    table = load_cycle_table(tmp_path / "out" / "cycles.csv")
+    assert list(table)[:6] == list(FIRST) and len(table["cycle"]) == 0
+    assert tomllib.loads((tmp_path / "out" / "templates.toml").read_text())["templates"] == []

@@ -72,6 +72,11 @@ def _at(values: np.ndarray, index: np.ndarray) -> np.ndarray:
     return out
 
 
+def _next(values: np.ndarray) -> np.ndarray:
+    """Each cycle's next value (K,), NaN for the last."""
+    return np.append(np.asarray(values, dtype=float)[1:], np.nan)[: len(values)]
+
+
 def cycle_parameters(series: TipSeries, seg: Segments, rules: ClassRules = ClassRules()) -> dict[str, np.ndarray]:
     """The per-cycle columns of cycles.csv (K rows each): frames, times, phase durations,
     swing angles, dig start position, length, depth, speeds, class features and class."""
@@ -116,18 +121,17 @@ def cycle_parameters(series: TipSeries, seg: Segments, rules: ClassRules = Class
     cols["swing_back_start_frame"] = np.where(seg.truck_leave >= 0, series.frame[np.maximum(seg.truck_leave, 0)], -1)
     arrive, leave = _at(t, seg.truck_arrive), _at(t, seg.truck_leave)
     dig_start_t, dig_end_t = t[seg.dig_start], t[seg.dig_end]
-    next_dig = np.concatenate([dig_start_t[1:], [np.nan]])
+    next_dig = _next(dig_start_t)
     cols |= {
         "start_time": t[seg.start], "end_time": t[seg.end],
         "dig_start_time": dig_start_t, "dig_end_time": dig_end_t,
-        "cycle_time_s": np.concatenate([np.diff(dig_start_t), [np.nan]]),
+        "cycle_time_s": next_dig - dig_start_t,
         "dig_s": dig_end_t - dig_start_t,
         "swing_loaded_s": arrive - dig_end_t,
         "dump_s": leave - arrive,
         "swing_back_s": next_dig - leave,
         "swing_out_deg": deg(np.abs(_at(series.azimuth, seg.truck_arrive) - series.azimuth[seg.dig_end])),
-        "swing_back_deg": deg(np.abs(np.concatenate([series.azimuth[seg.dig_start[1:]], [np.nan]])
-                                     - _at(series.azimuth, seg.truck_leave))),
+        "swing_back_deg": deg(np.abs(_next(series.azimuth[seg.dig_start]) - _at(series.azimuth, seg.truck_leave))),
         "start_height_m": start_height,
         "start_reach_m": series.reach[seg.dig_start],
         "start_height_ratio": ratio,

@@ -58,7 +58,7 @@ def run_analyze(machine_path: str | Path, motion_path: str | Path, out: str | Pa
 def summary(analysis: Analysis, out: Path) -> str:
     t = analysis.table
     if len(t["cycle"]) == 0:
-        return f"no dig cycle found; wrote {out / CYCLES}, {out / REPORT}"
+        return f"no dig cycle found; wrote {out / CYCLES}, {out / REPORT}, {out / TEMPLATES}"
     counts = ", ".join(f"{k} {int((t['class'] == k).sum())}" for k in dict.fromkeys(t["class"]))
     redirected = int((t["redirection"] != "none").sum())
     return (f"{len(t['cycle'])} cycles ({counts}), median cycle {np.nanmedian(t['cycle_time_s']) if len(t['cycle']) > 1 else float('nan'):.1f} s, "
