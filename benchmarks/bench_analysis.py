@@ -66,6 +66,16 @@ def dwell_peer(a, truth) -> tuple[float, float]:
     return float(np.median(e[:, 0])), float(np.median(e[:, 1]))
 
 
+def purity(a) -> float:
+    """The share of digs whose unsupervised group's most common class is their own."""
+    groups, labels = a.grouping.groups, a.table["class"]
+    hits = 0
+    for g in np.unique(groups):
+        _, counts = np.unique(labels[groups == g], return_counts=True)
+        hits += counts.max()
+    return hits / max(len(groups), 1)
+
+
 def noisy_tracks(source: Path, target: Path, rng: np.random.Generator) -> None:
     t = load_tracks(source)
     save_tracks(Tracks.from_rows(t.camera, t.frame, t.marker, t.xy + rng.normal(0, PIXEL_NOISE, t.xy.shape),
@@ -91,7 +101,8 @@ def accuracy(root: Path, quick: bool) -> None:
                          r["start_med_s"], r["start_p95_s"], r["end_med_s"], r["end_p95_s"], r["class_acc"],
                          r["redir_precision"], r["redir_recall"], r["redir_kind_acc"], r["scale_med"],
                          r["scale_within_5pct"], f"{peer[0]:.2f}/{peer[1]:.2f}",
-                         f"{peer[0] / max(r['start_med_s'], 1e-3):.1f}/{peer[1] / max(r['end_med_s'], 1e-3):.1f}"])
+                         f"{peer[0] / max(r['start_med_s'], 1e-3):.1f}/{peer[1] / max(r['end_med_s'], 1e-3):.1f}",
+                         a.grouping.count, purity(a)])
             if label == "truth":
                 motion = load_motion(path, machine)
                 order = np.arange(len(motion))[::-1]
@@ -102,7 +113,7 @@ def accuracy(root: Path, quick: bool) -> None:
     table("(1) accuracy against the truth (errors in s; scale error as a share, relative to each class's size)",
           ["machine", "seed", "motion", "true", "found", "missed", "extra", "start med", "start p95", "end med",
            "end p95", "class acc", "redir P", "redir R", "redir kind", "scale err med", "scale <=5%",
-           "peer start/end med", "peer / ours"], rows)
+           "peer start/end med", "peer / ours", "groups", "group purity"], rows)
     table("(2) the same digs played backwards (pulling towards the machine)",
           ["machine", "seed", "digs found", "share other"], backwards)
 
@@ -157,9 +168,10 @@ def two_hours(root: Path) -> None:
     r = score_analysis(a.table, truth).row()
     table("(3) a 2-hour session, CPU seconds of one thread (target <= 10 s)",
           ["frames", "true cycles", "found", "missed", "extra", "start med", "end med", "class acc", "redir P",
-           "redir R", "read CSV s", "analysis s", "mocap analyze s (read, analyse, report, templates)"],
+           "redir R", "groups", "group purity", "read CSV s", "analysis s",
+           "mocap analyze s (read, analyse, report, templates)"],
           [[n, r["true"], r["found"], r["missed"], r["extra"], r["start_med_s"], r["end_med_s"], r["class_acc"],
-            r["redir_precision"], r["redir_recall"], read, analysis, whole]])
+            r["redir_precision"], r["redir_recall"], a.grouping.count, purity(a), read, analysis, whole]])
 
 
 def main() -> int:

@@ -54,6 +54,9 @@ def test_every_cycle_found_with_its_dig_bounds_and_class(name, seed):
     assert list(a.table)[: len(FIRST)] == list(FIRST)
     assert np.all(a.table["start_frame"] == a.table["dig_start_frame"])
     assert np.all(a.table["end_frame"][:-1] == a.table["start_frame"][1:] - 1)
+    # the unsupervised grouping of the dig paths finds the three classes, no more
+    assert a.grouping.count == 3
+    assert all(len(set(a.table["class"][a.grouping.groups == g])) == 1 for g in range(1, 4))
 
 
 def test_redirections_and_scales_over_sessions():
