@@ -30,6 +30,7 @@ from scipy.signal import butter, sosfiltfilt
 from mocap.analysis.series import TipSeries
 
 N_SAMPLES = 64
+MIN_EVENT_FRAMES = 30
 
 
 @dataclass(frozen=True)
@@ -182,6 +183,8 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
             low = [sosfiltfilt(sos, v, padlen=min(len(v) - 1, 3 * 6)) for v in (r, z, angle)]
             reactive_m[i] = np.sqrt(((r - low[0]) ** 2 + (z - low[1]) ** 2).mean())
             reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
+        if b - a < MIN_EVENT_FRAMES:  # too short to tell an event from the smooth profile
+            continue
         u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
         tau = np.linspace(0.0, 1.0, len(u))
         shapes, kept, centre, width = _events(tau)
