@@ -67,13 +67,13 @@ def dwell_peer(a, truth) -> tuple[float, float]:
 
 
 def purity(a) -> float:
-    """The share of digs whose unsupervised group's most common class is their own."""
+    """The share of grouped digs (outliers left out) whose group's most common class is their own."""
     groups, labels = a.grouping.groups, a.table["class"]
     hits = 0
-    for g in np.unique(groups):
+    for g in np.unique(groups[groups > 0]):
         _, counts = np.unique(labels[groups == g], return_counts=True)
         hits += counts.max()
-    return hits / max(len(groups), 1)
+    return hits / max(int((groups > 0).sum()), 1)
 
 
 def noisy_tracks(source: Path, target: Path, rng: np.random.Generator) -> None:
@@ -102,7 +102,7 @@ def accuracy(root: Path, quick: bool) -> None:
                          r["redir_precision"], r["redir_recall"], r["redir_kind_acc"], r["scale_med"],
                          r["scale_within_5pct"], f"{peer[0]:.2f}/{peer[1]:.2f}",
                          f"{peer[0] / max(r['start_med_s'], 1e-3):.1f}/{peer[1] / max(r['end_med_s'], 1e-3):.1f}",
-                         a.grouping.count, purity(a)])
+                         a.grouping.count, int((a.grouping.groups == 0).sum()), purity(a)])
             if label == "truth":
                 motion = load_motion(path, machine)
                 order = np.arange(len(motion))[::-1]
@@ -113,7 +113,7 @@ def accuracy(root: Path, quick: bool) -> None:
     table("(1) accuracy against the truth (errors in s; scale error as a share, relative to each class's size)",
           ["machine", "seed", "motion", "true", "found", "missed", "extra", "start med", "start p95", "end med",
            "end p95", "class acc", "redir P", "redir R", "redir kind", "scale err med", "scale <=5%",
-           "peer start/end med", "peer / ours", "groups", "group purity"], rows)
+           "peer start/end med", "peer / ours", "groups", "outliers", "group purity"], rows)
     table("(2) the same digs played backwards (pulling towards the machine)",
           ["machine", "seed", "digs found", "share other"], backwards)
 
@@ -168,10 +168,11 @@ def two_hours(root: Path) -> None:
     r = score_analysis(a.table, truth).row()
     table("(3) a 2-hour session, CPU seconds of one thread (target <= 10 s)",
           ["frames", "true cycles", "found", "missed", "extra", "start med", "end med", "class acc", "redir P",
-           "redir R", "groups", "group purity", "read CSV s", "analysis s",
+           "redir R", "groups", "outliers", "group purity", "read CSV s", "analysis s",
            "mocap analyze s (read, analyse, report, templates)"],
           [[n, r["true"], r["found"], r["missed"], r["extra"], r["start_med_s"], r["end_med_s"], r["class_acc"],
-            r["redir_precision"], r["redir_recall"], a.grouping.count, purity(a), read, analysis, whole]])
+            r["redir_precision"], r["redir_recall"], a.grouping.count, int((a.grouping.groups == 0).sum()), purity(a),
+            read, analysis, whole]])
 
 
 def main() -> int:

@@ -119,6 +119,9 @@ def test_grouping_finds_separated_groups_and_none_in_one_blob():
     g = group_digs(d)
     assert g.count == 3
     assert all(len(np.unique(g.groups[k * 8:(k + 1) * 8])) == 1 for k in range(3))
+    with_outlier = np.concatenate([points, [[30.0, 30.0]]])
+    g = group_digs(np.linalg.norm(with_outlier[:, None] - with_outlier[None], axis=-1))
+    assert g.count == 3 and g.groups[-1] == 0 and np.all(g.groups[:-1] > 0)
     blob = rng.normal(0, 1, (20, 2))
     assert group_digs(np.linalg.norm(blob[:, None] - blob[None], axis=-1)).count == 1
 

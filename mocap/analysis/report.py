@@ -134,6 +134,7 @@ def render_report(a: Analysis, title: str) -> str:
         counts = {label: int((t["class"] == label).sum()) for label in dict.fromkeys(t["class"])}
         parts.append(f"<p>{len(a)} cycles; classes: " + ", ".join(f"{k} {v}" for k, v in counts.items()) + ". "
                      f"Unsupervised grouping of the dig paths: {a.grouping.count} group(s)"
+                     + (f" and {int((a.grouping.groups == 0).sum())} outlier dig(s)" if (a.grouping.groups == 0).any() else "")
                      + (f" (silhouette {a.grouping.silhouette:.2f})" if np.isfinite(a.grouping.silhouette) else "")
                      + (": more types than the three classes." if a.grouping.count > 3 else
                         ": no more types than the three classes.") + "</p>")
@@ -144,7 +145,7 @@ def render_report(a: Analysis, title: str) -> str:
         parts.append(_table(["cycle", "class", "start height m", "start angle deg", "dig s", "length m",
                              "scale x", "scale z", "redirection", "rule"], rows))
         parts.append("<h2>2. How similar consecutive cycles are</h2>" + _similarity_figure(a) + _time_figure(a))
-        groups = [[g, int((a.grouping.groups == g).sum()),
+        groups = [["outliers" if g == 0 else g, int((a.grouping.groups == g).sum()),
                    ", ".join(f"{k} {int(((a.grouping.groups == g) & (t['class'] == k)).sum())}" for k in a.templates)]
                   for g in np.unique(a.grouping.groups)]
         parts.append(_table(["group", "digs", "by class"], groups))

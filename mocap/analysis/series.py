@@ -5,8 +5,9 @@ the swing axis, ``height`` above the ground (the world frame's z = 0, the ground
 machine at the calibration frame), ``azimuth`` the swing direction of the tip (rad, from
 the world's x towards y, unwrapped). Where the base moves (``base_x``, ``base_y`` columns of
 the motion CSV) the swing axis moves with it. Frames with no value (NaN) are interpolated
-for the analysis and remembered in ``gap``; frames the reconstruction filled are in
-``filled``.
+for the analysis and remembered in ``gap``, as are glitches — frames whose bucket angle
+jumps more than `GLITCH_DEG` from its running median over 1.5 s (a fit that flipped the
+bucket for a few frames); frames the reconstruction filled are in ``filled``.
 
 Shapes: F frames.
 """
@@ -16,12 +17,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import median_filter
 from scipy.signal import savgol_filter
 
 from mocap.errors import InputError
 from mocap.io.motion_csv import Motion
 
 TIP = "bucket_tip"
+GLITCH_DEG = 20.0  # a bucket angle this far from its 1.5 s running median is a fitting glitch
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,16 @@ def _interpolate(time: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.interp(time, time[ok], values[ok])
 
 
+def _glitches(time: np.ndarray, angle: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """(F,) frames whose bucket angle leaves its running median (1.5 s) by more than
+    `GLITCH_DEG`; gaps are bridged first."""
+    if gap.all():
+        return np.zeros(len(time), bool)
+    rate = 1.0 / float(np.median(np.diff(time)))
+    bridged = _interpolate(time, np.where(gap, np.nan, angle))
+    return np.abs(bridged - median_filter(bridged, _window(rate, 1.5), mode="nearest")) > np.radians(GLITCH_DEG)
+
+
 def _window(rate: float, seconds: float) -> int:
     return max(5, int(round(seconds * rate)) // 2 * 2 + 1)
 
@@ -85,6 +98,8 @@ def tip_series(motion: Motion, smooth_s: float = 0.4) -> TipSeries:
         raise InputError(f"time does not increase at frame {int(motion.frame[k + 1])}; sort the motion by time")
     tip = motion.point(TIP)
     gap = ~(np.isfinite(tip).all(axis=1) & np.isfinite(motion.bucket_angle))
+    gap |= _glitches(time, motion.bucket_angle, gap)
+    tip = np.where(gap[:, None], np.nan, tip)
     if gap.mean() > 0.5:
         raise InputError(f"the bucket tip is missing in {gap.mean():.0%} of the frames; nothing to analyse")
     xy = tip[:, :2].copy()
@@ -94,7 +109,7 @@ def tip_series(motion: Motion, smooth_s: float = 0.4) -> TipSeries:
             xy[:, k] -= np.where(np.isfinite(base), base, 0.0)
     x, y = (_interpolate(time, xy[:, k]) for k in range(2))
     z = _interpolate(time, tip[:, 2])
-    angle = _interpolate(time, motion.bucket_angle)
+    angle = _interpolate(time, np.where(gap, np.nan, motion.bucket_angle))
     rate = 1.0 / float(np.median(np.diff(time)))
     w = min(_window(rate, smooth_s), len(time) // 2 * 2 - 1)
     sx, sy, sz, sa = (savgol_filter(v, w, 2) for v in (x, y, z, angle))

@@ -6,8 +6,9 @@
   weigh alike.
 - Grouping: average-linkage hierarchical clustering (scipy) of that distance; the number of
   groups is the one of best mean silhouette (2..8), one group when no split reaches a
-  silhouette of `min_silhouette`. More groups than the three classes hint at types beyond
-  the paper's.
+  silhouette of `min_silhouette`; a group too small to be a type is outliers (a dig unlike
+  any other, or a glitch of the reconstruction). More groups than the three classes hint at
+  types beyond the paper's.
 - Relations: per class, the bucket angle against the direction of the tip's path
   (a straight line, least squares, with its correlation); Pearson correlations of the
   per-cycle parameters.
@@ -27,8 +28,9 @@ from scipy.spatial.distance import squareform
 
 @dataclass(frozen=True)
 class Grouping:
-    """groups (K,) 1-based group of each dig; count of groups; silhouette (mean, of that
-    count; NaN for one group)."""
+    """groups (K,) 1-based group of each dig, 0 for an outlier (a dig in a group too small
+    to be a type); count of groups (outliers not counted); silhouette (mean, outliers 0;
+    NaN for one group)."""
 
     groups: np.ndarray
     count: int
@@ -76,20 +78,26 @@ def silhouette(d: np.ndarray, groups: np.ndarray) -> float:
 
 
 def group_digs(d: np.ndarray, max_groups: int = 8, min_silhouette: float = 0.5) -> Grouping:
-    """Hierarchical grouping of digs under distances d (K, K)."""
+    """Hierarchical grouping of digs under distances d (K, K); a group of fewer than
+    max(2, 3 % of the digs) is outliers (at most a tenth of the digs, or one), each with a
+    silhouette of 0."""
     k = len(d)
     if k < 3:
         return Grouping(np.ones(k, dtype=int), 1, float("nan"))
     tree = linkage(squareform(d, checks=False), method="average")
-    best = (np.ones(k, dtype=int), 1, float("nan"))
+    min_size = max(2, int(np.ceil(0.03 * k)))
+    best = Grouping(np.ones(k, dtype=int), 1, float("nan"))
     for count in range(2, min(max_groups, k - 1) + 1):
         groups = fcluster(tree, count, criterion="maxclust")
-        if len(np.unique(groups)) < count:
+        small = np.bincount(groups)[groups] < min_size
+        kept = np.unique(groups[~small])
+        if len(kept) < 2 or small.sum() > max(1, 0.1 * k):  # outliers are a few digs at most
             continue
-        score = silhouette(d, groups)
-        if score >= min_silhouette and (best[1] == 1 or score > best[2]):
-            best = (groups, count, score)
-    return Grouping(*best)
+        # an outlier counts as silhouette 0, as a group of one does: setting digs apart must pay
+        score = silhouette(d[np.ix_(~small, ~small)], groups[~small]) * float(np.mean(~small))
+        if score >= min_silhouette and (best.count == 1 or score > best.silhouette):
+            best = Grouping(np.where(small, 0, np.searchsorted(kept, groups) + 1), len(kept), score)
+    return best
 
 
 def direction_relation(label: str, path: np.ndarray) -> Relation:
