@@ -143,6 +143,9 @@ def test_gaps_noise_and_partial_cycles():
     gap = (motion.time > truth["dig_start_time"][2] + 2) & (motion.time < truth["dig_start_time"][2] + 3)
     points[gap] = np.nan
     angle[gap] = np.nan
+    # a fit that flipped the bucket for half a second in the middle of the fourth dig
+    flip = np.flatnonzero(motion.time > 0.5 * (truth["dig_start_time"][3] + truth["dig_end_time"][3]))[:15]
+    angle[flip] += np.radians(150.0)
     filled = np.zeros(len(motion))
     filled[(motion.time > truth["dig_end_time"][3]) & (motion.time < truth["dig_end_time"][3] + 1)] = 1
     # the data begin in the middle of the first dig and end in the middle of the last
@@ -157,7 +160,8 @@ def test_gaps_noise_and_partial_cycles():
     assert score.missed == 0 and score.extra == 0 and score.class_correct == score.true
     assert np.abs(score.start_errors).max() < 1.5 and np.abs(score.end_errors).max() < 1.5
     row = np.argmin(np.abs(a.table["dig_start_time"] - truth["dig_start_time"][2]))
-    assert a.table["gap_frames"][row] >= 25 and a.table["gap_frames"][row + 1] >= 25
+    assert a.table["gap_frames"][row] >= 25 and a.table["gap_frames"][row + 1] >= 25 + 15
+    assert a.table["redirection"][row + 1] == truth["redirection"][3] or truth["redirection"][3] != "none"
 
 
 def test_pause_before_the_dig_moves_its_start_to_the_end_of_the_pause():
