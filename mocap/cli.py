@@ -21,6 +21,7 @@ COMMANDS = {  # name: one line of help; each command's module is imported only w
     "sync": "estimate each camera's time offset from the machine's motion",
     "triangulate": "triangulate every marker in every frame seen by two or more cameras",
     "fit": "fit the machine model to all cameras' marker pixels in every frame",
+    "analyze": "dig cycles, phases, classes, similarity and templates from the motion",
     "refine": "refine cameras (and marker positions) over many frames",
     "run": "run the whole chain on a session folder",
     "demo": "make a synthetic session, run the whole chain and score it against the truth",

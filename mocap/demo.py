@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.analysis.score import format_analysis_score, score_files
 from mocap.errors import InputError
 from mocap.evaluate import format_score, score_session
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
@@ -66,7 +67,8 @@ def run_demo(options: DemoOptions) -> int:
         return code
     print("== how close it came to the ground truth")
     print(format_score(score_session(out), session.machine()))
+    print(format_analysis_score(score_files(session.results_dir / "cycles.csv", session.truth_dir / "cycles.csv")))
     print(f"\nresults in {out}/: calibration/cameras.toml, tracks/, results/points.csv, "
-          f"results/motion.csv, results/session.rrd (open with: rerun {session.recording_path})")
+          f"results/motion.csv, results/cycles.csv, results/report.html, results/session.rrd (open with: rerun {session.recording_path})")
     print(f"demo took {time.perf_counter() - start:.0f} s")
     return 0

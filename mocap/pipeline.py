@@ -1,7 +1,7 @@
 """The whole chain on a session folder, stage after stage, as the README's commands run it:
 
     calibrate (from the calibration frame's digitised labels) -> track every camera ->
-    sync -> refine (optional) -> triangulate -> fit -> view
+    sync -> refine (optional) -> triangulate -> fit -> analyze -> view
 
 Each stage is the same sub-command a user would type, so `mocap run` and a hand-run session
 give the same files.
@@ -86,6 +86,9 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
     if len(cameras) > 1:
         commands.append(("triangulate", ["triangulate", final, *tracks, "--out", str(session.points_path)]))
     commands.append(("fit", ["fit", machine, final, *tracks, "--out", str(session.motion_path)]))
+    model = session.machine()
+    if model.bucket_angle is not None and "bucket_tip" in model.point_names:  # a digging machine
+        commands.append(("analyze", ["analyze", machine, str(session.motion_path), "--out", str(session.results_dir)]))
     if options.view:
         commands.append(("view", ["view", str(session.root), "--calibration", final]))
     return commands

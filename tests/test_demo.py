@@ -13,8 +13,10 @@ def test_demo_chain_reaches_the_truth(tmp_path, capsys):
     assert main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "how close it came to the ground truth" in printed and "bucket tip RMSE" in printed
+    assert "dig cycles: 1 found of 1 (0 missed, 0 extra)" in printed
     for name in ("calibration/cameras.toml", "calibration/refined.toml", "results/points.csv",
-                 "results/motion.csv", "results/session.rrd"):
+                 "results/motion.csv", "results/cycles.csv", "results/report.html", "results/templates.toml",
+                 "results/session.rrd"):
         assert (out / name).stat().st_size > 0
     score = score_session(out)
     calibration = load_calibration(out / "calibration" / "cameras.toml")

@@ -15,7 +15,7 @@ from mocap.io.session_toml import load_session_config
 from mocap.io.tracks_csv import load_tracks
 from mocap.simulate import random_joints
 from mocap.synthetic import SessionOptions, make_session
-from mocap.synthetic.ik import PlanarChain
+from mocap.ik import PlanarChain
 from mocap.synthetic.motion import check_limits, plan_session
 from mocap.visibility import marker_normals, segment_hits_box
 from mocap.shapes import link_boxes

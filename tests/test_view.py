@@ -174,8 +174,8 @@ def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, reco
             overrides[chunk.entity_path.split("/overrides")[1]] = batch.column("VisibleTimeRanges:ranges").to_pylist()[-1]
     assert sorted(origins) == sorted(
         ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots/joints",
-         "plots/bucket", "plots/speed", "plots/uncertainty", "plots/extra"]
-    )
+         "plots/bucket", "plots/speed", "plots/uncertainty", "plots/uncertainty_m", "plots/extra_filled"]
+    )  # one unit per plot: angles and lengths apart, each other column alone
     assert set(overrides) == {"/world/trail/1/visualizers", "/world/trail/2/visualizers"}
     ranges = {r["timeline"]: r["range"] for r in overrides["/world/trail/2/visualizers"]}
     assert set(ranges) == {"frame", "time"}
@@ -307,11 +307,11 @@ def test_plots_carry_the_motion_columns(world, recorded):
     np.testing.assert_allclose(np.array(angle)[:, 0], np.degrees(motion.bucket_angle), atol=1e-9)
     _, speed = rec.series("/plots/speed/bucket_tip", "Scalars:scalars")
     np.testing.assert_allclose(np.array(speed)[:, 0], scene.tip_speed(motion, "bucket_tip"))
-    _, sd = rec.series("/plots/uncertainty/bucket_tip_sd", "Scalars:scalars")
+    _, sd = rec.series("/plots/uncertainty_m/bucket_tip_sd", "Scalars:scalars")
     np.testing.assert_allclose(np.array(sd)[:, 0], motion.points_sd[:, 0])
     _, sd = rec.series("/plots/uncertainty/boom_sd", "Scalars:scalars")
     np.testing.assert_allclose(np.array(sd)[:, 0], 0.2)
-    _, filled = rec.series("/plots/extra/filled", "Scalars:scalars")
+    _, filled = rec.series("/plots/extra_filled/filled", "Scalars:scalars")
     np.testing.assert_array_equal(np.array(filled)[:, 0], motion.extra["filled"])
 
 
@@ -546,3 +546,34 @@ def test_cli_replays_a_synthetic_session(tmp_path, capsys):
     base_z = motion.extra["base_z"]
     assert np.ptp(base_z) > 0.001  # the base bounces ...
     np.testing.assert_allclose(np.array(translation)[:, 0, 2], base_z, atol=1e-6)  # ... and the replay follows
+
+
+def test_trails_coloured_by_class_phases_plotted_machine_framed_names_on_hover(world, tmp_path):
+    cycles = Cycles(("1", "2"), np.array([0, 45]), np.array([44, N_FRAMES - 1]), ("Type 1", "other"),
+                    np.array([[0, 20, 30, 38], [45, 60, -1, -1]]))
+    replay = Replay(world.machine, world.calibration, world.motion, world.fps, tracks=world.tracks, cycles=cycles)
+    run_replay(replay, Sinks(save=tmp_path / "classes.rrd"))
+    rec = Recording(tmp_path / "classes.rrd")
+    packed = {name: (r << 24) | (g << 16) | (b << 8) | 255 for name, (r, g, b) in
+              (("Type 1", (31, 119, 180)), ("other", (150, 150, 150)))}
+    assert rec.static("/world/trail/1", "LineStrips3D:colors") == [packed["Type 1"]]
+    assert rec.static("/world/trail/2", "LineStrips3D:colors") == [packed["other"]]
+    frames, rows = rec.series("/plots/phase", "Scalars:scalars")
+    expected = np.concatenate([np.full(20, 1), np.full(10, 2), np.full(8, 3), np.full(7, 4), np.full(15, 1),
+                               np.full(N_FRAMES - 60, 2)])
+    np.testing.assert_array_equal(frames, np.arange(N_FRAMES))
+    np.testing.assert_array_equal(np.array(rows).ravel(), expected)
+    assert rec.static("/world/cameras/cam1/tracks", "Points2D:show_labels") == [False]
+    assert rec.static("/world/markers/model", "Points3D:show_labels") == [False]
+    eye = {}
+    for chunk in rec.blueprint_chunks:
+        batch = chunk.to_record_batch()
+        for name in ("EyeControls3D:position", "EyeControls3D:look_target"):
+            if name in batch.schema.names:
+                eye[name] = np.array(batch.column(name).to_pylist()[-1]).ravel()
+    tip = world.motion.point("bucket_tip")
+    low, high = np.minimum(tip.min(axis=0), 0), np.maximum(tip.max(axis=0), 0)
+    assert np.all(eye["EyeControls3D:look_target"] >= low - 1e-6) and np.all(eye["EyeControls3D:look_target"] <= high + 1e-6)
+    distance = np.linalg.norm(eye["EyeControls3D:position"] - eye["EyeControls3D:look_target"])
+    assert distance < 2.0 * np.linalg.norm(high - low) + 1.0  # the machine's working range, not the cameras'
+    assert eye["EyeControls3D:position"][1] < eye["EyeControls3D:look_target"][1]  # from the side

@@ -1,9 +1,11 @@
 """The dig cycles CSV: one row per cycle.
 
 Readers need each cycle's first and last frame: columns ``start_frame,end_frame``
-(reference-camera frames, inclusive), and optionally ``cycle`` (its number or name). The
-synthetic truth writes all of `COLUMNS` (class, scaling, dig start and end, times); other
-columns are ignored when reading.
+(reference-camera frames, inclusive), and optionally ``cycle`` (its number or name),
+``class`` and the frames where the phases begin (`PHASE_COLUMNS`: dig, swing loaded, dump,
+swing back; empty or negative where not seen). The synthetic truth writes all of `COLUMNS`
+(class, scaling, dig start and end, times); `mocap analyze` writes its own table
+(`save_cycle_table`); other columns are ignored by `load_cycles`.
 """
 
 from __future__ import annotations
@@ -20,17 +22,22 @@ from mocap.io.atomic import atomic_path
 from mocap.io.text import read_text
 
 REQUIRED = ("start_frame", "end_frame")
+PHASE_COLUMNS = ("dig_start_frame", "dig_end_frame", "dump_start_frame", "swing_back_start_frame")
 COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
            "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
 
 
 @dataclass(frozen=True)
 class Cycles:
-    """K cycles: name (K,) str, start (K,) and end (K,) frames, inclusive."""
+    """K cycles: name (K,) str, start (K,) and end (K,) frames, inclusive; label (K,) the
+    dig class or "" (empty tuple when the file has none); phases (K, 4) the frames where
+    dig, swing loaded, dump and swing back begin, -1 where not known (None without)."""
 
     name: tuple[str, ...]
     start: np.ndarray
     end: np.ndarray
+    label: tuple[str, ...] = ()
+    phases: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         k = len(self.name)
@@ -38,6 +45,10 @@ class Cycles:
             raise ValueError(
                 f"Cycles needs start ({k},) and end ({k},), got {np.shape(self.start)}, {np.shape(self.end)}"
             )
+        if self.label and len(self.label) != k:
+            raise ValueError(f"Cycles needs label ({k},) or none, got {len(self.label)}")
+        if self.phases is not None and np.shape(self.phases) != (k, 4):
+            raise ValueError(f"Cycles needs phases ({k}, 4) or None, got {np.shape(self.phases)}")
 
     def __len__(self) -> int:
         return len(self.name)
@@ -64,7 +75,8 @@ def load_cycles(path: str | Path) -> Cycles:
             where="line 1",
         )
     col = {h: i for i, h in enumerate(header)}
-    names, starts, ends = [], [], []
+    names, starts, ends, labels, phases = [], [], [], [], []
+    phase_cols = [col.get(c) for c in PHASE_COLUMNS]
     for line, row in enumerate(reader, start=2):
         if not row or all(not v.strip() for v in row):
             continue
@@ -79,9 +91,17 @@ def load_cycles(path: str | Path) -> Cycles:
         if end < start:
             raise InputError(f"end_frame {end} is before start_frame {start}", path=path, where=f"line {line}")
         names.append(row[col["cycle"]].strip() if "cycle" in col else str(len(names) + 1))
+        labels.append(row[col["class"]].strip() if "class" in col else "")
+        try:
+            phases.append([int(float(row[c])) if c is not None and row[c].strip() else -1 for c in phase_cols])
+        except ValueError:
+            raise InputError(f"{', '.join(PHASE_COLUMNS)} must be frame numbers", path=path, where=f"line {line}") from None
         starts.append(start)
         ends.append(end)
-    return Cycles(tuple(names), np.array(starts, dtype=np.int64), np.array(ends, dtype=np.int64))
+    has_phases = any(c is not None for c in phase_cols)
+    return Cycles(tuple(names), np.array(starts, dtype=np.int64), np.array(ends, dtype=np.int64),
+                  tuple(labels) if "class" in col else (),
+                  np.array(phases, dtype=np.int64).reshape(-1, 4) if has_phases else None)
 
 
 def save_cycles(rows: list[tuple], path: str | Path) -> None:
@@ -90,3 +110,31 @@ def save_cycles(rows: list[tuple], path: str | Path) -> None:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(COLUMNS)
         writer.writerows(rows)
+
+
+def save_cycle_table(table: dict, path: str | Path) -> None:
+    """Write the analysis' cycles CSV: one column per entry of `table` {name: (K,)}, in its
+    order; integers as integers, other numbers with 4 decimals, NaN as an empty field."""
+    names = list(table)
+    columns = []
+    for name in names:
+        values = np.asarray(table[name])
+        if values.dtype.kind in "iub":
+            columns.append([str(int(v)) for v in values])
+        elif values.dtype.kind == "f":
+            columns.append(["" if not np.isfinite(v) else f"{v:.4f}" for v in values])
+        else:
+            columns.append([str(v) for v in values])
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(names)
+        writer.writerows(zip(*columns))
+
+
+def load_cycle_table(path: str | Path) -> dict[str, np.ndarray]:
+    """Every column of a cycles CSV as text (K,) arrays, checked like `load_cycles`."""
+    load_cycles(path)
+    rows = list(csv.reader(io.StringIO(read_text(Path(path), "check the cycles path"))))
+    header = [h.strip() for h in rows[0]]
+    body = [r for r in rows[1:] if r and any(v.strip() for v in r)]
+    return {h: np.array([r[i].strip() for r in body], dtype=object) for i, h in enumerate(header)}

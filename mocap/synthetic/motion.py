@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocap.geometry import rpy_to_matrix
+from mocap.ik import PlanarChain
 from mocap.machine import Machine
-from mocap.synthetic.ik import PlanarChain
 from mocap.synthetic.paths import CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk
 
 

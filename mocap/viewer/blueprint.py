@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import rerun.blueprint as rrb
 
 from mocap.viewer.record import camera_path, trail_path
@@ -29,14 +30,18 @@ def trail_time_ranges(trail: Trail) -> rrb.VisibleTimeRanges:
 
 
 def default_blueprint(
-    cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[str]
+    cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[tuple[str, str]],
+    eye: tuple[np.ndarray, np.ndarray] | None = None, phases: bool = False,
 ) -> rrb.Blueprint:
-    """`plot_groups` the groups under plots/ beyond joints, bucket angle and speed that have
-    series: "uncertainty", "base", "base_angles", "extra"."""
+    """`plot_groups` (group under plots/, title with its unit) beyond joints, bucket angle
+    and speed that have series; `eye` the 3-D view's position and look target (m), None for
+    Rerun's own framing; `phases` whether plots/phase has the dig-cycle phases."""
+    controls = None if eye is None else rrb.EyeControls3D(position=eye[0], look_target=eye[1], eye_up=[0, 0, 1])
     scene_3d = rrb.Spatial3DView(
         origin="world",
         name="machine",
         overrides={trail_path(t.name): trail_time_ranges(t) for t in trails},
+        eye_controls=controls,
     )
     images = [rrb.Spatial2DView(origin=camera_path(name), name=name) for name in cameras]
     plots = [
@@ -44,8 +49,8 @@ def default_blueprint(
         rrb.TimeSeriesView(origin="plots/bucket", name="bucket angle (deg)"),
         rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
     ]
-    names = {"uncertainty": "uncertainty (sd)", "base": "base position (m)", "base_angles": "base attitude (deg)",
-             "extra": "other columns"}
-    plots += [rrb.TimeSeriesView(origin=f"plots/{group}", name=names[group]) for group in plot_groups]
+    if phases:
+        plots.append(rrb.TimeSeriesView(origin="plots/phase", name="dig-cycle phase"))
+    plots += [rrb.TimeSeriesView(origin=f"plots/{group}", name=title) for group, title in plot_groups]
     left = rrb.Vertical(scene_3d, rrb.Horizontal(*images), row_shares=[3, 1]) if images else scene_3d
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]))

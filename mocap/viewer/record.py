@@ -7,11 +7,14 @@ Entity tree (it mirrors the frame tree; the world is the machine's base frame, z
     world/markers/model             the model's markers at the fitted joints, per frame
     world/markers/observed          triangulated markers, per frame
     world/<point>                   named points (bucket tip ...) per frame
-    world/trail/<cycle>             the bucket tip's path in one dig cycle, a segment a frame
+    world/trail/<cycle>             the bucket tip's path in one dig cycle, a segment a frame,
+                                    coloured by the dig's class
     world/cameras/<cam>             world_from_cam and the pinhole (static, OpenCV axes RDF)
     world/cameras/<cam>/video       the camera's H.264 video and the frame shown per frame
     world/cameras/<cam>/tracks      the camera's 2-D tracks
-    plots/<group>/<series>          joints, bucket (angle), speed, uncertainty, base, extra
+    plots/<group>/<series>          joints, bucket (angle), speed, uncertainty, base, one
+                                    group per other column: one unit per group
+    plots/phase                     the dig-cycle phase (1 dig, 2 swing loaded, 3 dump, 4 swing back)
 
 Timelines: ``frame`` (the reference camera's frame number) and ``time`` (seconds).
 """
@@ -42,6 +45,7 @@ TRAIL_COLORS = np.array(
     [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [23, 190, 207]],
     dtype=np.uint8,
 )
+CLASS_COLORS = {"Type 1": (31, 119, 180), "Type 2": (255, 127, 14), "Type 3": (44, 160, 44), "other": (150, 150, 150)}
 
 
 def entity(*parts: str) -> str:
@@ -118,7 +122,8 @@ def log_markers(
     path = "world/markers/model"
     rec.log(
         path,
-        rr.Points3D.from_fields(class_ids=np.arange(n_markers), colors=[MODEL_MARKER_COLOR], radii=[-4.0]),
+        rr.Points3D.from_fields(class_ids=np.arange(n_markers), colors=[MODEL_MARKER_COLOR], radii=[-4.0],
+                                show_labels=False),  # names on hover, not over the markers
         static=True,
     )
     if len(rows):
@@ -136,7 +141,7 @@ def log_markers(
     frames, xyz, marker = points.frame[keep][order], points.xyz[keep][order], marker[keep][order]
     groups, counts = np.unique(frames, return_counts=True)
     path = "world/markers/observed"
-    rec.log(path, rr.Points3D.from_fields(colors=[OBSERVED_MARKER_COLOR], radii=[-5.0]), static=True)
+    rec.log(path, rr.Points3D.from_fields(colors=[OBSERVED_MARKER_COLOR], radii=[-5.0], show_labels=False), static=True)
     if len(groups):
         rec.send_columns(
             path,
@@ -161,14 +166,12 @@ def log_points(rec: rr.RecordingStream, motion: Motion) -> None:
 
 
 def log_trails(rec: rr.RecordingStream, trails: Sequence[scene.Trail]) -> None:
-    """A segment per frame per cycle; the blueprint accumulates them from the cycle's start."""
+    """A segment per frame per cycle, coloured by its dig class (by its order where the
+    class is not known); the blueprint accumulates them from the cycle's start."""
     for k, trail in enumerate(trails):
         path = trail_path(trail.name)
-        rec.log(
-            path,
-            rr.LineStrips3D.from_fields(colors=[TRAIL_COLORS[k % len(TRAIL_COLORS)]], radii=[-2.0]),
-            static=True,
-        )
+        color = CLASS_COLORS.get(trail.label, TRAIL_COLORS[k % len(TRAIL_COLORS)])
+        rec.log(path, rr.LineStrips3D.from_fields(colors=[color], radii=[-2.0]), static=True)
         if len(trail):
             rec.send_columns(
                 path,
@@ -215,7 +218,7 @@ def log_tracks(rec: rr.RecordingStream, series: scene.TrackSeries, camera: str) 
     if len(series.counts) == 0:
         return
     path = camera_path(camera) + "/tracks"
-    rec.log(path, rr.Points2D.from_fields(colors=[TRACK_COLOR], radii=[-3.0]), static=True)
+    rec.log(path, rr.Points2D.from_fields(colors=[TRACK_COLOR], radii=[-3.0], show_labels=False), static=True)
     rec.send_columns(
         path,
         indexes=time_columns(series.frame, series.time),
@@ -234,6 +237,11 @@ def log_scalar(rec: rr.RecordingStream, path: str, name: str, motion: Motion, va
             indexes=time_columns(motion.frame[rows], motion.time[rows]),
             columns=rr.Scalars.columns(scalars=values[rows]),
         )
+
+
+def log_phases(rec: rr.RecordingStream, motion: Motion, phases: np.ndarray) -> None:
+    """The dig-cycle phase of every frame (F,) as a time series."""
+    log_scalar(rec, "plots/phase", "phase (1 dig, 2 swing loaded, 3 dump, 4 swing back)", motion, phases)
 
 
 def log_plots(rec: rr.RecordingStream, machine: Machine, motion: Motion, tip: str | None) -> None:

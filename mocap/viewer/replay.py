@@ -65,7 +65,13 @@ class Replay:
         if self.tip is None:
             return []
         cycles = Cycles.whole(self.motion.frame) if self.cycles is None else self.cycles
-        return scene.trails(self.motion, self.tip, cycles.start, cycles.end, cycles.name)
+        return scene.trails(self.motion, self.tip, cycles.start, cycles.end, cycles.name, cycles.label)
+
+    def phases(self) -> np.ndarray | None:
+        """The dig-cycle phase of every motion frame (F,), None without phases in the cycles."""
+        if self.cycles is None or self.cycles.phases is None:
+            return None
+        return scene.phase_series(self.motion, self.cycles.start, self.cycles.end, self.cycles.phases)
 
 
 @dataclass(frozen=True)
@@ -120,6 +126,9 @@ def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
                 record.log_tracks(rec, series, camera.name)
             bar.update()
         record.log_plots(rec, machine, motion, replay.tip)
+        phases = replay.phases()
+        if phases is not None:
+            record.log_phases(rec, motion, phases)
         bar.update()
     return ReplaySummary(len(motion), len(calibration.cameras), tuple(with_video), len(trails))
 
@@ -130,11 +139,19 @@ def frustum_depth(calibration: Calibration) -> float:
     return max(0.1, 0.1 * float(np.mean(distances)))
 
 
+GROUP_TITLES = {"joints_m": "joints (m)", "uncertainty": "uncertainty (sd, deg)",
+                "uncertainty_m": "uncertainty (sd, m)", "base": "base position (m)"}
+
+
 def replay_blueprint(replay: Replay):
     fixed = ("joints", "bucket", "speed")
-    groups = [s.group for s in scene.plot_series(replay.machine, replay.motion, replay.tip)]
-    groups = [g for g in dict.fromkeys(groups) if g not in fixed]
-    return default_blueprint(replay.calibration.names, replay.trails(), groups)
+    groups = {}
+    for s in scene.plot_series(replay.machine, replay.motion, replay.tip):
+        if s.group not in fixed and s.group not in groups:
+            groups[s.group] = GROUP_TITLES.get(s.group, s.label)
+    eye = scene.working_view(replay.motion, replay.tip)
+    return default_blueprint(replay.calibration.names, replay.trails(), list(groups.items()), eye,
+                             replay.phases() is not None)
 
 
 def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:

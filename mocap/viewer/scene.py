@@ -118,13 +118,27 @@ class PlotSeries:
     values: np.ndarray
 
 
+def _extra_unit(name: str) -> tuple[str, str]:
+    """A plot group and label for an extra motion column, from its name's unit suffix."""
+    for suffix, unit in (("_acceleration", "m/s²"), ("_px", "px"), ("_deg", "deg"), ("_m", "m")):
+        if name.endswith(suffix):
+            return f"extra_{name}", f"{name} ({unit})"
+    if name == "observations":
+        return "extra_observations", "observations (count)"
+    if name == "filled":
+        return "extra_filled", "filled (1: predicted across a gap)"
+    return f"extra_{name}", name
+
+
 def plot_series(machine: Machine, motion: Motion, tip: str | None) -> list[PlotSeries]:
-    """The motion's per-frame columns in display units, grouped: joints (deg / m), the bucket
-    angle (deg, group bucket), speeds (m/s; the tip's computed if the file has none), uncertainty (SDs),
-    base (position columns) and extra (every other column)."""
+    """The motion's per-frame columns in display units, grouped so that one plot holds one
+    unit: joints (deg; prismatic ones in joints_m, m), the bucket angle (deg, group bucket),
+    speeds (m/s; the tip's computed if the file has none), uncertainty (SDs in deg,
+    uncertainty_m in m), base (position columns) and one group per other column."""
     scale, units = joint_display_units(machine)
     out = [
-        PlotSeries("joints", name, f"{name} ({units[j]})", motion.joints[:, j] * scale[j])
+        PlotSeries("joints" if units[j] == "deg" else "joints_m", name, f"{name} ({units[j]})",
+                   motion.joints[:, j] * scale[j])
         for j, name in enumerate(motion.joint_names)
     ]
     out.append(PlotSeries("bucket", "bucket_angle", "bucket angle (deg)", np.degrees(motion.bucket_angle)))
@@ -132,17 +146,18 @@ def plot_series(machine: Machine, motion: Motion, tip: str | None) -> list[PlotS
         out.append(PlotSeries("speed", tip, f"{tip} speed (m/s)", tip_speed(motion, tip)))
     if motion.joints_sd is not None:
         out += [
-            PlotSeries("uncertainty", f"{name}_sd", f"{name} sd ({units[j]})", motion.joints_sd[:, j] * scale[j])
+            PlotSeries("uncertainty" if units[j] == "deg" else "uncertainty_m", f"{name}_sd",
+                       f"{name} sd ({units[j]})", motion.joints_sd[:, j] * scale[j])
             for j, name in enumerate(motion.joint_names)
-        ]
-    if motion.points_sd is not None:
-        out += [
-            PlotSeries("uncertainty", f"{name}_sd", f"{name} sd (m)", motion.points_sd[:, k])
-            for k, name in enumerate(motion.point_names)
         ]
     if motion.bucket_angle_sd is not None:
         sd = np.degrees(motion.bucket_angle_sd)
         out.append(PlotSeries("uncertainty", "bucket_angle_sd", "bucket angle sd (deg)", sd))
+    if motion.points_sd is not None:
+        out += [
+            PlotSeries("uncertainty_m", f"{name}_sd", f"{name} sd (m)", motion.points_sd[:, k])
+            for k, name in enumerate(motion.point_names)
+        ]
     speeds = {f"{p}_speed": p for p in motion.point_names}
     for name, values in motion.extra.items():
         if name in BASE_POSITION:
@@ -152,8 +167,46 @@ def plot_series(machine: Machine, motion: Motion, tip: str | None) -> list[PlotS
         elif name in speeds and speeds[name] != tip:
             out.append(PlotSeries("speed", speeds[name], f"{speeds[name]} speed (m/s)", values))
         elif name not in speeds:
-            out.append(PlotSeries("extra", name, name, values))
+            group, label = _extra_unit(name)
+            out.append(PlotSeries(group, name, label, values))
     return out
+
+
+PHASES = ("dig", "swing loaded", "dump", "swing back")
+
+
+def phase_series(motion: Motion, starts: np.ndarray, ends: np.ndarray, phases: np.ndarray) -> np.ndarray:
+    """The dig-cycle phase of every motion frame (F,): 1 dig, 2 swing loaded, 3 dump,
+    4 swing back, NaN outside the cycles or where not known. Cycles [start, end] (K,)
+    motion frames; phases (K, 4) the frames where each phase begins, -1 where not known."""
+    out = np.full(len(motion), np.nan)
+    frame = motion.frame
+    for start, end, begins in zip(starts, ends, phases):
+        for p, begin in enumerate(begins):
+            if begin < 0:
+                continue
+            later = [b for b in begins[p + 1:] if b >= 0]
+            stop = min(later[0] - 1 if later else end, end)
+            out[(frame >= begin) & (frame <= stop)] = p + 1
+    return out
+
+
+def working_view(motion: Motion, tip: str | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Eye position and look target (3,) m that frame the machine's working range — the
+    swing axis and everywhere the tip went — from the side, a little behind and above;
+    None without a known tip position."""
+    if tip is None:
+        return None
+    xyz = motion.point(tip)
+    xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+    if len(xyz) == 0:
+        return None
+    box = np.vstack([xyz, np.zeros((1, 3))])
+    low, high = box.min(axis=0), box.max(axis=0)
+    target = 0.5 * (low + high)
+    extent = max(float(np.linalg.norm(high - low)), 1.0)
+    direction = np.array([-0.35, -1.0, 0.5])
+    return target + 1.1 * extent * direction / np.linalg.norm(direction), target
 
 
 @dataclass(frozen=True)
@@ -162,7 +215,7 @@ class Trail:
 
     frame (S,) and time (S,) s of the motion frame at which each segment ends; segments
     (S, 2, 3) from the previous frame's tip to this frame's, metres; first_frame and
-    first_time the cycle's first motion frame.
+    first_time the cycle's first motion frame; label the dig class, "" if not known.
     """
 
     name: str
@@ -171,6 +224,7 @@ class Trail:
     frame: np.ndarray
     time: np.ndarray
     segments: np.ndarray
+    label: str = ""
 
     def __post_init__(self) -> None:
         s = len(self.frame)
@@ -181,13 +235,15 @@ class Trail:
         return len(self.frame)
 
 
-def trails(motion: Motion, point: str, starts: np.ndarray, ends: np.ndarray, names) -> list[Trail]:
-    """One trail per cycle [start, end] (motion frames, inclusive); segments touching an
-    unknown tip position are left out. Cycles with no motion frame are left out."""
+def trails(motion: Motion, point: str, starts: np.ndarray, ends: np.ndarray, names, labels=()) -> list[Trail]:
+    """One trail per cycle [start, end] (motion frames, inclusive), with its dig class from
+    `labels` (K,) if given; segments touching an unknown tip position are left out. Cycles
+    with no motion frame are left out."""
     xyz = motion.point(point)
     known = np.all(np.isfinite(xyz), axis=1)
     out = []
-    for name, start, end in zip(names, starts, ends):
+    labels = tuple(labels) or ("",) * len(starts)
+    for name, start, end, label in zip(names, starts, ends, labels):
         rows = np.flatnonzero((motion.frame >= start) & (motion.frame <= end))
         if len(rows) == 0:
             continue
@@ -203,6 +259,7 @@ def trails(motion: Motion, point: str, starts: np.ndarray, ends: np.ndarray, nam
                 motion.frame[ends_at],
                 motion.time[ends_at],
                 segments.reshape(-1, 2, 3),
+                str(label),
             )
         )
     return out

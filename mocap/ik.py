@@ -55,7 +55,7 @@ class PlanarChain:
         """The chain of `machine`; InputError if it has no boom-arm-bucket linkage."""
         if machine.bucket_angle is None or "bucket_tip" not in machine.point_names:
             raise InputError(
-                "synthetic digs need a [bucket_angle] and a 'bucket_tip' point in the model; "
+                "planned digs need a [bucket_angle] and a 'bucket_tip' point in the model; "
                 "use a shovel or excavator model such as hitachi_ex3500",
                 path=machine.name,
             )
@@ -63,7 +63,7 @@ class PlanarChain:
         chain = machine.ancestors(machine.bucket_angle.link)
         if house not in chain or chain.index(house) != 3:
             raise InputError(
-                "synthetic digs need boom, arm and bucket links between the house and the "
+                "planned digs need boom, arm and bucket links between the house and the "
                 "bucket-angle link",
                 path=machine.name,
             )
@@ -71,7 +71,7 @@ class PlanarChain:
         joint_of = {link: j for j, link in enumerate(machine.joint_links)}
         house_joint = machine.links[house].joint
         if house_joint is None or house_joint.type != REVOLUTE or abs(house_joint.axis[2]) < 0.999:
-            raise InputError("synthetic digs need a house that swings about the vertical", path=machine.name)
+            raise InputError("planned digs need a house that swings about the vertical", path=machine.name)
         pitch, sign, origins = [], [], []
         for link in links:
             joint = machine.links[link].joint
@@ -84,7 +84,7 @@ class PlanarChain:
             )
             if not planar:
                 raise InputError(
-                    f"joint {joint.name!r} does not turn about the house's y axis; synthetic "
+                    f"joint {joint.name!r} does not turn about the house's y axis; planned "
                     "digs need a planar boom-arm-bucket linkage",
                     path=machine.name,
                 )

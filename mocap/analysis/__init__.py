@@ -1,0 +1,1 @@
+"""Dig-cycle analysis: cycles, phases, classes, similarity, templates, deviations, relations."""

@@ -1,0 +1,212 @@
+"""General shape and deviations: per-class templates over normalised arc length, each dig
+as template × scaling plus deviations (PAPER.md).
+
+A dig's path is taken in the house's vertical plane from its start: horizontal
+displacement ``dx`` (m, away from the machine), vertical ``dz`` (m, up) and bucket angle,
+resampled at N points of normalised arc length ``s`` in [0, 1]. A class's template is the
+median of its digs divided by their scales; a dig's scale (sx, sz) is the least-squares
+stretch of the template onto it, normalised so that each class's scales have a geometric
+mean of 1 (the template's size is the class's typical size). Deviations:
+
+- **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
+- **operator redirection**: a sudden change the general shape cannot explain, found by
+  fitting the bucket angle with a cubic in arc length (the classes' angle profiles are
+  smooth in it) and the tip's height with a quintic in time, each plus the same event in
+  time — a pulse (temporary) or a step (kept) — at every place and width of a grid, and
+  keeping the event that explains most of both together (an operator's correction lifts
+  or lowers the bucket and turns it). Its kind says lift or lower (the same event in
+  the height), the angle change, temporary or kept, and reversal when the tip moved back.
+
+Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from mocap.analysis.series import TipSeries
+
+N_SAMPLES = 64
+MIN_EVENT_FRAMES = 30
+
+
+@dataclass(frozen=True)
+class DigPaths:
+    """K digs resampled over arc length: s (N,), path (K, N, 3) dx, dz (m), angle (rad)."""
+
+    s: np.ndarray
+    path: np.ndarray
+
+
+@dataclass(frozen=True)
+class Template:
+    """A class's general shape: `label`, `count` digs; path (N, 3) dx, dz (m), angle (rad)
+    over arc length `s` (N,); `start` (3,) median start reach, height (m), angle (rad)."""
+
+    label: str
+    count: int
+    s: np.ndarray
+    path: np.ndarray
+    start: np.ndarray
+
+
+@dataclass(frozen=True)
+class Deviations:
+    """Per dig (K,): scale_x, scale_z; reactive_m, reactive_deg (RMS); redirection
+    ('none', 'temporary', 'kept'), its time (s, NaN without), angle change (rad), lift (m)
+    and kind in words."""
+
+    scale_x: np.ndarray
+    scale_z: np.ndarray
+    reactive_m: np.ndarray
+    reactive_deg: np.ndarray
+    redirection: np.ndarray
+    redirection_time: np.ndarray
+    redirection_angle: np.ndarray
+    redirection_lift: np.ndarray
+    redirection_kind: np.ndarray
+
+
+def _arc(r: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Normalised arc length (T,) of a path."""
+    step = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(r), np.diff(z)))])
+    return step / max(step[-1], 1e-12)
+
+
+def resample_digs(series: TipSeries, starts: np.ndarray, ends: np.ndarray, n: int = N_SAMPLES) -> DigPaths:
+    """Each dig [start, end] (indices) resampled at `n` points of normalised arc length."""
+    s = np.linspace(0.0, 1.0, n)
+    out = np.empty((len(starts), n, 3))
+    for k, (a, b) in enumerate(zip(starts, ends)):
+        r, z, angle = series.reach[a:b + 1], series.height[a:b + 1], series.angle[a:b + 1]
+        u = _arc(r, z)
+        u, keep = np.unique(u, return_index=True)
+        out[k, :, 0] = np.interp(s, u, r[keep] - r[0])
+        out[k, :, 1] = np.interp(s, u, z[keep] - z[0])
+        out[k, :, 2] = np.interp(s, u, angle[keep])
+    return DigPaths(s, out)
+
+
+def fit_scales(path: np.ndarray, template: np.ndarray) -> np.ndarray:
+    """Least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2)."""
+    num = np.einsum("knd,nd->kd", path, template)
+    return num / np.maximum((template**2).sum(axis=0), 1e-12)
+
+
+def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Digs' paths (K, N, 2) resampled at even arc length of the paths divided by their
+    scales (K, 2), so that a stretched dig's points meet the template's at the same place."""
+    out = np.empty_like(xy)
+    n = xy.shape[1]
+    even = np.linspace(0.0, 1.0, n)
+    for k in range(len(xy)):
+        q = xy[k] / scale[k]
+        u = _arc(q[:, 0], q[:, 1])
+        u, keep = np.unique(u, return_index=True)
+        for d in range(2):
+            out[k, :, d] = np.interp(even, u, xy[k, keep, d])
+    return out
+
+
+def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray,
+                    iterations: int = 4) -> tuple[dict[str, Template], np.ndarray]:
+    """Per-label templates and every dig's scale (K, 2) against its label's template.
+
+    `starts` (K, 3) start reach, height, angle of each dig.
+    """
+    scales = np.ones((len(labels), 2))
+    templates: dict[str, Template] = {}
+    for label in dict.fromkeys(labels):
+        pick = labels == label
+        xy = paths.path[pick, :, :2]
+        template = np.median(xy, axis=0)
+        sc = np.ones((len(xy), 2))
+        for _ in range(iterations):
+            even = _descaled(xy, sc)
+            sc = np.clip(fit_scales(even, template), 0.05, 20.0)
+            sc /= np.exp(np.log(sc).mean(axis=0))
+            template = np.median(_descaled(xy, sc) / sc[:, None, :], axis=0)
+        scales[pick] = sc
+        angle = np.median(paths.path[pick, :, 2], axis=0)
+        templates[label] = Template(label, int(pick.sum()), paths.s, np.column_stack([template, angle]),
+                                    np.median(starts[pick], axis=0))
+    return templates, scales
+
+
+def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Event shapes (G, T) over time fraction `tau` (T,): pulses and steps at a grid of
+    centres and half-widths; their kept flag (G,), centre (G,), half-width (G,)."""
+    centre = np.arange(0.15, 0.851, 0.025)
+    width = np.array([0.06, 0.1, 0.14])
+    c, w = (v.ravel() for v in np.meshgrid(centre, width, indexing="ij"))
+    x = (tau[None] - c[:, None]) / w[:, None]
+    pulse = np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
+    y = np.clip((x + 1) / 2, 0, 1)
+    step = y**3 * (10 + y * (-15 + 6 * y))
+    shapes = np.concatenate([pulse, step])
+    kept = np.concatenate([np.zeros(len(c), bool), np.ones(len(c), bool)])
+    return shapes, kept, np.concatenate([c, c]), np.concatenate([w, w])
+
+
+def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least squares of y (T,) on base columns (T, B) plus each event (G, T): the SSE (G,)
+    and event amplitudes (G,), and the SSE with the base alone. The base is projected out
+    of y and of every event first (Frisch-Waugh), so each event is a one-column fit."""
+    q, _ = np.linalg.qr(base)
+    ry = y - q @ (q.T @ y)
+    rs = shapes - (shapes @ q) @ q.T
+    sy = rs @ ry
+    amp = sy / np.maximum(np.einsum("gt,gt->g", rs, rs), 1e-12)
+    sse0 = float(ry @ ry)
+    return sse0 - sy * amp, amp, sse0
+
+
+def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
+               scales: np.ndarray, min_angle_deg: float = 3.0,
+               max_unexplained: float = 1.15, cutoff_hz: float = 0.6) -> Deviations:
+    """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
+    that turns the bucket by at least `min_angle_deg` and leaves at most `max_unexplained`
+    of the smooth fits' squared residuals (the angle's and the height's shares added, of 2)
+    is a redirection."""
+    k = len(starts)
+    sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
+    reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
+    kind = np.full(k, "none", dtype=object)
+    what = np.full(k, "", dtype=object)
+    when, d_angle, lift = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.nan)
+    for i, (a, b) in enumerate(zip(starts, ends)):
+        r, z, angle = series.raw_reach[a:b + 1], series.raw_height[a:b + 1], series.raw_angle[a:b + 1]
+        if len(r) > 15:
+            low = [sosfiltfilt(sos, v, padlen=min(len(v) - 1, 3 * 6)) for v in (r, z, angle)]
+            reactive_m[i] = np.sqrt(((r - low[0]) ** 2 + (z - low[1]) ** 2).mean())
+            reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
+        if b - a < MIN_EVENT_FRAMES:  # too short to tell an event from the smooth profile
+            continue
+        u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
+        tau = np.linspace(0.0, 1.0, len(u))
+        shapes, kept, centre, width = _events(tau)
+        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
+        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], np.vander(tau, 6, increasing=True), shapes)
+        unexplained = sse_a / max(sse0_a, 1e-12) + sse_z / max(sse0_z, 1e-12)
+        g = int(np.argmin(unexplained))
+        if unexplained[g] > max_unexplained or abs(np.degrees(amp[g])) < min_angle_deg:
+            continue
+        kind[i] = "kept" if kept[g] else "temporary"
+        when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
+        d_angle[i], lift[i] = amp[g], amp_z[g]
+        length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
+        words = []
+        if abs(lift[i]) > 0.015 * length:
+            words.append("lift" if lift[i] > 0 else "lower")
+        words.append(f"bucket angle {np.degrees(d_angle[i]):+.0f} deg")
+        window = (tau > centre[g] - width[g]) & (tau < centre[g] + width[g])
+        chord = np.array([series.reach[b] - series.reach[a], series.height[b] - series.height[a]])
+        forward = np.diff(series.reach[a:b + 1]) * chord[0] + np.diff(series.height[a:b + 1]) * chord[1]
+        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(u), 1)):
+            words.append("reversal")
+        words.append(kind[i])
+        what[i] = ", ".join(words)
+    return Deviations(scales[:, 0], scales[:, 1], reactive_m, reactive_deg, kind, when, d_angle, lift, what)

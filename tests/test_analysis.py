@@ -1,0 +1,272 @@
+"""Dig-cycle analysis against the synthetic truth: cycles, dig bounds, classes,
+redirections, scaling; guards; the command end to end."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from mocap import cli
+from mocap.analysis.core import FIRST, analyze
+from mocap.analysis.features import ClassRules, classify
+from mocap.analysis.score import planned_truth, score_analysis
+from mocap.analysis.series import tip_series
+from mocap.analysis.shape import build_templates, DigPaths
+from mocap.analysis.similarity import group_digs
+from mocap.errors import InputError
+from mocap.ik import PlanarChain
+from mocap.io.cycles_csv import load_cycle_table, save_cycle_table
+from mocap.io.machine_toml import load_machine
+from mocap.io.motion_csv import save_motion
+from mocap.synthetic.motion import plan_session
+
+SESSIONS = [("hitachi_ex3500", 3), ("hitachi_ex3500", 8), ("bobcat_225", 4), ("bobcat_225", 9)]
+
+
+@lru_cache(maxsize=None)
+def truth_session(name: str, seed: int, n: int = 6):
+    machine = load_machine(name)
+    plan = plan_session(machine, n, np.random.default_rng(seed))
+    motion, truth = planned_truth(machine, plan)
+    return machine, motion, truth
+
+
+@lru_cache(maxsize=None)
+def analysed(name: str, seed: int):
+    machine, motion, truth = truth_session(name, seed)
+    return analyze(tip_series(motion)), truth
+
+
+@pytest.mark.parametrize("name,seed", SESSIONS)
+def test_every_cycle_found_with_its_dig_bounds_and_class(name, seed):
+    a, truth = analysed(name, seed)
+    score = score_analysis(a.table, truth)
+    assert score.missed == 0 and score.extra == 0
+    # min-jerk moves meet at rest for ~0.3 s either side of the true bound; reactive noise
+    # (1 deg, 0.3 % of the reach) shifts the speed minimum by a fraction of that
+    assert np.median(np.abs(score.start_errors)) < 0.5 and np.abs(score.start_errors).max() < 1.5
+    assert np.median(np.abs(score.end_errors)) < 0.5 and np.abs(score.end_errors).max() < 1.5
+    assert score.class_correct == score.true
+    assert list(a.table)[: len(FIRST)] == list(FIRST)
+    assert np.all(a.table["start_frame"] == a.table["dig_start_frame"])
+    assert np.all(a.table["end_frame"][:-1] == a.table["start_frame"][1:] - 1)
+    # the unsupervised grouping of the dig paths finds the three classes, no more
+    assert a.grouping.count == 3
+    assert all(len(set(a.table["class"][a.grouping.groups == g])) == 1 for g in range(1, 4))
+
+
+def test_redirections_and_scales_over_sessions():
+    tp = fp = fn = 0
+    errors = []
+    for name, seed in SESSIONS:
+        a, truth = analysed(name, seed)
+        score = score_analysis(a.table, truth)
+        tp, fp, fn = tp + score.redirect_tp, fp + score.redirect_fp, fn + score.redirect_fn
+        errors.append(score.scale_errors)
+        found = a.table["redirection"] != "none"
+        assert np.all(np.isfinite(a.table["redirection_time"][found]))
+        inside = (a.table["redirection_time"] >= a.table["dig_start_time"]) & (
+            a.table["redirection_time"] <= a.table["dig_end_time"])
+        assert np.all(inside[found])
+    assert tp / (tp + fp) >= 0.8 and tp / (tp + fn) >= 0.8, (tp, fp, fn)
+    # each dig's own shape varies by about +-4 % around its class (push, rise), on top of
+    # the scaling: the median error stays within 5 %
+    assert np.median(np.abs(np.concatenate(errors))) < 0.05
+
+
+def test_scale_fit_recovers_exact_stretches():
+    s = np.linspace(0, 1, 64)
+    template = np.column_stack([4 * s, 3 * s**2, np.radians(60 * s - 20)])
+    scales = np.array([[1.0, 1.0], [0.8, 0.8], [1.1, 0.9], [0.9, 1.2]])
+    paths = np.stack([np.column_stack([template[:, :2] * k, template[:, 2]]) for k in scales])
+    # resample each stretched path at even arc length, as the analysis does
+    for k in range(len(paths)):
+        step = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(paths[k, :, :2], axis=0).T))])
+        u = step / step[-1]
+        fine = np.linspace(0, 1, 2000)
+        dense = np.column_stack([np.interp(fine, s, paths[k, :, d]) for d in range(3)])
+        step = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(dense[:, :2], axis=0).T))])
+        u = step / step[-1]
+        paths[k] = np.column_stack([np.interp(s, u, dense[:, d]) for d in range(3)])
+    labels = np.array(["Type 1"] * 4, dtype=object)
+    _, fitted = build_templates(DigPaths(s, paths), labels, np.zeros((4, 3)))
+    expected = scales / np.exp(np.log(scales).mean(axis=0))
+    np.testing.assert_allclose(fitted, expected, rtol=0.01)
+
+
+def test_class_rules():
+    rules = ClassRules()
+    assert classify(0.1, -30, 5, 4, rules)[0] == "Type 1"
+    assert classify(0.1, 2, 5, 4, rules)[0] == "Type 2"
+    assert classify(0.5, -2, 2, 4, rules)[0] == "Type 3"
+    assert classify(0.5, -30, 2, 4, rules)[0] == "other"
+    assert classify(0.9, 0, 2, 4, rules)[0] == "other"
+    label, why = classify(0.1, -30, -3, 2, rules)
+    assert label == "other" and "not a front shovel" in why
+    with pytest.raises(ValueError, match="base_ratio"):
+        ClassRules(base_ratio=0.8, top_ratio=0.5)
+
+
+def test_grouping_finds_separated_groups_and_none_in_one_blob():
+    rng = np.random.default_rng(0)
+    centres = np.array([[0, 0], [10, 0], [0, 10]])
+    points = np.concatenate([c + rng.normal(0, 0.5, (8, 2)) for c in centres])
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    g = group_digs(d)
+    assert g.count == 3
+    assert all(len(np.unique(g.groups[k * 8:(k + 1) * 8])) == 1 for k in range(3))
+    with_outlier = np.concatenate([points, [[30.0, 30.0]]])
+    g = group_digs(np.linalg.norm(with_outlier[:, None] - with_outlier[None], axis=-1))
+    assert g.count == 3 and g.groups[-1] == 0 and np.all(g.groups[:-1] > 0)
+    blob = rng.normal(0, 1, (20, 2))
+    assert group_digs(np.linalg.norm(blob[:, None] - blob[None], axis=-1)).count == 1
+
+
+def _with(motion, keep=None, **changes):
+    if keep is not None:
+        fields = {"frame": motion.frame[keep], "time": motion.time[keep], "joints": motion.joints[keep],
+                  "points": motion.points[keep], "bucket_angle": motion.bucket_angle[keep],
+                  "extra": {k: v[keep] for k, v in motion.extra.items()}}
+        motion = replace(motion, **fields)
+    return replace(motion, **changes)
+
+
+def test_gaps_noise_and_partial_cycles():
+    machine, motion, truth = truth_session("hitachi_ex3500", 3)
+    rng = np.random.default_rng(1)
+    points = motion.points + rng.normal(0, 0.02, motion.points.shape)  # 2 cm of reconstruction noise
+    angle = motion.bucket_angle + np.radians(rng.normal(0, 0.2, len(motion)))
+    gap = (motion.time > truth["dig_start_time"][2] + 2) & (motion.time < truth["dig_start_time"][2] + 3)
+    points[gap] = np.nan
+    angle[gap] = np.nan
+    # a fit that flipped the bucket for half a second in the middle of the fourth dig
+    flip = np.flatnonzero(motion.time > 0.5 * (truth["dig_start_time"][3] + truth["dig_end_time"][3]))[:15]
+    angle[flip] += np.radians(150.0)
+    filled = np.zeros(len(motion))
+    filled[(motion.time > truth["dig_end_time"][3]) & (motion.time < truth["dig_end_time"][3] + 1)] = 1
+    # the data begin in the middle of the first dig and end in the middle of the last
+    keep = (motion.time > 0.5 * (truth["dig_start_time"][0] + truth["dig_end_time"][0])) & (
+        motion.time < 0.5 * (truth["dig_start_time"][-1] + truth["dig_end_time"][-1]))
+    noisy = _with(_with(motion, points=points, bucket_angle=angle, extra={"filled": filled}), keep)
+    a = analyze(tip_series(noisy))
+    inner = {k: v[1:-1] for k, v in truth.items()}
+    cut = a.table["class_rule"] == "dig cut by the start or end of the data"
+    assert cut[0] and cut[-1] and np.all(a.table["class"][cut] == "other") and np.all(a.table["complete"][cut] == 0)
+    score = score_analysis({k: v[~cut] for k, v in a.table.items()}, inner)
+    assert score.missed == 0 and score.extra == 0 and score.class_correct == score.true
+    assert np.abs(score.start_errors).max() < 1.5 and np.abs(score.end_errors).max() < 1.5
+    row = np.argmin(np.abs(a.table["dig_start_time"] - truth["dig_start_time"][2]))
+    assert a.table["gap_frames"][row] >= 25 and a.table["gap_frames"][row + 1] >= 25 + 15
+    assert a.table["redirection"][row + 1] == truth["redirection"][3] or truth["redirection"][3] != "none"
+
+
+def test_pause_before_the_dig_moves_its_start_to_the_end_of_the_pause():
+    machine, motion, truth = truth_session("hitachi_ex3500", 8)
+    k = int(np.searchsorted(motion.time, truth["dig_start_time"][2]))
+    hold = 150  # 5 s at 30 fps resting at the face
+    index = np.concatenate([np.arange(k), np.full(hold, k), np.arange(k, len(motion))])
+    paused = _with(motion, index)
+    paused = replace(paused, frame=np.arange(len(index)), time=np.arange(len(index)) / 30.0)
+    a = analyze(tip_series(paused))
+    shifted = dict(truth)
+    shifted["dig_start_time"] = truth["dig_start_time"] + np.where(np.arange(len(truth["class"])) >= 2, hold / 30, 0)
+    shifted["dig_end_time"] = truth["dig_end_time"] + np.where(np.arange(len(truth["class"])) >= 2, hold / 30, 0)
+    score = score_analysis(a.table, shifted)
+    assert score.missed == 0 and score.extra == 0
+    assert np.abs(score.start_errors).max() < 1.5
+
+
+def test_a_dig_pulling_towards_the_machine_is_other():
+    machine, motion, truth = truth_session("bobcat_225", 4)
+    backwards = _with(motion, np.arange(len(motion))[::-1])
+    backwards = replace(backwards, frame=np.arange(len(motion)), time=motion.time)
+    a = analyze(tip_series(backwards))
+    assert np.all(a.table["class"] == "other")
+
+
+def test_analyze_command_end_to_end(tmp_path):
+    machine, motion, truth = truth_session("hitachi_ex3500", 3)
+    path = tmp_path / "motion.csv"
+    save_motion(motion, machine, path)
+    assert cli.main(["analyze", "hitachi_ex3500", str(path), "--out", str(tmp_path / "out")]) == 0
+    table = load_cycle_table(tmp_path / "out" / "cycles.csv")
+    assert list(table)[:6] == list(FIRST)
+    assert len(table["cycle"]) == len(truth["class"])
+    assert list(table["class"]) == list(truth["class"])
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert page.count("data:image/png;base64,") >= 4 and "http" not in page.replace("https://", "")
+    templates = tomllib.loads((tmp_path / "out" / "templates.toml").read_text())
+    chain = PlanarChain.from_machine(machine)
+    for item in templates["templates"]:
+        joints = np.zeros((len(item["s"]), machine.n_joints))
+        for name, values in item["joints"].items():
+            joints[:, machine.joint_names.index(name)] = np.radians(values)
+        tip, angle = chain.forward(joints)
+        expected = np.column_stack([item["start"]["reach"] + np.array(item["dx"]),
+                                    item["start"]["height"] + np.array(item["dz"]) - chain.house_height])
+        np.testing.assert_allclose(tip, expected, atol=1e-3)
+        np.testing.assert_allclose(np.degrees(angle), item["angle_deg"], atol=1e-2)
+    # --cycles keeps only the digs inside the given cycles
+    given = tmp_path / "given.csv"
+    save_cycle_table({"start_frame": table["start_frame"][1:3].astype(int), "end_frame": table["end_frame"][1:3].astype(int)},
+                     given)
+    assert cli.main(["analyze", "hitachi_ex3500", str(path), "--out", str(tmp_path / "two"), "--cycles", str(given)]) == 0
+    assert len(load_cycle_table(tmp_path / "two" / "cycles.csv")["cycle"]) == 2
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    machine, motion, _ = truth_session("hitachi_ex3500", 3)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("frame,time,swing\n0,0,0\n")
+    assert cli.main(["analyze", "hitachi_ex3500", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "header lacks" in err
+    short = tmp_path / "short.csv"
+    save_motion(_with(motion, np.arange(10)), machine, short)
+    assert cli.main(["analyze", "hitachi_ex3500", str(short), "--out", str(tmp_path / "o")]) == 2
+    assert "at least 30" in capsys.readouterr().err
+    good = tmp_path / "motion.csv"
+    save_motion(_with(motion, np.arange(2000)), machine, good)
+    (tmp_path / "file").write_text("x")
+    assert cli.main(["analyze", "hitachi_ex3500", str(good), "--out", str(tmp_path / "file")]) == 2
+    assert "--out takes a folder" in capsys.readouterr().err
+    far = tmp_path / "far.csv"
+    far.write_text("start_frame,end_frame\n100000,100100\n")
+    assert cli.main(["analyze", "hitachi_ex3500", str(good), "--out", str(tmp_path / "o"), "--cycles", str(far)]) == 2
+    assert "outside the motion's frames" in capsys.readouterr().err
+    with pytest.raises(InputError, match="bucket tip is missing"):
+        points = motion.points.copy()
+        points[: int(0.6 * len(motion))] = np.nan
+        tip_series(replace(motion, points=points))
+    with pytest.raises(InputError, match="time does not increase"):
+        tip_series(replace(motion, time=motion.time[::-1].copy()))
+
+
+def test_a_machine_that_walks_between_cycles():
+    machine, motion, truth = truth_session("hitachi_ex3500", 8)
+    # after the third dig the machine tracks 4 m forward and 2 m left within 10 s
+    t0 = truth["dig_end_time"][2] + 6.0
+    ramp = np.clip((motion.time - t0) / 10.0, 0.0, 1.0)
+    shift = np.column_stack([4.0 * ramp, 2.0 * ramp, np.zeros_like(ramp)])
+    walked = replace(motion, points=motion.points + shift[:, None, :],
+                     extra={"base_x": shift[:, 0], "base_y": shift[:, 1]})
+    a = analyze(tip_series(walked))
+    score = score_analysis(a.table, truth)
+    assert score.missed == 0 and score.extra == 0 and score.class_correct == score.true
+    np.testing.assert_allclose(a.table["start_reach_m"], analysed("hitachi_ex3500", 8)[0].table["start_reach_m"],
+                               atol=0.2)
+
+
+def test_a_machine_at_rest_has_no_cycle(tmp_path, capsys):
+    machine, motion, _ = truth_session("hitachi_ex3500", 3)
+    path = tmp_path / "idle.csv"
+    save_motion(_with(motion, np.arange(50)), machine, path)  # the hold at the start only
+    assert cli.main(["analyze", "hitachi_ex3500", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert "no dig cycle found" in capsys.readouterr().out
+    table = load_cycle_table(tmp_path / "out" / "cycles.csv")
+    assert list(table)[:6] == list(FIRST) and len(table["cycle"]) == 0
+    assert tomllib.loads((tmp_path / "out" / "templates.toml").read_text())["templates"] == []
