@@ -73,7 +73,7 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
         commands.append((
             f"track {camera}",
             ["track", str(session.video_path(camera)), "--machine", machine, "--calibration", calibration,
-             "--camera", camera, "--labels", str(labels), "--start", frame, "--out", str(session.tracks_path(camera))],
+             "--camera", camera, "--labels", str(labels), "--start", frame, "--whole-video", "--out", str(session.tracks_path(camera))],
         ))
     fps = [f"{c.name}={c.fps}" for c in config.cameras]
     fps_args = [arg for value in fps for arg in ("--fps", value)]

@@ -4,14 +4,13 @@ camera's time offset and frame rate; return the report."""
 
 from __future__ import annotations
 
-import re
 
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
 from mocap.sync import joint_curves, synchronise
 
 
@@ -19,8 +18,14 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     if not max_offset > 0:
         raise InputError(f"--max-offset {max_offset}: must be positive")
     machine = load_machine(machine_path)
+    if machine.n_joints == 0:
+        raise InputError(
+            f"the model {machine.name!r} is rigid (no joints): sync aligns joint-value curves and a "
+            "rigid object has none; give each camera's time_offset in the calibration instead",
+            path=machine_path)
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
     missing = [name for name in calibration.names if name not in tracks.cameras]
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")
@@ -49,15 +54,25 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
 def parse_fps(values: list[str], names) -> dict[str, float]:
     out = {}
     for value in values:
-        match = re.fullmatch(r"([^=]+)=([0-9.]+)", value.strip())
-        if not match or match[1] not in names or not float(match[2]) > 0:
-            raise InputError(f"--fps {value!r}: expected NAME=FPS with NAME one of {', '.join(names)}")
-        out[match[1]] = float(match[2])
+        name, sep, number = (part.strip() for part in value.partition("="))
+        if not sep:
+            raise InputError(f"--fps {value!r}: expected NAME=FPS, e.g. --fps {names[0]}=30")
+        if name not in names:
+            raise InputError(f"--fps {value!r}: no camera {name!r} in the calibration (it has {', '.join(names)})")
+        try:
+            fps = float(number)
+        except ValueError:
+            raise InputError(f"--fps {value!r}: {number!r} is not a number of frames per second") from None
+        if not 0 < fps <= MAX_FPS:
+            raise InputError(f"--fps {value!r}: a frame rate must be positive (at most {MAX_FPS:g})")
+        out[name] = fps
     return out
 
 
 def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float]) -> np.ndarray:
-    """(C,) frame rates: given, else the calibration's `fps`, else frame / time of the tracks."""
+    """(C,) frame rates: given, else the calibration's `fps`, else the tracks' time column:
+    the inverse of the least-squares slope of time over frame (a clock that does not start
+    at 0 does not matter)."""
     fps = []
     for camera, extra in zip(calibration.cameras, calibration.extras):
         if camera.name in given:
@@ -67,8 +82,15 @@ def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float
             fps.append(float(extra["fps"]))
             continue
         rows = tracks.of_camera(camera.name)
-        timed = np.isfinite(rows.time) & (rows.time > 0)
-        if not np.any(timed):
-            raise InputError(f"no frame rate for camera {camera.name!r}: pass --fps {camera.name}=FPS")
-        fps.append(float(np.median(rows.frame[timed] / rows.time[timed])))
+        timed = np.isfinite(rows.time)
+        frames, times = rows.frame[timed].astype(float), rows.time[timed]
+        if len(np.unique(frames)) < 2:
+            raise InputError(f"no frame rate for camera {camera.name!r} (its tracks have no time column "
+                             f"over two frames or more): pass --fps {camera.name}=FPS")
+        slope = np.polyfit(frames, times, 1)[0]  # seconds per frame
+        if not slope >= 1 / MAX_FPS:
+            raise InputError(f"camera {camera.name!r}: the tracks' time falls or stands still over the "
+                             f"frames (slope {slope:g} s per frame); fix the time column or pass --fps "
+                             f"{camera.name}=FPS")
+        fps.append(float(1 / slope))
     return np.array(fps)

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 
 from mocap.calibration.solve import CalibrationOptions
 from mocap.calibration.stage import CalibrateRequest, run_calibrate
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
 
 EXAMPLE = """example:
   mocap calibrate calibrations/machines/hitachi_ex3500.toml tracks/cam1.csv tracks/cam2.csv \\
@@ -60,6 +62,10 @@ def parse_sizes(values: list[str]) -> dict:
 
 
 def run(args) -> int:
+    points = args.points or str(Path(args.out).with_name("reference_points.csv"))
+    check_outputs({"--out": args.out, "--points": None if args.method == "dlt" else points},
+                  {"machine model": args.machine, "tracks": args.tracks, "--guess": args.guess,
+                   "--reference": args.reference})
     options = CalibrationOptions(
         per_camera=args.per_camera,
         fit_principal_point=args.fit_principal_point,

@@ -12,7 +12,7 @@ from mocap.io.cameras_toml import Calibration, load_calibration, save_calibratio
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
-from mocap.io.tracks_csv import Tracks, load_tracks
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
 from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.reconstruct.kinfit import FitOptions
@@ -41,6 +41,7 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
             f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
             path=calibration_path,
         )
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
     if machine is None:
         _, first = np.unique(tracks.marker, return_index=True)
         markers = tuple(tracks.marker[np.sort(first)])

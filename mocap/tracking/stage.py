@@ -36,6 +36,7 @@ class TrackRequest:
     start: int = 0
     stop: int | None = None
     options: TrackOptions = field(default_factory=TrackOptions)
+    whole_video: bool = False  # a video that breaks part-way is an error, not half the tracks
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,10 @@ def run_track(request: TrackRequest) -> TrackReport:
         tracks, summary = track_frames(model, bar, start, labelled, fps, options)
     except ValueError as exc:
         raise InputError(f"{exc}; digitise the markers of the first frame and pass them with --labels", path=request.video) from None
+    if request.whole_video and video.broken_at is not None:
+        raise InputError(
+            f"the video breaks at frame {video.broken_at} of {video.info.frame_count} (truncated or "
+            "corrupt); nothing written: repair or re-copy the video", path=request.video)
     save_tracks(tracks, request.out)
     first = tracks.select(tracks.frame == (tracks.frame.min() if len(tracks) else -1))
     return TrackReport(summary, first, video.broken_at)
