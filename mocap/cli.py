@@ -10,6 +10,7 @@ import argparse
 import importlib
 import logging
 import sys
+import warnings
 
 from mocap.errors import InputError
 
@@ -66,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    _quiet_libraries()
+    _quiet_libraries(args.verbose)
     try:
         return int(args.run(args) or 0)
     except InputError as exc:
@@ -82,12 +83,15 @@ def _one_line(message: str) -> str:
     return " ".join(message.split())
 
 
-def _quiet_libraries() -> None:
+def _quiet_libraries(verbose: bool) -> None:
     """The video library's own log lines (FFmpeg's "moov atom not found" beside our error)
-    are silenced: a video that cannot be read is reported once, by us."""
+    are silenced: a video that cannot be read is reported once, by us. So are numpy's
+    warnings on empty or all-NaN slices (a frame nobody saw), unless --verbose."""
     import av.logging
 
-    av.logging.set_level(None)
+    av.logging.set_level(av.logging.DEBUG if verbose else None)
+    if not verbose:
+        warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 
 if __name__ == "__main__":

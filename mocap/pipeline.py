@@ -17,7 +17,7 @@ from pathlib import Path
 from mocap.errors import InputError
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
-from mocap.session import Session
+from mocap.session import Session, mark_complete
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,12 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
     from mocap import cli  # the stages are the sub-commands
 
     session = Session.open(root)
+    if not session.root.is_dir():
+        raise InputError("not a folder; give the session folder (with session.toml)", path=root)
+    if session.is_synthetic and not session.complete_path.exists():
+        raise InputError("the synthetic session is incomplete (its writing was interrupted); run "
+                         "`mocap synth` again with the same --out to finish it", path=root)
+    session.results_complete_path.unlink(missing_ok=True)
     refined, calibration = str(session.refined_calibration_path), str(session.calibration_path)
     fallback = False
     for name, args in stage_commands(session, options):
@@ -110,4 +116,5 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
             fallback = True
         elif code != 0:
             return code
+    mark_complete(session.results_complete_path, "mocap run")
     return 0

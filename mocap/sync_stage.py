@@ -26,6 +26,11 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
     check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
+    unknown = sorted(set(tracks.cameras) - set(calibration.names))
+    if unknown:
+        raise InputError(f"tracks name camera(s) {unknown} that the calibration lacks (it has "
+                         f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
+                         path=calibration_path)
     missing = [name for name in calibration.names if name not in tracks.cameras]
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")

@@ -39,6 +39,10 @@ def run_calibrate(request: CalibrateRequest) -> str:
     tracks = load_tracks(list(request.tracks))
     frame, rows = _frame_rows(tracks, request)
     names = list(rows.cameras)
+    strange = sorted(name for name in request.sizes if name is not None and name not in tracks.cameras)
+    if strange:
+        raise InputError(f"--size names camera(s) {strange} that the tracks lack (they have "
+                         f"{list(tracks.cameras)}); check the NAME in --size NAME=WxH")
     templates = [template_camera(n, _size(request.sizes, n)) for n in names]
     check_in_images(rows, {t.name: t.size for t in templates}, ", ".join(request.tracks), "--size")
     if request.method == "dlt":

@@ -62,6 +62,10 @@ def parse_sizes(values: list[str]) -> dict:
 
 
 def run(args) -> int:
+    for option, value in (("--loss-scale", args.loss_scale), ("--outlier-px", args.outlier_px),
+                          ("--max-rms", args.max_rms)):
+        if value is not None and not 0 < value < float("inf"):
+            raise InputError(f"{option} {value}: must be a positive number of pixels")
     points = args.points or str(Path(args.out).with_name("reference_points.csv"))
     check_outputs({"--out": args.out, "--points": None if args.method == "dlt" else points},
                   {"machine model": args.machine, "tracks": args.tracks, "--guess": args.guess,

@@ -9,7 +9,6 @@ columns are ignored when reading.
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
+from mocap.io.text import csv_rows, read_text
 
 REQUIRED = ("start_frame", "end_frame")
 COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
@@ -54,7 +53,7 @@ class Cycles:
 def load_cycles(path: str | Path) -> Cycles:
     path = Path(path)
     text = read_text(path, "check the cycles path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in REQUIRED if c not in header]
     if missing:

@@ -11,7 +11,6 @@ covariance's trace — and ``bucket_angle_sd_deg``) and extra per-frame columns 
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
+from mocap.io.text import csv_rows, read_text
 from mocap.machine import REVOLUTE, Machine
 
 
@@ -111,11 +110,12 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
     """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
     path = Path(path)
     text = read_text(path, "check the motion path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     joint_cols = list(machine.joint_names)
     point_cols = [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
-    required = ["frame", "time", *joint_cols, *point_cols, "bucket_angle_deg"]
+    bucket = ["bucket_angle_deg"] if machine.bucket_angle is not None else []  # else NaN, optional
+    required = ["frame", "time", *joint_cols, *point_cols, *bucket]
     missing = [c for c in required if c not in header]
     if missing:
         raise InputError(
@@ -135,6 +135,17 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
             raise InputError("a field is not a number", path=path, where=f"line {line}") from None
     table = np.array(rows, dtype=float).reshape(-1, len(header))
     col = {h: table[:, i] for i, h in enumerate(header)}
+    frame = col["frame"]
+    bad = np.flatnonzero(~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame)) | (frame > 1e8))
+    if len(bad):
+        raise InputError(f"frame {frame[bad[0]]:g} is not a frame number (a whole number >= 0)",
+                         path=path, where=f"row {bad[0] + 1}")
+    bad = np.flatnonzero(~np.isfinite(col["time"]))
+    if len(bad):
+        raise InputError("time must be a finite number of seconds", path=path, where=f"row {bad[0] + 1}")
+    if np.any(np.diff(frame) <= 0):
+        raise InputError("frames must increase from row to row", path=path,
+                         where=f"row {np.flatnonzero(np.diff(frame) <= 0)[0] + 2}")
     scale = _joint_scale(machine)
     n_points = len(machine.point_names)
 
@@ -152,7 +163,7 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
         time=col["time"],
         joints=np.column_stack([col[n] for n in joint_cols]).reshape(-1, machine.n_joints) / scale,
         points=np.column_stack([col[c] for c in point_cols]).reshape(-1, n_points, 3),
-        bucket_angle=np.radians(col["bucket_angle_deg"]),
+        bucket_angle=np.radians(col.get("bucket_angle_deg", np.full(len(table), np.nan))),
         joints_sd=None if joints_sd is None else joints_sd / scale,
         points_sd=points_sd,
         bucket_angle_sd=np.radians(col["bucket_angle_sd_deg"]) if "bucket_angle_sd_deg" in col else None,

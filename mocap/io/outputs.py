@@ -32,6 +32,9 @@ def check_outputs(outputs: dict[str, object], inputs: dict[str, object] | None =
     `outputs` {option: path or None}, `inputs` {what: path, list of paths or None};
     `may_replace` names inputs an output may replace on purpose (sync's calibration).
     """
+    for option, path in outputs.items():
+        if path is not None and str(path).endswith(("/", os.sep)):
+            raise InputError(f"{option} {path} ends in a separator; name a file, not a folder")
     given = {option: Path(path) for option, path in outputs.items() if path is not None}
     read = []
     for what, value in (inputs or {}).items():
@@ -62,8 +65,6 @@ def check_writable(path: str | os.PathLike, option: str = "output") -> None:
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{option} {path} is a folder; name a file inside it")
-    if str(path).endswith(os.sep):
-        raise InputError(f"{option} {path} ends in a separator; name a file, not a folder")
     folder = _nearest_existing(path.parent)
     if not folder.is_dir():
         raise InputError(f"{option} {path}: {folder} is a file, not a folder; choose another output path")

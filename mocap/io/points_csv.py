@@ -7,7 +7,6 @@ the point; `views` the number of cameras that saw it.
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +14,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
+from mocap.io.text import csv_rows, read_text
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
 
@@ -62,7 +61,7 @@ def save_points(points: Points, path: str | Path) -> None:
 def load_points(path: str | Path) -> Points:
     path = Path(path)
     text = read_text(path, "check the points path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in ("frame", "marker", "x", "y", "z") if c not in header]
     if missing:
@@ -85,6 +84,9 @@ def load_points(path: str | Path) -> Points:
             raise InputError(
                 "expected frame (integer), marker, x, y, z (numbers)", path=path, where=f"line {line}"
             ) from None
+        if frames[-1] < 0 or not np.all(np.isfinite(xyz[-1])) or not markers[-1]:
+            raise InputError("expected a frame >= 0, a marker name and finite x, y, z", path=path,
+                             where=f"line {line}")
     return Points(
         np.array(frames, dtype=int),
         np.array(markers, dtype=object),

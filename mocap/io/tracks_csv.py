@@ -189,7 +189,8 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
             fail(empty, lambda k: f"{key} is empty; a marker not seen has no row")
         values[key] = _floats(np.where(empty, "nan", text), key, lines, path)
         fail(~empty & ~np.isfinite(values[key]),
-             lambda k: f"{'x and y' if key in 'xy' else key} must be finite numbers, got {key} {str(text[k])!r}")
+             lambda k: f"{'x and y must be finite numbers' if key in 'xy' else key + ' must be a finite number'}, "
+                     f"got {key} {str(text[k])!r}")
     xy = np.c_[values["x"], values["y"]]
     fail(np.any(np.abs(xy) > MAX_PIXEL, axis=1),
          lambda k: f"pixel ({xy[k, 0]:g}, {xy[k, 1]:g}) is far outside any image")

@@ -291,6 +291,8 @@ class _Problem(KinematicModel):
     def grid(self) -> np.ndarray:
         """(K, J) candidates: a regular grid inside the limits (unbounded joints ±1 m)."""
         n_joints = self.machine.n_joints
+        if n_joints == 0:  # a rigid model: one candidate, the empty joint vector
+            return np.zeros((1, 0))
         lower = np.where(np.isfinite(self.lower), self.lower, -1.0)
         upper = np.where(np.isfinite(self.upper), self.upper, 1.0)
         span = upper - lower

@@ -5,6 +5,8 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
+
 import numpy as np
 
 from mocap.errors import InputError
@@ -95,6 +97,9 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
     clock = on_reference_clock(calibration, tracks, markers)
+    if machine.n_joints == 0 and not fit_options.base_motion:
+        log.info("%s is rigid (no joints): fitting its pose per frame", machine.name)
+        fit_options = replace(fit_options, base_motion=True)
     result = reconstruct_motion(
         machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
         fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,

@@ -12,7 +12,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks, save_tracks
 from mocap.io.video import Video
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
@@ -73,7 +73,9 @@ def run_track(request: TrackRequest) -> TrackReport:
     model = CameraModel(machine, camera)
     labelled = None
     if request.labels is not None:
-        labelled = _first_frame_pixels(load_tracks(request.labels), machine, camera.name, request.start, request.labels)
+        labels = load_tracks(request.labels)
+        check_in_images(labels.of_camera(camera.name), {camera.name: camera.size}, request.labels)
+        labelled = _first_frame_pixels(labels, machine, camera.name, request.start, request.labels)
     options = request.options
     frames = video.frames(gray=True, start=request.start, stop=request.stop, prefetch=4)
     if request.propose_labels is not None:
@@ -108,9 +110,10 @@ def run_track(request: TrackRequest) -> TrackReport:
 
 def _first_frame_pixels(labels: Tracks, machine, camera: str, frame: int, path) -> np.ndarray:
     """The digitised pixels (M, 2) of `camera` at `frame` from a labels tracks CSV."""
-    rows = labels.of_camera(camera) if camera in labels.cameras else labels
-    if len(set(rows.camera)) > 1:
-        raise InputError(f"labels for several cameras and none named {camera!r}", path=path)
+    if camera not in labels.cameras:
+        raise InputError(f"labels of camera(s) {', '.join(labels.cameras)}, none of {camera!r}; give "
+                         f"this camera's labels (camera column {camera})", path=path)
+    rows = labels.of_camera(camera)
     unknown = sorted(set(rows.marker) - set(machine.marker_names))
     if unknown:
         raise InputError(f"markers not in the machine model: {', '.join(unknown)}", path=path)
@@ -122,4 +125,4 @@ def _first_frame_pixels(labels: Tracks, machine, camera: str, frame: int, path) 
             "pass --start with the labels' frame",
             path=path,
         )
-    return at.dense([camera if camera in labels.cameras else at.camera[0]], machine.marker_names, [frame])[0, 0]
+    return at.dense([camera], machine.marker_names, [frame])[0, 0]
