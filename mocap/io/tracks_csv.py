@@ -194,7 +194,6 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
     xy = np.c_[values["x"], values["y"]]
     fail(np.any(np.abs(xy) > MAX_PIXEL, axis=1),
          lambda k: f"pixel ({xy[k, 0]:g}, {xy[k, 1]:g}) is far outside any image")
-    fail(values["time"] < 0, lambda k: f"time {values['time'][k]:g} is negative")
 
     tracks = Tracks.from_rows(camera.astype(object), frame, marker.astype(object), xy,
                               values["time"], values["score"])
