@@ -106,6 +106,11 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
             )
 
 
+def _columns(col: dict, names: list[str], n: int) -> np.ndarray:
+    """(n, len(names)) of the named columns; (n, 0) when there are none."""
+    return np.column_stack([col[c] for c in names]) if names else np.zeros((n, 0))
+
+
 def load_motion(path: str | Path, machine: Machine) -> Motion:
     """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
     path = Path(path)
@@ -161,8 +166,8 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
         point_names=machine.point_names,
         frame=col["frame"].astype(int),
         time=col["time"],
-        joints=np.column_stack([col[n] for n in joint_cols]).reshape(-1, machine.n_joints) / scale,
-        points=np.column_stack([col[c] for c in point_cols]).reshape(-1, n_points, 3),
+        joints=_columns(col, joint_cols, len(table)) / scale,  # (F, 0) for a rigid model
+        points=_columns(col, point_cols, len(table)).reshape(len(table), n_points, 3),
         bucket_angle=np.radians(col.get("bucket_angle_deg", np.full(len(table), np.nan))),
         joints_sd=None if joints_sd is None else joints_sd / scale,
         points_sd=points_sd,
