@@ -78,7 +78,7 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
     fps = [f"{c.name}={c.fps}" for c in config.cameras]
     fps_args = [arg for value in fps for arg in ("--fps", value)]
     final = calibration
-    if len(cameras) > 1:
+    if len(cameras) > 1 and session.machine().n_joints > 0:  # a rigid object has no joints to sync on
         commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
     if options.refine:
         final = str(session.refined_calibration_path)

@@ -4,7 +4,7 @@ frame labels; label and track; write the tracks CSV (or the proposed labels)."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -70,13 +70,18 @@ def run_track(request: TrackRequest) -> TrackReport:
     if start is None:
         start = machine.clip_to_limits(np.zeros(machine.n_joints))
     fps = video.info.fps or float(calibration.extras[index].get("fps", 0.0))
-    model = CameraModel(machine, camera)
+    model = CameraModel(machine, camera, solid=machine.n_joints > 0)
     labelled = None
     if request.labels is not None:
         labels = load_tracks(request.labels)
         check_in_images(labels.of_camera(camera.name), {camera.name: camera.size}, request.labels)
         labelled = _first_frame_pixels(labels, machine, camera.name, request.start, request.labels)
     options = request.options
+    if machine.n_joints == 0 and options.occlusion:
+        # a rigid model's one link box is the hull of its markers, not its shape: it would hide
+        # markers that the camera sees
+        log.info("%s is rigid: no occlusion by its link box", machine.name)
+        options = replace(options, occlusion=False)
     frames = video.frames(gray=True, start=request.start, stop=request.stop, prefetch=4)
     if request.propose_labels is not None:
         first = next(iter(frames), None)
