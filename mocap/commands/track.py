@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from mocap.cli import COMMANDS
@@ -83,5 +84,6 @@ def run(args) -> int:
     print(f"{args.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
     if report.broken_at is not None:
-        print(f"{args.video}: the video broke at frame {report.broken_at}; tracks up to there are written")
+        print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
+              "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)
     return 0

@@ -243,7 +243,7 @@ def _check_span(tracks: Tracks, rows: np.ndarray, where, unit: str) -> None:
         if span > SPARSE_SPAN and present * 10 < span:
             k = mine[np.argmax(frames)]
             raise InputError(
-                f"camera {name!r} has rows in only {present} of the {span:,} frames from "
+                f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
                 f"{frames.min()} to {frames.max()} ({unit} {rows[k]}); a stray frame number?",
                 path=where)
 

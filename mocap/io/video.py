@@ -1,9 +1,10 @@
 """Reading videos frame by frame: grey from the decoder's luma plane (PyAV), colour
 through OpenCV's VideoCapture; the video's size, rate and frame count from OpenCV.
 
-A video that cannot be opened is an InputError. A video that breaks part-way (a corrupt or
-truncated file) stops the iteration with a warning naming the frame where it broke; the
-frames before it have been delivered, so a caller keeps its results up to there.
+A video that cannot be opened (not a video, a still image renamed, a truncated file without
+its index) is an InputError. A video that breaks part-way (a corrupt or truncated file)
+stops the iteration and sets `broken_at`, the frame where it broke; the frames before it
+have been delivered, so a caller keeps its results up to there or refuses them.
 """
 
 from __future__ import annotations
@@ -147,7 +148,7 @@ class Video:
         expected = self.info.frame_count if stop is None else min(stop, self.info.frame_count)
         if index < expected:
             self.broken_at = index
-            log.warning(
+            log.info(  # the caller reports it, once
                 "%s: the video broke at frame %d of %d (corrupt or truncated); frames before it are kept",
                 self.path,
                 index,
