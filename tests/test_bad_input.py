@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from badinput_files import snapshot, write_rig, write_session, write_video
+from badinput_files import FPS, snapshot, write_rig, write_session, write_video
 
 from mocap.cli import main
 
@@ -368,8 +368,24 @@ VIDEO_SPOILS = {
     "random-bytes": lambda p: p.write_bytes(np.random.default_rng(1).integers(0, 256, 5000, dtype=np.uint8).tobytes()),
     "wrong-size": lambda p: write_video(p, (160, 120), 3),
 }
+def truncated_h264(path: Path) -> None:
+    """An H.264 MP4 cut in half: its index (moov atom) is lost."""
+    from mocap.synthetic.encode import video_writer
+
+    with video_writer(path, (64, 48), FPS, "h264", 1) as write:
+        for k in range(20):
+            write(np.full((48, 64, 3), 10 * k, np.uint8))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+VIDEO_SPOILS["truncated-h264"] = truncated_h264
 for _name, _spoil in VIDEO_SPOILS.items():
     case(f"track/video-{_name}")(_track_video(_spoil))
+    if _name != "wrong-size":  # the replay shows a video of any size
+        def _view_video(d, spoil=_spoil):
+            spoil(d / "video.mp4")
+            return argv_for("view", d) + ["--video", f"cam1={d / 'video.mp4'}"]
+        case(f"view/video-{_name}")(_view_video)
 
 
 def _track_args(extra: list[str], keep_out: bool = True):
@@ -448,6 +464,10 @@ for _command, _extras in {
 
 for _command in ("calibrate", "fit", "refine", "sync", "track", "view"):
     for _name, _text in {
+        "machine-limits-reversed": 'name = "x"\n[[links]]\nname = "base"\n[[links]]\nname = "arm"\nparent = "base"\n'
+                                   'joint = { name = "j", type = "revolute", axis = [0, 0, 1], limits = [75.0, -75.0] }\n',
+        "machine-limits-radians": 'name = "x"\n[[links]]\nname = "base"\n[[links]]\nname = "arm"\nparent = "base"\n'
+                                  'joint = { name = "j", type = "revolute", axis = [0, 0, 1], limits = [-500, 500] }\n',
         "machine-empty": "",
         "machine-no-markers": 'name = "x"\n[[links]]\nname = "base"\n',
         "machine-not-toml": "name = \n",

@@ -8,6 +8,7 @@ from pathlib import Path
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
+from mocap.io.video import probe_video
 from mocap.session import Session
 from mocap.viewer import Sinks, run_replay
 from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
@@ -58,6 +59,10 @@ def run(args) -> int:
         videos=parse_videos(args.video),
         cycles=args.cycles,
     )
+    for path in files.videos.values():  # the videos asked for must be videos; a session's may be absent
+        if not path.is_file():
+            raise InputError("video file not found; check --video NAME=PATH", path=path)
+        probe_video(path)
     files = with_session(files, args.session)
     sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
     if not sinks.any:

@@ -47,7 +47,7 @@ class Video:
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError("video file not found; check the path", path=self.path)
-        _probe(self.path)
+        probe_video(self.path)
         capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
             raise InputError("cannot open the video (unknown format or corrupt file)", path=self.path)
@@ -156,7 +156,7 @@ class Video:
             )
 
 
-def _probe(path: Path) -> None:
+def probe_video(path: Path) -> None:
     """Refuse a file the video library cannot open or that holds no video: a still image
     renamed .mp4, a truncated file without its index, a text file."""
     try:
@@ -165,8 +165,9 @@ def _probe(path: Path) -> None:
             streams = container.streams.video
             codec = streams[0].codec_context.name if streams else None
     except (av.error.FFmpegError, IndexError, ValueError, OSError) as exc:
-        reason = getattr(exc, "strerror", None) or "unknown format, or a truncated or corrupt file"
-        raise InputError(f"cannot open the video ({reason})", path=path) from None
+        reason = getattr(exc, "strerror", None) or "unknown format"
+        raise InputError(f"cannot open the video ({reason}): not a video, or a truncated or corrupt file",
+                         path=path) from None
     if codec is None:
         raise InputError(f"holds no readable video stream (a {form} file, truncated or corrupt?); give the camera's whole video", path=path)
     if form.endswith("_pipe") or form in ("image2", "png", "gif", "apng", "webp"):
