@@ -31,6 +31,10 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
         raise InputError(f"tracks name camera(s) {unknown} that the calibration lacks (it has "
                          f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
                          path=calibration_path)
+    strange = sorted(set(tracks.marker) - set(machine.marker_names))
+    if strange:
+        raise InputError(f"marker(s) {strange[:5]} are not in the machine model {machine.name!r}; check the "
+                         "model or the tracks' marker names", path=", ".join(map(str, tracks_paths)))
     missing = [name for name in calibration.names if name not in tracks.cameras]
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")

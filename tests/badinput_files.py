@@ -19,7 +19,7 @@ from mocap.simulate import observe, random_joints, ring_of_cameras
 
 SIZE = (320, 240)
 FPS = 30.0
-FRAMES = 12
+FRAMES = 45
 
 
 def write_rig(root: Path, machine_name: str = "bobcat_225", seed: int = 3) -> dict:
@@ -33,8 +33,9 @@ def write_rig(root: Path, machine_name: str = "bobcat_225", seed: int = 3) -> di
     extent = np.ptp(rest, axis=0).max()
     cameras = ring_of_cameras(2, rest.mean(0), (2.5 * extent, 3.5 * extent), rng, size=SIZE,
                               height=(0.3 * extent, 0.8 * extent), spread_deg=90)
-    start = random_joints(machine, 1, rng)[0]
-    joints = start + np.linspace(0, 1, FRAMES)[:, None] * 0.2 * (random_joints(machine, 1, rng)[0] - start)
+    low, high = random_joints(machine, 2, rng)
+    phase = np.sin(np.linspace(0, 2 * np.pi, FRAMES))[:, None] * np.linspace(1, 2, machine.n_joints)
+    joints = low + (high - low) * 0.5 * (1 + np.sin(phase))  # every joint moving, each its own way
     tracks = observe(cameras, machine, joints, rng, noise_px=0.3)
     tracks = type(tracks).from_rows(tracks.camera, tracks.frame, tracks.marker, tracks.xy,
                                     tracks.frame / FPS + 0.5)

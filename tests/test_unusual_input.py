@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from badinput_files import FPS, snapshot, write_rig
+from badinput_files import FPS, FRAMES, snapshot, write_rig
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -119,7 +119,7 @@ def test_rigid_object_fit_refine_view_calibrate(rigid, tmp_path, capsys):
     args = [str(root / "machine.toml"), str(root / "cameras.toml"), str(root / "tracks.csv")]
     assert main(["fit", *args, "--out", str(tmp_path / "motion.csv")]) == 0
     motion = load_motion(tmp_path / "motion.csv", machine)
-    assert len(motion) == 12 and motion.joints.shape == (12, 0)
+    assert len(motion) == FRAMES and motion.joints.shape == (FRAMES, 0)
     assert np.all(motion.extra["rms_px"] < 1.0)  # 0.3 px noise: the fixed object's pose explains it
     assert main(["refine", *args, "--out", str(tmp_path / "refined.toml")]) == 0
     assert "residual RMS" in capsys.readouterr().out
@@ -236,7 +236,7 @@ def test_a_video_that_breaks_part_way_stops_whole_video_tracking(tmp_path, capsy
 
 # --- property-based: a spoiled number is never taken as right -----------------------------------
 
-NOT_A_NUMBER = st.text(min_size=1, max_size=12).filter(lambda s: _not_float(s) and "," not in s and "\n" not in s
+NOT_A_NUMBER = st.text(min_size=1, max_size=12).filter(lambda s: _not_float(s) and "," not in s and "\n" not in s and "\0" not in s
                                                         and "\r" not in s and '"' not in s and s.strip() == s and s)
 
 

@@ -153,6 +153,8 @@ def fit_joints(
         )
     n_frames = pixels.shape[1]
     start = None if initial is None else _broadcast(initial, n_frames, n_joints, "initial")
+    if n_joints == 0:  # a rigid model: no joints to start from the grid
+        start = np.zeros((n_frames, 0))
     start_base = None
     if options.base_motion:
         start_base = np.zeros((n_frames, 6)) if initial_base is None else _broadcast(

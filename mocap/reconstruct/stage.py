@@ -14,7 +14,7 @@ from mocap.io.cameras_toml import Calibration, load_calibration, save_calibratio
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
-from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
+from mocap.io.tracks_csv import SPARSE_SPAN, Tracks, check_in_images, load_tracks
 from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.reconstruct.kinfit import FitOptions
@@ -64,7 +64,27 @@ def on_reference_clock(calibration: Calibration, tracks: Tracks, markers) -> Res
     missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
     if missing_fps and np.any(offsets != 0):
         log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
+    _check_clock_span(calibration, tracks)
     return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
+
+
+def _check_clock_span(calibration: Calibration, tracks: Tracks) -> None:
+    """The cameras' recordings placed on the reference clock by their time offsets must not
+    spread over far more reference frames than they hold (the resampling allocates by the
+    span): time offsets hours apart on seconds of tracks are refused."""
+    fps, offsets = calibration.fps(), calibration.time_offsets - calibration.time_offsets[0]
+    starts, ends, held = [], [], 0
+    for name, rate, offset in zip(calibration.names, fps, offsets):
+        frames = tracks.frame[tracks.camera == name]
+        if len(frames):
+            starts.append(frames.min() / rate + offset)
+            ends.append(frames.max() / rate + offset)
+            held += int(frames.max() - frames.min()) + 1
+    span = (max(ends) - max(min(starts), 0.0)) * fps[0] if starts else 0.0
+    if span > SPARSE_SPAN and span > 10 * held:
+        raise InputError(
+            f"the cameras' tracks, placed on the reference clock by their time offsets, spread over "
+            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps in the calibration")
 
 
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
