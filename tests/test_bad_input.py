@@ -431,6 +431,36 @@ for _name, _spoil in {
     case(f"track/{_name}")(_labels(_spoil))
 
 
+# --- points files (the replay's, and the DLT's reference) ---------------------------------------
+
+POINTS_SPOILS = {
+    "frame-text": lambda lines: lines.__setitem__(2, "one" + lines[2][lines[2].index(","):]),
+    "frame-negative": lambda lines: lines.__setitem__(2, "-" + lines[2]),
+    "x-nan": lambda lines: lines.__setitem__(2, ",".join(lines[2].split(",")[:2] + ["nan"] + lines[2].split(",")[3:])),
+    "z-text": lambda lines: lines.__setitem__(2, ",".join(lines[2].split(",")[:4] + ["deep"] + lines[2].split(",")[5:])),
+    "duplicate-row": lambda lines: lines.append(lines[2]),
+    "too-few-fields": lambda lines: lines.__setitem__(2, ",".join(lines[2].split(",")[:4])),
+    "header-lacks-z": lambda lines: lines.__setitem__(0, lines[0].replace(",z,", ",depth,")),
+    "views-text": lambda lines: lines.__setitem__(2, ",".join(lines[2].split(",")[:6] + ["two"])),
+}
+
+
+def _points(spoil, command):
+    def make(d):
+        lines = (d / "points.csv").read_text().splitlines()
+        spoil(lines)
+        (d / "points.csv").write_text("\n".join(lines) + "\n")
+        if command == "view":
+            return argv_for("view", d)
+        return argv_for("calibrate", d) + ["--method", "dlt", "--reference", str(d / "points.csv")]
+    return make
+
+
+for _name, _spoil in POINTS_SPOILS.items():
+    for _command in ("view", "calibrate"):
+        case(f"{_command}/points-{_name}")(_points(_spoil, _command))
+
+
 # --- options of the reconstruction commands ---------------------------------------------------
 
 
@@ -576,11 +606,15 @@ CASES["run/session-not-a-folder"] = lambda d: ["run", str(d / "tracks.csv")]
 # --- the test -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("command", ["calibrate", "triangulate", "fit", "refine", "sync", "track", "view"])
+@pytest.mark.parametrize("command", ["calibrate", "calibrate-dlt", "triangulate", "fit", "refine", "sync", "track",
+                                     "view"])
 def test_control_the_unspoiled_inputs_succeed(command, work, capsys):
     """Each case spoils one thing of inputs that, unspoiled, go through (so a case fails for
     its own reason, not for the rig's)."""
-    assert main(argv_for(command, work)) == 0, capsys.readouterr().err
+    argv = argv_for(command.split("-")[0], work)
+    if command == "calibrate-dlt":
+        argv += ["--method", "dlt", "--reference", str(work / "points.csv")]
+    assert main(argv) == 0, capsys.readouterr().err
     assert (work / "out").is_dir()
 
 
