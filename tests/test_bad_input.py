@@ -461,6 +461,32 @@ for _name, _spoil in POINTS_SPOILS.items():
         case(f"{_command}/points-{_name}")(_points(_spoil, _command))
 
 
+# --- the initial guess of calibrate ------------------------------------------------------------
+
+GUESS = """[cam1]
+azimuth_deg = 100.0
+elevation_deg = 12.0
+tilt_deg = 0.0
+position = [16.0, -58.0, 17.0]
+focal_px = 600.0
+"""
+
+for _name, (_old, _new) in {
+    "position-strings": ("[16.0, -58.0, 17.0]", '["16", "-58", "17"]'),
+    "position-short": ("[16.0, -58.0, 17.0]", "[16.0, -58.0]"),
+    "focal-negative": ("focal_px = 600.0", "focal_px = -600.0"),
+    "azimuth-nan": ("azimuth_deg = 100.0", "azimuth_deg = nan"),
+    "tilt-string": ("tilt_deg = 0.0", 'tilt_deg = "level"'),
+    "key-missing": ("tilt_deg = 0.0\n", ""),
+    "key-unknown": ("tilt_deg = 0.0", "tilt_deg = 0.0\nroll_deg = 1.0"),
+    "not-a-table": ("[cam1]\n", "cam1 = 5\n[cam0]\n"),
+}.items():
+    def _guess(d, old=_old, new=_new):
+        (d / "guess.toml").write_text(GUESS.replace(old, new))
+        return argv_for("calibrate", d) + ["--guess", str(d / "guess.toml")]
+    case(f"calibrate/guess-{_name}")(_guess)
+
+
 # --- options of the reconstruction commands ---------------------------------------------------
 
 

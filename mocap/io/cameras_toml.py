@@ -174,13 +174,15 @@ def numbers(value, shape, path, where, key) -> np.ndarray:
         array = None
     if (array is None or array.shape != shape
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in flat)):
-        raise InputError(f"{key!r} must be finite numbers of shape {shape}, got {value!r}",
-                         path=path, where=where)
+        raise InputError(f"{key!r} must be {_what(shape)}, got {value!r}", path=path, where=where)
     out = np.asarray(flat, dtype=float).reshape(shape)
     if not np.all(np.isfinite(out)):
-        raise InputError(f"{key!r} must be finite numbers of shape {shape}, got {value!r}",
-                         path=path, where=where)
+        raise InputError(f"{key!r} must be {_what(shape)}, got {value!r}", path=path, where=where)
     return out
+
+
+def _what(shape) -> str:
+    return "a finite number" if shape == () else f"finite numbers of shape {shape}"
 
 
 def check_matrix(matrix: np.ndarray, path, where) -> None:
