@@ -59,10 +59,7 @@ def run(args) -> int:
         videos=parse_videos(args.video),
         cycles=args.cycles,
     )
-    for path in files.videos.values():  # the videos asked for must be videos; a session's may be absent
-        if not path.is_file():
-            raise InputError("video file not found; check --video NAME=PATH", path=path)
-        probe_video(path)
+    asked = list(files.videos.values())
     files = with_session(files, args.session)
     sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
     if not sinks.any:
@@ -77,6 +74,10 @@ def run(args) -> int:
         "cycles": files.cycles,
     })
     replay = load_replay(files)
+    for path in asked:  # the videos asked for must be videos; a session's may be absent or unplayable
+        if not path.is_file():
+            raise InputError("video file not found; check --video NAME=PATH", path=path)
+        probe_video(path)
     summary = run_replay(replay, sinks)
     where = f" to {sinks.save}" if sinks.save is not None else ""
     videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
