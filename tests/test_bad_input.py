@@ -346,6 +346,23 @@ for _name, _target in {
     case(f"view/{_name}")(_view_save(_target))
 
 
+@case("calibrate/out-and-points-the-same-file")
+def _(d):
+    return argv_for("calibrate", d) + ["--points", str(d / "out" / "result.toml")]
+
+
+@case("refine/out-and-out-machine-the-same-file")
+def _(d):
+    return argv_for("refine", d) + ["--markers", "--out-machine", str(d / "out" / "result.toml")]
+
+
+@case("calibrate/default-points-over-tracks")
+def _(d):
+    (d / "reference_points.csv").write_text((d / "tracks.csv").read_text())
+    return ["calibrate", str(d / "machine.toml"), str(d / "reference_points.csv"), "--size", "320x240",
+            "--out", str(d / "cameras2.toml")]
+
+
 @case("sync/out-over-tracks")
 def _(d):
     return ["sync", str(d / "cameras.toml"), str(d / "tracks.csv"), "--machine", str(d / "machine.toml"),

@@ -107,17 +107,20 @@ def load_tracks(paths) -> Tracks:
     """Read one or several tracks CSV files (one per camera, or all cameras in one)."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    tracks = concatenate([_load_one(Path(p)) for p in paths])
-    if len(paths) > 1:
+    parts = [_load_one(Path(p)) for p in paths]
+    tracks = concatenate([part for part, _ in parts])
+    if len(paths) > 1:  # rows named by file and line
+        places = np.concatenate([np.char.add(f"{p} line ", lines.astype(str)) for p, (_, lines) in zip(paths, parts)])
         where = ", ".join(map(str, paths))
-        _check_duplicates(tracks, np.arange(len(tracks)), where, "row")
-        _check_span(tracks, np.arange(len(tracks)), where, "row")
+        _check_duplicates(tracks, places, where)
+        _check_span(tracks, places, where)
     return tracks
 
 
-def _load_one(path: Path) -> Tracks:
+def _load_one(path: Path) -> tuple[Tracks, np.ndarray]:
+    """The file's tracks and each row's line number (R,)."""
     header, columns, lines = _parse(read_text(path, "check the tracks path"), path)
-    return _validate(header, columns, lines, path)
+    return _validate(header, columns, lines, path), lines
 
 
 def _parse(text: str, path: Path) -> tuple[list[str], dict[str, np.ndarray], np.ndarray]:
@@ -197,8 +200,9 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
 
     tracks = Tracks.from_rows(camera.astype(object), frame, marker.astype(object), xy,
                               values["time"], values["score"])
-    _check_duplicates(tracks, lines, path, "line")
-    _check_span(tracks, lines, path, "line")
+    places = np.char.add("line ", lines.astype(str))
+    _check_duplicates(tracks, places, path)
+    _check_span(tracks, places, path)
     return tracks
 
 
@@ -215,7 +219,7 @@ def _floats(text: np.ndarray, key: str, lines: np.ndarray, path) -> np.ndarray:
         raise
 
 
-def _check_duplicates(tracks: Tracks, rows: np.ndarray, where, unit: str) -> None:
+def _check_duplicates(tracks: Tracks, places: np.ndarray, where) -> None:
     """One row per (camera, frame, marker): a second is an error naming both."""
     if len(tracks) < 2:
         return
@@ -228,11 +232,11 @@ def _check_duplicates(tracks: Tracks, rows: np.ndarray, where, unit: str) -> Non
         first, second = sorted((order[repeat[0]], order[repeat[0] + 1]))
         raise InputError(
             f"marker {tracks.marker[first]!r} of camera {tracks.camera[first]!r} appears twice in frame "
-            f"{tracks.frame[first]} ({unit}s {rows[first]} and {rows[second]}); keep one row per marker "
+            f"{tracks.frame[first]} ({places[first]} and {places[second]}); keep one row per marker "
             "and frame", path=where)
 
 
-def _check_span(tracks: Tracks, rows: np.ndarray, where, unit: str) -> None:
+def _check_span(tracks: Tracks, places: np.ndarray, where) -> None:
     """A camera's frames must not run over a span far larger than the frames it has rows in
     (the stages allocate by the span): a stray frame number is refused, naming its row."""
     for name in tracks.cameras:
@@ -244,7 +248,7 @@ def _check_span(tracks: Tracks, rows: np.ndarray, where, unit: str) -> None:
             k = mine[np.argmax(frames)]
             raise InputError(
                 f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
-                f"{frames.min()} to {frames.max()} ({unit} {rows[k]}); a stray frame number?",
+                f"{frames.min()} to {frames.max()} ({places[k]}); a stray frame number?",
                 path=where)
 
 
