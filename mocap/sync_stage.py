@@ -11,18 +11,13 @@ from mocap.errors import InputError
 from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.sync import joint_curves, synchronise
+from mocap.sync import joint_curves, pose_curves, synchronise
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
     if not max_offset > 0:
         raise InputError(f"--max-offset {max_offset}: must be positive")
     machine = load_machine(machine_path)
-    if machine.n_joints == 0:
-        raise InputError(
-            f"the model {machine.name!r} is rigid (no joints): sync aligns joint-value curves and a "
-            "rigid object has none; give each camera's time_offset in the calibration instead",
-            path=machine_path)
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
     check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
@@ -44,8 +39,15 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
         rows = tracks.of_camera(camera.name)
         frames = np.arange(rows.frame.min(), rows.frame.max() + 1)
         pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
-        curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
+        if machine.n_joints:
+            curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
+        else:  # a rigid object: its pose is the motion to align
+            curves.append(pose_curves(machine, camera, frames, pixels))
     result = synchronise(curves, fps, max_offset)
+    if machine.n_joints == 0 and any("do not vary" in r for r in result.reasons):
+        raise InputError(f"the rigid object {machine.name!r} does not move in {calibration.names[0]}'s view: "
+                         "no motion to synchronise on; give each camera's time_offset in the calibration "
+                         "instead", path=machine_path)
     failed = [f"{calibration.names[k]}: {r}" for k, r in enumerate(result.reasons) if r]
     if failed:
         raise InputError("cannot synchronise: " + "; ".join(failed))

@@ -139,15 +139,6 @@ def test_rigid_object_fit_refine_view_calibrate(rigid, tmp_path, capsys):
         assert np.linalg.norm(fitted.center - true.center) < 4 * position_sd + 0.05
 
 
-def test_rigid_object_sync_is_refused_in_one_line(rigid, capsys):
-    root, _ = rigid
-    before = snapshot(root)
-    assert main(["sync", str(root / "cameras.toml"), str(root / "tracks.csv"), "--machine",
-                 str(root / "machine.toml"), "--out", str(root / "s.toml")]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "is rigid (no joints)" in err and snapshot(root) == before
-
-
 def static_rigid_video(path: Path, camera, machine, rng, frames: int = 8) -> np.ndarray:
     """A still video of the cube pair's eight markers as disks facing the camera; the
     true pixels (M, 2)."""
@@ -342,3 +333,45 @@ def test_rigid_object_runs_through_the_whole_chain(tmp_path, capsys):
     # a metre-scale object 15-20 m away, labels to 0.3 px, one frame: centimetres
     assert np.median(error) < 0.03
     assert (tmp_path / "results" / "COMPLETE").is_file() and (tmp_path / "results" / "session.rrd").stat().st_size > 0
+
+
+def moving_pose(time: np.ndarray) -> np.ndarray:
+    """(F, 4, 4) world_from_base of a rigid object swaying and sliding (a crane's load)."""
+    from mocap.geometry import rotvec_to_matrix
+
+    out = np.tile(np.eye(4), (len(time), 1, 1))
+    angles = np.c_[0.2 * np.sin(1.3 * time), 0.1 * np.sin(0.7 * time + 1), 0.4 * np.sin(0.5 * time)]
+    out[:, :3, :3] = rotvec_to_matrix(angles)
+    out[:, :3, 3] = np.c_[np.sin(0.6 * time), 0.5 * np.cos(0.9 * time), 0.2 * np.sin(1.1 * time)]
+    return out
+
+
+def test_rigid_object_sync_on_its_motion_and_refused_when_still(rigid, tmp_path, capsys):
+    root, truth = rigid
+    machine, cameras = truth["machine"], truth["cameras"]
+    offsets = np.array([0.0, 0.37])  # camera 2 started 0.37 s after the reference
+    rng = np.random.default_rng(8)
+    parts = []
+    for camera, offset in zip(cameras, offsets):
+        frames = np.arange(240)
+        time = frames / FPS + offset
+        world = machine.markers(np.zeros((len(frames), 0)), moving_pose(time))
+        uv = camera.project(world) + rng.normal(0, 0.3, world.shape[:2] + (2,))
+        f, m = np.nonzero(np.all(np.isfinite(uv), axis=-1))
+        parts.append(Tracks.from_rows([camera.name] * len(f), frames[f], np.asarray(machine.marker_names)[m], uv[f, m]))
+    from mocap.io.tracks_csv import concatenate
+
+    save_tracks(concatenate(parts), tmp_path / "moving.csv")
+    argv = ["sync", str(root / "cameras.toml"), str(tmp_path / "moving.csv"), "--machine", str(root / "machine.toml"),
+            "--out", str(tmp_path / "synced.toml")]
+    assert main(argv) == 0, capsys.readouterr().err
+    found = load_calibration(tmp_path / "synced.toml").time_offsets
+    # one camera alone sees the pose of eight markers 30 m away with 0.3 px noise: a third of a
+    # frame off (noiseless pixels: a hundredth), as the joint-based sync on the demo is held to half
+    assert abs(found[1] - offsets[1]) * FPS < 0.5
+    argv[2] = str(root / "tracks.csv")  # the rig's own tracks: the object stands still
+    before = snapshot(root)
+    assert main(argv[:-1] + [str(tmp_path / "still.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not move" in err and not (tmp_path / "still.toml").exists()
+    assert snapshot(root) == before
