@@ -534,6 +534,38 @@ for _command, _extras in {
     for _name, _extra in _extras.items():
         case(f"{_command}/{_name}")(_options(_command, _extra))
 
+for _name, _text in {
+    "cycles-huge-frame": "start_frame,end_frame\n0,99999999999999999999999\n",
+    "cycles-negative": "start_frame,end_frame\n-5,10\n",
+    "cycles-reversed": "start_frame,end_frame\n10,5\n",
+    "cycles-text": "start_frame,end_frame\nfirst,10\n",
+    "cycles-no-header": "0,10\n",
+}.items():
+    def _cycles(d, text=_text):
+        (d / "cycles.csv").write_text(text)
+        return argv_for("view", d) + ["--cycles", str(d / "cycles.csv")]
+    case(f"view/{_name}")(_cycles)
+
+for _name, _spoil in {
+    "motion-text": lambda lines: lines.__setitem__(3, lines[3].replace(",", ",abc,", 1).rsplit(",", 1)[0]),
+    "motion-too-few-fields": lambda lines: lines.__setitem__(3, lines[3].rsplit(",", 2)[0]),
+    "motion-frames-repeat": lambda lines: lines.append(lines[-1]),
+    "motion-frame-fraction": lambda lines: lines.__setitem__(3, "2.5" + lines[3][lines[3].index(","):]),
+    "motion-header-lacks-joint": lambda lines: lines.__setitem__(0, lines[0].replace(",boom,", ",beam,")),
+    "motion-time-nan": lambda lines: lines.__setitem__(3, lines[3].split(",")[0] + ",nan," + ",".join(lines[3].split(",")[2:])),
+}.items():
+    def _motion(d, spoil=_spoil):
+        lines = (d / "motion.csv").read_text().splitlines()
+        spoil(lines)
+        (d / "motion.csv").write_text("\n".join(lines) + "\n")
+        return argv_for("view", d)
+    case(f"view/{_name}")(_motion)
+
+for _command, _extras in {
+}.items():
+    for _name, _extra in _extras.items():
+        case(f"{_command}/{_name}")(_options(_command, _extra))
+
 
 # --- wrong machine model ------------------------------------------------------------------------
 

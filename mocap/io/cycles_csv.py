@@ -77,6 +77,9 @@ def load_cycles(path: str | Path) -> Cycles:
             ) from None
         if end < start:
             raise InputError(f"end_frame {end} is before start_frame {start}", path=path, where=f"line {line}")
+        if not 0 <= start <= end <= 100_000_000:
+            raise InputError(f"start_frame {start} and end_frame {end} must be frames from 0 to 100,000,000",
+                             path=path, where=f"line {line}")
         names.append(row[col["cycle"]].strip() if "cycle" in col else str(len(names) + 1))
         starts.append(start)
         ends.append(end)

@@ -106,6 +106,14 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
             )
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text or "nan")
+    except ValueError:
+        return False
+    return True
+
+
 def _columns(col: dict, names: list[str], n: int) -> np.ndarray:
     """(n, len(names)) of the named columns; (n, 0) when there are none."""
     return np.column_stack([col[c] for c in names]) if names else np.zeros((n, 0))
@@ -128,29 +136,29 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
             path=path,
             where="line 1",
         )
-    rows = []
-    for line, row in enumerate(reader, start=2):
-        if not row:
-            continue
-        if len(row) != len(header):
-            raise InputError(f"{len(row)} fields, the header has {len(header)}", path=path, where=f"line {line}")
-        try:
-            rows.append([float(v) if v.strip() else np.nan for v in row])
-        except ValueError:
-            raise InputError("a field is not a number", path=path, where=f"line {line}") from None
-    table = np.array(rows, dtype=float).reshape(-1, len(header))
+    rows = [(line, row) for line, row in enumerate(reader, start=2) if row]
+    bad = [(line, len(row)) for line, row in rows if len(row) != len(header)]
+    if bad:
+        raise InputError(f"{bad[0][1]} fields, the header has {len(header)}", path=path, where=f"line {bad[0][0]}")
+    text = np.char.strip(np.array([row for _, row in rows], dtype=str).reshape(len(rows), len(header)))
+    try:  # whole columns at once; only on the way to an error row by row
+        table = np.where(text == "", "nan", text).astype(float)
+    except ValueError:
+        line = next(line for line, row in rows if not all(_is_number(v) for v in row))
+        raise InputError("a field is not a number", path=path, where=f"line {line}") from None
     col = {h: table[:, i] for i, h in enumerate(header)}
+    lines = np.array([line for line, _ in rows], dtype=int)
     frame = col["frame"]
     bad = np.flatnonzero(~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame)) | (frame > 1e8))
     if len(bad):
         raise InputError(f"frame {frame[bad[0]]:g} is not a frame number (a whole number >= 0)",
-                         path=path, where=f"row {bad[0] + 1}")
+                         path=path, where=f"line {lines[bad[0]]}")
     bad = np.flatnonzero(~np.isfinite(col["time"]))
     if len(bad):
-        raise InputError("time must be a finite number of seconds", path=path, where=f"row {bad[0] + 1}")
+        raise InputError("time must be a finite number of seconds", path=path, where=f"line {lines[bad[0]]}")
     if np.any(np.diff(frame) <= 0):
         raise InputError("frames must increase from row to row", path=path,
-                         where=f"row {np.flatnonzero(np.diff(frame) <= 0)[0] + 2}")
+                         where=f"line {lines[np.flatnonzero(np.diff(frame) <= 0)[0] + 1]}")
     scale = _joint_scale(machine)
     n_points = len(machine.point_names)
 
