@@ -138,6 +138,21 @@ TRACK_SPOILS = {  # case: (column, value) of one row
     "long-name": ("marker", "M" * 300),
 }
 
+TRACK_EXPECT = {  # case: what the line says (default: it names the tracks file)
+    "frame-text": r"line 4: frame 'zero' is not an integer", "frame-negative": r"line 4: frame -3 is negative",
+    "frame-fraction": r"line 4: frame '2\.5' is not an integer", "frame-huge": r"line 4: frame .* beyond",
+    "frame-beyond-limit": r"line 4: frame .* beyond", "x-text": r"line 4: x 'left' is not a number",
+    "x-nan": r"line 4: x and y must be finite", "x-inf": r"line 4: x and y must be finite",
+    "x-empty": r"line 4: x is empty", "y-1e300": r"line 4: pixel .* far outside", "x-1e9": r"line 4: pixel .* far outside",
+    "x-outside-image": r"frame 0, marker .* outside the 320x240 image", "y-negative-far": r"outside the 320x240 image",
+    "camera-empty": r"line 4: camera and marker must not be empty", "marker-empty": r"line 4: camera and marker",
+    "camera-unknown": r"camera\(s\) \['cam9'\]", "marker-unknown": r"Z9", "time-text": r"line 4: time 'noon'",
+    "time-inf": r"line 4: time must be a finite number", "huge-field": r"line 4: not a readable CSV \(field larger",
+    "long-name": r"line 4: a camera or marker name longer than 200",
+}
+PLACE_EXPECT = {"a-folder": "is a folder", "in-proc": "/proc is not writable", "under-a-file": "is a file, not a folder",
+                "trailing-slash": "ends in a separator"}
+
 TRACK_FILES = {  # case: whole-file contents
     "empty-file": "",
     "header-only-wrong": "cam,frame,marker,x,y\n",
@@ -193,12 +208,15 @@ CALIBRATION_READERS = ("triangulate", "fit", "refine", "sync", "track", "view")
 TRACKS_READERS = ("calibrate", "triangulate", "fit", "refine", "sync", "view")
 
 CASES: dict[str, object] = {}
+EXPECT: dict[str, str] = {}  # case: a regex its one line must match (the families below)
 
 
-def case(name: str):
+def case(name: str, expect: str | None = None):
     def register(fn):
         assert name not in CASES, name
         CASES[name] = fn
+        if expect is not None:
+            EXPECT[name] = expect
         return fn
     return register
 
@@ -213,12 +231,12 @@ for _command in CALIBRATION_READERS:
         def _spoil(d, key=_key, value=_value, command=_command):
             set_camera_key(d, key, value)
             return argv_for(command, d)
-        case(f"{_command}/camera-{_name}")(_spoil)
+        case(f"{_command}/camera-{_name}", rf"cameras\.toml: (\[cam_00\]: )?.*'?{_key}'?")(_spoil)
     for _key in ("matrix", "size", "rotation"):
         def _missing(d, key=_key, command=_command):
             drop_camera_key(d, key)
             return argv_for(command, d)
-        case(f"{_command}/camera-missing-{_key}")(_missing)
+        case(f"{_command}/camera-missing-{_key}", rf"\[cam_00\]: missing {_key}")(_missing)
 
     def _not_toml(d, command=_command):
         (d / "cameras.toml").write_text("[cam_00\nname = 1\n")
@@ -242,7 +260,7 @@ for _command in TRACKS_READERS:
         def _spoil(d, column=_column, value=_value, command=_command):
             set_track_field(d, "tracks.csv", column, value)
             return argv_for(command, d)
-        case(f"{_command}/tracks-{_name}")(_spoil)
+        case(f"{_command}/tracks-{_name}", TRACK_EXPECT.get(_name, "tracks.csv"))(_spoil)
     for _name in TRACK_FILES:
         def _file(d, name=_name, command=_command):
             spoil_tracks_file(d, name)
@@ -316,16 +334,16 @@ for _option, (_argv, _inputs) in OUTPUT_OPTIONS.items():
     for _what, _rel in _inputs.items():
         def _over(d, argv=_argv, rel=_rel):
             return _resolve(d, argv, str(d / rel))
-        case(f"{_command}/{_option}-over-{_what}")(_over)
+        case(f"{_command}/{_option}-over-{_what}", "writing it would destroy the input")(_over)
 
         def _over_dotted(d, argv=_argv, rel=_rel):
             return _resolve(d, argv, str(d / "session" / ".." / rel))
-        case(f"{_command}/{_option}-over-{_what}-by-another-path")(_over_dotted)
+        case(f"{_command}/{_option}-over-{_what}-by-another-path", "writing it would destroy the input")(_over_dotted)
     for _where, _target in {"a-folder": "session", "in-proc": "/proc/mocap-out", "under-a-file": "tracks.csv/x",
                             "trailing-slash": "newdir/"}.items():
         def _bad_place(d, argv=_argv, target=_target):
             return _resolve(d, argv, target if target.startswith("/") else str(d / target) + ("/" if target.endswith("/") else ""))
-        case(f"{_command}/{_option}-{_where}")(_bad_place)
+        case(f"{_command}/{_option}-{_where}", PLACE_EXPECT[_where])(_bad_place)
 
 
 def _view_save(target):
@@ -400,12 +418,12 @@ def truncated_h264(path: Path) -> None:
 
 VIDEO_SPOILS["truncated-h264"] = truncated_h264
 for _name, _spoil in VIDEO_SPOILS.items():
-    case(f"track/video-{_name}")(_track_video(_spoil))
+    case(f"track/video-{_name}", "video.mp4: ")(_track_video(_spoil))
     if _name != "wrong-size":  # the replay shows a video of any size
         def _view_video(d, spoil=_spoil):
             spoil(d / "video.mp4")
             return argv_for("view", d) + ["--video", f"cam1={d / 'video.mp4'}"]
-        case(f"view/video-{_name}")(_view_video)
+        case(f"view/video-{_name}", "video.mp4: ")(_view_video)
 
 
 def _track_args(extra: list[str], keep_out: bool = True):
@@ -475,7 +493,7 @@ def _points(spoil, command):
 
 for _name, _spoil in POINTS_SPOILS.items():
     for _command in ("view", "calibrate"):
-        case(f"{_command}/points-{_name}")(_points(_spoil, _command))
+        case(f"{_command}/points-{_name}", r"points\.csv: line \d+: ")(_points(_spoil, _command))
 
 
 # --- the initial guess of calibrate ------------------------------------------------------------
@@ -583,7 +601,7 @@ for _command in ("calibrate", "fit", "refine", "sync", "track", "view"):
         def _machine(d, text=_text, command=_command):
             (d / "machine.toml").write_text(text)
             return argv_for(command, d)
-        case(f"{_command}/{_name}")(_machine)
+        case(f"{_command}/{_name}", r"machine\.toml: ")(_machine)
 
     def _other(d, command=_command):
         import shutil
@@ -705,6 +723,8 @@ def test_bad_input(name, work, capsys):
     lines = err.strip("\n").split("\n")
     assert len(lines) == 1 and lines[0].startswith("mocap"), f"stderr not one line: {err!r}"
     assert "np.float64" not in err and "np.str_" not in err
+    if name in EXPECT:
+        assert re.search(EXPECT[name], lines[0]), f"{lines[0]!r} does not say {EXPECT[name]!r}"
     assert snapshot(work) == before, "an input changed or an output was left behind"
 
 

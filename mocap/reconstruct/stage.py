@@ -59,16 +59,16 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
     return calibration, tracks, markers
 
 
-def on_reference_clock(calibration: Calibration, tracks: Tracks, markers) -> Resampled:
+def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
     offsets = calibration.time_offsets
     missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
     if missing_fps and np.any(offsets != 0):
         log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
-    _check_clock_span(calibration, tracks)
+    _check_clock_span(calibration, tracks, path)
     return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
 
 
-def _check_clock_span(calibration: Calibration, tracks: Tracks) -> None:
+def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
     """The cameras' recordings placed on the reference clock by their time offsets must not
     spread over far more reference frames than they hold (the resampling allocates by the
     span): time offsets hours apart on seconds of tracks are refused."""
@@ -84,12 +84,12 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks) -> None:
     if span > SPARSE_SPAN and span > 10 * held:
         raise InputError(
             f"the cameras' tracks, placed on the reference clock by their time offsets, spread over "
-            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps in the calibration")
+            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps", path=path)
 
 
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
-    clock = on_reference_clock(calibration, tracks, markers)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     cameras = list(calibration.cameras)
     rows = []
     for start in progress(range(0, len(clock.frame), _CHUNK_FRAMES), desc="triangulate", unit="chunk"):
@@ -116,7 +116,7 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
             smooth_options: SmoothOptions | None) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
-    clock = on_reference_clock(calibration, tracks, markers)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     if machine.n_joints == 0 and not fit_options.base_motion:
         log.info("%s is rigid (no joints): fitting its pose per frame", machine.name)
         fit_options = replace(fit_options, base_motion=True)
@@ -139,7 +139,7 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
                options: RefineOptions) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
-    clock = on_reference_clock(calibration, tracks, markers)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     result = refine(machine, list(calibration.cameras), clock.pixels, options)
     refined = Calibration(result.cameras, calibration.extras, {
         **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),
