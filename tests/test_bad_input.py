@@ -381,6 +381,18 @@ def _(d):
             "--out", str(d / "cameras2.toml")]
 
 
+@case("fit/out-a-symlink-to-tracks", "writing it would destroy the input")
+def _(d):
+    (d / "link.csv").symlink_to(d / "tracks.csv")
+    return argv_for("fit", d)[:-1] + [str(d / "link.csv")]
+
+
+@case("triangulate/out-a-hard-link-to-tracks", "writing it would destroy the input")
+def _(d):
+    (d / "hard.csv").hardlink_to(d / "tracks.csv")
+    return argv_for("triangulate", d)[:-1] + [str(d / "hard.csv")]
+
+
 @case("sync/out-over-tracks")
 def _(d):
     return ["sync", str(d / "cameras.toml"), str(d / "tracks.csv"), "--machine", str(d / "machine.toml"),
