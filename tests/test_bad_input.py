@@ -10,6 +10,7 @@ session folder; each case spoils one thing.
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ import pytest
 from badinput_files import FPS, snapshot, write_rig, write_session, write_video
 
 from mocap.cli import main
+from mocap.io.machine_toml import MACHINES_DIR
+from mocap.synthetic.encode import video_writer
 
 # --- the valid inputs, made once ---------------------------------------------------------
 
@@ -35,8 +38,6 @@ def base(tmp_path_factory) -> Path:
 @pytest.fixture
 def work(base, tmp_path) -> Path:
     """A fresh copy of the valid inputs."""
-    import shutil
-
     shutil.copytree(base, tmp_path / "w")
     return tmp_path / "w"
 
@@ -420,8 +421,6 @@ VIDEO_SPOILS = {
 }
 def truncated_h264(path: Path) -> None:
     """An H.264 MP4 cut in half: its index (moov atom) is lost."""
-    from mocap.synthetic.encode import video_writer
-
     with video_writer(path, (64, 48), FPS, "h264", 1) as write:
         for k in range(20):
             write(np.full((48, 64, 3), 10 * k, np.uint8))
@@ -616,9 +615,6 @@ for _command in ("calibrate", "fit", "refine", "sync", "track", "view"):
         case(f"{_command}/{_name}", r"machine\.toml: ")(_machine)
 
     def _other(d, command=_command):
-        import shutil
-
-        from mocap.io.machine_toml import MACHINES_DIR
         shutil.copy(MACHINES_DIR / "hitachi_ex3500.toml", d / "machine.toml")
         return argv_for(command, d)
     if _command in ("refine", "sync", "view"):
