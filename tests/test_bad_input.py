@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -738,3 +740,13 @@ def test_bad_input(name, work, capsys):
 
 def test_the_corpus_is_large():
     assert len(CASES) >= 250
+
+
+@pytest.mark.parametrize("name", ["track/video-truncated-h264", "fit/unknown-option"])
+def test_one_line_in_a_real_process(name, work):
+    """In its own process (logging, the video library's own log, argparse as a user meets
+    them) a case still prints exactly one line."""
+    argv = CASES[name](work)
+    done = subprocess.run([sys.executable, "-m", "mocap.cli", *argv], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1], timeout=120)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "Traceback" not in done.stderr, done.stderr
