@@ -121,6 +121,7 @@ TRACK_SPOILS = {  # case: (column, value) of one row
     "frame-text": ("frame", "zero"),
     "frame-negative": ("frame", "-3"),
     "frame-fraction": ("frame", "2.5"),
+    "frame-superscript": ("frame", "²"),
     "frame-huge": ("frame", "999999999999"),
     "frame-beyond-limit": ("frame", "200000000"),
     "x-text": ("x", "left"),
@@ -143,7 +144,7 @@ TRACK_SPOILS = {  # case: (column, value) of one row
 
 TRACK_EXPECT = {  # case: what the line says (default: it names the tracks file)
     "frame-text": r"line 4: frame 'zero' is not an integer", "frame-negative": r"line 4: frame -3 is negative",
-    "frame-fraction": r"line 4: frame '2\.5' is not an integer", "frame-huge": r"line 4: frame .* beyond",
+    "frame-fraction": r"line 4: frame '2\.5' is not an integer", "frame-superscript": r"line 4: frame '²'", "frame-huge": r"line 4: frame .* beyond",
     "frame-beyond-limit": r"line 4: frame .* beyond", "x-text": r"line 4: x 'left' is not a number",
     "x-nan": r"line 4: x and y must be finite", "x-inf": r"line 4: x and y must be finite",
     "x-empty": r"line 4: x is empty", "y-1e300": r"line 4: pixel .* far outside", "x-1e9": r"line 4: pixel .* far outside",

@@ -15,6 +15,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
 from mocap.io.text import csv_rows, read_text
+from mocap.io.tracks_csv import ascii_digits
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
 
@@ -90,7 +91,7 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path) -> P
             raise InputError(message, path=path, where=f"line {lines[bad[0]]}")
 
     n = len(lines)
-    fail(~np.char.isdigit(column["frame"]) | (np.char.str_len(column["frame"]) > 9),
+    fail(~ascii_digits(column["frame"]) | (np.char.str_len(column["frame"]) > 9),
          f"frame must be a whole number from 0 to {MAX_FRAME:,}")
     frame = column["frame"].astype(np.int64)
     fail(np.char.str_len(column["marker"]) == 0, "the marker name is empty")
@@ -99,7 +100,7 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path) -> P
     error = column.get("error_px", np.full(n, ""))
     error = _floats(np.where(error == "", "nan", error), lines, path, "error_px")
     views = column.get("views", np.full(n, "0"))
-    fail(~np.char.isdigit(views) | (np.char.str_len(views) > 3), "views must be a whole number of cameras")
+    fail(~ascii_digits(views) | (np.char.str_len(views) > 3), "views must be a whole number of cameras")
     marker = column["marker"].astype(object)
     keys = np.char.add(np.char.add(column["frame"], "\0"), column["marker"])
     _, first = np.unique(keys, return_index=True)

@@ -173,8 +173,8 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
          lambda k: f"a camera or marker name longer than {MAX_NAME} characters")
 
     text = columns["frame"]
-    digits = np.char.isdigit(text)
-    fail(~digits & np.char.isdigit(np.char.lstrip(text, "-")),
+    digits = ascii_digits(text)
+    fail(np.char.startswith(text, "-") & ascii_digits(np.char.lstrip(text, "-")),
          lambda k: f"frame {text[k]} is negative; frames count from 0")
     fail(~digits, lambda k: f"frame {str(text[k])[:40]!r} is not an integer")
     fail(np.char.str_len(text) > 9, lambda k: f"frame {text[k]} is beyond {MAX_FRAME:,}; a typo?")
@@ -204,6 +204,12 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
     _check_duplicates(tracks, places, path)
     _check_span(tracks, places, path)
     return tracks
+
+
+def ascii_digits(text: np.ndarray) -> np.ndarray:
+    """(R,) whether each string is made of the digits 0-9 only (no '²', no other scripts' digits)."""
+    ascii = np.char.str_len(np.char.encode(text, "utf-8")) == np.char.str_len(text)
+    return np.char.isdigit(text) & ascii
 
 
 def _floats(text: np.ndarray, key: str, lines: np.ndarray, path) -> np.ndarray:
