@@ -546,11 +546,12 @@ def _options(command: str, extra: list[str]):
 
 
 for _command, _extras in {
-    "calibrate": {"size-text": ["--size", "big"], "size-zero": ["--size", "0x240"], "frame-absent": ["--frame", "77"],
+    "calibrate": {"size-text": ["--size", "big"], "size-zero": ["--size", "0x240"],
+                  "size-huge": ["--size", "99999999999999999999x240"], "frame-absent": ["--frame", "77"],
                   "loss-scale-negative": ["--loss-scale", "-1"], "max-rms-zero": ["--max-rms", "0"],
                   "method-unknown": ["--method", "magic"], "guess-missing": ["--guess", "nope.toml"],
                   "dlt-without-reference": ["--method", "dlt"], "size-camera-unknown": ["--size", "cam9=320x240"]},
-    "triangulate": {"min-views-one": ["--min-views", "1"], "max-error-negative": ["--max-error-px", "-2"],
+    "triangulate": {"min-views-one": ["--min-views", "1"], "min-views-beyond-cameras": ["--min-views", "3"], "max-error-negative": ["--max-error-px", "-2"],
                     "max-error-nan": ["--max-error-px", "nan"], "min-views-text": ["--min-views", "two"]},
     "fit": {"loss-unknown": ["--loss", "square"], "loss-scale-zero": ["--loss-scale", "0"],
             "noise-negative": ["--noise-px", "-1"], "max-gap-negative": ["--max-gap", "-1"],
@@ -657,6 +658,8 @@ for _name, _extra in {
     "cycles-zero": ["--cycles", "0", "--out", "new"],
     "size-text": ["--size", "wide", "--out", "new"],
     "size-tiny": ["--size", "10x10", "--out", "new"],
+    "size-huge": ["--size", "100000x100000", "--out", "new"],
+    "cycles-million": ["--cycles", "1000000", "--out", "new"],
     "scale-zero": ["--scale", "0", "--out", "new"],
     "machine-unknown": ["--machine", "nope", "--out", "new"],
     "hold-short": ["--hold", "0.1", "--out", "new"],

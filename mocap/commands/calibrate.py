@@ -10,6 +10,7 @@ from mocap.calibration.solve import CalibrationOptions
 from mocap.calibration.stage import CalibrateRequest, run_calibrate
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
+from mocap.io.cameras_toml import MAX_IMAGE_SIDE
 from mocap.io.outputs import check_outputs
 
 EXAMPLE = """example:
@@ -57,6 +58,8 @@ def parse_sizes(values: list[str]) -> dict:
         match = re.fullmatch(r"(?:([^=]+)=)?(\d+)x(\d+)", value.strip())
         if not match or int(match[2]) <= 0 or int(match[3]) <= 0:
             raise InputError(f"--size {value!r}: expected WxH or NAME=WxH, e.g. 1920x1080")
+        if max(int(match[2]), int(match[3])) > MAX_IMAGE_SIDE:
+            raise InputError(f"--size {value!r}: an image side is at most {MAX_IMAGE_SIDE} pixels")
         sizes[match[1]] = (int(match[2]), int(match[3]))
     return sizes
 

@@ -18,6 +18,8 @@ from mocap.synthetic.render import RenderOptions, render_videos
 
 log = logging.getLogger(__name__)
 
+MAX_CYCLES = 100  # about an hour of digging
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -58,8 +60,8 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080") from None
-    if w < 64 or h < 64:
-        raise InputError(f"--size {text!r}: at least 64x64 pixels")
+    if w < 64 or h < 64 or w > 7680 or h > 4320:
+        raise InputError(f"--size {text!r}: from 64x64 to 7680x4320 pixels")
     return w, h
 
 
@@ -75,8 +77,8 @@ def run(args: argparse.Namespace) -> int:
     machine = load_machine(machine_path)
     if not 1 <= args.cameras <= 8:
         raise InputError(f"--cameras {args.cameras}: give 1 to 8 cameras")
-    if args.cycles < 1:
-        raise InputError(f"--cycles {args.cycles}: give at least one dig cycle")
+    if not 1 <= args.cycles <= MAX_CYCLES:
+        raise InputError(f"--cycles {args.cycles}: give 1 to {MAX_CYCLES} dig cycles")
     if args.hold < 0.5:
         raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
     check_output_folder(args.out)

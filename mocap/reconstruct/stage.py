@@ -89,6 +89,9 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
 
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
+    if options.min_views > len(calibration.cameras):
+        raise InputError(f"--min-views {options.min_views}: the calibration has only {len(calibration.cameras)} "
+                         "cameras", path=calibration_path)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     cameras = list(calibration.cameras)
     rows = []
