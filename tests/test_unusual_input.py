@@ -94,6 +94,21 @@ def test_duplicates_across_files_are_refused(rig):
         load_tracks([root / "cam1.csv", root / "tracks.csv"])
 
 
+def test_a_full_disk_is_one_clear_error_and_leaves_the_target_as_it_was(tmp_path):
+    import errno
+
+    from mocap.io.atomic import atomic_path, write_text
+
+    write_text(tmp_path / "out.csv", "old\n")
+    with pytest.raises(InputError, match=r"out\.csv: cannot write here \(No space left on device\)"):
+        with atomic_path(tmp_path / "out.csv") as tmp:
+            tmp.write_text("half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert (tmp_path / "out.csv").read_text() == "old\n" and len(list(tmp_path.iterdir())) == 1
+    with pytest.raises(InputError, match="is a file, not a folder"):
+        write_text(tmp_path / "out.csv" / "x.csv", "x")
+
+
 # --- sync's frame rate -------------------------------------------------------------------------
 
 

@@ -8,11 +8,16 @@ written; an interrupted or failed write leaves the target as it was.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
 
 from mocap.errors import InputError
+
+# the place's fault, not the program's: full, over quota, read-only, not allowed, a folder
+_PLACE_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EISDIR, errno.ENOTDIR,
+                 errno.EXDEV, errno.EFBIG}
 
 
 @contextlib.contextmanager
@@ -24,6 +29,9 @@ def atomic_path(path: str | os.PathLike):
     path = Path(path)
     if path.is_dir():
         raise InputError("is a folder; name a file to write", path=path)
+    folder = next((p for p in path.parents if p.exists()), None)
+    if folder is not None and not folder.is_dir():
+        raise InputError(f"{folder} is a file, not a folder; choose another output path", path=path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -35,10 +43,12 @@ def atomic_path(path: str | os.PathLike):
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
     try:
-        yield Path(tmp)
         try:
+            yield Path(tmp)
             os.replace(tmp, path)
         except OSError as exc:
+            if exc.errno not in _PLACE_ERRORS:
+                raise
             raise InputError(f"cannot write here ({exc.strerror or exc}); choose another output path",
                              path=path) from None
     except BaseException:
