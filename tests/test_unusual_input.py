@@ -5,6 +5,7 @@ Property-based checks (hypothesis) that no spoiled numeric field is ever taken a
 
 from __future__ import annotations
 
+import errno
 import json
 import re
 from pathlib import Path
@@ -20,6 +21,7 @@ from test_track import make_scene, write_video
 import mocap.commands.synth as synth
 from mocap.cli import main
 from mocap.errors import InputError
+from mocap.io.atomic import atomic_path, write_text
 from mocap.geometry import rotvec_to_matrix
 from mocap.io.cameras_toml import Calibration, joints_to_table, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
@@ -95,10 +97,6 @@ def test_duplicates_across_files_are_refused(rig):
 
 
 def test_a_full_disk_is_one_clear_error_and_leaves_the_target_as_it_was(tmp_path):
-    import errno
-
-    from mocap.io.atomic import atomic_path, write_text
-
     write_text(tmp_path / "out.csv", "old\n")
     with pytest.raises(InputError, match=r"out\.csv: cannot write here \(No space left on device\)"):
         with atomic_path(tmp_path / "out.csv") as tmp:
