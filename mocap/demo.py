@@ -13,6 +13,7 @@ import numpy as np
 from mocap.analysis.score import format_analysis_score, score_files
 from mocap.errors import InputError
 from mocap.evaluate import format_score, score_session
+from mocap.io.outputs import check_output_folder
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
 from mocap.pipeline import RunOptions, run_session
 from mocap.session import Session
@@ -49,8 +50,9 @@ def run_demo(options: DemoOptions) -> int:
 
     start = time.perf_counter()
     out = options.out
+    check_output_folder(out)
     if out.exists() and any(out.iterdir()):
-        if not ((out / "session.toml").is_file() and (out / "truth").is_dir()):
+        if not Session.open(out).is_synthetic:
             raise InputError("exists and is not a synthetic session folder; choose another --out", path=out)
         shutil.rmtree(out)  # an earlier demo's folder: made again from scratch
     print(f"== synth: {options.machine}, {options.cameras} cameras, {options.cycles} dig cycle(s), seed {options.seed}")

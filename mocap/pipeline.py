@@ -17,7 +17,7 @@ from pathlib import Path
 from mocap.errors import InputError
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
-from mocap.session import Session
+from mocap.session import Session, mark_complete
 
 log = logging.getLogger(__name__)
 
@@ -73,12 +73,12 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
         commands.append((
             f"track {camera}",
             ["track", str(session.video_path(camera)), "--machine", machine, "--calibration", calibration,
-             "--camera", camera, "--labels", str(labels), "--start", frame, "--out", str(session.tracks_path(camera))],
+             "--camera", camera, "--labels", str(labels), "--start", frame, "--whole-video", "--out", str(session.tracks_path(camera))],
         ))
     fps = [f"{c.name}={c.fps}" for c in config.cameras]
     fps_args = [arg for value in fps for arg in ("--fps", value)]
     final = calibration
-    if len(cameras) > 1:
+    if len(cameras) > 1 and session.machine().n_joints > 0:  # a rigid object has no joints to sync on
         commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
     if options.refine:
         final = str(session.refined_calibration_path)
@@ -100,6 +100,12 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
     from mocap import cli  # the stages are the sub-commands
 
     session = Session.open(root)
+    if not session.root.is_dir():
+        raise InputError("not a folder; give the session folder (with session.toml)", path=root)
+    if session.is_synthetic and not session.complete_path.exists():
+        raise InputError("the synthetic session is incomplete (its writing was interrupted); run "
+                         "`mocap synth` again with the same --out to finish it", path=root)
+    session.results_complete_path.unlink(missing_ok=True)
     refined, calibration = str(session.refined_calibration_path), str(session.calibration_path)
     fallback = False
     for name, args in stage_commands(session, options):
@@ -113,4 +119,5 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
             fallback = True
         elif code != 0:
             return code
+    mark_complete(session.results_complete_path, "mocap run")
     return 0

@@ -2,6 +2,10 @@
 
     session.toml  videos/<camera>.mp4  calibration/cameras.toml  tracks/<camera>.csv
     results/points.csv  results/motion.csv  results/session.rrd  truth/ (synthetic only)
+
+Work that writes many files marks its end with a file written last: COMPLETE (a synthetic
+session's videos and truth all written) and results/COMPLETE (`mocap run` went through
+every stage). A folder without it was interrupted; running the command again finishes it.
 """
 
 from __future__ import annotations
@@ -9,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from mocap.io.atomic import write_text
 from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.io.session_toml import SessionConfig, load_session_config
 from mocap.machine import Machine
@@ -81,3 +86,22 @@ class Session:
     @property
     def truth_dir(self) -> Path:
         return self.root / "truth"
+
+    @property
+    def complete_path(self) -> Path:
+        """Written last by `mocap synth`: the session's videos and truth are whole."""
+        return self.root / "COMPLETE"
+
+    @property
+    def results_complete_path(self) -> Path:
+        """Written last by `mocap run`: every stage's result is whole."""
+        return self.results_dir / "COMPLETE"
+
+    @property
+    def is_synthetic(self) -> bool:
+        return self.config_path.is_file() and self.truth_dir.is_dir()
+
+
+def mark_complete(path: Path, what: str) -> None:
+    """Write the marker file `path` (last, after every other file of `what`)."""
+    write_text(path, f"{what} finished writing this folder; a folder without this file was interrupted\n")

@@ -29,6 +29,7 @@ from mocap.reconstruct.kinfit import FitOptions, fit_joints
 log = logging.getLogger(__name__)
 
 TRUNCATE = 0.3  # scaled joint-value difference beyond which a sample counts as an outlier
+NOISY = 10.0  # a rigid pose parameter varying less than this many of its SDs is not aligned on
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,24 @@ def joint_curves(
     fit = fit_joints(machine, [camera], np.asarray(pixels, dtype=float)[None], start, FitOptions())
     good = (fit.valid & (fit.rms_px <= max_rms_px))[:, None] & (fit.joints_sd <= max_sd)
     return JointCurves(np.asarray(frames, dtype=int), np.where(good, fit.joints, np.nan))
+
+
+def pose_curves(
+    machine: Machine, camera: Camera, frames: np.ndarray, pixels: np.ndarray, max_rms_px: float = 5.0,
+) -> JointCurves:
+    """A rigid model's (no joints) pose over one camera's frames, the curves to align in place
+    of joint values: (F, 6) ``world_from_base`` as rotation vector (rad) and translation (m),
+    NaN where the fit failed or explains the pixels (F, M, 2) worse than `max_rms_px`, and
+    NaN throughout for a parameter that varies by less than NOISY times its own standard
+    deviation (the depth seen by one camera, say: mostly noise to align on)."""
+    fit = fit_joints(machine, [camera], np.asarray(pixels, dtype=float)[None], None, FitOptions(base_motion=True))
+    good = fit.valid & (fit.rms_px <= max_rms_px)
+    pose = np.where(good[:, None], fit.base, np.nan)
+    if good.sum() >= 2:
+        sd = np.sqrt(np.diagonal(fit.covariance, axis1=1, axis2=2))[good]
+        still = np.nanstd(pose, axis=0) <= NOISY * np.median(sd, axis=0)
+        pose[:, still] = np.nan
+    return JointCurves(np.asarray(frames, dtype=int), pose)
 
 
 def synchronise(

@@ -4,15 +4,14 @@ camera's time offset and frame rate; return the report."""
 
 from __future__ import annotations
 
-import re
 
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks
-from mocap.sync import joint_curves, synchronise
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
+from mocap.sync import joint_curves, pose_curves, synchronise
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
@@ -21,6 +20,16 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     machine = load_machine(machine_path)
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
+    unknown = sorted(set(tracks.cameras) - set(calibration.names))
+    if unknown:
+        raise InputError(f"tracks name camera(s) {unknown} that the calibration lacks (it has "
+                         f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
+                         path=calibration_path)
+    strange = sorted(set(tracks.marker) - set(machine.marker_names))
+    if strange:
+        raise InputError(f"marker(s) {strange[:5]} are not in the machine model {machine.name!r}; check the "
+                         "model or the tracks' marker names", path=", ".join(map(str, tracks_paths)))
     missing = [name for name in calibration.names if name not in tracks.cameras]
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")
@@ -30,8 +39,15 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
         rows = tracks.of_camera(camera.name)
         frames = np.arange(rows.frame.min(), rows.frame.max() + 1)
         pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
-        curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
+        if machine.n_joints:
+            curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
+        else:  # a rigid object: its pose is the motion to align
+            curves.append(pose_curves(machine, camera, frames, pixels))
     result = synchronise(curves, fps, max_offset)
+    if machine.n_joints == 0 and any("do not vary" in r for r in result.reasons):
+        raise InputError(f"the rigid object {machine.name!r} does not move in {calibration.names[0]}'s view: "
+                         "no motion to synchronise on; give each camera's time_offset in the calibration "
+                         "instead", path=machine_path)
     failed = [f"{calibration.names[k]}: {r}" for k, r in enumerate(result.reasons) if r]
     if failed:
         raise InputError("cannot synchronise: " + "; ".join(failed))
@@ -49,15 +65,25 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
 def parse_fps(values: list[str], names) -> dict[str, float]:
     out = {}
     for value in values:
-        match = re.fullmatch(r"([^=]+)=([0-9.]+)", value.strip())
-        if not match or match[1] not in names or not float(match[2]) > 0:
-            raise InputError(f"--fps {value!r}: expected NAME=FPS with NAME one of {', '.join(names)}")
-        out[match[1]] = float(match[2])
+        name, sep, number = (part.strip() for part in value.partition("="))
+        if not sep:
+            raise InputError(f"--fps {value!r}: expected NAME=FPS, e.g. --fps {names[0]}=30")
+        if name not in names:
+            raise InputError(f"--fps {value!r}: no camera {name!r} in the calibration (it has {', '.join(names)})")
+        try:
+            fps = float(number)
+        except ValueError:
+            raise InputError(f"--fps {value!r}: {number!r} is not a number of frames per second") from None
+        if not 0 < fps <= MAX_FPS:
+            raise InputError(f"--fps {value!r}: a frame rate must be positive (at most {MAX_FPS:g})")
+        out[name] = fps
     return out
 
 
 def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float]) -> np.ndarray:
-    """(C,) frame rates: given, else the calibration's `fps`, else frame / time of the tracks."""
+    """(C,) frame rates: given, else the calibration's `fps`, else the tracks' time column:
+    the inverse of the least-squares slope of time over frame (a clock that does not start
+    at 0 does not matter)."""
     fps = []
     for camera, extra in zip(calibration.cameras, calibration.extras):
         if camera.name in given:
@@ -67,8 +93,15 @@ def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float
             fps.append(float(extra["fps"]))
             continue
         rows = tracks.of_camera(camera.name)
-        timed = np.isfinite(rows.time) & (rows.time > 0)
-        if not np.any(timed):
-            raise InputError(f"no frame rate for camera {camera.name!r}: pass --fps {camera.name}=FPS")
-        fps.append(float(np.median(rows.frame[timed] / rows.time[timed])))
+        timed = np.isfinite(rows.time)
+        frames, times = rows.frame[timed].astype(float), rows.time[timed]
+        if len(np.unique(frames)) < 2:
+            raise InputError(f"no frame rate for camera {camera.name!r} (its tracks have no time column "
+                             f"over two frames or more): pass --fps {camera.name}=FPS")
+        slope = np.polyfit(frames, times, 1)[0]  # seconds per frame
+        if not slope >= 1 / MAX_FPS:
+            raise InputError(f"camera {camera.name!r}: the tracks' time falls or stands still over the "
+                             f"frames (slope {slope:g} s per frame); fix the time column or pass --fps "
+                             f"{camera.name}=FPS")
+        fps.append(float(1 / slope))
     return np.array(fps)

@@ -45,3 +45,21 @@ def scene(machine, n_cameras, seed, noise_px=0.5, distance=(2.5, 4.0), outliers=
         np.array([index[c] for c in tracks.camera]), machine.marker_index(tracks.marker), tracks.xy
     )
     return cameras, q, obs, tracks
+
+
+def pytest_terminal_summary(terminalreporter):
+    """The bad-input corpus (test_bad_input.py, cases named command/case) counted per command."""
+    counts: dict[str, list[int]] = {}
+    for outcome in ("passed", "failed"):
+        for report in terminalreporter.stats.get(outcome, []):
+            nodeid = getattr(report, "nodeid", "")
+            if "test_bad_input.py::test_bad_input[" not in nodeid or getattr(report, "when", "call") != "call":
+                continue
+            command = nodeid.split("[", 1)[1].split("/", 1)[0]
+            counts.setdefault(command, [0, 0])[outcome == "failed"] += 1
+    if counts:
+        terminalreporter.write_sep("-", "bad-input corpus per command (passed / cases)")
+        for command, (passed, failed) in sorted(counts.items()):
+            terminalreporter.write_line(f"{command:>12}: {passed} / {passed + failed}")
+        total = sum(p for p, _ in counts.values()), sum(p + f for p, f in counts.values())
+        terminalreporter.write_line(f"{'all':>12}: {total[0]} / {total[1]}")

@@ -278,7 +278,7 @@ def test_cli_writes_truth_that_reads_back(tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [(["--size", "big"], "expected WIDTHxHEIGHT"), (["--classes", "4"], "comma list of 1, 2, 3"),
-     (["--cameras", "0"], "give 1 to 8 cameras"), (["--cycles", "0"], "at least one dig cycle"),
+     (["--cameras", "0"], "give 1 to 8 cameras"), (["--cycles", "0"], "give 1 to 100 dig cycles"),
      (["--machine", "nope"], "no machine model named")],
 )
 def test_cli_rejects_bad_options(tmp_path, capsys, extra, message):

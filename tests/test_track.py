@@ -219,7 +219,7 @@ def test_cli_keeps_tracks_before_a_truncated_video(session, capsys):
     args[1] = str(broken)
     assert main(args) == 0
     out = capsys.readouterr()
-    assert "the video broke at frame" in out.out
+    assert "the video broke at frame" in out.err
     tracks = load_tracks(root / "broken.csv")
     assert 0 < tracks.frame.max() < len(uv) - 1
 

@@ -488,9 +488,9 @@ def test_cli_bad_input_is_one_line_and_exit_2(session_dir, tmp_path, capsys, ext
 @pytest.mark.parametrize(
     "extras, message",
     [
-        ({"fps": 0.0}, "camera cam2: fps must be a positive number, got 0.0"),
-        ({"fps": "thirty"}, "camera cam2: fps must be a positive number, got 'thirty'"),
-        ({"fps": 30.0, "time_offset": "late"}, "camera cam2: time_offset must be a number of seconds"),
+        ({"fps": 0.0}, "[cam_01]: 'fps' must be a positive number of frames per second (at most 10000), got 0.0"),
+        ({"fps": "thirty"}, "[cam_01]: 'fps' must be a positive number of frames per second (at most 10000), got 'thirty'"),
+        ({"fps": 30.0, "time_offset": "late"}, "[cam_01]: 'time_offset' must be a number of seconds"),
     ],
 )
 def test_cli_bad_camera_clock_is_one_line_and_exit_2(world, session_dir, tmp_path, capsys, extras, message):

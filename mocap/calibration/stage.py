@@ -17,7 +17,7 @@ from mocap.io.cameras_toml import save_calibration
 from mocap.io.guess_toml import load_guess
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points, save_points
-from mocap.io.tracks_csv import Tracks, load_tracks
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,12 @@ def run_calibrate(request: CalibrateRequest) -> str:
     tracks = load_tracks(list(request.tracks))
     frame, rows = _frame_rows(tracks, request)
     names = list(rows.cameras)
+    strange = sorted(name for name in request.sizes if name is not None and name not in tracks.cameras)
+    if strange:
+        raise InputError(f"--size names camera(s) {strange} that the tracks lack (they have "
+                         f"{list(tracks.cameras)}); check the NAME in --size NAME=WxH")
     templates = [template_camera(n, _size(request.sizes, n)) for n in names]
+    check_in_images(rows, {t.name: t.size for t in templates}, ", ".join(request.tracks), "--size")
     if request.method == "dlt":
         return _run_dlt(machine, rows, templates, frame, request)
     unknown = sorted(set(rows.marker) - set(machine.marker_names))

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 
 from mocap.calibration.solve import CalibrationOptions
 from mocap.calibration.stage import CalibrateRequest, run_calibrate
 from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
+from mocap.io.cameras_toml import MAX_IMAGE_SIDE
+from mocap.io.outputs import check_outputs
 
 EXAMPLE = """example:
   mocap calibrate calibrations/machines/hitachi_ex3500.toml tracks/cam1.csv tracks/cam2.csv \\
@@ -58,11 +61,21 @@ def parse_sizes(values: list[str]) -> dict:
         match = re.fullmatch(r"(?:([^=]+)=)?(\d+)x(\d+)", value.strip())
         if not match or int(match[2]) <= 0 or int(match[3]) <= 0:
             raise InputError(f"--size {value!r}: expected WxH or NAME=WxH, e.g. 1920x1080")
+        if max(int(match[2]), int(match[3])) > MAX_IMAGE_SIDE:
+            raise InputError(f"--size {value!r}: an image side is at most {MAX_IMAGE_SIDE} pixels")
         sizes[match[1]] = (int(match[2]), int(match[3]))
     return sizes
 
 
 def run(args) -> int:
+    for option, value in (("--loss-scale", args.loss_scale), ("--outlier-px", args.outlier_px),
+                          ("--max-rms", args.max_rms)):
+        if value is not None and not 0 < value < float("inf"):
+            raise InputError(f"{option} {value}: must be a positive number of pixels")
+    points = args.points or str(Path(args.out).with_name("reference_points.csv"))
+    check_outputs({"--out": args.out, "--points": None if args.method == "dlt" else points},
+                  {"machine model": args.machine, "tracks": args.tracks, "--guess": args.guess,
+                   "--reference": args.reference})
     options = CalibrationOptions(
         per_camera=args.per_camera,
         fit_principal_point=args.fit_principal_point,

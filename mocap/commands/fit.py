@@ -7,6 +7,7 @@ import argparse
 from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.reconstruct.smooth import SmoothOptions
 from mocap.reconstruct.stage import run_fit
@@ -49,6 +50,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    check_outputs({"--out": args.out},
+                  {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
     try:
         fit_options = FitOptions(loss=args.loss, scale_px=args.loss_scale, noise_px=args.noise_px,
                                  base_motion=args.base_motion, tolerance=args.tolerance)

@@ -7,6 +7,7 @@ import argparse
 from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
 from mocap.reconstruct.refine import RefineOptions
 from mocap.reconstruct.stage import run_refine
 
@@ -43,6 +44,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    check_outputs({"--out": args.out, "--out-machine": args.out_machine},
+                  {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
     if args.out_machine and not args.markers:
         raise InputError("--out-machine needs --markers (without it the model is not changed)")
     try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from mocap.cli import COMMANDS
+from mocap.io.outputs import check_outputs
 from mocap.sync_stage import run_sync
 
 EXAMPLE = """example:
@@ -35,5 +36,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    check_outputs({"--out": args.out},
+                  {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks},
+                  may_replace=("calibration",))
     print(run_sync(args.machine, args.calibration, args.tracks, args.out, args.fps, args.max_offset))
     return 0

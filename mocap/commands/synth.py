@@ -9,12 +9,16 @@ from pathlib import Path
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
+from mocap.io.outputs import check_output_folder
+from mocap.session import Session, mark_complete
 from mocap.synthetic import CLASSES, SessionOptions, make_session, summary, write_truth
 from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import CODECS
 from mocap.synthetic.render import RenderOptions, render_videos
 
 log = logging.getLogger(__name__)
+
+MAX_CYCLES = 100  # about an hour of digging
 
 
 def add_parser(subparsers) -> None:
@@ -56,8 +60,8 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080") from None
-    if w < 64 or h < 64:
-        raise InputError(f"--size {text!r}: at least 64x64 pixels")
+    if w < 64 or h < 64 or w > 7680 or h > 4320:
+        raise InputError(f"--size {text!r}: from 64x64 to 7680x4320 pixels")
     return w, h
 
 
@@ -73,11 +77,13 @@ def run(args: argparse.Namespace) -> int:
     machine = load_machine(machine_path)
     if not 1 <= args.cameras <= 8:
         raise InputError(f"--cameras {args.cameras}: give 1 to 8 cameras")
-    if args.cycles < 1:
-        raise InputError(f"--cycles {args.cycles}: give at least one dig cycle")
+    if not 1 <= args.cycles <= MAX_CYCLES:
+        raise InputError(f"--cycles {args.cycles}: give 1 to {MAX_CYCLES} dig cycles")
     if args.hold < 0.5:
         raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
-    if args.out.exists() and any(args.out.iterdir()):
+    check_output_folder(args.out)
+    session = Session.open(args.out)
+    if args.out.exists() and any(args.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
         raise InputError("the output folder exists and is not empty; choose a new folder", path=args.out)
     if not 0.05 <= args.scale <= 4.0:
         raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
@@ -93,12 +99,13 @@ def run(args: argparse.Namespace) -> int:
         redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
     )
     session = make_session(machine, str(args.machine), options)
-    args.out.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over
     write_truth(session, args.out, machine_path)
     log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
     if not args.no_video:
         paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects))
         log.info("wrote %d videos", len(paths))
+    mark_complete(Session.open(args.out).complete_path, "mocap synth")
     print(summary(session))
     print(f"wrote {args.out}" + ("" if args.no_video else f" with {args.codec} videos"))
     return 0

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from mocap.cli import COMMANDS
 from mocap.detect import DetectOptions
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
 from mocap.tracking.stage import TrackRequest, run_track
 from mocap.tracking.tracker import TrackOptions
 
@@ -42,6 +44,8 @@ def add_parser(sub) -> None:
     p.add_argument("--gate", type=float, default=10.0, metavar="PX", help="least search radius (default 10)")
     p.add_argument("--min-contrast", type=float, default=80.0, metavar="GREY",
                    help="least disk-to-background contrast, grey levels (default 80)")
+    p.add_argument("--whole-video", action="store_true",
+                   help="refuse a video that breaks before its end (default: keep the tracks up to the break)")
     p.add_argument("--no-occlusion", action="store_true",
                    help="do not predict markers hidden by the machine's own links")
     p.set_defaults(run=run)
@@ -50,6 +54,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     if args.propose_labels is None and args.out is None:
         raise InputError("give --out TRACKS.csv (or --propose-labels OUT.csv to check the first frame)")
+    check_outputs({"--out": args.out, "--propose-labels": args.propose_labels},
+                  {"video": args.video, "machine model": args.machine, "calibration": args.calibration,
+                   "labels": args.labels})
     if args.start < 0 or (args.stop is not None and args.stop <= args.start):
         raise InputError(f"--start {args.start} --stop {args.stop}: need 0 <= start < stop")
     if not args.gate > 0 or not args.min_contrast > 0:
@@ -64,7 +71,7 @@ def run(args) -> int:
         Path(args.out) if args.out else None,
         Path(args.labels) if args.labels else None,
         Path(args.propose_labels) if args.propose_labels else None,
-        args.start, args.stop, options,
+        args.start, args.stop, options, args.whole_video,
     )
     report = run_track(request)
     if report.summary is None:
@@ -77,5 +84,6 @@ def run(args) -> int:
     print(f"{args.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
     if report.broken_at is not None:
-        print(f"{args.video}: the video broke at frame {report.broken_at}; tracks up to there are written")
+        print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
+              "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)
     return 0

@@ -6,6 +6,7 @@ import argparse
 
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
 from mocap.reconstruct.stage import run_triangulate
 from mocap.reconstruct.triangulate import TriangulateOptions
 
@@ -38,6 +39,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    check_outputs({"--out": args.out},
+                  {"calibration": args.calibration, "tracks": args.tracks})
     try:
         options = TriangulateOptions(max_error_px=args.max_error_px, sigmas=args.sigmas, min_views=args.min_views)
     except ValueError as exc:

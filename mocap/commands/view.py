@@ -7,6 +7,8 @@ from pathlib import Path
 
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
+from mocap.io.outputs import check_outputs
+from mocap.io.video import probe_video
 from mocap.session import Session
 from mocap.viewer import Sinks, run_replay
 from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
@@ -57,7 +59,8 @@ def run(args) -> int:
         videos=parse_videos(args.video),
         cycles=args.cycles,
     )
-    replay = load_replay(with_session(files, args.session))
+    asked = list(files.videos.values())
+    files = with_session(files, args.session)
     sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
     if not sinks.any:
         if args.session is None:
@@ -65,6 +68,16 @@ def run(args) -> int:
         sinks = Sinks(save=Session.open(args.session).recording_path)
     if sinks.save is not None and sinks.save.suffix != ".rrd":
         raise InputError(f"--save {sinks.save}: a Rerun recording is a .rrd file; name it FILE.rrd")
+    check_outputs({"--save": sinks.save}, {
+        "machine model": files.machine, "calibration": files.calibration, "motion": files.motion,
+        "points": files.points, "tracks": list(files.tracks), "video": list(files.videos.values()),
+        "cycles": files.cycles,
+    })
+    replay = load_replay(files)
+    for path in asked:  # the videos asked for must be videos; a session's may be absent or unplayable
+        if not path.is_file():
+            raise InputError("video file not found; check --video NAME=PATH", path=path)
+        probe_video(path)
     summary = run_replay(replay, sinks)
     where = f" to {sinks.save}" if sinks.save is not None else ""
     videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"

@@ -91,6 +91,9 @@ def joints_from_table(table: dict, machine: Machine) -> np.ndarray:
     missing = [name for name in machine.joint_names if name not in table]
     if missing:
         raise InputError(f"joints table lacks {', '.join(missing)}")
+    bad = [name for name in machine.joint_names if not _number(table[name])]
+    if bad:
+        raise InputError(f"joint value {bad[0]} = {table[bad[0]]!r} is not a finite number")
     return np.array(
         [
             np.radians(table[j.name]) if j.type == REVOLUTE else float(table[j.name])
@@ -119,6 +122,8 @@ def load_calibration(path: str | Path) -> Calibration:
     metadata = data.get("metadata", {})
     if not isinstance(metadata, dict):
         raise InputError("[metadata] must be a table", path=path)
+    if "joints" in metadata and not isinstance(metadata["joints"], dict):
+        raise InputError("[metadata.joints] must be a table of joint values by name", path=path)
     return Calibration(tuple(cameras), tuple(extras), metadata)
 
 
@@ -126,29 +131,23 @@ def _camera_from_table(table: dict, path, where) -> tuple[Camera, dict]:
     missing = sorted(_CAMERA_KEYS - set(table))
     if missing:
         raise InputError(f"missing {', '.join(missing)}", path=path, where=where)
+    if not isinstance(table["name"], str) or not table["name"].strip():
+        raise InputError("'name' must be a non-empty string", path=path, where=where)
 
     def array(key, shape):
-        try:
-            value = np.asarray(table[key], dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"{key!r} must be numbers", path=path, where=where) from None
-        if value.shape != shape or not np.all(np.isfinite(value)):
-            raise InputError(
-                f"{key!r} must be finite numbers of shape {shape}, got {value.shape}",
-                path=path,
-                where=where,
-            )
-        return value
+        return numbers(table[key], shape, path, where, key)
 
     size = array("size", (2,))
+    if np.any(size != np.round(size)) or np.any(size < 1) or np.any(size > MAX_IMAGE_SIDE):
+        raise InputError(f"'size' must be two whole numbers of pixels [width, height] from 1 to "
+                         f"{MAX_IMAGE_SIDE}, got {table['size']!r}", path=path, where=where)
     matrix = array("matrix", (3, 3))
-    distortions = np.asarray(table["distortions"], dtype=float).reshape(-1)
-    if distortions.size > 5:
-        raise InputError("'distortions' has more than 5 coefficients", path=path, where=where)
+    check_matrix(matrix, path, where)
+    distortions = _distortions(table["distortions"], path, where)
     rotation = array("rotation", (3,))
     translation = array("translation", (3,))
-    if not isinstance(table["name"], str):
-        raise InputError("'name' must be a string", path=path, where=where)
+    extra = {k: v for k, v in table.items() if k not in _CAMERA_KEYS}
+    _check_extras(extra, path, where)
     camera = Camera(
         table["name"],
         (int(size[0]), int(size[1])),
@@ -156,8 +155,80 @@ def _camera_from_table(table: dict, path, where) -> tuple[Camera, dict]:
         distortions,
         Rigid(rotvec_to_matrix(rotation), translation),
     )
-    extra = {k: v for k, v in table.items() if k not in _CAMERA_KEYS}
     return camera, extra
+
+
+MAX_IMAGE_SIDE = 65536  # pixels
+MAX_TIME_OFFSET_S = 86400.0  # cameras started within a day of each other
+MAX_FPS = 10000.0
+_OPENCV_DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)  # what OpenCV's distortion models take
+
+
+def numbers(value, shape, path, where, key) -> np.ndarray:
+    """`value` as finite floats of `shape`; a string, a boolean or a wrong shape is an InputError."""
+    flat = value
+    try:
+        array = np.asarray(value, dtype=object)
+        flat = array.reshape(-1).tolist()
+    except ValueError:  # ragged lists
+        array = None
+    if (array is None or array.shape != shape
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in flat)):
+        raise InputError(f"{key!r} must be {_what(shape)}, got {value!r}", path=path, where=where)
+    out = np.asarray(flat, dtype=float).reshape(shape)
+    if not np.all(np.isfinite(out)):
+        raise InputError(f"{key!r} must be {_what(shape)}, got {value!r}", path=path, where=where)
+    return out
+
+
+def _what(shape) -> str:
+    return "a finite number" if shape == () else f"finite numbers of shape {shape}"
+
+
+def check_matrix(matrix: np.ndarray, path, where) -> None:
+    """A camera matrix K: [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive focal lengths."""
+    if not np.array_equal(matrix[2], [0.0, 0.0, 1.0]) or matrix[1, 0] != 0.0:
+        raise InputError(
+            f"'matrix' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (OpenCV's K), got last rows "
+            f"{matrix[1:].tolist()}", path=path, where=where)
+    if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
+        raise InputError(
+            f"'matrix' focal lengths fx = {matrix[0, 0]:g}, fy = {matrix[1, 1]:g} must be positive "
+            "pixels (a mirrored camera is not a camera matrix)", path=path, where=where)
+
+
+def _distortions(value, path, where) -> np.ndarray:
+    if not isinstance(value, list):
+        raise InputError(f"'distortions' must be a list of numbers, got {value!r}", path=path, where=where)
+    coefficients = numbers(value, (len(value),), path, where, "distortions")
+    if len(coefficients) not in _OPENCV_DISTORTION_COUNTS:
+        raise InputError(
+            f"'distortions' has {len(coefficients)} coefficients; OpenCV takes 0, 4, 5, 8, 12 or 14 "
+            "(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])", path=path, where=where)
+    if np.any(coefficients[5:] != 0):
+        raise InputError(
+            "'distortions' beyond k1, k2, p1, p2, k3 (rational, thin-prism, tilt) are not supported: "
+            "recalibrate with the 5-coefficient model", path=path, where=where)
+    return coefficients[:5]
+
+
+def _check_extras(extra: dict, path, where) -> None:
+    if "fps" in extra:
+        fps = extra["fps"]
+        if not _number(fps) or not 0 < fps <= MAX_FPS:
+            raise InputError(f"'fps' must be a positive number of frames per second (at most "
+                             f"{MAX_FPS:g}), got {fps!r}", path=path, where=where)
+    if "time_offset" in extra:
+        offset = extra["time_offset"]
+        if not _number(offset) or not abs(offset) <= MAX_TIME_OFFSET_S:
+            raise InputError(f"'time_offset' must be a number of seconds within ±{MAX_TIME_OFFSET_S:g}, "
+                             f"got {offset!r}", path=path, where=where)
+    if "joints" in extra and not isinstance(extra["joints"], dict):
+        raise InputError("'joints' must be a table of joint values by name", path=path, where=where)
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
 
 
 def calibration_to_dict(calibration: Calibration) -> dict:

@@ -11,7 +11,6 @@ swing back; empty or negative where not seen). The synthetic truth writes all of
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
+from mocap.io.text import csv_rows, read_text
 
 REQUIRED = ("start_frame", "end_frame")
 PHASE_COLUMNS = ("dig_start_frame", "dig_end_frame", "dump_start_frame", "swing_back_start_frame")
@@ -65,7 +64,7 @@ class Cycles:
 def load_cycles(path: str | Path) -> Cycles:
     path = Path(path)
     text = read_text(path, "check the cycles path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in REQUIRED if c not in header]
     if missing:
@@ -90,6 +89,9 @@ def load_cycles(path: str | Path) -> Cycles:
             ) from None
         if end < start:
             raise InputError(f"end_frame {end} is before start_frame {start}", path=path, where=f"line {line}")
+        if not 0 <= start <= end <= 100_000_000:
+            raise InputError(f"start_frame {start} and end_frame {end} must be frames from 0 to 100,000,000",
+                             path=path, where=f"line {line}")
         names.append(row[col["cycle"]].strip() if "cycle" in col else str(len(names) + 1))
         labels.append(row[col["class"]].strip() if "class" in col else "")
         try:

@@ -20,7 +20,7 @@ import numpy as np
 from mocap.calibration.solve import Guess
 from mocap.camera import PaperCamera
 from mocap.errors import InputError
-from mocap.io.cameras_toml import joints_from_table
+from mocap.io.cameras_toml import joints_from_table, numbers
 from mocap.io.text import read_toml
 from mocap.machine import Machine
 
@@ -46,11 +46,9 @@ def load_guess(path: str | Path, machine: Machine) -> Guess:
                 path=path,
                 where=where,
             )
-        try:
-            position = np.asarray(table["position"], dtype=float).reshape(3)
-            values = [float(table[k]) for k in ("azimuth_deg", "elevation_deg", "tilt_deg", "focal_px")]
-        except (TypeError, ValueError):
-            raise InputError("values must be numbers, position 3 numbers", path=path, where=where) from None
+        position = numbers(table["position"], (3,), path, where, "position")
+        values = [float(numbers(table[k], (), path, where, k)) for k in ("azimuth_deg", "elevation_deg", "tilt_deg",
+                                                                          "focal_px")]
         if not values[3] > 0:
             raise InputError("focal_px must be positive", path=path, where=where)
         az, el, tilt = np.radians(values[:3])

@@ -204,14 +204,14 @@ def _joint(raw, path, where) -> Joint:
         limits = np.asarray(_numbers(raw["limits"], 2, path, where, "limits"))
         if not limits[0] < limits[1]:
             raise InputError(
-                f"limits {list(limits)} must be [lower, upper] with lower < upper",
+                f"limits {limits.tolist()} must be [lower, upper] with lower < upper",
                 path=path,
                 where=where,
             )
         if kind == REVOLUTE:
             if np.any(np.abs(limits) > 360):
                 raise InputError(
-                    f"revolute limits {list(limits)} exceed ±360: they are degrees",
+                    f"revolute limits {limits.tolist()} exceed ±360: they are degrees",
                     path=path,
                     where=where,
                 )

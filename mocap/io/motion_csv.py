@@ -13,7 +13,6 @@ walking) adds its pose ``world_from_base`` as ``base_x, base_y, base_z`` (m) and
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,8 +20,8 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
 from mocap.geometry import matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
+from mocap.io.text import csv_rows, read_text
 from mocap.machine import REVOLUTE, Machine
 
 
@@ -150,15 +149,29 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
             )
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text or "nan")
+    except ValueError:
+        return False
+    return True
+
+
+def _columns(col: dict, names: list[str], n: int) -> np.ndarray:
+    """(n, len(names)) of the named columns; (n, 0) when there are none."""
+    return np.column_stack([col[c] for c in names]) if names else np.zeros((n, 0))
+
+
 def load_motion(path: str | Path, machine: Machine) -> Motion:
     """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
     path = Path(path)
     text = read_text(path, "check the motion path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     joint_cols = list(machine.joint_names)
     point_cols = [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
-    required = ["frame", "time", *joint_cols, *point_cols, "bucket_angle_deg"]
+    bucket = ["bucket_angle_deg"] if machine.bucket_angle is not None else []  # else NaN, optional
+    required = ["frame", "time", *joint_cols, *point_cols, *bucket]
     missing = [c for c in required if c not in header]
     if missing:
         raise InputError(
@@ -166,18 +179,29 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
             path=path,
             where="line 1",
         )
-    rows = []
-    for line, row in enumerate(reader, start=2):
-        if not row:
-            continue
-        if len(row) != len(header):
-            raise InputError(f"{len(row)} fields, the header has {len(header)}", path=path, where=f"line {line}")
-        try:
-            rows.append([float(v) if v.strip() else np.nan for v in row])
-        except ValueError:
-            raise InputError("a field is not a number", path=path, where=f"line {line}") from None
-    table = np.array(rows, dtype=float).reshape(-1, len(header))
+    rows = [(line, row) for line, row in enumerate(reader, start=2) if row]
+    bad = [(line, len(row)) for line, row in rows if len(row) != len(header)]
+    if bad:
+        raise InputError(f"{bad[0][1]} fields, the header has {len(header)}", path=path, where=f"line {bad[0][0]}")
+    text = np.char.strip(np.array([row for _, row in rows], dtype=str).reshape(len(rows), len(header)))
+    try:  # whole columns at once; only on the way to an error row by row
+        table = np.where(text == "", "nan", text).astype(float)
+    except ValueError:
+        line = next(line for line, row in rows if not all(_is_number(v) for v in row))
+        raise InputError("a field is not a number", path=path, where=f"line {line}") from None
     col = {h: table[:, i] for i, h in enumerate(header)}
+    lines = np.array([line for line, _ in rows], dtype=int)
+    frame = col["frame"]
+    bad = np.flatnonzero(~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame)) | (frame > 1e8))
+    if len(bad):
+        raise InputError(f"frame {frame[bad[0]]:g} is not a frame number (a whole number >= 0)",
+                         path=path, where=f"line {lines[bad[0]]}")
+    bad = np.flatnonzero(~np.isfinite(col["time"]))
+    if len(bad):
+        raise InputError("time must be a finite number of seconds", path=path, where=f"line {lines[bad[0]]}")
+    if np.any(np.diff(frame) <= 0):
+        raise InputError("frames must increase from row to row", path=path,
+                         where=f"line {lines[np.flatnonzero(np.diff(frame) <= 0)[0] + 1]}")
     scale = _joint_scale(machine)
     n_points = len(machine.point_names)
 
@@ -193,9 +217,9 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
         point_names=machine.point_names,
         frame=col["frame"].astype(int),
         time=col["time"],
-        joints=np.column_stack([col[n] for n in joint_cols]).reshape(-1, machine.n_joints) / scale,
-        points=np.column_stack([col[c] for c in point_cols]).reshape(-1, n_points, 3),
-        bucket_angle=np.radians(col["bucket_angle_deg"]),
+        joints=_columns(col, joint_cols, len(table)) / scale,  # (F, 0) for a rigid model
+        points=_columns(col, point_cols, len(table)).reshape(len(table), n_points, 3),
+        bucket_angle=np.radians(col.get("bucket_angle_deg", np.full(len(table), np.nan))),
         joints_sd=None if joints_sd is None else joints_sd / scale,
         points_sd=points_sd,
         bucket_angle_sd=np.radians(col["bucket_angle_sd_deg"]) if "bucket_angle_sd_deg" in col else None,

@@ -7,7 +7,6 @@ the point; `views` the number of cameras that saw it.
 from __future__ import annotations
 
 import csv
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +14,8 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import read_text
+from mocap.io.text import csv_rows, read_text
+from mocap.io.tracks_csv import ascii_digits
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
 
@@ -62,33 +62,60 @@ def save_points(points: Points, path: str | Path) -> None:
 def load_points(path: str | Path) -> Points:
     path = Path(path)
     text = read_text(path, "check the points path")
-    reader = csv.reader(io.StringIO(text))
+    reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in ("frame", "marker", "x", "y", "z") if c not in header]
     if missing:
         raise InputError(
             f"header lacks {', '.join(missing)}; expected {','.join(COLUMNS)}", path=path, where="line 1"
         )
-    col = {h: i for i, h in enumerate(header)}
-    frames, markers, xyz, errors, views = [], [], [], [], []
-    for line, row in enumerate(reader, start=2):
-        if not row:
-            continue
-        try:
-            frames.append(int(row[col["frame"]]))
-            markers.append(row[col["marker"]].strip())
-            xyz.append([float(row[col[c]]) for c in ("x", "y", "z")])
-            e = row[col["error_px"]].strip() if "error_px" in col else ""
-            errors.append(float(e) if e else np.nan)
-            views.append(int(row[col["views"]]) if "views" in col else 0)
-        except (ValueError, IndexError):
-            raise InputError(
-                "expected frame (integer), marker, x, y, z (numbers)", path=path, where=f"line {line}"
-            ) from None
-    return Points(
-        np.array(frames, dtype=int),
-        np.array(markers, dtype=object),
-        np.array(xyz, dtype=float).reshape(-1, 3),
-        np.array(errors, dtype=float),
-        np.array(views, dtype=int),
-    )
+    rows = [(line, row) for line, row in enumerate(reader, start=2) if row and any(v.strip() for v in row)]
+    lines = np.array([line for line, _ in rows], dtype=int)
+    bad = [line for line, row in rows if len(row) != len(header)]
+    if bad:
+        raise InputError(f"expected {len(header)} fields as in the header", path=path, where=f"line {bad[0]}")
+    table = np.array([row for _, row in rows], dtype=str).reshape(len(rows), len(header))
+    column = {h: np.char.strip(table[:, i]) for i, h in enumerate(header)}
+    return _validate(column, lines, path)
+
+
+MAX_FRAME = 100_000_000
+
+
+def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path) -> Points:
+    """Whole-column checks of the parsed text columns -> Points; the first bad row is named."""
+
+    def fail(mask: np.ndarray, message: str) -> None:
+        bad = np.flatnonzero(mask)
+        if len(bad):
+            raise InputError(message, path=path, where=f"line {lines[bad[0]]}")
+
+    n = len(lines)
+    fail(~ascii_digits(column["frame"]) | (np.char.str_len(column["frame"]) > 9),
+         f"frame must be a whole number from 0 to {MAX_FRAME:,}")
+    frame = column["frame"].astype(np.int64)
+    fail(np.char.str_len(column["marker"]) == 0, "the marker name is empty")
+    xyz = np.stack([_floats(column[c], lines, path, c) for c in "xyz"], axis=1).reshape(n, 3)
+    fail(~np.all(np.isfinite(xyz), axis=1), "x, y and z must be finite numbers (metres)")
+    error = column.get("error_px", np.full(n, ""))
+    error = _floats(np.where(error == "", "nan", error), lines, path, "error_px")
+    views = column.get("views", np.full(n, "0"))
+    fail(~ascii_digits(views) | (np.char.str_len(views) > 3), "views must be a whole number of cameras")
+    marker = column["marker"].astype(object)
+    keys = np.char.add(np.char.add(column["frame"], "\0"), column["marker"])
+    _, first = np.unique(keys, return_index=True)
+    fail(~np.isin(np.arange(n), first), "this frame and marker appear twice; keep one row each")
+    return Points(frame, marker, xyz, error, views.astype(int))
+
+
+def _floats(text: np.ndarray, lines: np.ndarray, path, key: str) -> np.ndarray:
+    try:
+        return text.astype(float)
+    except ValueError:
+        for k, value in enumerate(text):  # only on the way to the error: find the row
+            try:
+                float(value)
+            except ValueError:
+                raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
+                                 where=f"line {lines[k]}") from None
+        raise

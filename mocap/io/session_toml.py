@@ -16,6 +16,7 @@ from pathlib import Path
 from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
+from mocap.io.cameras_toml import MAX_FPS
 from mocap.io.text import read_toml
 
 _TOP_KEYS = {"machine", "cameras", "options"}
@@ -61,8 +62,9 @@ def load_session_config(path: str | Path) -> SessionConfig:
             raise InputError("'name' must be a non-empty string", path=path, where=where)
         if not isinstance(video, str) or not video:
             raise InputError("'video' must be a path", path=path, where=where)
-        if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not fps > 0:
-            raise InputError(f"'fps' must be a positive number, got {fps!r}", path=path, where=where)
+        if not isinstance(fps, (int, float)) or isinstance(fps, bool) or not 0 < fps <= MAX_FPS:
+            raise InputError(f"'fps' must be a positive number (at most {MAX_FPS:g}), got {fps!r}", path=path,
+                             where=where)
         cameras.append(SessionCamera(name, video, float(fps)))
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):

@@ -1,9 +1,10 @@
 """Reading videos frame by frame: grey from the decoder's luma plane (PyAV), colour
 through OpenCV's VideoCapture; the video's size, rate and frame count from OpenCV.
 
-A video that cannot be opened is an InputError. A video that breaks part-way (a corrupt or
-truncated file) stops the iteration with a warning naming the frame where it broke; the
-frames before it have been delivered, so a caller keeps its results up to there.
+A video that cannot be opened (not a video, a still image renamed, a truncated file without
+its index) is an InputError. A video that breaks part-way (a corrupt or truncated file)
+stops the iteration and sets `broken_at`, the frame where it broke; the frames before it
+have been delivered, so a caller keeps its results up to there or refuses them.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ class Video:
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError("video file not found; check the path", path=self.path)
+        probe_video(self.path)
         capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
             raise InputError("cannot open the video (unknown format or corrupt file)", path=self.path)
@@ -146,12 +148,30 @@ class Video:
         expected = self.info.frame_count if stop is None else min(stop, self.info.frame_count)
         if index < expected:
             self.broken_at = index
-            log.warning(
+            log.info(  # the caller reports it, once
                 "%s: the video broke at frame %d of %d (corrupt or truncated); frames before it are kept",
                 self.path,
                 index,
                 self.info.frame_count,
             )
+
+
+def probe_video(path: Path) -> None:
+    """Refuse a file the video library cannot open or that holds no video: a still image
+    renamed .mp4, a truncated file without its index, a text file."""
+    try:
+        with av.open(str(path)) as container:
+            form = container.format.name
+            streams = container.streams.video
+            codec = streams[0].codec_context.name if streams else None
+    except (av.error.FFmpegError, IndexError, ValueError, OSError) as exc:
+        reason = getattr(exc, "strerror", None) or "unknown format"
+        raise InputError(f"cannot open the video ({reason}): not a video, or a truncated or corrupt file",
+                         path=path) from None
+    if codec is None:
+        raise InputError(f"holds no readable video stream (a {form} file, truncated or corrupt?); give the camera's whole video", path=path)
+    if form.endswith("_pipe") or form in ("image2", "png", "gif", "apng", "webp"):
+        raise InputError(f"is a still image ({codec}), not a video; give the camera's video", path=path)
 
 
 _LIMITED_TO_FULL = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)

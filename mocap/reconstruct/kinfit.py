@@ -162,6 +162,8 @@ def fit_joints(
         )
     n_frames = pixels.shape[1]
     start = None if initial is None else _broadcast(initial, n_frames, n_joints, "initial")
+    if n_joints == 0:  # a rigid model: no joints to start from the grid
+        start = np.zeros((n_frames, 0))
     start_base = None
     if options.base_motion:
         start_base = np.zeros((n_frames, 6)) if initial_base is None else _broadcast(
@@ -321,6 +323,8 @@ class _Problem(KinematicModel):
     def grid(self) -> np.ndarray:
         """(K, J) candidates: a regular grid inside the limits (unbounded joints ±1 m)."""
         n_joints = self.machine.n_joints
+        if n_joints == 0:  # a rigid model: one candidate, the empty joint vector
+            return np.zeros((1, 0))
         lower = np.where(np.isfinite(self.lower), self.lower, -1.0)
         upper = np.where(np.isfinite(self.upper), self.upper, 1.0)
         span = upper - lower

@@ -93,9 +93,13 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     obs = pixels[:, frames]
     stated = options.tolerance or machine.tolerance
     options = replace(options, markers=options.markers or bool(stated), tolerance=stated or DEFAULT_TOLERANCE)
-    fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px, tolerance=stated))
-    problem = _Bundle(machine, tuple(cameras), obs, options, fit.noise_px)
-    x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), np.nan_to_num(fit.joints).ravel(), np.zeros(3 * n_markers * options.markers)]
+    if n_joints:
+        fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px, tolerance=stated))
+        joints, noise_px = np.nan_to_num(fit.joints), fit.noise_px
+    else:  # a rigid model holds its calibration pose: no joints to start, the loss scale for the noise
+        joints, noise_px = np.zeros((len(frames), 0)), options.scale_px
+    problem = _Bundle(machine, tuple(cameras), obs, options, noise_px)
+    x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), joints.ravel(), np.zeros(3 * n_markers * options.markers)]
     before = problem.pixel_rms(x0)
     # plain least squares first: a robust loss from a start pixels off stalls the trust region
     start = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf", x_scale="jac", max_nfev=10)

@@ -5,6 +5,8 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
+
 import numpy as np
 
 from mocap.errors import InputError
@@ -12,7 +14,7 @@ from mocap.io.cameras_toml import Calibration, load_calibration, save_calibratio
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
-from mocap.io.tracks_csv import Tracks, load_tracks
+from mocap.io.tracks_csv import SPARSE_SPAN, Tracks, check_in_images, load_tracks
 from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.reconstruct.kinfit import FitOptions
@@ -41,6 +43,7 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
             f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
             path=calibration_path,
         )
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
     if machine is None:
         _, first = np.unique(tracks.marker, return_index=True)
         markers = tuple(tracks.marker[np.sort(first)])
@@ -56,17 +59,40 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
     return calibration, tracks, markers
 
 
-def on_reference_clock(calibration: Calibration, tracks: Tracks, markers) -> Resampled:
+def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
     offsets = calibration.time_offsets
     missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
     if missing_fps and np.any(offsets != 0):
         log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
+    _check_clock_span(calibration, tracks, path)
     return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
+
+
+def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
+    """The cameras' recordings placed on the reference clock by their time offsets must not
+    spread over far more reference frames than they hold (the resampling allocates by the
+    span): time offsets hours apart on seconds of tracks are refused."""
+    fps, offsets = calibration.fps(), calibration.time_offsets - calibration.time_offsets[0]
+    starts, ends, held = [], [], 0
+    for name, rate, offset in zip(calibration.names, fps, offsets):
+        frames = tracks.frame[tracks.camera == name]
+        if len(frames):
+            starts.append(frames.min() / rate + offset)
+            ends.append(frames.max() / rate + offset)
+            held += int(frames.max() - frames.min()) + 1
+    span = (max(ends) - max(min(starts), 0.0)) * fps[0] if starts else 0.0
+    if span > SPARSE_SPAN and span > 10 * held:
+        raise InputError(
+            f"the cameras' tracks, placed on the reference clock by their time offsets, spread over "
+            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps", path=path)
 
 
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
-    clock = on_reference_clock(calibration, tracks, markers)
+    if options.min_views > len(calibration.cameras):
+        raise InputError(f"--min-views {options.min_views}: the calibration has only {len(calibration.cameras)} "
+                         "cameras", path=calibration_path)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     cameras = list(calibration.cameras)
     rows = []
     for start in progress(range(0, len(clock.frame), _CHUNK_FRAMES), desc="triangulate", unit="chunk"):
@@ -94,7 +120,10 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
             smooth_options: SmoothOptions | None) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
-    clock = on_reference_clock(calibration, tracks, markers)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
+    if machine.n_joints == 0 and not fit_options.base_motion:
+        log.info("%s is rigid (no joints): fitting its pose per frame", machine.name)
+        fit_options = replace(fit_options, base_motion=True)
     result = reconstruct_motion(
         machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
         fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,
@@ -122,7 +151,7 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
                options: RefineOptions) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
-    clock = on_reference_clock(calibration, tracks, markers)
+    clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     result = refine(machine, list(calibration.cameras), clock.pixels, options)
     refined = Calibration(result.cameras, calibration.extras, {
         **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),

@@ -43,12 +43,15 @@ class View:
 class CameraModel:
     """A machine model and one calibrated camera; `boxes` (L, 2, 3) link solids in link
     frames (default: `mocap.shapes.link_boxes`), `normals` (M, 3) each marker's disk normal
-    in its link frame (the nearest face of its box)."""
+    in its link frame (the nearest face of its box). `solid` False: the boxes are not the
+    machine's shape (a rigid object's one box is the hull of its markers), so every marker
+    in front of the camera and inside the image counts as seen."""
 
     machine: Machine
     camera: Camera
     boxes: np.ndarray = field(default=None)
     normals: np.ndarray = field(init=False)
+    solid: bool = True
 
     def __post_init__(self) -> None:
         if self.boxes is None:
@@ -80,9 +83,14 @@ class CameraModel:
         on_link = poses[:, self.machine.marker_links]  # (F, M, 4, 4)
         world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], self.machine.marker_positions) + on_link[..., :3, 3]
         points_cam = camera.cam_from_world.apply(world)
+        if not self.solid:
+            inside = np.all((uv >= -0.5) & (uv <= np.array(camera.size) - 0.5), axis=-1)
+            seen = (points_cam[..., 2] > 0) & inside
         normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], self.normals)
         distance = np.linalg.norm(points_cam, axis=-1)
         facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / distance
+        if not self.solid:  # the disks' normals are unknown: take them facing the camera
+            facing = np.ones_like(facing)
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
         return View(uv, seen, scale)

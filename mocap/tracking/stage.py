@@ -4,7 +4,7 @@ frame labels; label and track; write the tracks CSV (or the proposed labels)."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +12,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks, save_tracks
 from mocap.io.video import Video
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
@@ -36,6 +36,7 @@ class TrackRequest:
     start: int = 0
     stop: int | None = None
     options: TrackOptions = field(default_factory=TrackOptions)
+    whole_video: bool = False  # a video that breaks part-way is an error, not half the tracks
 
 
 @dataclass(frozen=True)
@@ -69,11 +70,18 @@ def run_track(request: TrackRequest) -> TrackReport:
     if start is None:
         start = machine.clip_to_limits(np.zeros(machine.n_joints))
     fps = video.info.fps or float(calibration.extras[index].get("fps", 0.0))
-    model = CameraModel(machine, camera)
+    model = CameraModel(machine, camera, solid=machine.n_joints > 0)
     labelled = None
     if request.labels is not None:
-        labelled = _first_frame_pixels(load_tracks(request.labels), machine, camera.name, request.start, request.labels)
+        labels = load_tracks(request.labels)
+        check_in_images(labels.of_camera(camera.name), {camera.name: camera.size}, request.labels)
+        labelled = _first_frame_pixels(labels, machine, camera.name, request.start, request.labels)
     options = request.options
+    if machine.n_joints == 0 and options.occlusion:
+        # a rigid model's one link box is the hull of its markers, not its shape: it would hide
+        # markers that the camera sees
+        log.info("%s is rigid: no occlusion by its link box", machine.name)
+        options = replace(options, occlusion=False)
     frames = video.frames(gray=True, start=request.start, stop=request.stop, prefetch=4)
     if request.propose_labels is not None:
         first = next(iter(frames), None)
@@ -96,6 +104,10 @@ def run_track(request: TrackRequest) -> TrackReport:
         tracks, summary = track_frames(model, bar, start, labelled, fps, options)
     except ValueError as exc:
         raise InputError(f"{exc}; digitise the markers of the first frame and pass them with --labels", path=request.video) from None
+    if request.whole_video and video.broken_at is not None:
+        raise InputError(
+            f"the video breaks at frame {video.broken_at} of {video.info.frame_count} (truncated or "
+            "corrupt); nothing written: repair or re-copy the video", path=request.video)
     save_tracks(tracks, request.out)
     first = tracks.select(tracks.frame == (tracks.frame.min() if len(tracks) else -1))
     return TrackReport(summary, first, video.broken_at)
@@ -103,9 +115,10 @@ def run_track(request: TrackRequest) -> TrackReport:
 
 def _first_frame_pixels(labels: Tracks, machine, camera: str, frame: int, path) -> np.ndarray:
     """The digitised pixels (M, 2) of `camera` at `frame` from a labels tracks CSV."""
-    rows = labels.of_camera(camera) if camera in labels.cameras else labels
-    if len(set(rows.camera)) > 1:
-        raise InputError(f"labels for several cameras and none named {camera!r}", path=path)
+    if camera not in labels.cameras:
+        raise InputError(f"labels of camera(s) {', '.join(labels.cameras)}, none of {camera!r}; give "
+                         f"this camera's labels (camera column {camera})", path=path)
+    rows = labels.of_camera(camera)
     unknown = sorted(set(rows.marker) - set(machine.marker_names))
     if unknown:
         raise InputError(f"markers not in the machine model: {', '.join(unknown)}", path=path)
@@ -117,4 +130,4 @@ def _first_frame_pixels(labels: Tracks, machine, camera: str, frame: int, path) 
             "pass --start with the labels' frame",
             path=path,
         )
-    return at.dense([camera if camera in labels.cameras else at.camera[0]], machine.marker_names, [frame])[0, 0]
+    return at.dense([camera], machine.marker_names, [frame])[0, 0]

@@ -140,7 +140,8 @@ def frustum_depth(calibration: Calibration) -> float:
 
 
 GROUP_TITLES = {"joints_m": "joints (m)", "uncertainty": "uncertainty (sd, deg)",
-                "uncertainty_m": "uncertainty (sd, m)", "base": "base position (m)"}
+                "uncertainty_m": "uncertainty (sd, m)", "base": "base position (m)",
+                "base_angles": "base attitude (deg)"}
 
 
 def replay_blueprint(replay: Replay):
