@@ -17,6 +17,7 @@ import numpy as np
 from mocap.camera import Camera, project_cam
 from mocap.geometry import Rigid
 
+BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that the solver can start)
 DISTORTION_MODELS = {"none": (), "k1": (0,), "k1k2": (0, 1), "full": (0, 1, 2, 3, 4)}
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
@@ -221,9 +222,12 @@ class Problem:
                 points_cam = points @ rotation.T + block[3:6]
                 projected = project_cam(points_cam, matrix, distortion, jacobian)
                 uv, d_uv_d_cam = projected if jacobian else (projected, None)
-                residuals[rows] = uv - obs.xy[rows]
+                behind = ~np.isfinite(uv[:, 0])  # a start with markers behind the camera: a flat penalty
+                residuals[rows] = np.where(behind[:, None], BEHIND_PX, uv - obs.xy[rows])
                 if jacobian:
+                    uv, d_uv_d_cam = np.nan_to_num(uv), np.nan_to_num(d_uv_d_cam)
                     self._camera_jacobian(jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam)
+                    jac[rows[behind]] = 0.0
                     d_uv_d_world = d_uv_d_cam @ rotation
                     cols = layout.joint_slice(c if layout.per_camera else 0)
                     jac[rows, :, cols] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]

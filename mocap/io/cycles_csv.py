@@ -136,7 +136,7 @@ def save_cycle_table(table: dict, path: str | Path) -> None:
 def load_cycle_table(path: str | Path) -> dict[str, np.ndarray]:
     """Every column of a cycles CSV as text (K,) arrays, checked like `load_cycles`."""
     load_cycles(path)
-    rows = list(csv.reader(io.StringIO(read_text(Path(path), "check the cycles path"))))
+    rows = csv_rows(read_text(Path(path), "check the cycles path"), path)
     header = [h.strip() for h in rows[0]]
     body = [r for r in rows[1:] if r and any(v.strip() for v in r)]
     return {h: np.array([r[i].strip() for r in body], dtype=object) for i, h in enumerate(header)}
