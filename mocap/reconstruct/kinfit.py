@@ -229,12 +229,21 @@ class _Problem(KinematicModel):
         ])
 
     def key_frame_start(self, pixels: np.ndarray, start_base: np.ndarray | None) -> np.ndarray:
-        """Starting joints (F, J): every `key_stride`-th frame fitted from the grid, the frames
-        between interpolated linearly (angles of full-circle joints unwrapped first)."""
+        """Starting joints (F, J): every `key_stride`-th frame fitted from the grid (and up to
+        64 of them from many starts), the frames between interpolated linearly (angles of
+        full-circle joints unwrapped first)."""
         n_frames = pixels.shape[1]
         keys = np.unique(np.r_[np.arange(0, n_frames, self.options.key_stride), n_frames - 1])
-        state = self.solve_all(pixels[:, keys], None, None if start_base is None else start_base[keys])
-        n_obs = np.isfinite(pixels[:, keys][..., 0]).sum((0, 2))
+        key_pixels = pixels[:, keys]
+        state = self.solve_all(key_pixels, None, None if start_base is None else start_base[keys])
+        # up to 64 key frames are fitted again from many starts, whatever their residuals (a
+        # wrong start everywhere looks like large noise), and what they find is handed on
+        probes = np.unique(np.linspace(0, len(keys) - 1, min(64, len(keys))).round().astype(int))
+        self.multistart(key_pixels, state, probes)
+        for _ in range(len(keys)):
+            if not self.repair(key_pixels, state):
+                break
+        n_obs = np.isfinite(key_pixels[..., 0]).sum((0, 2))
         good = 2 * n_obs >= self.n_params
         if good.sum() < 2:
             return np.tile(self.machine.clip_to_limits(np.zeros(self.machine.n_joints)), (n_frames, 1))
