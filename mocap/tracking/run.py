@@ -10,6 +10,7 @@ import numpy as np
 
 from mocap.detect import detect_disks, detect_tags
 from mocap.io.tracks_csv import Tracks, concatenate
+from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
 from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
@@ -41,7 +42,7 @@ def label_first_frame(
     given (the machine's tags found in the frame count as given), or proposed by the model
     search from joint values `start` (J,)."""
     found = detect_disks(gray, options.detect)
-    tags = tag_pixels(model, gray)
+    tags = tag_pixels(model.machine, gray)
     if tags is not None and np.any(np.isfinite(tags[:, 0])):
         labelled = tags if labelled is None else np.where(np.isfinite(tags), tags, labelled)
     if labelled is not None:
@@ -49,13 +50,13 @@ def label_first_frame(
     return propose_labels(model, found, starts_around(model, start), min_markers=options.min_markers)
 
 
-def tag_pixels(model: CameraModel, gray: np.ndarray) -> np.ndarray | None:
+def tag_pixels(machine: Machine, gray: np.ndarray) -> np.ndarray | None:
     """(M, 2) the centres of the machine's tags found in the frame, by their ids (NaN for
     the markers not found and those that are disks); None if the machine carries no tags."""
-    tags = model.machine.tags
+    tags = machine.tags
     if not np.any(tags >= 0):
         return None
-    found = detect_tags(gray, model.machine.tag_dictionary)
+    found = detect_tags(gray, machine.tag_dictionary)
     pixels = np.full((len(tags), 2), np.nan)
     marker_of = {int(t): m for m, t in enumerate(tags) if t >= 0}
     for tag_id, xy in zip(found.ids, found.xy):
@@ -107,18 +108,13 @@ def track_frames(
     camera = model.camera.name
     rows: list[Tracks] = []
     if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
-        n_frames = 0
-        for index, gray in frames:
-            n_frames += 1
-            rows.append(tag_rows(camera, index, fps, names, tag_pixels(model, gray)))
-        tracks = _concatenate(rows)
-        return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
+        return track_tags(model.machine, frames, camera, fps)
     tracker = None
     n_frames = n_fitted = restarts = searched = 0
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
-        tags = tag_pixels(model, gray)
+        tags = tag_pixels(model.machine, gray)
         if tracker is None:
             first = label_first_frame(model, gray, start, labelled, options)
             if first is None:
@@ -156,6 +152,17 @@ def track_frames(
             rows.append(tag_rows(camera, index, fps, names, tags))
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
+
+
+def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0) -> tuple[Tracks, TrackSummary]:
+    """The tracks of a machine whose markers all carry tags: each frame's tags by their ids
+    (no camera model needed). `frames` iterable of (index, grey (H, W))."""
+    rows, n_frames = [], 0
+    for index, gray in frames:
+        n_frames += 1
+        rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray)))
+    tracks = _concatenate(rows)
+    return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
 
 
 def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> FrameResult:
