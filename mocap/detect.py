@@ -300,38 +300,73 @@ def tag_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(value)
 
 
-def detect_tags(image: np.ndarray, dictionary: str = "DICT_4X4_50", upscale: int = 2) -> TagDetections:
-    """ArUco / AprilTag markers, black on white or printed inverted (white on black).
+_TAG_PASSES = ((False, 1), (True, 1), (False, 2), (True, 2))  # (inverted, enlargement)
 
-    OpenCV's `cv2.aruco.ArucoDetector` runs on the image and on the image enlarged
-    `upscale` times (bicubic; 1: not at all): a small tag, whose cells are 2-3 px, is found
-    there more often and its corners placed better, and the enlarged image's tags are kept
-    where both find one. Corners are refined on the tag's outer contour, which holds on
-    small and slanted tags better than a corner window; the image's own detector settings
-    are OpenCV's but for tags down to 1 % of the image's larger side in perimeter. An id
-    found twice in one image names no tag and is dropped.
+
+def detect_tags(image: np.ndarray, dictionary: str = "DICT_4X4_50") -> TagDetections:
+    """ArUco / AprilTag markers, black on white or printed inverted (white on black): every
+    pass of `TagFinder` on one image."""
+    return TagFinder(dictionary)(image)
+
+
+class TagFinder:
+    """ArUco / AprilTag markers in the frames of one video, black on white or printed
+    inverted (white on black), down to about 12 px across.
+
+    OpenCV's `cv2.aruco.ArucoDetector` (its own settings, but for tags down to 1 % of the
+    image's larger side in perimeter) runs in up to four passes: on the image, as OpenCV
+    would; on the image inverted (white-on-black prints: OpenCV's `detectInvertedMarker`
+    loses some blurred tags that the plain pass finds); and on both enlarged twice
+    (bicubic), where small tags, whose cells are 2-3 px, are found more often and their
+    corners placed better (their centres are kept where several passes find a tag).
+    Corners are refined on the tag's outer contour, which holds on small and slanted tags
+    better than a corner window. The plain pass runs on every frame, so a tag OpenCV finds
+    is found; the others on every `recheck`-th frame, and on the frames between only while
+    they have found a tag the plain pass missed within the last `recheck` frames (a video
+    of large black-on-white tags costs one pass a frame). An id found twice in one pass
+    names no tag and is dropped.
     """
-    gray = as_gray(image)
-    detector = _tag_detector(dictionary)
-    found = {}
-    for scale in (1, upscale) if upscale > 1 else (1,):
-        picture = gray if scale == 1 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-        corners, ids, _ = detector.detectMarkers(picture)
+
+    def __init__(self, dictionary: str = "DICT_4X4_50", recheck: int = 30):
+        self.detector = _tag_detector(dictionary)
+        self.recheck = recheck
+        self.frames = 0
+        self.last_useful = {p: -recheck - 1 for p in _TAG_PASSES[1:]}
+
+    def __call__(self, image: np.ndarray) -> TagDetections:
+        gray = as_gray(image)
+        everything = self.frames % self.recheck == 0 if self.recheck > 0 else True
+        found = self._pass(gray, *_TAG_PASSES[0])
+        plain = set(found)
+        for key in _TAG_PASSES[1:]:
+            if not (everything or self.frames - self.last_useful[key] <= self.recheck):
+                continue
+            more = self._pass(gray, *key)
+            if set(more) - plain:
+                self.last_useful[key] = self.frames
+            found.update(more)  # the later passes place corners better
+        self.frames += 1
+        if not found:
+            return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
+        return TagDetections(np.array(list(found)), np.array(list(found.values())))
+
+    def _pass(self, gray: np.ndarray, inverted: bool, scale: int) -> dict[int, np.ndarray]:
+        picture = 255 - gray if inverted else gray
+        if scale > 1:
+            picture = cv2.resize(picture, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        corners, ids, _ = self.detector.detectMarkers(picture)
         if ids is None or len(ids) == 0:
-            continue
+            return {}
         ids = ids.reshape(-1)
         corners = (np.concatenate(corners).reshape(-1, 4, 2) + 0.5) / scale - 0.5  # pixel centres at integers
-        once = np.isin(ids, np.unique(ids)[np.unique(ids, return_counts=True)[1] == 1])
-        found.update(zip(ids[once].tolist(), corners[once]))
-    if not found:
-        return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
-    return TagDetections(np.array(list(found)), np.array(list(found.values())))
+        values, counts = np.unique(ids, return_counts=True)
+        once = np.isin(ids, values[counts == 1])
+        return dict(zip(ids[once].tolist(), corners[once]))
 
 
 @lru_cache(maxsize=8)
 def _tag_detector(dictionary: str):
     parameters = cv2.aruco.DetectorParameters()
     parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
-    parameters.detectInvertedMarker = True
     parameters.minMarkerPerimeterRate = min(parameters.minMarkerPerimeterRate, 0.01)
     return cv2.aruco.ArucoDetector(tag_dictionary(dictionary), parameters)

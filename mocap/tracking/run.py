@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.detect import detect_disks, detect_tags
+from mocap.detect import TagFinder, detect_disks
 from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
@@ -37,12 +37,13 @@ def label_first_frame(
     start: np.ndarray,
     labelled: np.ndarray | None,
     options: TrackOptions,
+    finder: TagFinder | None = None,
 ) -> FrameResult | None:
     """The first frame's labels: from digitised pixels `labelled` (M, 2) NaN where not
     given (the machine's tags found in the frame count as given), or proposed by the model
     search from joint values `start` (J,)."""
     found = detect_disks(gray, options.detect)
-    tags = tag_pixels(model.machine, gray)
+    tags = tag_pixels(model.machine, gray, finder)
     if tags is not None and np.any(np.isfinite(tags[:, 0])):
         labelled = tags if labelled is None else np.where(np.isfinite(tags), tags, labelled)
     if labelled is not None:
@@ -50,13 +51,14 @@ def label_first_frame(
     return propose_labels(model, found, starts_around(model, start), min_markers=options.min_markers)
 
 
-def tag_pixels(machine: Machine, gray: np.ndarray) -> np.ndarray | None:
+def tag_pixels(machine: Machine, gray: np.ndarray, finder: TagFinder | None = None) -> np.ndarray | None:
     """(M, 2) the centres of the machine's tags found in the frame, by their ids (NaN for
-    the markers not found and those that are disks); None if the machine carries no tags."""
+    the markers not found and those that are disks); None if the machine carries no tags.
+    `finder` the video's `TagFinder` (None: a new one, every pass)."""
     tags = machine.tags
     if not np.any(tags >= 0):
         return None
-    found = detect_tags(gray, machine.tag_dictionary)
+    found = (finder or TagFinder(machine.tag_dictionary))(gray)
     pixels = np.full((len(tags), 2), np.nan)
     marker_of = {int(t): m for m, t in enumerate(tags) if t >= 0}
     for tag_id, xy in zip(found.ids, found.xy):
@@ -110,13 +112,14 @@ def track_frames(
     if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
         return track_tags(model.machine, frames, camera, fps)
     tracker = None
+    finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
     n_frames = n_fitted = restarts = searched = 0
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
-        tags = tag_pixels(model.machine, gray)
+        tags = tag_pixels(model.machine, gray, finder)
         if tracker is None:
-            first = label_first_frame(model, gray, start, labelled, options)
+            first = label_first_frame(model, gray, start, labelled, options, finder)
             if first is None:
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks")
             tracker = Tracker(model, first, options)
@@ -158,9 +161,10 @@ def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0) -> tuple
     """The tracks of a machine whose markers all carry tags: each frame's tags by their ids
     (no camera model needed). `frames` iterable of (index, grey (H, W))."""
     rows, n_frames = [], 0
+    finder = TagFinder(machine.tag_dictionary)
     for index, gray in frames:
         n_frames += 1
-        rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray)))
+        rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray, finder)))
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
 
