@@ -24,7 +24,7 @@ detections.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import cv2
@@ -33,18 +33,21 @@ import numpy as np
 from mocap.disk_kernel import refine_disks
 
 
+FULL_FRAME_BLOCKS = (13, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search
+
+
 @dataclass(frozen=True)
 class DetectOptions:
     """Disk detection settings (pixels, grey levels 0-255)."""
 
     min_radius: float = 1.5
     max_radius: float = 40.0
-    min_contrast: float = 80.0
+    min_contrast: float = 40.0
     block: int = 51  # adaptive threshold neighbourhood, odd, larger than a marker's square
     threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
     min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
     max_fill: float = 1.25
-    max_ring_spread: float = 0.6  # (ring white - its 15th percentile) / contrast
+    max_ring_spread: float = 0.9  # (ring white - its 15th percentile) / contrast
     max_elongation: float = 6.0  # major / minor semi-axis
 
     def __post_init__(self) -> None:
@@ -195,13 +198,23 @@ def detect_disks(
 ) -> Detections:
     """Disk markers in an image, or in its region `roi` = (x0, y0, x1, y1) (end exclusive).
 
-    Returns the accepted Detections, duplicates (one disk found twice) merged.
+    Candidates come from adaptive thresholds of several neighbourhoods, from `options.block`
+    down to 13 px (`FULL_FRAME_BLOCKS`): a small disk on a small square beside a dark link
+    is darker than a small neighbourhood's mean but not than a large one's, and a disk on
+    a link darker than the sky around it stands apart only in a small one. Returns the
+    accepted Detections, duplicates (one disk found twice) merged.
     """
     options = options or DetectOptions()
     gray = as_gray(image)
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, gray.shape[1], gray.shape[0])
-    xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
-    return refine_and_accept(gray, xy, shape, options)
+    xys, shapes = [], []
+    for block in sorted({b for b in FULL_FRAME_BLOCKS if b < options.block} | {options.block}):
+        xy, shape = find_candidates(gray[y0:y1, x0:x1], replace(options, block=block), (x0, y0))
+        xys.append(xy)
+        shapes.append(shape)
+    xy, shape = np.concatenate(xys), np.concatenate(shapes)
+    _, first = np.unique(np.round(xy * 2), axis=0, return_index=True)  # the same region from two blocks
+    return refine_and_accept(gray, xy[first], shape[first], options)
 
 
 def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:

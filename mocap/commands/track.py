@@ -45,8 +45,8 @@ def add_parser(sub) -> None:
     p.add_argument("--start", type=int, default=0, help="first frame to track (default 0)")
     p.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
     p.add_argument("--gate", type=float, default=10.0, metavar="PX", help="least search radius (default 10)")
-    p.add_argument("--min-contrast", type=float, default=80.0, metavar="GREY",
-                   help="least disk-to-background contrast, grey levels (default 80)")
+    p.add_argument("--min-contrast", type=float, default=40.0, metavar="GREY",
+                   help="least disk-to-background contrast, grey levels (default 40)")
     p.add_argument("--no-occlusion", action="store_true",
                    help="do not predict markers hidden by the machine's own links")
     p.set_defaults(run=run)
