@@ -33,7 +33,7 @@ import numpy as np
 from mocap.disk_kernel import refine_disks
 
 
-FULL_FRAME_BLOCKS = (13, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search
+FULL_FRAME_BLOCKS = (9, 15, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search
 
 
 @dataclass(frozen=True)
@@ -199,7 +199,7 @@ def detect_disks(
     """Disk markers in an image, or in its region `roi` = (x0, y0, x1, y1) (end exclusive).
 
     Candidates come from adaptive thresholds of several neighbourhoods, from `options.block`
-    down to 13 px (`FULL_FRAME_BLOCKS`): a small disk on a small square beside a dark link
+    down to 9 px (`FULL_FRAME_BLOCKS`): a small disk on a small square beside a dark link
     is darker than a small neighbourhood's mean but not than a large one's, and a disk on
     a link darker than the sky around it stands apart only in a small one. Returns the
     accepted Detections, duplicates (one disk found twice) merged.

@@ -77,7 +77,21 @@ def propose_labels(
             best, best_key = FrameResult(markers, detections.select(index), joints[k], True, rms), key
     if best is None or len(best.markers) < min_markers:
         return None
-    return best
+    best = _same_size(model, best)
+    return best if len(best.markers) >= min_markers else None
+
+
+def _same_size(model: CameraModel, result: FrameResult, factor: float = 1.6) -> FrameResult:
+    """`result` without the detections whose size disagrees with the others': the disks are
+    painted alike, so each one's radius over the model's px per metre at its marker is about
+    the same (a blob of the machine's own paint, ten times a disk's size, is no marker)."""
+    scale = model.view(result.joints[None]).scale[0, result.markers]
+    disk_m = result.detections.radius / scale
+    typical = np.nanmedian(disk_m)
+    keep = (disk_m < factor * typical) & (disk_m > typical / factor)
+    if np.all(keep):
+        return result
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
 
 
 def labels_from_pixels(
