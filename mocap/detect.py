@@ -218,8 +218,16 @@ def detect_disks(
 
 
 def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:
-    """`refine` then `accept`, duplicates merged (centres closer than half a radius)."""
+    """`refine` then `accept`, duplicates merged (centres closer than half a radius). A
+    candidate that moved more than a quarter of its radius from where it started (a far or
+    ill-sized start) is refined once more from where it arrived, so that it converges."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     found, spread = refine(gray, xy, shape)
+    far = np.linalg.norm(found.xy - xy, axis=1) > 0.25 * np.maximum(found.radius, 1.0)
+    if np.any(far):
+        again, again_spread = refine(gray, found.xy[far], found.shape[far])
+        found = concatenate([found.select(~far), again])
+        spread = np.concatenate([spread[~far], again_spread])
     found = found.select(accept(found, spread, options))
     return unique(found)
 

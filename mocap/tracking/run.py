@@ -17,7 +17,8 @@ from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
 
 log = logging.getLogger(__name__)
 
-_MAX_SEARCH_INTERVAL = 16  # full-frame searches that find nothing back off to 16 x lost_frames
+_MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to 16 x lost_frames
+_MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
 
 
 @dataclass(frozen=True)
@@ -103,7 +104,8 @@ def track_frames(
     (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
     tracks of the frames read and a summary; raises ValueError if the first frame cannot
     be labelled. After a loss, or while a joint goes unseen, the whole frame is searched
-    again every `lost_frames` frames, less often while those searches find nothing new.
+    again every `lost_frames` frames, less often while those searches find nothing new (after
+    a loss, at least every 2 x `lost_frames` frames).
     """
     options = options or TrackOptions()
     names = model.machine.marker_names
@@ -129,6 +131,8 @@ def track_frames(
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
+            if lost:
+                interval = min(interval, _MAX_LOST_INTERVAL * options.lost_frames)
             if (lost or tracker.needs_search()) and searched >= interval:
                 searched = 0
                 again = propose_labels(
@@ -144,7 +148,8 @@ def track_frames(
                     interval = options.lost_frames
                     log.info("frame %d: markers found again by a full-frame search", index)
                 else:
-                    interval = min(2 * interval, _MAX_SEARCH_INTERVAL * options.lost_frames)
+                    most = _MAX_LOST_INTERVAL if lost else _MAX_SEARCH_INTERVAL
+                    interval = min(2 * interval, most * options.lost_frames)
             elif not (lost or tracker.needs_search()):
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)

@@ -184,8 +184,11 @@ class Tracker:
         self._update_disk(view.scale[0], markers, found.radius[index])
         labelled = found.select(index)
         if options.perspective and np.isfinite(state.disk_m):
-            offset = model.centre_offsets(joints[None], state.disk_m)[0, markers]
-            labelled = replace(labelled, xy=labelled.xy + np.nan_to_num(offset))
+            offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
+            # the shift is a small share of a disk's radius; a larger one comes from joints not yet
+            # fitted well (just after the machine was found again) and is not applied
+            plausible = np.linalg.norm(offset, axis=1) <= 0.2 * labelled.radius
+            labelled = replace(labelled, xy=labelled.xy + offset * plausible[:, None])
         return FrameResult(markers, labelled, joints, True, rms)
 
     @property
