@@ -93,3 +93,31 @@ def test_cli_writes_the_look_into_the_scene(tmp_path, capsys):
     assert scene["look"]["crf"] == look.crf
     assert scene["options"]["size"] == [round(1920 * 0.25 * look.scale), round(1080 * 0.25 * look.scale)]
     assert replace(look, name="x") != look
+
+
+@pytest.mark.parametrize("seed", [3, 12])
+def test_tracking_holds_on_random_looks(seed):
+    """A random look's first frames tracked without labels from the true calibration: the
+    wholly visible markers labelled, none wrongly, centres to a fraction of a pixel."""
+    from mocap.tracking import CameraModel, track_frames
+
+    look = random_look(np.random.default_rng(seed))
+    machine = load_machine("hitachi_ex3500")
+    size = (round(960 * look.scale / 2) * 2, round(540 * look.scale / 2) * 2)
+    session = make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1, seed=seed, size=size,
+                           distortion=look.distortion, shake_deg=look.shake_deg)
+    options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
+    renderer = CameraRenderer(session, 0, options, np.random.default_rng(seed))
+    frames = [(f, image @ np.array([0.114, 0.587, 0.299])) for f, image in renderer.frames(np.arange(60, 90))]
+    frames = [(f, np.clip(np.round(g), 0, 255).astype(np.uint8)) for f, g in frames]
+    field = session.cameras[0]
+    tracks, _ = track_frames(CameraModel(machine, field.camera), frames, session.motion.joints[60], fps=field.fps)
+    truth = session.tracks.select((session.tracks.frame >= 60) & (session.tracks.frame < 90))
+    true_xy = {(int(f), m): (xy, s) for f, m, xy, s in zip(truth.frame, truth.marker, truth.xy, truth.score)}
+    error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), (np.inf, 0))[0])
+                      for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
+    whole = {key for key, (_, s) in true_xy.items() if s >= 1}
+    found = {(int(f), m) for f, m in zip(tracks.frame, tracks.marker)}
+    assert np.all(error < 2.0), look.name  # no wrong label
+    assert len(found & whole) >= 0.9 * len(whole), look.name
+    assert np.median(error) < 0.15, look.name
