@@ -413,3 +413,14 @@ def test_machine_found_again_within_a_second_after_it_was_hidden():
     back = hidden.stop + np.flatnonzero(per_frame[hidden.stop:] >= 5)[0]
     assert back - hidden.stop <= 30
     assert np.all(per_frame[hidden.stop + 30:] >= 0.9 * seen[hidden.stop + 30:].sum(axis=1))
+
+
+def test_markers_in_view_but_never_found_are_named():
+    frames, uv, seen, model, joints = make_scene(n_frames=16, clutter=5, seed=10)
+    names = model.machine.marker_names
+    gone = int(np.flatnonzero(seen.all(axis=0))[0])  # a marker in view throughout, its paint scraped off
+    for f, gray in frames:
+        cv2.circle(gray, tuple(int(v) for v in np.round(uv[f, gone])), 16, 120, -1)
+    tracks, summary = track_frames(model, frames, joints[0], fps=30.0)
+    assert summary.unplaced == (names[gone],)
+    assert names[gone] not in set(tracks.marker)

@@ -85,6 +85,8 @@ def run(args) -> int:
     s = report.summary
     print(f"{report.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
+    if s.unplaced:
+        print(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
     if args.preview:
         print(f"labels drawn on the video in {args.preview}")
     if report.broken_at is not None:

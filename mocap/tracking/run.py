@@ -18,18 +18,22 @@ from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
 log = logging.getLogger(__name__)
 
 _MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to 16 x lost_frames
+UNPLACED_MIN_FRAMES = 10
 _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
 
 
 @dataclass(frozen=True)
 class TrackSummary:
     """`frames` read, `fitted` frames with a model fit, `labelled` rows written,
-    `restarts` full-frame relabellings after a loss."""
+    `restarts` full-frame relabellings after a loss, `unplaced` the disk markers the fitted
+    model showed in view in at least `UNPLACED_MIN_FRAMES` frames but that were labelled in
+    under a tenth of them (not found, or refused: look at them in a preview)."""
 
     frames: int
     fitted: int
     labelled: int
     restarts: int
+    unplaced: tuple[str, ...] = ()
 
 
 def label_first_frame(
@@ -116,6 +120,8 @@ def track_frames(
     tracker = None
     finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
     n_frames = n_fitted = restarts = searched = 0
+    in_view = np.zeros(len(names), dtype=int)  # frames the fitted model showed each disk marker
+    placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
@@ -153,13 +159,18 @@ def track_frames(
             elif not (lost or tracker.needs_search()):
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)
+        if result.fitted:
+            in_view += tracker.state.visible
+            placed[result.markers] += tracker.state.visible[result.markers]
         disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
         if np.any(disks):
             rows.append(frame_rows(camera, index, fps, names, _select(result, disks)))
         if tags is not None:
             rows.append(tag_rows(camera, index, fps, names, tags))
     tracks = _concatenate(rows)
-    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
+    unplaced = (in_view >= UNPLACED_MIN_FRAMES) & (placed < 0.1 * in_view)
+    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts,
+                                tuple(np.asarray(names, dtype=object)[unplaced].tolist()))
 
 
 def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0) -> tuple[Tracks, TrackSummary]:
