@@ -12,7 +12,9 @@ middle; the ellipse (semi-axes, angle) comes from the weighted second moments (a
 ellipse of semi-axes a, b has moments a²/4, b²/4), and window and ring follow it. Under
 motion blur the darkness centroid is the disk's mean place over the exposure. The tests:
 contrast, a filled ellipse (dark area / ellipse area), a white ring that nothing darker
-cuts (a partly covered marker is refused), size and elongation in range.
+cuts (a partly covered marker is refused) and that is one white (a disk painted without a
+square at the edge of a link's face, half its ring on the sky, would lean), size and
+elongation in range.
 
 A disk's projected centre is not the centre of its image ellipse under perspective; where
 the disk's plane is known, `disk_centre_from_ellipse` gives the exact image of the centre
@@ -164,8 +166,10 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
 
     Each candidate is refined on its own window, which follows the ellipse as it moves and
     grows (to twice its starting size and 4 px). Returns the Detections without any test
-    applied (see `accept`) and how far each one's surrounding ring falls short of white,
-    relative to its contrast (N,).
+    applied (see `accept`) and its surrounding ring (N, 2), relative to its contrast: how far
+    the ring's 15th percentile falls short of its white (something darker cuts it), and how
+    far its median does (the ring is not one white: half of it on something brighter, as a
+    disk painted without a square at the edge of a link's face, whose centroid would lean).
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     shape = np.asarray(shape, dtype=float)
@@ -173,21 +177,21 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
         shape = shape[:, None, None] ** 2 * np.eye(2)
     shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
     if len(xy) == 0:
-        return Detections.empty(), np.zeros(0)
+        return Detections.empty(), np.zeros((0, 2))
     major = np.sqrt(np.clip(np.linalg.eigvalsh(shape)[:, 1], 0.25, None))
-    centre, axes, angle, contrast, fill, spread = refine_disks(
+    centre, axes, angle, contrast, fill, spread, uneven = refine_disks(
         np.ascontiguousarray(gray, dtype=np.uint8), np.ascontiguousarray(xy), shape, 2.0 * major + 4.0, iterations
     )
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
-    return Detections(centre, axes, angle, contrast, fill, score), spread
+    return Detections(centre, axes, angle, contrast, fill, score), np.stack([spread, uneven], axis=-1)
 
 
-def accept(detections: Detections, spread: np.ndarray, options: DetectOptions) -> np.ndarray:
+def accept(detections: Detections, ring: np.ndarray, options: DetectOptions) -> np.ndarray:
     """(N,) bool: the detections that pass the shape and contrast tests."""
     a, b = detections.axes[:, 0], detections.axes[:, 1]
     ok = detections.contrast >= options.min_contrast
     ok &= (detections.fill >= options.min_fill) & (detections.fill <= options.max_fill)
-    ok &= spread <= options.max_ring_spread
+    ok &= ring[:, 0] <= options.max_ring_spread
     ok &= (np.sqrt(a * b) >= options.min_radius) & (a <= options.max_radius)
     ok &= a <= options.max_elongation * b
     return ok & np.all(np.isfinite(detections.xy), axis=1)
@@ -222,13 +226,13 @@ def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, optio
     candidate that moved more than a quarter of its radius from where it started (a far or
     ill-sized start) is refined once more from where it arrived, so that it converges."""
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    found, spread = refine(gray, xy, shape)
+    found, ring = refine(gray, xy, shape)
     far = np.linalg.norm(found.xy - xy, axis=1) > 0.25 * np.maximum(found.radius, 1.0)
     if np.any(far):
-        again, again_spread = refine(gray, found.xy[far], found.shape[far])
+        again, again_ring = refine(gray, found.xy[far], found.shape[far])
         found = concatenate([found.select(~far), again])
-        spread = np.concatenate([spread[~far], again_spread])
-    found = found.select(accept(found, spread, options))
+        ring = np.concatenate([ring[~far], again_ring])
+    found = found.select(accept(found, ring, options))
     return unique(found)
 
 
