@@ -4,10 +4,10 @@ Boards of DICT_4X4_50 tags (cv2.aruco.generateImageMarker) seen through a lens w
 k1 = -0.35, drifting across the view, rendered per condition (tag size, inverted print,
 motion blur, rolling shutter, defocus), H.264-encoded and decoded as `mocap track` reads
 them (luma). Per condition: the share of the wholly visible tags found (frames x tags) by
-`mocap.detect.TagFinder` (one per video, as `mocap track` runs it) and by `cv2.aruco.ArucoDetector` with its default settings (the
-peer), the tags the peer finds that ours misses, the median distance between the two
-centres where both find a tag, each one's centre error against the truth (median and 95th
-percentile), and the time per frame of each.
+`mocap.detect.TagFinder` (one per video, as `mocap track` runs it) and by
+`cv2.aruco.ArucoDetector` with its default settings (the peer), the tags the peer finds that
+ours misses, the median distance between the two centres where both find a tag, each one's
+centre error against the truth (median and 95th percentile), and the time per frame of each.
 
     python benchmarks/bench_tags.py [--frames 10] [--size 1280x720] [--seed 1]
 """

@@ -4,8 +4,6 @@ truth/scene.toml."""
 from __future__ import annotations
 
 import tomllib
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
@@ -48,7 +46,8 @@ def scene():
 
 def picture(session, look: Look) -> np.ndarray:
     """Frame 0 in `look`, without the camera's effects, as grey levels (float)."""
-    renderer = CameraRenderer(session, 0, RenderOptions(effects=EffectOptions.none(), look=look), np.random.default_rng(1))
+    options = RenderOptions(effects=EffectOptions.none(), look=look)
+    renderer = CameraRenderer(session, 0, options, np.random.default_rng(1))
     _, image = next(renderer.frames(np.array([0]), clean=True))
     return image.astype(float) @ np.array([0.114, 0.587, 0.299])
 
@@ -92,7 +91,6 @@ def test_cli_writes_the_look_into_the_scene(tmp_path, capsys):
     assert scene["look"]["name"] == look.name and scene["look"]["paint"] == list(look.paint)
     assert scene["look"]["crf"] == look.crf
     assert scene["options"]["size"] == [round(1920 * 0.25 * look.scale), round(1080 * 0.25 * look.scale)]
-    assert replace(look, name="x") != look
 
 
 @pytest.mark.parametrize("seed", [3, 12])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
-from mocap.detect import detect_tags, tag_dictionary
+from mocap.detect import detect_tags, diagonal_intersection, tag_dictionary
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
 from mocap.synthetic.encode import video_writer
@@ -43,8 +43,6 @@ def opencv_tags(gray: np.ndarray, dictionary: str) -> dict[int, np.ndarray]:
     if ids is None:
         return {}
     corners = np.concatenate(corners).reshape(-1, 4, 2)
-    from mocap.detect import diagonal_intersection
-
     return dict(zip(ids.reshape(-1).tolist(), diagonal_intersection(corners)))
 
 

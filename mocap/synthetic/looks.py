@@ -34,7 +34,8 @@ class Look:
     sun_elevation_deg / sun_azimuth_deg: the sun (None: drawn per camera, 35-60° high);
     overcast: 0 hard sunlight to 1 flat light; disk_ratio: the disk's diameter over its
     square's side; disk_grey, square_grey: the paint (18 and 235 new; None square: the
-    disk painted straight on the machine, but on dark links, where it would not show); haze: share of haze over the whole picture;
+    disk painted straight on the machine, but on dark links, where it would not show);
+    haze: share of haze over the whole picture;
     defocus: Gaussian blur SD px; noise, exposure, dust, blur: the camera effects
     (`EffectOptions`); crf: H.264 quality (23 default, 35 heavy compression); scale: the
     image size's factor; distortion, shake_deg: the lens and the camera's wind shake.

@@ -101,7 +101,9 @@ def render_board(look: BoardLook, n_frames: int, rng: np.random.Generator, super
     rays = _undistorted_rays(matrix.tobytes(), distortion.tobytes(), width, height, s)  # 2 x (sH, sW)
     texture_from_board3 = np.vstack([texture_from_board, [0.0, 0.0, 1.0]])
     row_time = look.rolling_shutter * (np.arange(height * s) + 0.5) / (height * s)  # in frame intervals
-    offsets = look.shutter * ((np.arange(exposure_steps) + 0.5) / exposure_steps - 0.5) if look.shutter > 0 else np.zeros(1)
+    offsets = np.zeros(1)  # instants of the exposure, in frame intervals from the frame's time
+    if look.shutter > 0:
+        offsets = look.shutter * ((np.arange(exposure_steps) + 0.5) / exposure_steps - 0.5)
     frames = np.empty((n_frames, height, width), np.uint8)
     truth = np.full((n_frames, n_tags, 2), np.nan)
     for f in range(n_frames):
@@ -206,7 +208,8 @@ def _true_centres(centres, pose, frame, readout, height, matrix, distortion) -> 
     t = np.full(len(centres), float(frame))
     for _ in range(3):
         rotation, translation = pose(t)
-        uv = np.array([_project(c[None], rotation[k], translation[k], matrix, distortion)[0] for k, c in enumerate(centres)])
+        uv = np.array([_project(c[None], rotation[k], translation[k], matrix, distortion)[0]
+                       for k, c in enumerate(centres)])
         t = frame + readout * np.clip(uv[:, 1] + 0.5, 0, height) / height
     return uv
 
@@ -219,5 +222,6 @@ def _inside(corners, pose, n_frames, matrix, distortion, size) -> np.ndarray:
         rotation, translation = pose(np.array([float(f)]))
         uv = _project(corners.reshape(-1, 2) * 1.3 - 0.3 * np.repeat(corners.mean(axis=1), 4, axis=0),
                       rotation[0], translation[0], matrix, distortion).reshape(len(corners), 4, 2)
-        out[f] = np.all((uv[..., 0] > 2) & (uv[..., 0] < width - 3) & (uv[..., 1] > 2) & (uv[..., 1] < height - 3), axis=1)
+        inside = (uv[..., 0] > 2) & (uv[..., 0] < width - 3) & (uv[..., 1] > 2) & (uv[..., 1] < height - 3)
+        out[f] = np.all(inside, axis=1)
     return out

@@ -194,7 +194,8 @@ def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> Fra
 
 
 def _select(result: FrameResult, keep: np.ndarray) -> FrameResult:
-    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted,
+                       result.rms_px)
 
 
 def _concatenate(rows: list[Tracks]) -> Tracks:

@@ -127,7 +127,8 @@ _NO_TAGS = ("no tag of the machine model found; check the tag dictionary ({dicti
             "dictionary) and the tags' ids, and that the tags are in the picture, at least 12 px across and in focus")
 
 
-def _finish(request: TrackRequest, video: Video, camera: str, tracks: Tracks, summary: TrackSummary, machine) -> TrackReport:
+def _finish(request: TrackRequest, video: Video, camera: str, tracks: Tracks, summary: TrackSummary,
+            machine) -> TrackReport:
     """Refuse an empty result, write the tracks (and the preview)."""
     if summary.frames == 0:
         raise InputError(f"no frame {request.start} in the video", path=request.video)
