@@ -83,7 +83,8 @@ def run(args) -> int:
             print(f"  {report.labels.marker[k]:>8}  x {report.labels.xy[k, 0]:9.2f}  y {report.labels.xy[k, 1]:9.2f}")
         return 0
     s = report.summary
-    print(f"{report.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
+    fitted = f"{s.fitted} with a model fit, " if s.fitted else ""  # tags alone need no fit
+    print(f"{report.camera}: {s.frames} frames, {fitted}{s.labelled} marker "
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
     if s.unplaced:
         print(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
