@@ -77,8 +77,23 @@ def propose_labels(
             best, best_key = FrameResult(markers, detections.select(index), joints[k], True, rms), key
     if best is None or len(best.markers) < min_markers:
         return None
-    best = _same_size(model, best)
+    best = _determined(model, _same_size(model, best))
     return best if len(best.markers) >= min_markers else None
+
+
+def _determined(model: CameraModel, result: FrameResult) -> FrameResult:
+    """`result` without a marker that alone shows two or more joints (no other labelled
+    marker moves with them): its two coordinates fix those joints with nothing to spare, so
+    the fit puts it on any blob (a bucket marker on the other's disk, the arm and bucket
+    turned to reach it); the tracker takes it back when the model can tell."""
+    moves = model.machine.marker_moves  # (J, M)
+    keep = np.ones(len(result.markers), dtype=bool)
+    for k, m in enumerate(result.markers):
+        others = np.delete(result.markers, k)
+        keep[k] = np.sum(moves[:, m] & ~model.observed_joints(others)) < 2
+    if np.all(keep):
+        return result
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
 
 
 def _same_size(model: CameraModel, result: FrameResult, factor: float = 1.6) -> FrameResult:

@@ -259,6 +259,9 @@ class Tracker:
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
             # a marker alone on its link fits any blob along its arc: only the one blob in reach
             alone = np.sum(np.linalg.norm(back_uv[back, None] - free[None], axis=-1) <= gate[back, None], axis=1) == 1
+            # ... and only if it alone shows at most one joint: with two, its two coordinates
+            # fix them with nothing to spare, and it fits any blob at all
+            alone &= np.sum(model.machine.marker_moves[:, back] & ~model.observed_joints(held)[:, None], axis=0) <= 1
             keep_back = model.supported(back, held) | alone
             back, back_index = back[keep_back], back_index[keep_back]
             if len(back) == 0:
