@@ -8,6 +8,14 @@ tracks; then the cameras' time offsets from the tracks against the truth. A mark
 as visible when all of its painted square is in view (the true tracks' score is 1).
 
     python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
+
+With `--looks N`: N sessions, each in its own random look (`mocap.synthetic.looks`:
+machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake),
+the first `--frames` frames of each camera rendered, encoded at the look's quality and
+tracked from the true calibration; labelled share, wrong labels and centre errors per look
+and camera and overall, and the worst look printed with its settings.
+
+    python benchmarks/bench_tracking.py --looks 20 [--frames 150] [--size 960x540] [--seed 1]
 """
 
 from __future__ import annotations
@@ -27,6 +35,11 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
 from mocap.sync import joint_curves, synchronise
+from mocap.synthetic import make_session
+from mocap.synthetic.effects import EffectOptions
+from mocap.synthetic.encode import video_writer
+from mocap.synthetic.looks import random_look
+from mocap.synthetic.render import CameraRenderer, RenderOptions
 from mocap.tracking import CameraModel, track_frames
 
 
@@ -62,6 +75,67 @@ def score(truth, tracks):
     return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
 
 
+def track_looks(args) -> int:
+    """Tracking over `args.looks` random looks; see the module's docstring."""
+    machine = load_machine(args.machine)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    header = (f"{'look':>4} {'camera':>6} {'size':>9} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} "
+              f"{'p95 px':>7}  look")
+    print(header)
+    print("-" * (len(header) + 40))
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(args.looks):
+            look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
+            size = (round(width * look.scale / 2) * 2, round(height * look.scale / 2) * 2)
+            session = make_session(machine, args.machine, n_cameras=args.cameras, n_cycles=1, seed=args.seed + k,
+                                   size=size, distortion=look.distortion, shake_deg=look.shake_deg)
+            options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
+            rng = np.random.default_rng([args.seed, k, 1])
+            look_rows = []
+            for c, field in enumerate(session.cameras):
+                frames = np.arange(min(args.frames, field.frames))
+                path = Path(tmp) / f"look{k}_{field.name}.mp4"
+                renderer = CameraRenderer(session, c, options, rng)
+                with video_writer(path, size, field.fps, "h264", 0, look.crf) as write:
+                    for _, image in renderer.frames(frames):
+                        write(image)
+                model = CameraModel(machine, field.camera)
+                try:
+                    tracks, _ = track_frames(model, Video(path).frames(prefetch=4), session.calibration.joints(machine),
+                                             None, field.fps)
+                except ValueError as exc:  # the first frame could not be labelled
+                    print(f"{k:>4} {field.name:>6}: {exc}")
+                    tracks = None
+                truth = session.tracks.of_camera(field.name)
+                truth = truth.select(truth.frame < len(frames))
+                whole = int(np.sum(truth.score >= 1.0))
+                if tracks is None:
+                    labelled, wrong, errors = 0.0, 0.0, np.zeros(0)
+                else:
+                    labelled, wrong, errors = score(truth, tracks)
+                look_rows.append((whole, labelled, wrong, errors))
+                print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wrong:>7.3%} "
+                      f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
+                      f"{np.percentile(errors, 95) if len(errors) else np.nan:>7.3f}  {look.name if c == 0 else ''}")
+                path.unlink()
+            results.append((look, look_rows))
+    share = [sum(r[1] * r[0] for r in rows) / max(sum(r[0] for r in rows), 1) for _, rows in results]
+    visible = sum(r[0] for _, rows in results for r in rows)
+    labelled = sum(r[1] * r[0] for _, rows in results for r in rows) / max(visible, 1)
+    wrong = np.mean([r[2] for _, rows in results for r in rows])
+    errors = np.concatenate([r[3] for _, rows in results for r in rows] + [np.zeros(0)])
+    print("-" * (len(header) + 40))
+    print(f"all {len(results)} looks x {args.cameras} cameras: {labelled:.2%} of {visible} visible markers labelled, "
+          f"{wrong:.3%} wrong (mean over cameras), centre error median {np.median(errors):.3f} px, "
+          f"95th percentile {np.percentile(errors, 95):.3f} px")
+    worst = int(np.argmin(share))
+    print(f"worst: look {worst}, {share[worst]:.2%} labelled; its settings:")
+    for key, value in results[worst][0].table().items():
+        print(f"    {key} = {value}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="1920x1080")
@@ -71,7 +145,13 @@ def main() -> int:
     parser.add_argument("--machine", default="hitachi_ex3500")
     parser.add_argument("--session", help="use this rendered session folder instead of rendering one")
     parser.add_argument("--repeat", type=int, default=2, help="timed runs per camera (the least counts)")
+    parser.add_argument("--looks", type=int, default=0, help="track over this many random looks instead")
+    parser.add_argument("--frames", type=int, default=150, help="with --looks: frames per camera")
     args = parser.parse_args()
+    if args.looks:
+        if args.size == "1920x1080":
+            args.size = "960x540"
+        return track_looks(args)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.session) if args.session else Path(tmp) / "session"
         if not args.session:

@@ -12,7 +12,9 @@ middle; the ellipse (semi-axes, angle) comes from the weighted second moments (a
 ellipse of semi-axes a, b has moments a²/4, b²/4), and window and ring follow it. Under
 motion blur the darkness centroid is the disk's mean place over the exposure. The tests:
 contrast, a filled ellipse (dark area / ellipse area), a white ring that nothing darker
-cuts (a partly covered marker is refused), size and elongation in range.
+cuts (a partly covered marker is refused) and that is one white (a disk painted without a
+square at the edge of a link's face, half its ring on the sky, would lean), size and
+elongation in range.
 
 A disk's projected centre is not the centre of its image ellipse under perspective; where
 the disk's plane is known, `disk_centre_from_ellipse` gives the exact image of the centre
@@ -24,12 +26,16 @@ detections.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from mocap.disk_kernel import refine_disks
+
+
+FULL_FRAME_BLOCKS = (9, 15, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search
 
 
 @dataclass(frozen=True)
@@ -38,12 +44,12 @@ class DetectOptions:
 
     min_radius: float = 1.5
     max_radius: float = 40.0
-    min_contrast: float = 80.0
+    min_contrast: float = 40.0
     block: int = 51  # adaptive threshold neighbourhood, odd, larger than a marker's square
     threshold_offset: float = 15.0  # grey levels below the neighbourhood mean
     min_fill: float = 0.6  # dark area / ellipse area (blur lowers it for small disks)
     max_fill: float = 1.25
-    max_ring_spread: float = 0.6  # (ring white - its 15th percentile) / contrast
+    max_ring_spread: float = 0.9  # (ring white - its 15th percentile) / contrast
     max_elongation: float = 6.0  # major / minor semi-axis
 
     def __post_init__(self) -> None:
@@ -160,8 +166,10 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
 
     Each candidate is refined on its own window, which follows the ellipse as it moves and
     grows (to twice its starting size and 4 px). Returns the Detections without any test
-    applied (see `accept`) and how far each one's surrounding ring falls short of white,
-    relative to its contrast (N,).
+    applied (see `accept`) and its surrounding ring (N, 2), relative to its contrast: how far
+    the ring's 15th percentile falls short of its white (something darker cuts it), and how
+    far its median does (the ring is not one white: half of it on something brighter, as a
+    disk painted without a square at the edge of a link's face, whose centroid would lean).
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     shape = np.asarray(shape, dtype=float)
@@ -169,21 +177,21 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
         shape = shape[:, None, None] ** 2 * np.eye(2)
     shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
     if len(xy) == 0:
-        return Detections.empty(), np.zeros(0)
+        return Detections.empty(), np.zeros((0, 2))
     major = np.sqrt(np.clip(np.linalg.eigvalsh(shape)[:, 1], 0.25, None))
-    centre, axes, angle, contrast, fill, spread = refine_disks(
+    centre, axes, angle, contrast, fill, spread, uneven = refine_disks(
         np.ascontiguousarray(gray, dtype=np.uint8), np.ascontiguousarray(xy), shape, 2.0 * major + 4.0, iterations
     )
     score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
-    return Detections(centre, axes, angle, contrast, fill, score), spread
+    return Detections(centre, axes, angle, contrast, fill, score), np.stack([spread, uneven], axis=-1)
 
 
-def accept(detections: Detections, spread: np.ndarray, options: DetectOptions) -> np.ndarray:
+def accept(detections: Detections, ring: np.ndarray, options: DetectOptions) -> np.ndarray:
     """(N,) bool: the detections that pass the shape and contrast tests."""
     a, b = detections.axes[:, 0], detections.axes[:, 1]
     ok = detections.contrast >= options.min_contrast
     ok &= (detections.fill >= options.min_fill) & (detections.fill <= options.max_fill)
-    ok &= spread <= options.max_ring_spread
+    ok &= ring[:, 0] <= options.max_ring_spread
     ok &= (np.sqrt(a * b) >= options.min_radius) & (a <= options.max_radius)
     ok &= a <= options.max_elongation * b
     return ok & np.all(np.isfinite(detections.xy), axis=1)
@@ -194,19 +202,37 @@ def detect_disks(
 ) -> Detections:
     """Disk markers in an image, or in its region `roi` = (x0, y0, x1, y1) (end exclusive).
 
-    Returns the accepted Detections, duplicates (one disk found twice) merged.
+    Candidates come from adaptive thresholds of several neighbourhoods, from `options.block`
+    down to 9 px (`FULL_FRAME_BLOCKS`): a small disk on a small square beside a dark link
+    is darker than a small neighbourhood's mean but not than a large one's, and a disk on
+    a link darker than the sky around it stands apart only in a small one. Returns the
+    accepted Detections, duplicates (one disk found twice) merged.
     """
     options = options or DetectOptions()
     gray = as_gray(image)
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, gray.shape[1], gray.shape[0])
-    xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
-    return refine_and_accept(gray, xy, shape, options)
+    xys, shapes = [], []
+    for block in sorted({b for b in FULL_FRAME_BLOCKS if b < options.block} | {options.block}):
+        xy, shape = find_candidates(gray[y0:y1, x0:x1], replace(options, block=block), (x0, y0))
+        xys.append(xy)
+        shapes.append(shape)
+    xy, shape = np.concatenate(xys), np.concatenate(shapes)
+    _, first = np.unique(np.round(xy * 2), axis=0, return_index=True)  # the same region from two blocks
+    return refine_and_accept(gray, xy[first], shape[first], options)
 
 
 def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:
-    """`refine` then `accept`, duplicates merged (centres closer than half a radius)."""
-    found, spread = refine(gray, xy, shape)
-    found = found.select(accept(found, spread, options))
+    """`refine` then `accept`, duplicates merged (centres closer than half a radius). A
+    candidate that moved more than a quarter of its radius from where it started (a far or
+    ill-sized start) is refined once more from where it arrived, so that it converges."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    found, ring = refine(gray, xy, shape)
+    far = np.linalg.norm(found.xy - xy, axis=1) > 0.25 * np.maximum(found.radius, 1.0)
+    if np.any(far):
+        again, again_ring = refine(gray, found.xy[far], found.shape[far])
+        found = concatenate([found.select(~far), again])
+        ring = np.concatenate([ring[~far], again_ring])
+    found = found.select(accept(found, ring, options))
     return unique(found)
 
 
@@ -299,13 +325,73 @@ def tag_dictionary(name: str):
     return cv2.aruco.getPredefinedDictionary(value)
 
 
+_TAG_PASSES = ((False, 1), (True, 1), (False, 2), (True, 2))  # (inverted, enlargement)
+
+
 def detect_tags(image: np.ndarray, dictionary: str = "DICT_4X4_50") -> TagDetections:
-    """ArUco / AprilTag markers (cv2.aruco.ArucoDetector; corners refined on the tag's
-    outer contour, which holds on small and slanted tags better than a corner window)."""
+    """ArUco / AprilTag markers, black on white or printed inverted (white on black): every
+    pass of `TagFinder` on one image."""
+    return TagFinder(dictionary)(image)
+
+
+class TagFinder:
+    """ArUco / AprilTag markers in the frames of one video, black on white or printed
+    inverted (white on black), down to about 12 px across.
+
+    OpenCV's `cv2.aruco.ArucoDetector` (its own settings, but for tags down to 1 % of the
+    image's larger side in perimeter) runs in up to four passes: on the image, as OpenCV
+    would; on the image inverted (white-on-black prints: OpenCV's `detectInvertedMarker`
+    loses some blurred tags that the plain pass finds); and on both enlarged twice
+    (bicubic), where small tags, whose cells are 2-3 px, are found more often and their
+    corners placed better (their centres are kept where several passes find a tag).
+    Corners are refined on the tag's outer contour, which holds on small and slanted tags
+    better than a corner window. The plain pass runs on every frame, so a tag OpenCV finds
+    is found; the others on every `recheck`-th frame, and on the frames between only while
+    they have found a tag the plain pass missed within the last `recheck` frames (a video
+    of large black-on-white tags costs one pass a frame). An id found twice in one pass
+    names no tag and is dropped.
+    """
+
+    def __init__(self, dictionary: str = "DICT_4X4_50", recheck: int = 30):
+        self.detector = _tag_detector(dictionary)
+        self.recheck = recheck
+        self.frames = 0
+        self.last_useful = {p: -recheck - 1 for p in _TAG_PASSES[1:]}
+
+    def __call__(self, image: np.ndarray) -> TagDetections:
+        gray = as_gray(image)
+        everything = self.frames % self.recheck == 0 if self.recheck > 0 else True
+        found = self._pass(gray, *_TAG_PASSES[0])
+        plain = set(found)
+        for key in _TAG_PASSES[1:]:
+            if not (everything or self.frames - self.last_useful[key] <= self.recheck):
+                continue
+            more = self._pass(gray, *key)
+            if set(more) - plain:
+                self.last_useful[key] = self.frames
+            found.update(more)  # the later passes place corners better
+        self.frames += 1
+        if not found:
+            return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
+        return TagDetections(np.array(list(found)), np.array(list(found.values())))
+
+    def _pass(self, gray: np.ndarray, inverted: bool, scale: int) -> dict[int, np.ndarray]:
+        picture = 255 - gray if inverted else gray
+        if scale > 1:
+            picture = cv2.resize(picture, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        corners, ids, _ = self.detector.detectMarkers(picture)
+        if ids is None or len(ids) == 0:
+            return {}
+        ids = ids.reshape(-1)
+        corners = (np.concatenate(corners).reshape(-1, 4, 2) + 0.5) / scale - 0.5  # pixel centres at integers
+        values, counts = np.unique(ids, return_counts=True)
+        once = np.isin(ids, values[counts == 1])
+        return dict(zip(ids[once].tolist(), corners[once]))
+
+
+@lru_cache(maxsize=8)
+def _tag_detector(dictionary: str):
     parameters = cv2.aruco.DetectorParameters()
     parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
-    detector = cv2.aruco.ArucoDetector(tag_dictionary(dictionary), parameters)
-    corners, ids, _ = detector.detectMarkers(as_gray(image))
-    if ids is None or len(ids) == 0:
-        return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
-    return TagDetections(ids.reshape(-1), np.concatenate(corners).reshape(-1, 4, 2))
+    parameters.minMarkerPerimeterRate = min(parameters.minMarkerPerimeterRate, 0.01)
+    return cv2.aruco.ArucoDetector(tag_dictionary(dictionary), parameters)

@@ -1,8 +1,8 @@
 """The disk refinement's inner loop, compiled (numba): each candidate on its own window.
 
 For one candidate at a time, each iteration visits the pixels of the ellipse's outer ring
-and inside it twice: for the ring's grey levels (a 256-bin histogram, for the 15th and 85th
-percentiles) and the mean of the disk's middle, then for the darkness centroid and second
+and inside it twice: for the ring's grey levels (a 256-bin histogram, for the 15th, 50th and
+85th percentiles) and the mean of the disk's middle, then for the darkness centroid and second
 moments inside the window; a last pass takes the levels around the final ellipse. The window follows the ellipse as
 it moves and grows, up to `max_major` px of major semi-axis. `mocap.detect` describes the
 method; this module only computes it.
@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 _MIN_EVAL = 0.25  # px², the least squared semi-axis
+_UNEVEN = 0.1  # (85th percentile - median) / contrast of a ring of two levels
 
 
 @njit("UniTuple(f8, 3)(f8, f8, f8)", cache=True, nogil=True)
@@ -46,7 +47,7 @@ def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
 
 
 @njit(
-    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
+    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
     "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[::1], i8)",
     cache=True,
     nogil=True,
@@ -54,8 +55,8 @@ def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
 def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major: np.ndarray, iterations: int):
     """Refine N candidates: start centres xy (N, 2), semi-axis matrices shape (N, 2, 2),
     the largest major semi-axis allowed (N,) px. Returns centres (N, 2), semi-axes (N, 2)
-    a >= b, angle (N,), contrast (N,), fill (N,) and the ring's spread (N,) (see
-    `mocap.detect.refine`)."""
+    a >= b, angle (N,), contrast (N,), fill (N,), the ring's spread (N,) and its
+    unevenness (N,) (see `mocap.detect.refine`)."""
     n = xy.shape[0]
     height, width = gray.shape
     out_xy = xy.copy()
@@ -64,6 +65,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
     out_contrast = np.zeros(n)
     out_fill = np.zeros(n)
     out_spread = np.full(n, np.inf)
+    out_uneven = np.full(n, np.inf)
     histogram = np.zeros(256, dtype=np.int64)
     for i in range(n):
         cx, cy = xy[i, 0], xy[i, 1]
@@ -71,7 +73,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
         limit = max_major[i] ** 2
         minor2 = min(max(minor2, _MIN_EVAL), limit)
         major2 = min(max(major2, _MIN_EVAL), limit)
-        darkest = background = foreground = math.nan
+        darkest = background = foreground = middle = math.nan
         mass = 0.0
         for iteration in range(iterations + 1):
             c, s = math.cos(angle), math.sin(angle)
@@ -100,11 +102,18 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
                         histogram[gray[y, x]] += 1
                         ring_count += 1
             if ring_count == 0:
-                darkest = background = math.nan
+                darkest = background = middle = math.nan
             else:
                 darkest = _quantile(histogram, ring_count, 0.15)
+                middle = _quantile(histogram, ring_count, 0.5)
                 background = _quantile(histogram, ring_count, 0.85)
             foreground = middle_sum / middle_count if middle_count > 0 else math.nan
+            if background - middle > _UNEVEN * (background - foreground):
+                # a ring of two levels (half of it on something brighter than the disk's own
+                # surround, as the sky beside a disk painted at a face's edge): the disk's
+                # darkness is measured from the level of most of it, which leaves the centroid
+                # where the disk is rather than leaning away from the brighter side
+                background = middle
             contrast = max(background - foreground, 1.0)
             if iteration == iterations or not math.isfinite(contrast):
                 break
@@ -140,4 +149,5 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
         out_fill[i] = mass / (math.pi * a * b)
         if math.isfinite(darkest):
             out_spread[i] = (background - darkest) / max(background - foreground, 1.0)
-    return out_xy, out_axes, out_angle, out_contrast, out_fill, out_spread
+            out_uneven[i] = (background - middle) / max(background - foreground, 1.0)
+    return out_xy, out_axes, out_angle, out_contrast, out_fill, out_spread, out_uneven

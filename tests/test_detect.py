@@ -160,7 +160,10 @@ def test_clutter_without_a_white_surround_is_rejected():
 def test_detections_follow_blur_and_noise_bounds():
     rng = np.random.default_rng(2)
     image, truth = draw_ellipse_markers(rng, n=20, radius=(4.0, 10.0), clutter=0, blur=2.0, noise=6.0)
-    found = detect_disks(image)
+    # the background's texture holds faint wide blobs of 50-70 grey levels of contrast, which
+    # the default least contrast (40, for worn markers in haze) lets through to the tracker's
+    # model gates; above them, nothing but the markers
+    found = detect_disks(image, DetectOptions(min_contrast=80))
     error, false = match(found.xy, truth)
     assert false == 0
     assert np.all(error < 0.3) and np.median(error) < 0.1

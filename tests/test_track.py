@@ -396,3 +396,31 @@ def test_cli_tracks_a_machine_with_tags(tmp_path, capsys):
     assert np.all(error < 2.0)  # no wrong labels (the mp4v encoding blurs the tags' corners)
     on_tags = tags[index] >= 0
     assert np.sum(on_tags) >= 0.9 * (truth_seen & (tags >= 0)[None]).sum() and np.median(error[on_tags]) < 0.3
+
+
+def test_machine_found_again_within_a_second_after_it_was_hidden():
+    """The whole machine hidden for 60 frames (a truck passing close to the camera) while it
+    moves on: labelled again, rightly, at most 30 frames after it shows again."""
+    frames, uv, seen, model, joints = make_scene(n_frames=110, clutter=10, seed=9, speed=0.6)
+    hidden = range(20, 80)
+    for f in hidden:
+        frames[f] = (f, np.full_like(frames[f][1], 90))
+    seen[hidden.start:hidden.stop] = False
+    tracks, summary = track_frames(model, frames, joints[0], fps=30.0)
+    labelled, wrong, _ = score(tracks, model, uv, seen)
+    assert wrong == 0
+    per_frame = np.bincount(tracks.frame, minlength=len(frames))
+    back = hidden.stop + np.flatnonzero(per_frame[hidden.stop:] >= 5)[0]
+    assert back - hidden.stop <= 30
+    assert np.all(per_frame[hidden.stop + 30:] >= 0.9 * seen[hidden.stop + 30:].sum(axis=1))
+
+
+def test_markers_in_view_but_never_found_are_named():
+    frames, uv, seen, model, joints = make_scene(n_frames=16, clutter=5, seed=10)
+    names = model.machine.marker_names
+    gone = int(np.flatnonzero(seen.all(axis=0))[0])  # a marker in view throughout, its paint scraped off
+    for f, gray in frames:
+        cv2.circle(gray, tuple(int(v) for v in np.round(uv[f, gone])), 16, 120, -1)
+    tracks, summary = track_frames(model, frames, joints[0], fps=30.0)
+    assert summary.unplaced == (names[gone],)
+    assert names[gone] not in set(tracks.marker)

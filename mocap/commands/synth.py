@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
@@ -14,6 +16,7 @@ from mocap.session import Session, mark_complete
 from mocap.synthetic import CLASSES, SessionOptions, make_session, summary, write_truth
 from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import CODECS
+from mocap.synthetic.looks import Look, random_look
 from mocap.synthetic.render import RenderOptions, render_videos
 
 log = logging.getLogger(__name__)
@@ -51,6 +54,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--exposure", type=float, default=0.08, help="SD of the exposure's slow drift (0: none)")
     p.add_argument("--dust", type=float, default=0.55, help="opacity of the densest dust, 0..0.9 (0: none)")
     p.add_argument("--clean", action="store_true", help="no camera effects at all (noise, blur, exposure, dust)")
+    p.add_argument("--look", choices=("default", "random"), default="default",
+                   help="random: machine paint, light, marker paint, haze, defocus, compression, noise, size, lens "
+                   "and shake drawn from the seed (written to truth/scene.toml); default: the usual look")
     p.add_argument("--no-video", action="store_true", help="write the truth only")
     p.set_defaults(run=run)
 
@@ -88,24 +94,34 @@ def run(args: argparse.Namespace) -> int:
     if not 0.05 <= args.scale <= 4.0:
         raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
     width, height = parse_size(args.size)
-    size = (max(16, round(width * args.scale)), max(16, round(height * args.scale)))
+    look = random_look(np.random.default_rng([args.seed, 2])) if args.look == "random" else Look()
+    scale = args.scale * look.scale
+    size = (max(16, round(width * scale)), max(16, round(height * scale)))
     try:
-        effects = EffectOptions.none() if args.clean else EffectOptions(args.noise, args.blur, args.exposure, args.dust)
+        if args.clean:
+            effects = EffectOptions.none()
+        elif args.look == "random":
+            effects = EffectOptions(look.noise, look.blur, look.exposure, look.dust)
+        else:
+            effects = EffectOptions(args.noise, args.blur, args.exposure, args.dust)
     except ValueError as exc:
         raise InputError(f"{exc}; noise and exposure take 0..50, blur and dust 0..0.9") from None
     options = SessionOptions(
         n_cameras=args.cameras, n_cycles=args.cycles, seed=args.seed, size=size,
-        distortion=args.distortion, shake_deg=args.shake, bounce=args.bounce, reactive=args.reactive,
+        distortion=args.distortion or look.distortion, shake_deg=args.shake or look.shake_deg, bounce=args.bounce,
+        reactive=args.reactive,
         redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
     )
     session = make_session(machine, str(args.machine), options)
     args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over
-    write_truth(session, args.out, machine_path)
+    write_truth(session, args.out, machine_path, look)
     log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
     if not args.no_video:
-        paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects))
+        paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects, look=look))
         log.info("wrote %d videos", len(paths))
     mark_complete(Session.open(args.out).complete_path, "mocap synth")
     print(summary(session))
+    if args.look == "random":
+        print(f"look: {look.name}")
     print(f"wrote {args.out}" + ("" if args.no_video else f" with {args.codec} videos"))
     return 0

@@ -17,7 +17,8 @@ EXAMPLE = """examples:
   mocap track videos/cam1.mp4 --machine hitachi_ex3500 --calibration calibration/cameras.toml \\
       --camera cam1 --propose-labels tracks/cam1_labels.csv
   mocap track videos/cam1.mp4 --machine hitachi_ex3500 --calibration calibration/cameras.toml \\
-      --camera cam1 --labels tracks/cam1_labels.csv --out tracks/cam1.csv"""
+      --camera cam1 --labels tracks/cam1_labels.csv --out tracks/cam1.csv --preview tracks/cam1_check.mp4
+  mocap track videos/cam2.mp4 --machine board_with_tags.toml --out tracks/cam2.csv   # every marker a tag"""
 
 
 def add_parser(sub) -> None:
@@ -27,23 +28,27 @@ def add_parser(sub) -> None:
         description="Find the painted disk markers in every frame, name them with the model's "
         "markers and follow them through the video, guided by the calibrated camera and the "
         "machine model; markers the model gives a tag id (ArUco / AprilTag) are found by their "
-        "ids. The first frame is labelled from --labels (digitised marker pixels), from the tags, "
-        "or by fitting the model; --propose-labels writes that proposal for checking and stops.",
+        "ids (black on white or printed inverted). The first frame is labelled from --labels (digitised "
+        "marker pixels), from the tags, or by fitting the model; --propose-labels writes that proposal for "
+        "checking and stops. A model whose markers all carry tags needs no calibration.",
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("video", help="the camera's video file")
     p.add_argument("--machine", required=True, help="machine model TOML (or a shipped model's name)")
-    p.add_argument("--calibration", required=True, help="camera calibration TOML")
-    p.add_argument("--camera", required=True, help="the camera's name in the calibration")
+    p.add_argument("--calibration",
+                   help="camera calibration TOML; required unless every marker of the model carries a tag")
+    p.add_argument("--camera", help="the camera's name in the calibration (default: the calibration's only "
+                   "camera, or the video file's name)")
     p.add_argument("--out", help="tracks CSV to write")
     p.add_argument("--labels", help="tracks CSV with the first frame's marker pixels")
+    p.add_argument("--preview", metavar="OUT.mp4", help="also write the video with each label drawn on it")
     p.add_argument("--propose-labels", metavar="OUT.csv", help="write proposed first-frame labels and stop")
     p.add_argument("--start", type=int, default=0, help="first frame to track (default 0)")
     p.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
     p.add_argument("--gate", type=float, default=10.0, metavar="PX", help="least search radius (default 10)")
-    p.add_argument("--min-contrast", type=float, default=80.0, metavar="GREY",
-                   help="least disk-to-background contrast, grey levels (default 80)")
+    p.add_argument("--min-contrast", type=float, default=40.0, metavar="GREY",
+                   help="least disk-to-background contrast, grey levels (default 40)")
     p.add_argument("--whole-video", action="store_true",
                    help="refuse a video that breaks before its end (default: keep the tracks up to the break)")
     p.add_argument("--no-occlusion", action="store_true",
@@ -54,7 +59,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     if args.propose_labels is None and args.out is None:
         raise InputError("give --out TRACKS.csv (or --propose-labels OUT.csv to check the first frame)")
-    check_outputs({"--out": args.out, "--propose-labels": args.propose_labels},
+    if args.preview and Path(args.preview).suffix.lower() != ".mp4":
+        raise InputError(f"--preview {args.preview}: give a .mp4 file")
+    check_outputs({"--out": args.out, "--propose-labels": args.propose_labels, "--preview": args.preview},
                   {"video": args.video, "machine model": args.machine, "calibration": args.calibration,
                    "labels": args.labels})
     if args.start < 0 or (args.stop is not None and args.stop <= args.start):
@@ -67,11 +74,11 @@ def run(args) -> int:
         detect=DetectOptions(min_contrast=args.min_contrast),
     )
     request = TrackRequest(
-        Path(args.video), args.machine, Path(args.calibration), args.camera,
+        Path(args.video), args.machine, Path(args.calibration) if args.calibration else None, args.camera,
         Path(args.out) if args.out else None,
         Path(args.labels) if args.labels else None,
         Path(args.propose_labels) if args.propose_labels else None,
-        args.start, args.stop, options, args.whole_video,
+        args.start, args.stop, options, args.whole_video, Path(args.preview) if args.preview else None,
     )
     report = run_track(request)
     if report.summary is None:
@@ -81,8 +88,13 @@ def run(args) -> int:
             print(f"  {report.labels.marker[k]:>8}  x {report.labels.xy[k, 0]:9.2f}  y {report.labels.xy[k, 1]:9.2f}")
         return 0
     s = report.summary
-    print(f"{args.camera}: {s.frames} frames, {s.fitted} with a model fit, {s.labelled} marker "
+    fitted = f"{s.fitted} with a model fit, " if s.fitted else ""  # tags alone need no fit
+    print(f"{report.camera}: {s.frames} frames, {fitted}{s.labelled} marker "
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
+    if s.unplaced:
+        print(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
+    if args.preview:
+        print(f"labels drawn on the video in {args.preview}")
     if report.broken_at is not None:
         print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
               "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)

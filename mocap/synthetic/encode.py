@@ -24,10 +24,12 @@ def frame_rate(fps: float) -> Fraction:
 
 
 @contextlib.contextmanager
-def video_writer(path: str | Path, size: tuple[int, int], fps: float, codec: str = "h264", threads: int = 0):
+def video_writer(path: str | Path, size: tuple[int, int], fps: float, codec: str = "h264", threads: int = 0,
+                 crf: int = 23):
     """Yield ``write(image)`` for BGR uint8 images (H, W, 3); the file appears when done.
 
-    `threads` is the H.264 encoder's thread count (0: automatic). The video is written to
+    `threads` is the H.264 encoder's thread count (0: automatic), `crf` its quality (0
+    lossless, 23 default, 35 and up heavy compression). The video is written to
     a hidden ``.NAME.partial.mp4`` beside `path` (the extension tells OpenCV the container)
     and renamed onto `path` when whole; removed on an error.
     """
@@ -50,7 +52,7 @@ def video_writer(path: str | Path, size: tuple[int, int], fps: float, codec: str
                 stream.width, stream.height = size
                 stream.pix_fmt = "yuv420p"
                 stream.thread_count = threads
-                stream.options = {"preset": "ultrafast", "crf": "23"}
+                stream.options = {"preset": "ultrafast", "crf": str(int(crf))}
 
                 def write(image: np.ndarray) -> None:
                     for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="bgr24")):

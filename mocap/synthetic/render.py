@@ -28,26 +28,28 @@ from mocap.shapes import BOX_FACES, box_corners
 from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
 from mocap.synthetic.effects import CameraEffects, EffectOptions
 from mocap.synthetic.encode import CODECS, video_writer
-from mocap.synthetic.session import SyntheticSession
+from mocap.synthetic.looks import Look
+from mocap.synthetic.session import SyntheticSession, marker_sizes
 
 SMEAR_STEP_PX = 1.5  # the most a marker moves between two instants of an exposure
 MAX_SMEAR_SAMPLES = 6
 
 log = logging.getLogger(__name__)
 
-PALETTE = np.array([[72.0, 75.0, 80.0], [20.0, 110.0, 230.0], [25.0, 125.0, 240.0], [30.0, 120.0, 225.0],
-                    [62.0, 66.0, 72.0]])  # BGR: dark undercarriage, orange house, boom and arm, grey bucket
 WHITE, BLACK = (235, 235, 235), (18, 18, 18)
 
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """`codec` one of CODECS, the camera `effects`, the fine grid's `supersample` factor,
-    frames per batch `chunk`, encoder `threads` (0: automatic). The markers' sizes are the
-    session's (`mocap.synthetic.session.marker_sizes`)."""
+    """`codec` one of CODECS, the camera `effects`, the scene's `look` (paint, light,
+    markers, haze, defocus, compression: `mocap.synthetic.looks`), the fine grid's
+    `supersample` factor, frames per batch `chunk`, encoder `threads` (0: automatic). The
+    markers' squares are the session's (`mocap.synthetic.session.marker_sizes`), their
+    disks the look's share of them."""
 
     codec: str = "h264"
     effects: EffectOptions = field(default_factory=EffectOptions)
+    look: Look = field(default_factory=Look)
     supersample: int = 8
     chunk: int = 32
     threads: int = 0
@@ -67,13 +69,22 @@ class CameraRenderer:
         self.field = session.cameras[index]
         camera = self.field.camera
         reach = session.reach
+        self.look = look = options.look
         elevation, azimuth = np.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * np.pi)
         self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                             np.sin(elevation)])
+                             np.sin(elevation)]) if look.sun() is None else look.sun()
         self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
         self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
-        self.colours = PALETTE[np.arange(len(session.boxes)) % len(PALETTE)]
+        self.colours = look.palette[np.arange(len(session.boxes)) % len(look.palette)]
         self.squares, self.disks = session.marker_outlines()
+        centres = session.machine.marker_positions[:, None]
+        disk_m, square_m = marker_sizes(reach)
+        self.disks = centres + (self.disks - centres) * (look.disk_ratio * square_m / disk_m)
+        if look.square_grey is not None:
+            self.square_grey = np.full(len(centres), look.square_grey)
+        else:  # no squares; but a disk on a dark link (undercarriage, bucket) would not show: those keep theirs
+            grey = self.colours[session.machine.marker_links] @ np.array([0.114, 0.587, 0.299])  # BGR luma
+            self.square_grey = np.where(grey < 110, WHITE[0], np.nan)
         self.effects = CameraEffects(camera.size, options.effects, rng)
         self.dust_radius = 0.2 * reach
 
@@ -113,6 +124,7 @@ class CameraRenderer:
                     instants = self._view(frame + offsets)
                     self._draw_smear(image, [[v[i] for v in instants] for i in range(samples[k])])
                 if not clean:
+                    image = self.look.finish(image)
                     radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
                     image = self.effects.apply(image, float(times[k]), uv_tip[k], radius, float(density[k]))
                 yield int(frame), image
@@ -188,16 +200,19 @@ class CameraRenderer:
                 pts = uv_corners[l, quad]
                 if not np.all(np.isfinite(pts)) or np.abs(pts).max() > 1e5:
                     continue
-                shade = 0.45 + 0.55 * max(0.0, float(normals[l, f] @ self.sun))
+                shade = self.look.shade(float(normals[l, f] @ self.sun))
                 cv2.fillPoly(image, [np.round(pts * 16).astype(np.int32)], (self.colours[l] * shade).tolist(),
                              lineType=cv2.LINE_AA, shift=4)
             for m in np.flatnonzero(seen & (links == l)):
-                draw_marker(image, uv_squares[m], uv_disks[m], self.options.supersample)
+                white = None if np.isnan(self.square_grey[m]) else float(self.square_grey[m])
+                draw_marker(image, uv_squares[m], uv_disks[m], self.options.supersample, white, self.look.disk_grey)
 
 
-def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor: int) -> None:
+def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor: int,
+                white: float | None = WHITE[0], black: float = BLACK[0]) -> None:
     """A black disk (outline (N, 2) px) on a white square (4, 2) px, filled on a grid
-    `factor` times finer and area-averaged back into `image`."""
+    `factor` times finer and area-averaged back into `image`; greys `white` (None: no
+    square, the disk straight on the paint) and `black`."""
     h, w = image.shape[:2]
     x0, y0 = np.floor(square.min(axis=0)).astype(int) - 1
     x1, y1 = np.ceil(square.max(axis=0)).astype(int) + 2
@@ -207,7 +222,8 @@ def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor:
     roi = image[y0:y1, x0:x1]
     fine = cv2.resize(roi, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST)
     origin = np.array([x0, y0], dtype=float)
-    for outline, colour in ((square, WHITE), (disk, BLACK)):
+    paints = ((square, (white,) * 3), (disk, (black,) * 3)) if white is not None else ((disk, (black,) * 3),)
+    for outline, colour in paints:
         pts = ((outline - origin + 0.5) * factor - 0.5) * 256  # fine-grid pixels, 8 fraction bits
         cv2.fillPoly(fine, [np.round(pts).astype(np.int32)], colour, lineType=cv2.LINE_8, shift=8)
     image[y0:y1, x0:x1] = cv2.resize(fine, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
@@ -223,7 +239,8 @@ def render_videos(session: SyntheticSession, root: str | Path, options: RenderOp
         for index, camera in enumerate(session.cameras):
             renderer = CameraRenderer(session, index, options, rng)
             path = Path(root) / "videos" / f"{camera.name}.mp4"
-            with video_writer(path, camera.camera.size, camera.fps, options.codec, options.threads) as write:
+            with video_writer(path, camera.camera.size, camera.fps, options.codec, options.threads,
+                              options.look.crf) as write:
                 for _, image in renderer.frames():
                     write(image)
                     bar.update(1)

@@ -198,10 +198,11 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                             concatenate(parts), markers, views, boxes, normals)
 
 
-def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path | None = None) -> None:
+def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path | None = None, look=None) -> None:
     """Write session.toml and truth/ under `root`; videos are named, not written here.
 
-    `machine_path`: a model file outside the shipped ones, copied into the folder.
+    `machine_path`: a model file outside the shipped ones, copied into the folder; `look`
+    the videos' `mocap.synthetic.looks.Look`, written into scene.toml.
     """
     root = Path(root)
     truth = root / "truth"
@@ -225,7 +226,10 @@ def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path 
                        session.markers.reshape(-1, 3), np.zeros(f.size), session.views.ravel()),
                 truth / "markers.csv")
     save_session_cycles(session, truth / "cycles.csv")
-    write_text(truth / "scene.toml", toml_writer.dumps(scene_table(session)))
+    scene = scene_table(session)
+    if look is not None:
+        scene["look"] = look.table()
+    write_text(truth / "scene.toml", toml_writer.dumps(scene))
 
 
 def summary(session: SyntheticSession) -> str:

@@ -77,7 +77,36 @@ def propose_labels(
             best, best_key = FrameResult(markers, detections.select(index), joints[k], True, rms), key
     if best is None or len(best.markers) < min_markers:
         return None
-    return best
+    best = _determined(model, _same_size(model, best))
+    return best if len(best.markers) >= min_markers else None
+
+
+def _determined(model: CameraModel, result: FrameResult) -> FrameResult:
+    """`result` without a marker that alone shows two or more joints (no other labelled
+    marker moves with them): its two coordinates fix those joints with nothing to spare, so
+    the fit puts it on any blob (a bucket marker on the other's disk, the arm and bucket
+    turned to reach it); the tracker takes it back when the model can tell."""
+    moves = model.machine.marker_moves  # (J, M)
+    keep = np.ones(len(result.markers), dtype=bool)
+    for k, m in enumerate(result.markers):
+        others = np.delete(result.markers, k)
+        keep[k] = np.sum(moves[:, m] & ~model.observed_joints(others)) < 2
+    if np.all(keep):
+        return result
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
+
+
+def _same_size(model: CameraModel, result: FrameResult, factor: float = 1.6) -> FrameResult:
+    """`result` without the detections whose size disagrees with the others': the disks are
+    painted alike, so each one's radius over the model's px per metre at its marker is about
+    the same (a blob of the machine's own paint, ten times a disk's size, is no marker)."""
+    scale = model.view(result.joints[None]).scale[0, result.markers]
+    disk_m = result.detections.radius / scale
+    typical = np.nanmedian(disk_m)
+    keep = (disk_m < factor * typical) & (disk_m > typical / factor)
+    if np.all(keep):
+        return result
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
 
 
 def labels_from_pixels(

@@ -8,26 +8,32 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.detect import detect_disks, detect_tags
+from mocap.detect import TagFinder, detect_disks
 from mocap.io.tracks_csv import Tracks, concatenate
+from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
 from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
 
 log = logging.getLogger(__name__)
 
-_MAX_SEARCH_INTERVAL = 16  # full-frame searches that find nothing back off to 16 x lost_frames
+_MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to 16 x lost_frames
+UNPLACED_MIN_FRAMES = 10
+_MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
 
 
 @dataclass(frozen=True)
 class TrackSummary:
     """`frames` read, `fitted` frames with a model fit, `labelled` rows written,
-    `restarts` full-frame relabellings after a loss."""
+    `restarts` full-frame relabellings after a loss, `unplaced` the disk markers the fitted
+    model showed in view in at least `UNPLACED_MIN_FRAMES` frames but that were labelled in
+    under a tenth of them (not found, or refused: look at them in a preview)."""
 
     frames: int
     fitted: int
     labelled: int
     restarts: int
+    unplaced: tuple[str, ...] = ()
 
 
 def label_first_frame(
@@ -36,12 +42,13 @@ def label_first_frame(
     start: np.ndarray,
     labelled: np.ndarray | None,
     options: TrackOptions,
+    finder: TagFinder | None = None,
 ) -> FrameResult | None:
     """The first frame's labels: from digitised pixels `labelled` (M, 2) NaN where not
     given (the machine's tags found in the frame count as given), or proposed by the model
     search from joint values `start` (J,)."""
     found = detect_disks(gray, options.detect)
-    tags = tag_pixels(model, gray)
+    tags = tag_pixels(model.machine, gray, finder)
     if tags is not None and np.any(np.isfinite(tags[:, 0])):
         labelled = tags if labelled is None else np.where(np.isfinite(tags), tags, labelled)
     if labelled is not None:
@@ -49,13 +56,14 @@ def label_first_frame(
     return propose_labels(model, found, starts_around(model, start), min_markers=options.min_markers)
 
 
-def tag_pixels(model: CameraModel, gray: np.ndarray) -> np.ndarray | None:
+def tag_pixels(machine: Machine, gray: np.ndarray, finder: TagFinder | None = None) -> np.ndarray | None:
     """(M, 2) the centres of the machine's tags found in the frame, by their ids (NaN for
-    the markers not found and those that are disks); None if the machine carries no tags."""
-    tags = model.machine.tags
+    the markers not found and those that are disks); None if the machine carries no tags.
+    `finder` the video's `TagFinder` (None: a new one, every pass)."""
+    tags = machine.tags
     if not np.any(tags >= 0):
         return None
-    found = detect_tags(gray, model.machine.tag_dictionary)
+    found = (finder or TagFinder(machine.tag_dictionary))(gray)
     pixels = np.full((len(tags), 2), np.nan)
     marker_of = {int(t): m for m, t in enumerate(tags) if t >= 0}
     for tag_id, xy in zip(found.ids, found.xy):
@@ -100,27 +108,26 @@ def track_frames(
     (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
     tracks of the frames read and a summary; raises ValueError if the first frame cannot
     be labelled. After a loss, or while a joint goes unseen, the whole frame is searched
-    again every `lost_frames` frames, less often while those searches find nothing new.
+    again every `lost_frames` frames, less often while those searches find nothing new (after
+    a loss, at least every 2 x `lost_frames` frames).
     """
     options = options or TrackOptions()
     names = model.machine.marker_names
     camera = model.camera.name
     rows: list[Tracks] = []
     if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
-        n_frames = 0
-        for index, gray in frames:
-            n_frames += 1
-            rows.append(tag_rows(camera, index, fps, names, tag_pixels(model, gray)))
-        tracks = _concatenate(rows)
-        return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
+        return track_tags(model.machine, frames, camera, fps)
     tracker = None
+    finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
     n_frames = n_fitted = restarts = searched = 0
+    in_view = np.zeros(len(names), dtype=int)  # frames the fitted model showed each disk marker
+    placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     for index, gray in frames:
         n_frames += 1
-        tags = tag_pixels(model, gray)
+        tags = tag_pixels(model.machine, gray, finder)
         if tracker is None:
-            first = label_first_frame(model, gray, start, labelled, options)
+            first = label_first_frame(model, gray, start, labelled, options, finder)
             if first is None:
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks")
             tracker = Tracker(model, first, options)
@@ -130,6 +137,8 @@ def track_frames(
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
+            if lost:
+                interval = min(interval, _MAX_LOST_INTERVAL * options.lost_frames)
             if (lost or tracker.needs_search()) and searched >= interval:
                 searched = 0
                 again = propose_labels(
@@ -145,17 +154,35 @@ def track_frames(
                     interval = options.lost_frames
                     log.info("frame %d: markers found again by a full-frame search", index)
                 else:
-                    interval = min(2 * interval, _MAX_SEARCH_INTERVAL * options.lost_frames)
+                    most = _MAX_LOST_INTERVAL if lost else _MAX_SEARCH_INTERVAL
+                    interval = min(2 * interval, most * options.lost_frames)
             elif not (lost or tracker.needs_search()):
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)
+        if result.fitted:
+            in_view += tracker.state.visible
+            placed[result.markers] += tracker.state.visible[result.markers]
         disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
         if np.any(disks):
             rows.append(frame_rows(camera, index, fps, names, _select(result, disks)))
         if tags is not None:
             rows.append(tag_rows(camera, index, fps, names, tags))
     tracks = _concatenate(rows)
-    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts)
+    unplaced = (in_view >= UNPLACED_MIN_FRAMES) & (placed < 0.1 * in_view)
+    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts,
+                                tuple(np.asarray(names, dtype=object)[unplaced].tolist()))
+
+
+def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0) -> tuple[Tracks, TrackSummary]:
+    """The tracks of a machine whose markers all carry tags: each frame's tags by their ids
+    (no camera model needed). `frames` iterable of (index, grey (H, W))."""
+    rows, n_frames = [], 0
+    finder = TagFinder(machine.tag_dictionary)
+    for index, gray in frames:
+        n_frames += 1
+        rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray, finder)))
+    tracks = _concatenate(rows)
+    return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
 
 
 def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> FrameResult:
@@ -167,7 +194,8 @@ def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> Fra
 
 
 def _select(result: FrameResult, keep: np.ndarray) -> FrameResult:
-    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted, result.rms_px)
+    return FrameResult(result.markers[keep], result.detections.select(keep), result.joints, result.fitted,
+                       result.rms_px)
 
 
 def _concatenate(rows: list[Tracks]) -> Tracks:

@@ -184,8 +184,11 @@ class Tracker:
         self._update_disk(view.scale[0], markers, found.radius[index])
         labelled = found.select(index)
         if options.perspective and np.isfinite(state.disk_m):
-            offset = model.centre_offsets(joints[None], state.disk_m)[0, markers]
-            labelled = replace(labelled, xy=labelled.xy + np.nan_to_num(offset))
+            offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
+            # the shift is a small share of a disk's radius; a larger one comes from joints not yet
+            # fitted well (just after the machine was found again) and is not applied
+            plausible = np.linalg.norm(offset, axis=1) <= 0.2 * labelled.radius
+            labelled = replace(labelled, xy=labelled.xy + offset * plausible[:, None])
         return FrameResult(markers, labelled, joints, True, rms)
 
     @property
@@ -256,6 +259,9 @@ class Tracker:
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
             # a marker alone on its link fits any blob along its arc: only the one blob in reach
             alone = np.sum(np.linalg.norm(back_uv[back, None] - free[None], axis=-1) <= gate[back, None], axis=1) == 1
+            # ... and only if it alone shows at most one joint: with two, its two coordinates
+            # fix them with nothing to spare, and it fits any blob at all
+            alone &= np.sum(model.machine.marker_moves[:, back] & ~model.observed_joints(held)[:, None], axis=0) <= 1
             keep_back = model.supported(back, held) | alone
             back, back_index = back[keep_back], back_index[keep_back]
             if len(back) == 0:
