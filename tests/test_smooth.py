@@ -1,11 +1,13 @@
 """The smoother, gap filling, uncertainty of named points, and `mocap fit` end to end."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from mocap import cli
 from mocap.io.cameras_toml import Calibration, save_calibration
-from mocap.io.machine_toml import load_machine
+from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
 from mocap.reconstruct.motion import reconstruct_motion
@@ -175,3 +177,24 @@ def test_fit_with_base_motion_writes_and_recovers_the_bouncing_base(tmp_path):
         ok = np.isfinite(z)
         assert ok.mean() > 0.9 and np.sqrt(np.mean(z[ok] ** 2)) < 2.0, name
     assert np.ptp(expected.extra["base_pitch_deg"]) > 5 * np.median(fitted.extra["base_pitch_sd_deg"])
+
+
+def test_fit_refuses_a_model_the_tracks_contradict(tmp_path, capsys):
+    """A wrong machine model that shares the marker names (its markers moved around): the
+    tracks lie far from any pose of it, and fit says so instead of writing a confident
+    motion; the right model on the same tracks passes the same gate."""
+    machine = load_machine("hitachi_ex3500")
+    rng = np.random.default_rng(8)
+    cameras = ring_of_cameras(2, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0))
+    time, joints = dig_like(machine, 2.0, rng)
+    save_tracks(observe(cameras, machine, joints, rng, noise_px=NOISE), tmp_path / "tracks.csv")
+    save_calibration(Calibration(tuple(cameras), tuple({"fps": FPS} for _ in cameras)), tmp_path / "cameras.toml")
+    wrong = replace(machine, marker_positions=machine.marker_positions[rng.permutation(len(machine.marker_names))])
+    save_machine(wrong, tmp_path / "wrong.toml")
+    out = tmp_path / "motion.csv"
+    args = [str(tmp_path / "cameras.toml"), str(tmp_path / "tracks.csv"), "--out", str(out)]
+    assert cli.main(["fit", str(tmp_path / "wrong.toml"), *args]) == 2
+    err = capsys.readouterr().err
+    assert "do not match the tracks" in err and len(err.strip().splitlines()) == 1 and not out.exists()
+    assert cli.main(["fit", "hitachi_ex3500", *args]) == 0 and out.exists()
+    assert cli.main(["fit", "hitachi_ex3500", *args, "--max-noise-px", "0"]) == 2

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.camera import Camera
+from mocap.geometry import Rigid, rotvec_to_matrix
 from mocap.io.cameras_toml import Calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points
@@ -151,3 +153,20 @@ def test_cli_triangulate(tmp_path, machine, capsys):
     code = cli.main(["triangulate", str(tmp_path / "cameras.toml"), paths[0], "--out", str(tmp_path / "one.csv")])
     assert code == 2 and "no marker is seen by two cameras" in capsys.readouterr().err
     assert not (tmp_path / "one.csv").exists()
+
+
+def test_cli_refuses_views_that_disagree(tmp_path, machine, capsys):
+    """A calibration whose second camera is turned by 3 degrees about two axes: its views and the first
+    camera's disagree far beyond any pixel noise, and triangulate says so."""
+    cameras, rng = rig(2, seed=9)
+    joints = random_joints(machine, 10, rng)
+    tracks = observe(cameras, machine, joints, rng, noise_px=NOISE)
+    turned = Rigid(rotvec_to_matrix(np.radians([3.0, 0.0, 3.0])) @ cameras[1].cam_from_world.rotation,
+                   cameras[1].cam_from_world.translation)
+    wrong = [cameras[0], Camera(cameras[1].name, cameras[1].size, cameras[1].matrix, cameras[1].distortion, turned)]
+    save_calibration(Calibration(tuple(wrong), tuple({"fps": 30.0} for _ in wrong)), tmp_path / "cameras.toml")
+    save_tracks(tracks, tmp_path / "tracks.csv")
+    out = tmp_path / "points.csv"
+    assert cli.main(["triangulate", str(tmp_path / "cameras.toml"), str(tmp_path / "tracks.csv"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "disagree" in err and len(err.strip().splitlines()) == 1 and not out.exists()

@@ -46,10 +46,15 @@ def add_parser(sub) -> None:
                    help="longest gap the smoother fills, seconds (default 2)")
     p.add_argument("--process-noise", type=float, metavar="Q",
                    help="smoother's acceleration noise density, unit²/s³ (default: estimated)")
+    p.add_argument("--max-noise-px", type=float, default=5.0, metavar="PX",
+                   help="refuse (exit 2, nothing written) when the tracks imply a pixel noise beyond this: a wrong "
+                   "model, calibration or labels (default 5)")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
+    if not args.max_noise_px > 0:
+        raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
     check_outputs({"--out": args.out},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
     try:
@@ -60,5 +65,6 @@ def run(args) -> int:
         )
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
-    print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options))
+    print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options,
+                  args.max_noise_px))
     return 0

@@ -35,15 +35,20 @@ def add_parser(sub) -> None:
     p.add_argument("--sigmas", type=float, default=5.0,
                    help="outlier threshold in units of the estimated pixel noise (default 5)")
     p.add_argument("--min-views", type=int, default=2, help="views needed for a point (default 2)")
+    p.add_argument("--max-noise-px", type=float, default=5.0, metavar="PX",
+                   help="refuse (exit 2, nothing written) when the tracks imply a pixel noise beyond this: a wrong "
+                   "model, calibration or labels (default 5)")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
+    if not args.max_noise_px > 0:
+        raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
     check_outputs({"--out": args.out},
                   {"calibration": args.calibration, "tracks": args.tracks})
     try:
         options = TriangulateOptions(max_error_px=args.max_error_px, sigmas=args.sigmas, min_views=args.min_views)
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
-    print(run_triangulate(args.calibration, args.tracks, args.out, options))
+    print(run_triangulate(args.calibration, args.tracks, args.out, options, args.max_noise_px))
     return 0

@@ -19,6 +19,7 @@ from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.reconstruct.motion import reconstruct_motion
+from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.smooth import SmoothOptions
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
@@ -87,7 +88,11 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
             f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps", path=path)
 
 
-def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions) -> str:
+MAX_NOISE_PX = 5.0  # tracks that lie further than this from any consistent answer: refused
+
+
+def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions,
+                    max_noise_px: float = MAX_NOISE_PX) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
     if options.min_views > len(calibration.cameras):
         raise InputError(f"--min-views {options.min_views}: the calibration has only {len(calibration.cameras)} "
@@ -106,6 +111,13 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
             path=calibration_path,
         )
     points = Points(*(np.concatenate([r[k] for r in rows]) for k in range(5)))
+    noise = noise_from_fits(points.error_px**2 * points.views, 2 * points.views - 3)
+    if noise > max_noise_px:
+        worst = _worst(points.marker, points.error_px)
+        raise InputError(
+            f"the cameras' views of the markers disagree by {noise:.1f} px (the pixel noise they imply; most: "
+            f"{worst}): the calibration, the time offsets or the labels do not match the tracks; nothing "
+            f"written (check them, or raise --max-noise-px {max_noise_px:g})", path=calibration_path)
     save_points(points, out)
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return (
@@ -117,7 +129,7 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
 
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
-            smooth_options: SmoothOptions | None) -> str:
+            smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
@@ -128,8 +140,18 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
         machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
         fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,
     )
-    save_motion(result.motion, machine, out)
     fit = result.fit
+    if fit.noise_px > max_noise_px:
+        seen = np.isfinite(fit.residuals[..., 0])
+        length = np.linalg.norm(np.nan_to_num(fit.residuals), axis=-1)
+        camera, _, marker = np.nonzero(seen)
+        labels = np.array([f"{calibration.names[c]}:{machine.marker_names[m]}" for c, m in zip(camera, marker)])
+        raise InputError(
+            f"the tracks lie {fit.noise_px:.1f} px (the pixel noise they imply) from the best pose of the model "
+            f"{machine.name!r} (most: {_worst(labels, length[seen])}): the machine model, the labels or the "
+            f"calibration do not match the tracks; nothing written (check them, or raise --max-noise-px "
+            f"{max_noise_px:g})", path=", ".join(map(str, tracks_paths)))
+    save_motion(result.motion, machine, out)
     report = (
         f"{len(result.motion)} frames written to {out}; {int(fit.valid.sum())} fitted, "
         f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
@@ -141,6 +163,14 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
     if result.smoothed is not None:
         report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
     return report + _dropped(clock)
+
+
+def _worst(names: np.ndarray, errors: np.ndarray, count: int = 3) -> str:
+    """The `count` names whose median error is largest, with it: 'cam2:U3 41.0 px, …'."""
+    unique, inverse = np.unique(names, return_inverse=True)
+    medians = np.array([np.median(errors[inverse == k]) for k in range(len(unique))])
+    order = np.argsort(-medians)[:count]
+    return ", ".join(f"{unique[k]} {medians[k]:.1f} px" for k in order)
 
 
 def _dropped(clock: Resampled) -> str:
