@@ -8,6 +8,7 @@ the C3D mark of an invalid point.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,12 @@ def save_c3d(table: MarkerTable, path: str | Path) -> None:
     c3d["data"]["meta_points"]["residuals"] = np.where(seen, 0.0, -1.0)[None]
     c3d["header"]["points"]["first_frame"] = int(table.frame[0]) if n_frames else 0
     with atomic_path(path) as tmp:
-        c3d.write(str(tmp))
+        written = tmp.with_name(tmp.name + ".c3d")  # ezc3d adds .c3d to any other name
+        try:
+            c3d.write(str(written))
+            os.replace(written, tmp)
+        finally:
+            written.unlink(missing_ok=True)
 
 
 def load_c3d(path: str | Path) -> MarkerTable:
