@@ -90,3 +90,46 @@ def save_cycles(rows: list[tuple], path: str | Path) -> None:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(COLUMNS)
         writer.writerows(rows)
+
+
+PHASE_COLUMNS = ("cycle", "class", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame")
+
+
+@dataclass(frozen=True)
+class CyclePhases:
+    """K cycles as `mocap analyze` writes them: name (K,), label (K,) class (`Type 1` …
+    `other`), start, end, dig_start, dig_end (K,) reference frames (inclusive)."""
+
+    name: tuple[str, ...]
+    label: tuple[str, ...]
+    start: np.ndarray
+    end: np.ndarray
+    dig_start: np.ndarray
+    dig_end: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.name)
+
+
+def load_cycle_phases(path: str | Path) -> CyclePhases:
+    """Read the columns `PHASE_COLUMNS` of a cycles CSV (others are ignored)."""
+    path = Path(path)
+    reader = csv.reader(io.StringIO(read_text(path, "check the cycles path")))
+    header = [h.strip() for h in next(reader, [])]
+    missing = [c for c in PHASE_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"header lacks {', '.join(missing)}; expected {','.join(PHASE_COLUMNS)}",
+                         path=path, where="line 1")
+    col = {h: i for i, h in enumerate(header)}
+    rows = []
+    for line, row in enumerate(reader, start=2):
+        if not row or all(not v.strip() for v in row):
+            continue
+        try:
+            frames = [int(row[col[c]]) for c in PHASE_COLUMNS[2:]]
+        except (ValueError, IndexError):
+            raise InputError("the frame columns must be integers", path=path, where=f"line {line}") from None
+        rows.append((row[col["cycle"]].strip(), row[col["class"]].strip(), *frames))
+    columns = list(zip(*rows)) if rows else [()] * len(PHASE_COLUMNS)
+    return CyclePhases(tuple(columns[0]), tuple(columns[1]),
+                       *(np.array(c, dtype=np.int64) for c in columns[2:]))
