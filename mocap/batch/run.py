@@ -8,6 +8,7 @@ failing stage ends its session's chain with its error; it never raises into the 
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import subprocess
@@ -19,6 +20,7 @@ from pathlib import Path
 import mocap
 from mocap.batch.manifest import Manifest
 from mocap.batch.plan import Stage
+from mocap.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +60,13 @@ def _overwritten(chain: list[Stage], manifest: Manifest) -> set[tuple[str, str]]
 
 
 def _args(stage: Stage) -> tuple[str, ...]:
+    """The stage's arguments, or for a callable its qualified name (and a partial's arguments)."""
     if stage.args:
         return stage.args
-    return (f"call:{getattr(stage.call, '__module__', '')}.{getattr(stage.call, '__qualname__', repr(stage.call))}",)
+    call, bound = stage.call, ()
+    if isinstance(call, functools.partial):
+        call, bound = call.func, tuple(map(str, call.args)) + tuple(f"{k}={v}" for k, v in call.keywords.items())
+    return (f"call:{getattr(call, '__module__', '')}.{getattr(call, '__qualname__', type(call).__name__)}", *bound)
 
 
 def _input_hashes(stage: Stage, manifest: Manifest, state: dict) -> dict[str, str]:
@@ -89,6 +95,8 @@ def execute(stage: Stage, root: Path) -> str:
     if stage.call is not None:
         try:
             stage.call()
+        except InputError as exc:  # the one line a command would print
+            return str(exc)
         except Exception as exc:  # a failed stage is reported, the batch goes on
             return f"{type(exc).__name__}: {exc}"
         return ""
