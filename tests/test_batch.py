@@ -4,6 +4,7 @@ skipping by content hashes, in-place outputs, failures, the fleet summary."""
 import csv
 import datetime
 import shutil
+import sys
 from functools import partial
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.session import Session
 
 pytest.importorskip("distributed")
+cloudpickle = pytest.importorskip("cloudpickle")
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the test's stages, for worker processes
 
 
 # --- the test chain: truth tracks stand in for tracking, the truth cycles for the analysis ---
@@ -188,3 +191,21 @@ def test_stage_and_option_guards(tmp_path, capsys):
     assert "no session folder (with session.toml)" in capsys.readouterr().err
     assert cli.main(["batch", str(tmp_path), "--workers", "0"]) == 2
     assert "workers must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("in_process", [True, False])
+def test_a_failing_command_gives_its_one_line(tmp_path, in_process):
+    from mocap.batch import run
+
+    missing = tmp_path / "nothing.toml"
+    stages = [Stage("fit", (), (tmp_path / "m.csv",), args=("fit", "hitachi_ex3500", missing, missing, "--out", tmp_path / "m.csv")),
+              Stage("refine", (), (tmp_path / "r.toml",), args=("refine", "--no-such-option"))]
+    if not in_process:
+        assert run._IN_PROCESS.acquire(blocking=False)  # the process is busy: stages run in a child
+    try:
+        assert run.execute(stages[0], tmp_path) == f"mocap fit: error: {missing}: file not found; check the calibration path"
+        assert run.execute(stages[1], tmp_path).startswith("mocap refine: error: the following arguments are required")
+    finally:
+        if not in_process:
+            run._IN_PROCESS.release()
+    assert "file not found" in (tmp_path / "batch" / "logs" / "fit.log").read_text()

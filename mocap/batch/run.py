@@ -8,12 +8,16 @@ failing stage ends its session's chain with its error; it never raises into the 
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import logging
 import os
 import subprocess
 import sys
+import threading
 import time
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,8 +94,15 @@ def up_to_date(stage: Stage, manifest: Manifest, inputs: dict, overwritten) -> b
     return True
 
 
+_IN_PROCESS = threading.Lock()  # one in-process stage at a time: it owns stdout and stderr
+
+
 def execute(stage: Stage, root: Path) -> str:
-    """Run one stage; its output goes to batch/logs/<stage>.log. Returns '' or the error."""
+    """Run one stage; its output goes to batch/logs/<stage>.log. Returns '' or the error.
+
+    A `mocap` stage runs inside the worker's process (its modules stay imported from one
+    stage to the next) unless another stage already does there; then in a child process.
+    """
     if stage.call is not None:
         try:
             stage.call()
@@ -102,17 +113,50 @@ def execute(stage: Stage, root: Path) -> str:
         return ""
     log_path = root / LOG_DIR / f"{stage.name.replace(' ', '_')}.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    if _IN_PROCESS.acquire(blocking=False):
+        try:
+            code, errors = _in_process(stage.args, log_path)
+        finally:
+            _IN_PROCESS.release()
+    else:
+        code, errors = _child_process(stage.args, log_path)
+    if code == 0:
+        return ""
+    lines = [line for line in errors.splitlines() if line.strip()]
+    return lines[-1] if lines else f"exit status {code}"
+
+
+def _in_process(args, log_path: Path) -> tuple[int, str]:
+    from mocap import cli
+
+    errors = io.StringIO()
+    root_logger = logging.getLogger()
+    with open(log_path, "w", encoding="utf-8") as out:
+        handler = logging.StreamHandler(errors)  # the stage's log lines (and cli's basicConfig does nothing)
+        root_logger.addHandler(handler)
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(errors):
+                code = cli.main(list(args))
+        except SystemExit as exc:  # argparse's refusal of the arguments
+            code = exc.code if isinstance(exc.code, int) else 2
+        except Exception as exc:  # a bug in a stage: its traceback in the log, the batch goes on
+            errors.write(traceback.format_exc() + f"{type(exc).__name__}: {exc}\n")
+            code = 1
+        finally:
+            root_logger.removeHandler(handler)
+        out.write(errors.getvalue())
+    return code, errors.getvalue()
+
+
+def _child_process(args, log_path: Path) -> tuple[int, str]:
     env = dict(os.environ)
     package_root = str(Path(mocap.__file__).resolve().parents[1])  # this worker's mocap, for the stage too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH", "")) if p)
     with open(log_path, "w", encoding="utf-8") as out:
-        done = subprocess.run([sys.executable, "-m", "mocap.cli", *stage.args], stdout=out,
-                              stderr=subprocess.PIPE, text=True, env=env, stdin=subprocess.DEVNULL)
+        done = subprocess.run([sys.executable, "-m", "mocap.cli", *args], stdout=out, stderr=subprocess.PIPE,
+                              text=True, env=env, stdin=subprocess.DEVNULL)
         out.write(done.stderr)
-    if done.returncode == 0:
-        return ""
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
-    return lines[-1] if lines else f"exit status {done.returncode}"
+    return done.returncode, done.stderr
 
 
 def run_stages(root: Path, chain: list[Stage], names: list[str], priors: list[TaskResult], write: bool) -> TaskResult:

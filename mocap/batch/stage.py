@@ -61,7 +61,7 @@ def dask_client(scheduler: str | None, workers: int):
         with client:
             yield client
         return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         with Client(cluster) as client:
             yield client
 
@@ -94,7 +94,7 @@ def summarize(root: Path, chain: list[Stage], results: list[TaskResult]) -> Sess
     return SessionSummary(root.name, machine, day, "ok", "", **counts, **figures)
 
 
-def _failed_before_start(root: Path, error: str) -> SessionSummary:
+def _failed(root: Path, error: str) -> SessionSummary:
     from mocap.io.session_toml import load_session_config
 
     try:
@@ -159,12 +159,16 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
             try:
                 futures[root] = submit_session(client, root, chain_for(root))
             except InputError as exc:
-                summaries[root] = _failed_before_start(root, str(exc))
+                summaries[root] = _failed(root, str(exc))
         from distributed import as_completed
 
         order = {future.key: root for root, future in futures.items()}
         for future in progress(as_completed(futures.values()), total=len(futures), desc="sessions", unit="session"):
-            summaries[order[future.key]] = future.result()
+            root = order[future.key]
+            try:
+                summaries[root] = future.result()
+            except Exception as exc:  # a worker died under the session (out of memory, a crash)
+                summaries[root] = _failed(root, f"{type(exc).__name__}: {exc}")
     ordered = [summaries[root] for root in sessions]
     wall = time.perf_counter() - start
     save_fleet(ordered, Path(options.out) / "fleet.csv")
