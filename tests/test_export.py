@@ -272,3 +272,31 @@ def test_colmap_export_refuses_skew(tmp_path):
     matrix[0, 1] = 0.5
     with pytest.raises(InputError, match="has skew 0.5"):
         colmap_params(replace(camera, matrix=matrix))
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("Frame#\tTime\n", "not a TRC file"),
+        ("PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tNumMarkers\tUnits\n30\t1\tinches\nFrame#\tTime\tA\n\n\n",
+         "Units \\(mm, cm or m\\)"),
+        ("PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tNumMarkers\tUnits\n30\t2\tmm\nFrame#\tTime\tA\n\n\n",
+         "1 marker names, NumMarkers says 2"),
+        ("PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tNumMarkers\tUnits\n30\t1\tmm\nFrame#\tTime\tA\n\t\tX1\tY1\tZ1\n\n1\t0\tx\t1\t2\n",
+         "line 7: a field is not a number"),
+    ],
+)
+def test_trc_reader_guards(tmp_path, text, message):
+    (tmp_path / "x.trc").write_text(text)
+    with pytest.raises(InputError, match=message):
+        load_trc(tmp_path / "x.trc")
+
+
+def test_c3d_reader_guards(tmp_path):
+    from mocap.io.c3d import load_c3d
+
+    with pytest.raises(InputError, match="file not found"):
+        load_c3d(tmp_path / "none.c3d")
+    (tmp_path / "bad.c3d").write_bytes(b"not a c3d file at all" * 40)
+    with pytest.raises(InputError, match="not a readable C3D file"):
+        load_c3d(tmp_path / "bad.c3d")
