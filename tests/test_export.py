@@ -300,3 +300,17 @@ def test_c3d_reader_guards(tmp_path):
     (tmp_path / "bad.c3d").write_bytes(b"not a c3d file at all" * 40)
     with pytest.raises(InputError, match="not a readable C3D file"):
         load_c3d(tmp_path / "bad.c3d")
+
+
+def test_c3d_reader_refuses_unknown_units(tmp_path):
+    ezc3d = pytest.importorskip("ezc3d")
+    from mocap.io.c3d import load_c3d
+
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [30.0]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = ["A"]
+    c3d.add_parameter("POINT", "UNITS", "in")
+    c3d["data"]["points"] = np.ones((4, 1, 3))
+    c3d.write(str(tmp_path / "inches.c3d"))
+    with pytest.raises(InputError, match="POINT:UNITS is 'in'; expected mm, cm or m"):
+        load_c3d(tmp_path / "inches.c3d")
