@@ -105,6 +105,8 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain)
     assert failed == 1, report
     rows = read_fleet(tmp_path)
+    assert list(rows) == ["site_a/s1", "site_a/s2", "site_b/deep/s3"]  # below the sessions' common folder
+    rows = {name.split("/")[-1]: row for name, row in rows.items()}
     assert [rows[r.name]["status"] for r in roots] == ["ok", "ok", "failed"]
     assert rows["s3"]["error"].startswith("prepare: ") and "truth/cameras.toml: file not found" in rows["s3"]["error"]
     assert rows["s1"]["stages_run"] == str(len(chain(roots[0]))) and rows["s1"]["stages_skipped"] == "0"
@@ -131,7 +133,7 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     assert counts == [sum(label == c for label in phases.label) for c in CLASSES[:3]] + [0]
     report_md = (tmp_path / "fleet_report.md").read_text()
     assert "| EX3500 #1 | 1/2 ok |" in report_md and "| 2026-11-30 | 2/2 ok |" in report_md
-    assert "- s3: prepare: " in report_md
+    assert "- site_b/deep/s3: prepare: " in report_md
 
     # a re-run with nothing changed does no work, here through a running scheduler
     outputs = [roots[0] / p for p in ("calibration/cameras.toml", "tracks/cam2.csv", "results/motion.csv")]
@@ -142,8 +144,8 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
         _, failed = run_batch([top], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path), chain_for=chain)
         assert failed == 1
         rows = read_fleet(tmp_path)
-        assert rows["s1"]["stages_run"] == rows["s2"]["stages_run"] == "0"
-        assert rows["s1"]["stages_skipped"] == str(len(chain(roots[0])))
+        assert rows["site_a/s1"]["stages_run"] == rows["site_a/s2"]["stages_run"] == "0"
+        assert rows["site_a/s1"]["stages_skipped"] == str(len(chain(roots[0])))
         assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs} == before
 
         # a lost camera output: that camera's stage runs again on the calibration it read before

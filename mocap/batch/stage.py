@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -66,8 +67,8 @@ def dask_client(scheduler: str | None, workers: int):
             yield client
 
 
-def summarize(root: Path, chain: list[Stage], results: list[TaskResult]) -> SessionSummary:
-    """A session's summary from its tasks' results and, if its chain ran, its cycles."""
+def summarize(root: Path, label: str, results: list[TaskResult]) -> SessionSummary:
+    """A session's summary (named `label`) from its tasks' results and, if its chain ran, its cycles."""
     from mocap.io.cycles_csv import load_cycle_phases
     from mocap.io.motion_csv import load_motion
     from mocap.session import Session
@@ -83,18 +84,18 @@ def summarize(root: Path, chain: list[Stage], results: list[TaskResult]) -> Sess
     }
     error = next((r.error for r in results if r.error), "")
     if error:
-        return SessionSummary(root.name, machine, day, FAILED, error, **counts)
+        return SessionSummary(label, machine, day, FAILED, error, **counts)
     cycles_path = root / ANALYSIS_DIR / "cycles.csv"
     try:
         n_frames = len(load_motion(session.motion_path, session.machine())) if session.motion_path.is_file() else 0
         phases = load_cycle_phases(cycles_path) if cycles_path.is_file() else None
     except InputError as exc:
-        return SessionSummary(root.name, machine, day, FAILED, f"summary: {exc}", **counts)
+        return SessionSummary(label, machine, day, FAILED, f"summary: {exc}", **counts)
     figures = cycle_figures(phases, config.cameras[0].fps, n_frames)
-    return SessionSummary(root.name, machine, day, "ok", "", **counts, **figures)
+    return SessionSummary(label, machine, day, "ok", "", **counts, **figures)
 
 
-def _failed(root: Path, error: str) -> SessionSummary:
+def _failed(root: Path, label: str, error: str) -> SessionSummary:
     from mocap.io.session_toml import load_session_config
 
     try:
@@ -102,24 +103,31 @@ def _failed(root: Path, error: str) -> SessionSummary:
         machine, day = machine_and_day(config.metadata, config.machine)
     except InputError:
         machine, day = "unknown", "unknown"
-    return SessionSummary(root.name, machine, day, FAILED, error)
+    return SessionSummary(label, machine, day, FAILED, error)
 
 
-def submit_session(client, root: Path, chain: list[Stage]):
+def submit_session(client, root: Path, label: str, chain: list[Stage]):
     """Submit a session's tasks; returns the future of its summary."""
     previous, cameras, tasks = [], [], []
     for group in split_tasks(chain):
         names = [stage.name for stage in group]
-        label = f"{root.name}:{names[0].replace(' ', '_')}"
+        key = f"{root.name}:{names[0].replace(' ', '_')}-{time.time_ns()}"
         if group[0].camera is not None:
-            future = client.submit(run_stages, root, chain, names, previous, False, key=f"{label}-{time.time_ns()}")
+            future = client.submit(run_stages, root, chain, names, previous, False, key=key)
             cameras.append(future)
         else:
-            future = client.submit(run_stages, root, chain, names, cameras or previous, True,
-                                   key=f"{label}-{time.time_ns()}")
+            future = client.submit(run_stages, root, chain, names, cameras or previous, True, key=key)
             previous, cameras = [future], []
         tasks.append(future)
-    return client.submit(summarize, root, chain, tasks, key=f"{root.name}:summary-{time.time_ns()}")
+    return client.submit(summarize, root, label, tasks, key=f"{root.name}:summary-{time.time_ns()}")
+
+
+def session_labels(sessions: list[Path]) -> dict[Path, str]:
+    """Each session's name in the summary: its path below the sessions' common folder."""
+    if len(sessions) == 1:
+        return {sessions[0]: sessions[0].name}
+    common = Path(os.path.commonpath(sessions))
+    return {root: root.relative_to(common).as_posix() for root in sessions}
 
 
 def analyze_available() -> bool:
@@ -152,14 +160,15 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
         def chain_for(root: Path) -> list[Stage]:
             return default_chain(root, run_options, analyze=analyze)
 
+    labels = session_labels(sessions)
     summaries: dict[Path, SessionSummary] = {}
     with dask_client(options.scheduler, options.workers) as client:
         futures = {}
         for root in sessions:
             try:
-                futures[root] = submit_session(client, root, chain_for(root))
+                futures[root] = submit_session(client, root, labels[root], chain_for(root))
             except InputError as exc:
-                summaries[root] = _failed(root, str(exc))
+                summaries[root] = _failed(root, labels[root], str(exc))
         from distributed import as_completed
 
         order = {future.key: root for root, future in futures.items()}
@@ -168,7 +177,7 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
             try:
                 summaries[root] = future.result()
             except Exception as exc:  # a worker died under the session (out of memory, a crash)
-                summaries[root] = _failed(root, f"{type(exc).__name__}: {exc}")
+                summaries[root] = _failed(root, labels[root], f"{type(exc).__name__}: {exc}")
     ordered = [summaries[root] for root in sessions]
     wall = time.perf_counter() - start
     save_fleet(ordered, Path(options.out) / "fleet.csv")
