@@ -264,6 +264,15 @@ def test_colmap_export_reprojects_like_our_cameras(tmp_path):
     assert n_checked > 3 * len(points) * 0.5
 
 
+def test_colmap_export_never_replaces_other_files(tmp_path, capsys):
+    (tmp_path / "session.toml").write_text("")
+    assert cli.main(["export", "colmap", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "holds more than a COLMAP model; choose another --out" in capsys.readouterr().err
+    assert cli.main(["export", "colmap", str(tmp_path), "--out", str(tmp_path / "session.toml")]) == 2
+    assert "is a file; --out names the folder" in capsys.readouterr().err
+    assert (tmp_path / "session.toml").is_file()
+
+
 def test_colmap_export_refuses_skew(tmp_path):
     from mocap.io.colmap import colmap_params
 
@@ -314,3 +323,19 @@ def test_c3d_reader_refuses_unknown_units(tmp_path):
     c3d.write(str(tmp_path / "inches.c3d"))
     with pytest.raises(InputError, match="POINT:UNITS is 'in'; expected mm, cm or m"):
         load_c3d(tmp_path / "inches.c3d")
+
+
+def test_atomic_dir_replaces_a_folder_whole(tmp_path):
+    from mocap.io.atomic import atomic_dir
+
+    for text in ("first", "second"):
+        with atomic_dir(tmp_path / "model") as tmp:
+            (tmp / f"{text}.txt").write_text(text)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]
+    assert [p.name for p in (tmp_path / "model").iterdir()] == ["second.txt"]
+    with pytest.raises(RuntimeError, match="interrupted"):
+        with atomic_dir(tmp_path / "model") as tmp:
+            (tmp / "third.txt").write_text("third")
+            raise RuntimeError("interrupted")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]
+    assert [p.name for p in (tmp_path / "model").iterdir()] == ["second.txt"]

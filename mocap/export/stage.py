@@ -66,6 +66,18 @@ def export_urdf(machine_path: str | Path, out: str | Path) -> str:
     )
 
 
+_MODEL_FILES = {f"{name}.{ext}" for name in ("cameras", "images", "points3D", "rigs", "frames") for ext in ("txt", "bin")}
+
+
+def _check_model_folder(out: str | Path) -> None:
+    """`out` may be replaced only if it is absent or an earlier COLMAP model."""
+    out = Path(out)
+    if out.is_file():
+        raise InputError("is a file; --out names the folder of the COLMAP model", path=out)
+    if out.is_dir() and any(p.name not in _MODEL_FILES for p in out.iterdir()):
+        raise InputError("exists and holds more than a COLMAP model; choose another --out", path=out)
+
+
 def export_colmap(root: str | Path, out: str | Path, calibration_path: str | Path | None = None) -> str:
     """Write a COLMAP text model of the session: its cameras, one image per camera and
     triangulated frame, the triangulated markers with their 2-D tracks."""
@@ -74,6 +86,7 @@ def export_colmap(root: str | Path, out: str | Path, calibration_path: str | Pat
     from mocap.io.points_csv import load_points
     from mocap.reconstruct.stage import load_inputs, on_reference_clock
 
+    _check_model_folder(out)
     session = _session(root)
     if calibration_path is None:
         refined = session.refined_calibration_path
