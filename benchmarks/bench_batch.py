@@ -6,8 +6,10 @@ Side by side in one run, each on fresh copies of the same sessions:
   3. `mocap batch --scheduler` against `dask scheduler` and two `dask worker`s started here
      as separate processes, as a person would by hand;
   4. `mocap batch` again on the sessions of 2: nothing changed, so no stage runs.
-It prints the wall times, the throughput ratio of 2 to 1 (target >= 1.6), and whether the
-results of 1, 2 and 3 (calibration, tracks, points, motion) are identical byte for byte.
+It prints the wall and CPU times (of every process each run started, so "cores busy" =
+CPU / wall tells how much of the machine a run could use), the throughput ratio of 2 to 1
+(target >= 1.6), and whether the results of 1, 2 and 3 (calibration, tracks, points,
+motion) are identical byte for byte.
 
     .venv/bin/python benchmarks/bench_batch.py [--sessions 8] [--scale 0.25] [--work DIR]
 """
@@ -18,6 +20,7 @@ import argparse
 import csv
 import hashlib
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -35,6 +38,12 @@ from mocap.session import Session  # noqa: E402
 
 RESULTS = ("calibration/cameras.toml", "tracks/cam1.csv", "tracks/cam2.csv", "tracks/cam3.csv",
            "results/points.csv", "results/motion.csv")
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process's finished children (and theirs)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def mocap(*args, **kwargs) -> subprocess.CompletedProcess:
@@ -151,33 +160,40 @@ def main() -> None:
 
     rows = []
     sequential = fresh_copies(sources, work / "sequential")
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), cpu_seconds()
     failed = sum(mocap("run", root, "--no-view").returncode != 0 for root in sequential)
     t_sequential = time.perf_counter() - start
-    rows.append(("one after the other (mocap run)", t_sequential, f"{len(sources) - failed}/{len(sources)} ok"))
+    rows.append(("one after the other (mocap run)", t_sequential, cpu_seconds() - cpu,
+                 f"{len(sources) - failed}/{len(sources)} ok"))
 
     local = fresh_copies(sources, work / "local")
+    cpu = cpu_seconds()
     t_local, fleet = timed_batch([work / "local"], work / "local_fleet", "--workers", args.workers)
-    rows.append((f"mocap batch, local cluster of {args.workers}", t_local,
+    rows.append((f"mocap batch, local cluster of {args.workers}", t_local, cpu_seconds() - cpu,
                  f"{sum(r['status'] == 'ok' for r in fleet)}/{len(fleet)} ok"))
 
     hand = fresh_copies(sources, work / "hand")
+    cpu = cpu_seconds()
     with HandStartedCluster(work, args.workers) as address:
         t_hand, fleet_hand = timed_batch([work / "hand"], work / "hand_fleet", "--scheduler", address)
-    rows.append(("mocap batch --scheduler (dask scheduler + 2 dask worker)", t_hand,
+    rows.append(("mocap batch --scheduler (dask scheduler + 2 dask worker)", t_hand, cpu_seconds() - cpu,
                  f"{sum(r['status'] == 'ok' for r in fleet_hand)}/{len(fleet_hand)} ok"))
 
+    cpu = cpu_seconds()
     t_again, fleet_again = timed_batch([work / "local"], work / "local_fleet", "--workers", args.workers)
     ran = sum(int(r["stages_run"]) for r in fleet_again)
-    rows.append(("mocap batch again, nothing changed", t_again, f"{ran} stages run"))
+    rows.append(("mocap batch again, nothing changed", t_again, cpu_seconds() - cpu, f"{ran} stages run"))
 
     print(f"\n{len(sources)} sessions (EX3500, 3 cameras, 1 cycle, scale {args.scale}), {os.cpu_count()} cores\n")
-    print(f"| {'run':58s} | {'wall s':>7s} | {'sessions/h':>10s} | result |")
-    print(f"|{'-' * 60}|{'-' * 9}|{'-' * 12}|--------|")
-    for name, seconds, result in rows:
-        print(f"| {name:58s} | {seconds:7.1f} | {3600 * len(sources) / seconds:10.0f} | {result} |")
+    print(f"| {'run':58s} | {'wall s':>7s} | {'CPU s':>7s} | cores busy | {'sessions/h':>10s} | result |")
+    print(f"|{'-' * 60}|{'-' * 9}|{'-' * 9}|------------|{'-' * 12}|--------|")
+    for name, seconds, cpu, result in rows:
+        print(f"| {name:58s} | {seconds:7.1f} | {cpu:7.1f} | {cpu / seconds:10.2f} | "
+              f"{3600 * len(sources) / seconds:10.0f} | {result} |")
     d_seq, d_local, d_hand = digests(sequential), digests(local), digests(hand)
-    print(f"\nthroughput, local cluster / one after the other: {t_sequential / t_local:.2f}x (target >= 1.6)")
+    print(f"\nthroughput, local cluster / one after the other: {t_sequential / t_local:.2f}x (target >= 1.6); "
+          f"CPU per session {rows[0][2] / len(sources):.1f} s one after the other, {rows[1][2] / len(sources):.1f} s "
+          f"in the batch; the machine's load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"results identical, hand-started cluster vs local cluster: {d_hand == d_local} "
           f"({sum(d_hand[k] == d_local[k] for k in d_local)}/{len(d_local)} files)")
     print(f"results identical, local cluster vs one after the other: {d_seq == d_local} "

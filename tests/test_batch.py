@@ -211,3 +211,10 @@ def test_a_failing_command_gives_its_one_line(tmp_path, in_process):
         if not in_process:
             run._IN_PROCESS.release()
     assert "file not found" in (tmp_path / "batch" / "logs" / "fit.log").read_text()
+
+
+def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
+    (tmp_path / "s1").mkdir()
+    (tmp_path / "s1" / "session.toml").write_text('machine = "hitachi_ex3500"\n')
+    assert cli.main(["batch", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path)]) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err

@@ -52,7 +52,7 @@ def dask_client(scheduler: str | None, workers: int):
         logging.getLogger("distributed").setLevel(logging.WARNING)
     if scheduler:
         try:
-            client = Client(scheduler, timeout="10s")
+            client = Client(scheduler, timeout="5s")
         except (OSError, TimeoutError) as exc:
             raise InputError(
                 f"cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` and workers "
