@@ -79,7 +79,8 @@ def test_c3d_round_trip_through_ezc3d(tmp_path, machine_name):
     assert np.nanmax(np.abs(table.xyz - expected)) < 1e-4
 
 
-def test_trc_round_trip_keeps_frames_gaps_and_rate(tmp_path):
+def test_trc_round_trip_keeps_frames_gaps_and_rate(tmp_path, monkeypatch):
+    monkeypatch.setattr("mocap.io.trc._CHUNK", 7)  # written in several chunks
     rng = np.random.default_rng(4)
     machine, frames, markers, seen, named = make_session(tmp_path, "hitachi_ex3500", rng)
     assert cli.main(["export", "trc", str(tmp_path), "--out", str(tmp_path / "dig.trc")]) == 0

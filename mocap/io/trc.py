@@ -22,18 +22,20 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.export.markers import MarkerTable
-from mocap.io.atomic import write_text
+from mocap.io.atomic import atomic_path
 from mocap.io.text import read_text
 
 _UNITS_TO_METRES = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 
 
-def trc_text(table: MarkerTable, name: str) -> str:
-    """The TRC file for `table` (millimetres, 3 decimals)."""
+_CHUNK = 4096  # frames formatted at a time, so that a long session makes no huge string array
+
+
+def _header(table: MarkerTable, name: str) -> list[str]:
     n_frames, n_markers = len(table.frame), len(table.names)
     first = int(table.frame[0]) if n_frames else 0
     rate = f"{table.rate:.6g}"
-    lines = [
+    return [
         f"PathFileType\t4\t(X/Y/Z)\t{name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
         f"{rate}\t{rate}\t{n_frames}\t{n_markers}\tmm\t{rate}\t{first + 1}\t{n_frames}",
@@ -41,15 +43,22 @@ def trc_text(table: MarkerTable, name: str) -> str:
         "\t".join(["", ""] + [f"X{k}\tY{k}\tZ{k}" for k in range(1, n_markers + 1)]),
         "",
     ]
-    mm = np.round(table.xyz * 1000.0, 3).reshape(n_frames, -1)
-    text_values = np.where(np.isfinite(mm), np.char.mod("%.3f", np.nan_to_num(mm)), "")
-    for k in range(n_frames):
-        lines.append(f"{table.frame[k] + 1}\t{table.time[k]:.6f}\t" + "\t".join(text_values[k]))
-    return "\n".join(lines) + "\n"
+
+
+def _rows(table: MarkerTable, start: int, stop: int) -> list[str]:
+    """Data lines of frames [start, stop): millimetres with 3 decimals, gaps empty."""
+    mm = np.round(table.xyz[start:stop] * 1000.0, 3).reshape(stop - start, -1)
+    values = np.where(np.isfinite(mm), np.char.mod("%.3f", np.nan_to_num(mm)), "")
+    time = table.time
+    return [f"{table.frame[k] + 1}\t{time[k]:.6f}\t" + "\t".join(values[k - start]) for k in range(start, stop)]
 
 
 def save_trc(table: MarkerTable, path: str | Path) -> None:
-    write_text(path, trc_text(table, Path(path).name))
+    """Write the TRC file (millimetres, 3 decimals), `Frame#` = our frame + 1."""
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write("\n".join(_header(table, Path(path).name)) + "\n")
+        for start in range(0, len(table.frame), _CHUNK):
+            fh.write("\n".join(_rows(table, start, min(start + _CHUNK, len(table.frame)))) + "\n")
 
 
 def load_trc(path: str | Path) -> MarkerTable:
