@@ -136,6 +136,24 @@ class HandStartedCluster:
             client.wait_for_workers(self.workers, timeout=60)
         return address
 
+    def cpu_seconds(self) -> float:
+        """CPU time of the scheduler and workers and their processes so far."""
+        import psutil
+
+        total = 0.0
+        for process in self.processes:
+            try:
+                family = [psutil.Process(process.pid)] + psutil.Process(process.pid).children(recursive=True)
+            except psutil.NoSuchProcess:
+                continue
+            for member in family:
+                try:
+                    times = member.cpu_times()
+                except psutil.NoSuchProcess:
+                    continue
+                total += times.user + times.system
+        return total
+
     def __exit__(self, *exc) -> None:
         for process in reversed(self.processes):
             process.terminate()
@@ -173,10 +191,12 @@ def main() -> None:
                  f"{sum(r['status'] == 'ok' for r in fleet)}/{len(fleet)} ok"))
 
     hand = fresh_copies(sources, work / "hand")
-    cpu = cpu_seconds()
-    with HandStartedCluster(work, args.workers) as address:
+    cluster = HandStartedCluster(work, args.workers)
+    with cluster as address:
+        cpu = cpu_seconds() + cluster.cpu_seconds()
         t_hand, fleet_hand = timed_batch([work / "hand"], work / "hand_fleet", "--scheduler", address)
-    rows.append(("mocap batch --scheduler (dask scheduler + 2 dask worker)", t_hand, cpu_seconds() - cpu,
+        cpu_hand = cpu_seconds() + cluster.cpu_seconds() - cpu
+    rows.append(("mocap batch --scheduler (dask scheduler + 2 dask worker)", t_hand, cpu_hand,
                  f"{sum(r['status'] == 'ok' for r in fleet_hand)}/{len(fleet_hand)} ok"))
 
     cpu = cpu_seconds()
