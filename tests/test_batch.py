@@ -218,3 +218,20 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     (tmp_path / "s1" / "session.toml").write_text('machine = "hitachi_ex3500"\n')
     assert cli.main(["batch", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path)]) == 2
     assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+
+
+def test_session_metadata_round_trip_and_guard(tmp_path):
+    from mocap.batch.fleet import machine_and_day
+    from mocap.io.session_toml import SessionCamera, SessionConfig
+
+    config = SessionConfig("bobcat_225", (SessionCamera("cam1", "v.mp4", 25.0),), {},
+                           {"machine_id": "B7", "date": datetime.datetime(2026, 12, 1, 6, 30)})
+    save_session_config(config, tmp_path / "session.toml")
+    loaded = load_session_config(tmp_path / "session.toml")
+    assert loaded.metadata == config.metadata
+    assert machine_and_day(loaded.metadata, loaded.machine) == ("B7", "2026-12-01")
+    assert machine_and_day({}, "bobcat_225") == ("bobcat_225", "unknown")
+    (tmp_path / "session.toml").write_text(
+        'machine = "bobcat_225"\nmetadata = "x"\n[[cameras]]\nname = "cam1"\nvideo = "v.mp4"\nfps = 25\n')
+    with pytest.raises(InputError, match=r"\[metadata\] must be a table"):
+        load_session_config(tmp_path / "session.toml")
