@@ -25,6 +25,8 @@ COMMANDS = {  # name: one line of help; each command's module is imported only w
     "analyze": "dig cycles, phases, classes, similarity and templates from the motion",
     "refine": "refine cameras (and marker positions) over many frames",
     "run": "run the whole chain on a session folder",
+    "batch": "run every session under the paths through the chain on Dask, skip what is up to date",
+    "export": "write markers (C3D, TRC), a machine model (URDF) or a session (COLMAP) for other tools",
     "demo": "make a synthetic session, run the whole chain and score it against the truth",
 }
 

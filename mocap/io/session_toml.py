@@ -6,6 +6,7 @@
     video = "videos/cam1.mp4"           # relative to the session folder
     fps = 29.97
     [options]                           # free-form stage options, e.g. calibration_frame = 0
+    [metadata]                          # free-form, e.g. machine_id = "EX3500 #2", date = 2026-11-30
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import MAX_FPS
 from mocap.io.text import read_toml
 
-_TOP_KEYS = {"machine", "cameras", "options"}
+_TOP_KEYS = {"machine", "cameras", "options", "metadata"}
 _CAMERA_KEYS = {"name", "video", "fps"}
 
 
@@ -35,6 +36,7 @@ class SessionConfig:
     machine: str
     cameras: tuple[SessionCamera, ...]
     options: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
 
 
 def load_session_config(path: str | Path) -> SessionConfig:
@@ -72,7 +74,10 @@ def load_session_config(path: str | Path) -> SessionConfig:
     options = data.get("options", {})
     if not isinstance(options, dict):
         raise InputError("[options] must be a table", path=path)
-    return SessionConfig(machine, tuple(cameras), options)
+    metadata = data.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise InputError("[metadata] must be a table", path=path)
+    return SessionConfig(machine, tuple(cameras), options, metadata)
 
 
 def save_session_config(config: SessionConfig, path: str | Path) -> None:
@@ -82,4 +87,6 @@ def save_session_config(config: SessionConfig, path: str | Path) -> None:
     }
     if config.options:
         data["options"] = config.options
+    if config.metadata:
+        data["metadata"] = config.metadata
     write_text(path, toml_writer.dumps(data))

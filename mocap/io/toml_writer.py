@@ -3,6 +3,7 @@ tables and nested tables, so that a person can read the output. Read back with t
 
 from __future__ import annotations
 
+import datetime
 import math
 
 import numpy as np
@@ -67,6 +68,8 @@ def _value(value) -> str:
         return repr(value)
     if isinstance(value, str):
         return _string(value)
+    if isinstance(value, (datetime.date, datetime.time)):  # TOML dates and times are ISO 8601
+        return value.isoformat()
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_value(v) for v in value) + "]"
     if isinstance(value, dict):

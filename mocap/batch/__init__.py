@@ -1,0 +1,1 @@
+"""Many sessions at once on Dask distributed, re-running only what changed, and the fleet summary."""

@@ -1,0 +1,140 @@
+"""The fleet summary: per session, and per machine and day, the cycles per hour, the cycle
+time split into the dig and the rest (swing, dump, return) and the mix of cycle classes.
+
+A session's machine and day come from its session.toml ``[metadata]`` (`machine_id`, else
+the model's name; `date`, a TOML date or datetime, else "unknown").
+"""
+
+from __future__ import annotations
+
+import datetime
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mocap.io.cycles_csv import CyclePhases
+
+CLASSES = ("Type 1", "Type 2", "Type 3", "other")
+
+
+@dataclass(frozen=True)
+class SessionSummary:
+    """One session's figures: hours recorded, cycles, summed cycle and dig seconds, class
+    counts (in `CLASSES` order); `status` ok or failed with `error`; stages run / skipped."""
+
+    session: str
+    machine: str
+    day: str
+    status: str = "ok"
+    error: str = ""
+    stages_run: int = 0
+    stages_skipped: int = 0
+    stage_seconds: float = 0.0
+    hours: float = float("nan")
+    cycles: int = 0
+    cycle_seconds: float = 0.0
+    dig_seconds: float = 0.0
+    classes: tuple[int, ...] = field(default=(0, 0, 0, 0))
+    analysed: bool = False
+
+    @property
+    def cycles_per_hour(self) -> float:
+        return self.cycles / self.hours if self.analysed and self.hours > 0 else float("nan")
+
+    @property
+    def mean_cycle_s(self) -> float:
+        return self.cycle_seconds / self.cycles if self.cycles else float("nan")
+
+    @property
+    def mean_dig_s(self) -> float:
+        return self.dig_seconds / self.cycles if self.cycles else float("nan")
+
+
+def machine_and_day(metadata: dict, model_name: str) -> tuple[str, str]:
+    machine = str(metadata.get("machine_id", model_name))
+    date = metadata.get("date")
+    if isinstance(date, datetime.datetime):
+        day = date.date().isoformat()
+    elif isinstance(date, datetime.date):
+        day = date.isoformat()
+    else:
+        day = str(date) if date else "unknown"
+    return machine, day
+
+
+def cycle_figures(phases: CyclePhases | None, fps: float, n_frames: int) -> dict:
+    """Hours (n_frames / fps / 3600), cycle count, summed cycle and dig seconds (frames are
+    inclusive: a cycle from frame a to b lasts (b - a + 1) / fps), class counts."""
+    hours = n_frames / fps / 3600.0
+    if phases is None:
+        return {"hours": hours}
+    labels = np.array(phases.label, dtype=object)
+    counts = tuple(int(np.sum(labels == c)) for c in CLASSES[:-1])
+    return {
+        "hours": hours,
+        "cycles": len(phases),
+        "cycle_seconds": float(np.sum(phases.end - phases.start + 1) / fps),
+        "dig_seconds": float(np.sum(phases.dig_end - phases.dig_start + 1) / fps),
+        "classes": counts + (len(phases) - sum(counts),),
+        "analysed": True,
+    }
+
+
+def combine(summaries: list[SessionSummary], name: str) -> SessionSummary:
+    """Sessions added up (the successful ones) under one name."""
+    ok = [s for s in summaries if s.status == "ok"]
+    analysed = [s for s in ok if s.analysed]
+    return SessionSummary(
+        name, "", "", status=f"{len(ok)}/{len(summaries)} ok",
+        hours=float(sum(s.hours for s in analysed)) if analysed else float("nan"),
+        cycles=sum(s.cycles for s in analysed),
+        cycle_seconds=sum(s.cycle_seconds for s in analysed),
+        dig_seconds=sum(s.dig_seconds for s in analysed),
+        classes=tuple(int(sum(s.classes[k] for s in analysed)) for k in range(len(CLASSES))),
+        analysed=bool(analysed),
+        stages_run=sum(s.stages_run for s in summaries),
+        stages_skipped=sum(s.stages_skipped for s in summaries),
+        stage_seconds=sum(s.stage_seconds for s in summaries),
+    )
+
+
+def _f(value: float, digits: int = 1) -> str:
+    return "" if not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _mix(summary: SessionSummary) -> str:
+    if not summary.cycles:
+        return ""
+    return ", ".join(f"{c} {100 * n / summary.cycles:.0f}%" for c, n in zip(CLASSES, summary.classes) if n)
+
+
+def _table(title: str, key: str, summaries: list[SessionSummary]) -> list[str]:
+    lines = [f"## By {title}", "", f"| {title} | sessions ok | hours | cycles | cycles/h | cycle s | dig s | rest s | class mix |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for value in sorted({getattr(s, key) for s in summaries}):
+        total = combine([s for s in summaries if getattr(s, key) == value], value)
+        rest = total.mean_cycle_s - total.mean_dig_s
+        lines.append(f"| {value} | {total.status} | {_f(total.hours, 2)} | {total.cycles} | {_f(total.cycles_per_hour)} | "
+                     f"{_f(total.mean_cycle_s)} | {_f(total.mean_dig_s)} | {_f(rest)} | {_mix(total)} |")
+    return lines + [""]
+
+
+def report_text(summaries: list[SessionSummary], wall_seconds: float) -> str:
+    """The fleet report (Markdown): totals, then tables by session, machine and day, then the failures."""
+    total = combine(summaries, "fleet")
+    lines = [
+        "# Fleet summary",
+        "",
+        f"{len(summaries)} sessions, {total.status}; {total.stages_run} stages run, {total.stages_skipped} "
+        f"up to date and skipped; {wall_seconds:.1f} s wall time, {total.stage_seconds:.1f} s in stages.",
+        "",
+    ]
+    if not any(s.analysed for s in summaries):
+        lines += ["No session has a cycle analysis (results/analysis/cycles.csv): no cycle figures.", ""]
+    lines += _table("session", "session", summaries)
+    lines += _table("machine", "machine", summaries)
+    lines += _table("day", "day", summaries)
+    failed = [s for s in summaries if s.status != "ok"]
+    if failed:
+        lines += ["## Failed", ""] + [f"- {s.session}: {s.error}" for s in failed] + [""]
+    return "\n".join(lines)

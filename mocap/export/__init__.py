@@ -1,0 +1,1 @@
+"""Exports to the formats other tools read: C3D and TRC marker files, URDF, COLMAP models."""

@@ -1,0 +1,78 @@
+"""Markers and named points over a session's frames, as marker files (C3D, TRC) hold them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.errors import InputError
+from mocap.io.motion_csv import Motion
+from mocap.io.points_csv import Points
+
+
+@dataclass(frozen=True)
+class MarkerTable:
+    """Markers over F consecutive frames: names (N,), frame (F,) int, rate (Hz), xyz (F, N, 3)
+    in metres in the world frame, NaN where a marker is not seen. Frame f is at f / rate s."""
+
+    names: tuple[str, ...]
+    frame: np.ndarray
+    rate: float
+    xyz: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "frame", np.asarray(self.frame, dtype=int))
+        shape = (len(self.frame), len(self.names), 3)
+        if np.shape(self.xyz) != shape:
+            raise ValueError(f"MarkerTable.xyz must have shape {shape}, got {np.shape(self.xyz)}")
+        if not self.rate > 0:
+            raise ValueError(f"MarkerTable.rate must be positive, got {self.rate}")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"MarkerTable.names repeat: {self.names}")
+        if len(self.frame) and np.any(np.diff(self.frame) != 1):
+            raise ValueError("MarkerTable.frame must be consecutive")
+
+    @property
+    def time(self) -> np.ndarray:
+        """(F,) seconds: frame / rate."""
+        return self.frame / self.rate
+
+
+def marker_table(
+    points: Points | None, motion: Motion | None, rate: float, marker_order: tuple[str, ...] = ()
+) -> MarkerTable:
+    """The triangulated markers, then the motion's named points, over every frame from the
+    first to the last either has (frames without data are gaps).
+
+    `marker_order`: the model's marker names, the order the markers are written in; markers
+    the model does not name follow in order of first appearance.
+    """
+    frames = []
+    if points is not None and len(points):
+        frames.append(points.frame)
+    if motion is not None and len(motion):
+        frames.append(motion.frame)
+    if not frames:
+        raise InputError("no triangulated points and no motion to export; run the session first")
+    first = int(min(f.min() for f in frames))
+    last = int(max(f.max() for f in frames))
+    frame = np.arange(first, last + 1)
+    marker_names: list[str] = []
+    if points is not None and len(points):
+        _, index = np.unique(points.marker, return_index=True)
+        seen = list(points.marker[np.sort(index)])
+        marker_names = [m for m in marker_order if m in set(seen)] + [m for m in seen if m not in set(marker_order)]
+    point_names = list(motion.point_names) if motion is not None else []
+    clash = sorted(set(marker_names) & set(point_names))
+    if clash:
+        raise InputError(f"marker(s) and named point(s) share the names {clash}; rename them in the machine model")
+    xyz = np.full((len(frame), len(marker_names) + len(point_names), 3), np.nan)
+    if marker_names:
+        column = {name: k for k, name in enumerate(marker_names)}
+        m = np.array([column[name] for name in points.marker], dtype=int)
+        xyz[points.frame - first, m] = points.xyz
+    if point_names:
+        xyz[motion.frame - first, len(marker_names):] = motion.points
+    return MarkerTable(tuple(marker_names + point_names), frame, rate, xyz)

@@ -1,0 +1,237 @@
+"""`mocap batch` core on truth-only synthetic sessions: Dask scheduling, per-camera tasks,
+skipping by content hashes, in-place outputs, failures, the fleet summary."""
+
+import csv
+import datetime
+import shutil
+import sys
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocap import cli
+from mocap.batch.fleet import CLASSES
+from mocap.batch.plan import ANALYSIS_DIR, Stage, find_sessions, split_tasks, stage_from_command
+from mocap.batch.stage import BatchOptions, run_batch
+from mocap.errors import InputError
+from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cycles_csv import load_cycle_phases
+from mocap.io.motion_csv import load_motion
+from mocap.io.session_toml import load_session_config, save_session_config
+from mocap.io.tracks_csv import load_tracks, save_tracks
+from mocap.session import Session
+
+pytest.importorskip("distributed")
+cloudpickle = pytest.importorskip("cloudpickle")
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the test's stages, for worker processes
+
+
+# --- the test chain: truth tracks stand in for tracking, the truth cycles for the analysis ---
+
+
+def forget_offsets(root: Path) -> None:
+    """The truth calibration without time offsets: sync must find them."""
+    truth = load_calibration(root / "truth" / "cameras.toml")
+    extras = tuple({**e, "time_offset": 0.0} for e in truth.extras)
+    save_calibration(Calibration(truth.cameras, extras, truth.metadata), root / "calibration" / "cameras.toml")
+
+
+def camera_tracks(root: Path, camera: str) -> None:
+    """One camera's truth tracks; like tracking, it reads the calibration made before sync."""
+    if np.any(load_calibration(root / "calibration" / "cameras.toml").time_offsets != 0):
+        raise RuntimeError("read the synchronised calibration, not the one made before sync")
+    save_tracks(load_tracks(root / "truth" / "tracks.csv").of_camera(camera), root / "tracks" / f"{camera}.csv")
+
+
+def truth_cycles(root: Path) -> None:
+    (root / ANALYSIS_DIR).mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(root / "truth" / "cycles.csv", root / ANALYSIS_DIR / "cycles.csv")
+
+
+def chain(root: Path, fit_args=()) -> list[Stage]:
+    session = Session.open(root)
+    config = session.config()
+    calibration = root / "calibration" / "cameras.toml"
+    tracks = [session.tracks_path(c) for c in session.camera_names]
+    machine = str(session.machine_path())
+    fps = [a for c in config.cameras for a in ("--fps", f"{c.name}={c.fps}")]
+    made = {calibration, *tracks}
+    return [
+        Stage("prepare", (root / "truth" / "cameras.toml",), (calibration,), call=partial(forget_offsets, root)),
+        *[Stage(f"tracks {c}", (root / "truth" / "tracks.csv", calibration), (session.tracks_path(c),),
+                call=partial(camera_tracks, root, c), camera=c) for c in session.camera_names],
+        stage_from_command("sync", ["sync", str(calibration), *map(str, tracks), "--machine", machine, *fps,
+                                    "--out", str(calibration)], made),
+        stage_from_command("triangulate", ["triangulate", str(calibration), *map(str, tracks),
+                                           "--out", str(session.points_path)], made),
+        stage_from_command("fit", ["fit", machine, str(calibration), *map(str, tracks), *fit_args,
+                                   "--out", str(session.motion_path)], made),
+        Stage("analysis", (root / "truth" / "cycles.csv", session.motion_path), (root / ANALYSIS_DIR,),
+              call=partial(truth_cycles, root)),
+    ]
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    """Three copies of one truth-only session, on two machines and two days; the third has
+    lost its truth calibration, so its first stage fails."""
+    base = tmp_path_factory.mktemp("base") / "s"
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--no-video", "--out", str(base)]) == 0
+    top = tmp_path_factory.mktemp("fleet")
+    roots = [top / "site_a" / "s1", top / "site_a" / "s2", top / "site_b" / "deep" / "s3"]
+    metadata = [{"machine_id": "EX3500 #1", "date": datetime.date(2026, 11, 30)},
+                {"machine_id": "EX3500 #2", "date": datetime.date(2026, 11, 30)},
+                {"machine_id": "EX3500 #1", "date": datetime.date(2026, 12, 1)}]
+    for root, meta in zip(roots, metadata):
+        shutil.copytree(base, root)
+        config = load_session_config(root / "session.toml")
+        save_session_config(config.__class__(config.machine, config.cameras, config.options, meta),
+                            root / "session.toml")
+    (roots[2] / "truth" / "cameras.toml").unlink()
+    return top, roots
+
+
+def read_fleet(out: Path) -> dict[str, dict]:
+    with open(out / "fleet.csv", newline="") as fh:
+        return {row["session"]: row for row in csv.DictReader(fh)}
+
+
+def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
+    top, roots = fleet
+    assert find_sessions([top, roots[0]]) == sorted(r.resolve() for r in roots)
+
+    report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain)
+    assert failed == 1, report
+    rows = read_fleet(tmp_path)
+    assert list(rows) == ["site_a/s1", "site_a/s2", "site_b/deep/s3"]  # below the sessions' common folder
+    rows = {name.split("/")[-1]: row for name, row in rows.items()}
+    assert [rows[r.name]["status"] for r in roots] == ["ok", "ok", "failed"]
+    assert rows["s3"]["error"].startswith("prepare: ") and "truth/cameras.toml: file not found" in rows["s3"]["error"]
+    assert rows["s1"]["stages_run"] == str(len(chain(roots[0]))) and rows["s1"]["stages_skipped"] == "0"
+
+    # the summary against the truth: sync found the offsets, the cycles are the truth's
+    truth = load_calibration(roots[0] / "truth" / "cameras.toml")
+    synced = load_calibration(roots[0] / "calibration" / "cameras.toml")
+    assert np.abs(synced.time_offsets - truth.time_offsets).max() < 0.5 / 30  # within half a frame
+    config = load_session_config(roots[0] / "session.toml")
+    fps = config.cameras[0].fps
+    phases = load_cycle_phases(roots[0] / "truth" / "cycles.csv")
+    hours = len(load_motion(roots[0] / "results" / "motion.csv", Session.open(roots[0]).machine())) / fps / 3600
+    row = rows["s1"]
+    assert (row["machine"], row["day"]) == ("EX3500 #1", "2026-11-30")
+    assert float(row["hours"]) == pytest.approx(hours, abs=1e-4)
+    assert int(row["cycles"]) == len(phases) >= 1
+    assert float(row["cycles_per_hour"]) == pytest.approx(len(phases) / hours, rel=1e-3)
+    cycle_s = np.mean((phases.end - phases.start + 1) / fps)
+    dig_s = np.mean((phases.dig_end - phases.dig_start + 1) / fps)
+    assert float(row["mean_cycle_s"]) == pytest.approx(cycle_s, abs=1e-3)
+    assert float(row["mean_dig_s"]) == pytest.approx(dig_s, abs=1e-3)
+    assert float(row["mean_rest_s"]) == pytest.approx(cycle_s - dig_s, abs=2e-3)
+    counts = [int(row[c.lower().replace(" ", "_")]) for c in CLASSES]
+    assert counts == [sum(label == c for label in phases.label) for c in CLASSES[:3]] + [0]
+    report_md = (tmp_path / "fleet_report.md").read_text()
+    assert "| EX3500 #1 | 1/2 ok |" in report_md and "| 2026-11-30 | 2/2 ok |" in report_md
+    assert "- site_b/deep/s3: prepare: " in report_md
+
+    # a re-run with nothing changed does no work, here through a running scheduler
+    outputs = [roots[0] / p for p in ("calibration/cameras.toml", "tracks/cam2.csv", "results/motion.csv")]
+    before = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs}
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        _, failed = run_batch([top], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path), chain_for=chain)
+        assert failed == 1
+        rows = read_fleet(tmp_path)
+        assert rows["site_a/s1"]["stages_run"] == rows["site_a/s2"]["stages_run"] == "0"
+        assert rows["site_a/s1"]["stages_skipped"] == str(len(chain(roots[0])))
+        assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs} == before
+
+        # a lost camera output: that camera's stage runs again on the calibration it read before
+        # (sync rewrote it in place: put back from the store), then sync, whose output the restore
+        # undid; the later stages see the same content and are skipped
+        (roots[0] / "tracks" / "cam2.csv").unlink()
+        _, _ = run_batch([roots[0]], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path), chain_for=chain)
+        row = read_fleet(tmp_path)["s1"]
+        assert (row["status"], row["stages_run"]) == ("ok", "2"), row
+        assert {p: p.read_bytes() for p in outputs} == {p: b for p, (_, b) in before.items()}
+
+        # changed arguments (the default made explicit) re-run fit only: its output is the same, so the analysis is skipped
+        run_batch([roots[0]], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path),
+                  chain_for=partial(chain, fit_args=("--max-gap", "2")))
+        row = read_fleet(tmp_path)["s1"]
+        assert row["stages_run"] == "1", row
+
+
+def test_split_tasks_gives_each_camera_its_own_task(fleet):
+    groups = split_tasks(chain(fleet[1][0]))
+    assert [[s.name for s in g] for g in groups] == [
+        ["prepare"], ["tracks cam1"], ["tracks cam2"], ["tracks cam3"], ["sync", "triangulate", "fit", "analysis"]]
+
+
+def test_stage_inputs_come_from_arguments(tmp_path):
+    a, b = tmp_path / "a.toml", tmp_path / "b.csv"
+    a.write_text("")
+    made = {b}
+    stage = stage_from_command("sync", ["sync", str(a), str(b), "--fps", "cam1=30", "--out", str(a)], made)
+    assert stage.inputs == (a, b) and stage.outputs == (a,)
+    later = stage_from_command("fit", ["fit", str(tmp_path / "nothing.toml"), str(a), "--out", str(tmp_path / "m.csv")], made)
+    assert later.inputs == (a,) and tmp_path / "m.csv" in made
+
+
+def test_stage_and_option_guards(tmp_path, capsys):
+    with pytest.raises(ValueError, match="either mocap arguments or a callable"):
+        Stage("x", (), (tmp_path,))
+    with pytest.raises(ValueError, match="must write something"):
+        Stage("x", (), (), args=("fit",))
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        BatchOptions(workers=0)
+    with pytest.raises(InputError, match="not found"):
+        find_sessions([tmp_path / "missing"])
+    assert cli.main(["batch", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "no session folder (with session.toml)" in capsys.readouterr().err
+    assert cli.main(["batch", str(tmp_path), "--workers", "0"]) == 2
+    assert "workers must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("in_process", [True, False])
+def test_a_failing_command_gives_its_one_line(tmp_path, in_process):
+    from mocap.batch import run
+
+    missing = tmp_path / "nothing.toml"
+    stages = [Stage("fit", (), (tmp_path / "m.csv",), args=("fit", "hitachi_ex3500", missing, missing, "--out", tmp_path / "m.csv")),
+              Stage("refine", (), (tmp_path / "r.toml",), args=("refine", "--no-such-option"))]
+    if not in_process:
+        assert run._IN_PROCESS.acquire(blocking=False)  # the process is busy: stages run in a child
+    try:
+        assert run.execute(stages[0], tmp_path) == f"mocap fit: error: {missing}: file not found; check the calibration path"
+        assert run.execute(stages[1], tmp_path).startswith("mocap refine: error: the following arguments are required")
+    finally:
+        if not in_process:
+            run._IN_PROCESS.release()
+    assert "file not found" in (tmp_path / "batch" / "logs" / "fit.log").read_text()
+
+
+def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
+    (tmp_path / "s1").mkdir()
+    (tmp_path / "s1" / "session.toml").write_text('machine = "hitachi_ex3500"\n')
+    assert cli.main(["batch", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path)]) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+
+
+def test_session_metadata_round_trip_and_guard(tmp_path):
+    from mocap.batch.fleet import machine_and_day
+    from mocap.io.session_toml import SessionCamera, SessionConfig
+
+    config = SessionConfig("bobcat_225", (SessionCamera("cam1", "v.mp4", 25.0),), {},
+                           {"machine_id": "B7", "date": datetime.datetime(2026, 12, 1, 6, 30)})
+    save_session_config(config, tmp_path / "session.toml")
+    loaded = load_session_config(tmp_path / "session.toml")
+    assert loaded.metadata == config.metadata
+    assert machine_and_day(loaded.metadata, loaded.machine) == ("B7", "2026-12-01")
+    assert machine_and_day({}, "bobcat_225") == ("bobcat_225", "unknown")
+    (tmp_path / "session.toml").write_text(
+        'machine = "bobcat_225"\nmetadata = "x"\n[[cameras]]\nname = "cam1"\nvideo = "v.mp4"\nfps = 25\n')
+    with pytest.raises(InputError, match=r"\[metadata\] must be a table"):
+        load_session_config(tmp_path / "session.toml")
