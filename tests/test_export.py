@@ -213,7 +213,8 @@ def make_triangulated_session(root, rng):
     truth = machine.markers(joints)  # (F, M, 3) at each camera's own frames
     for k, camera in enumerate(cameras):
         uv = camera.project(truth)
-        seen = np.isfinite(uv[..., 0]) & (rng.random(uv.shape[:2]) > 0.1)
+        inside = np.all((uv >= 0) & (uv <= np.array(camera.size) - 1), axis=-1)
+        seen = inside & (rng.random(uv.shape[:2]) > 0.1)
         f, m = np.nonzero(seen)
         tracks = Tracks.from_rows([camera.name] * len(f), f, np.array(machine.marker_names, dtype=object)[m], uv[f, m])
         save_tracks(tracks, root / "tracks" / f"{camera.name}.csv")

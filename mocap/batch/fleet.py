@@ -130,7 +130,7 @@ def report_text(summaries: list[SessionSummary], wall_seconds: float) -> str:
         "",
     ]
     if not any(s.analysed for s in summaries):
-        lines += ["No session has a cycle analysis (results/analysis/cycles.csv): no cycle figures.", ""]
+        lines += ["No session has a cycle analysis (results/cycles.csv): no cycle figures.", ""]
     lines += _table("session", "session", summaries)
     lines += _table("machine", "machine", summaries)
     lines += _table("day", "day", summaries)

@@ -17,7 +17,7 @@ from mocap.pipeline import RunOptions, stage_commands
 from mocap.session import Session
 
 _OUTPUT_FLAGS = ("--out", "--points")  # the flags whose value a stage writes
-ANALYSIS_DIR = Path("results") / "analysis"
+ANALYSIS_DIR = Path("results")  # where `mocap run`'s analyze stage writes cycles.csv
 
 
 @dataclass(frozen=True)
@@ -75,12 +75,14 @@ def stage_from_command(name: str, args: list[str], made: set[Path]) -> Stage:
 
 
 def default_chain(root: Path, options: RunOptions = RunOptions(view=False), analyze: bool = True) -> list[Stage]:
-    """`mocap run`'s stages on the session (refine and view as in `options`), then, with
-    `analyze`, ``mocap analyze MACHINE.toml results/motion.csv --out results/analysis``."""
+    """`mocap run`'s stages on the session (refine and view as in `options`); its analyze
+    stage (a digging machine's: ``results/cycles.csv`` …) only with `analyze`."""
     session = Session.open(root)
     made: set[Path] = set()
     stages = []
     for name, args in stage_commands(session, options):
+        if name == "analyze" and not analyze:
+            continue
         if name != "view":
             stages.append(stage_from_command(name, args, made))
             continue
@@ -90,9 +92,6 @@ def default_chain(root: Path, options: RunOptions = RunOptions(view=False), anal
         reads += [p for c in session.camera_names for p in (session.tracks_path(c), session.video_path(c))]
         inputs = tuple(p for p in reads if p in made or p.is_file())
         stages.append(Stage(name, inputs, (session.recording_path,), args=tuple(args)))
-    if analyze:
-        args = ["analyze", str(session.machine_path()), str(session.motion_path), "--out", str(root / ANALYSIS_DIR)]
-        stages.append(stage_from_command("analyze", args, made))
     return stages
 
 
