@@ -155,4 +155,4 @@ def test_cli_says_when_a_calibration_is_required(board_video, capsys):
     assert "--calibration is required: 1 of the model's markers (D1) are painted disks" in err
     assert main(["track", str(root / "webcam1.mp4"), "--machine", str(model), "--out", str(root / "x.csv"),
                  "--preview", str(root / "webcam1.mp4")]) == 2
-    assert "is the input video" in capsys.readouterr().err
+    assert "is the video input; writing it would destroy the input" in capsys.readouterr().err
