@@ -17,7 +17,7 @@ def board_poses(machine: Machine, cameras: list[Camera], pixels: np.ndarray) -> 
     from the camera that sees most of the base's markers in that frame (at least 4), the
     identity where none does."""
     fixed = ~machine.moves[:, machine.marker_links].any(0) if machine.n_joints else np.ones(len(machine.marker_names), bool)
-    local = machine.markers(np.zeros(machine.n_joints))[fixed]  # (B, 3) in the base frame
+    local = machine.markers(np.zeros((1, machine.n_joints)))[0, fixed]  # (B, 3) in the base frame
     seen = np.isfinite(pixels[:, :, fixed, 0])  # (C, K, B)
     counts = seen.sum(-1)
     out = np.zeros((pixels.shape[1], 6))
