@@ -109,3 +109,48 @@ def test_known_intrinsics_are_kept(lens_scene):
 def test_unknown_lens_model_is_refused():
     with pytest.raises(ValueError, match="distortion must be one of"):
         RefineOptions(distortion="k9")
+
+
+def write_inputs(folder, scene, cameras):
+    from mocap.io.cameras_toml import Calibration, save_calibration
+    from mocap.io.machine_toml import save_machine
+    from mocap.io.tracks_csv import Tracks, save_tracks
+
+    c, k, m = np.nonzero(np.isfinite(scene.pixels[..., 0]))
+    names = np.array([camera.name for camera in scene.cameras])
+    n = len(c)
+    save_tracks(Tracks(names[c], k, np.array(scene.board.marker_names)[m], scene.pixels[c, k, m],
+                       np.full(n, np.nan), np.full(n, np.nan)), folder / "tracks.csv")
+    save_machine(scene.board, folder / "board.toml")
+    save_calibration(Calibration(tuple(cameras)), folder / "cameras.toml")
+    return [str(folder / "board.toml"), str(folder / "cameras.toml"), str(folder / "tracks.csv")]
+
+
+def test_refine_command_chooses_the_lens_and_keeps_known_intrinsics(lens_scene, tmp_path, capsys):
+    import cv2
+
+    from mocap.cli import main
+    from mocap.io.cameras_toml import load_calibration
+
+    args = write_inputs(tmp_path, lens_scene, one_frame_calibration(lens_scene))
+    true = lens_scene.cameras[0]
+    storage = cv2.FileStorage(str(tmp_path / "cam1.yaml"), cv2.FILE_STORAGE_WRITE)
+    storage.write("image_width", true.size[0])
+    storage.write("image_height", true.size[1])
+    storage.write("camera_matrix", true.matrix)
+    storage.write("distortion_coefficients", true.distortion.reshape(1, 5))
+    storage.release()
+    out = tmp_path / "refined.toml"
+    assert main(["refine", *args, "--out", str(out), "--base-motion", "--fit-principal-point",
+                 "--intrinsics", str(tmp_path / "cam1.yaml")]) == 0
+    report = capsys.readouterr().out
+    assert "lens distortion chosen by the data: k1" in report and "intrinsics of cam1 kept as given" in report
+    refined = load_calibration(out).cameras
+    np.testing.assert_allclose(refined[0].matrix, true.matrix, rtol=1e-9)
+    np.testing.assert_allclose(refined[0].distortion, true.distortion, atol=1e-12)
+    for camera, truth in zip(refined[1:], lens_scene.cameras[1:]):
+        assert camera.distortion[0] == pytest.approx(truth.distortion[0], abs=0.03)
+
+    (tmp_path / "other.yaml").write_text((tmp_path / "cam1.yaml").read_text())
+    assert main(["refine", *args, "--out", str(out), "--base-motion", "--intrinsics", str(tmp_path / "other.yaml")]) == 2
+    assert "none of the calibration's" in capsys.readouterr().err
