@@ -124,11 +124,11 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     options = replace(options, markers=options.markers or bool(stated), tolerance=stated or DEFAULT_TOLERANCE)
     fit_options = FitOptions(scale_px=options.scale_px, tolerance=stated, base_motion=options.base_motion)
     base = board_poses(machine, cameras, obs) if options.base_motion else None
-    if n_joints or options.base_motion:
+    if n_joints:
         fit = fit_joints(machine, cameras, obs, options=fit_options, initial_base=base)
         joints, noise_px = np.nan_to_num(fit.joints), fit.noise_px
         base = None if fit.base is None else np.where(np.isfinite(fit.base), fit.base, np.nan_to_num(base))
-    else:  # a rigid model holds its calibration pose: no joints to start, the loss scale for the noise
+    else:  # a rigid model: its pose (calibration's, or each frame's seen by PnP), the loss scale for the noise
         joints, noise_px = np.zeros((len(frames), 0)), options.scale_px
     models = AUTO_MODELS if options.distortion == "auto" else (options.distortion,)
     criterion: dict[str, float] = {}
@@ -138,6 +138,8 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
         problem = _Bundle(machine, start_cameras, obs, replace(options, distortion=model), noise_px, base)
         x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), joints.ravel(), np.zeros(6 * len(frames) * options.base_motion),
                    np.zeros(3 * n_markers * options.markers)]
+        if best is None:
+            before = problem.pixel_rms(x0)
         solution = _solve(problem, x0, options)
         criterion[model] = problem.bic(solution.x)
         if best is not None and criterion[model] >= criterion[best[0]]:
@@ -148,9 +150,9 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
             start_cameras = tuple(start_cameras)
     model, problem, solution, x0 = best
     cams, joints, refined, base = problem.unpack(solution.x)
-    before = problem.pixel_rms(np.zeros_like(solution.x)) if model == models[0] else None
     after = problem.pixel_rms(solution.x)
-    log.info("bundle adjustment over %d frames -> %.3f px, distortion %s (%s)", len(frames), after, model, solution.message)
+    log.info("bundle adjustment over %d frames: %.3f -> %.3f px, distortion %s (%s)", len(frames), before, after,
+             model, solution.message)
     distance = np.linalg.norm(problem.pixel_residuals(solution.x), axis=-1)  # (C, K, M), 0 where not seen
     for camera, d, seen in zip(cameras, distance, problem.seen):
         median = float(np.median(d[seen])) if np.any(seen) else 0.0
@@ -160,9 +162,6 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
                 f"{options.max_median_px:g} px: the tracks disagree with each other (wrong labels or a bad sync?); "
                 "the calibration is left as it is (check the tracks, or raise --max-median)"
             )
-    if before is None:
-        first = _Bundle(machine, tuple(cameras), obs, replace(options, distortion="none"), noise_px, problem.base0 if False else None)
-        before = float("nan") if options.base_motion else first.pixel_rms(np.r_[np.zeros(first.n_camera_params * n_cams), x0[problem.n_camera_params * n_cams:problem.n_camera_params * n_cams + len(frames) * n_joints], np.zeros(3 * n_markers * options.markers)])
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
                         criterion if len(models) > 1 else {})
 
