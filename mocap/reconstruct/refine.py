@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_TOLERANCE = Tolerance(0.05)  # the paper's tape measurement, when nothing is stated
 DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
+PLAIN_EVALUATIONS = 100  # plain least-squares evaluations before the robust loss
 AUTO_MODELS = ("none", "k1", "k1k2")  # tried in turn by "auto" while the criterion falls
 
 
@@ -177,7 +178,7 @@ def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions):
     def jacobian(z):
         return problem.jacobian(_full(x0, free, z))[:, free]
 
-    start = least_squares(residuals, x0[free], jac=jacobian, method="trf", x_scale="jac", max_nfev=10)
+    start = least_squares(residuals, x0[free], jac=jacobian, method="trf", x_scale="jac", max_nfev=PLAIN_EVALUATIONS)
     solution = least_squares(residuals, start.x, jac=jacobian, method="trf", loss="huber",
                              f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations)
     solution.x = _full(x0, free, solution.x)
