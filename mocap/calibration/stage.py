@@ -10,6 +10,7 @@ import numpy as np
 
 from mocap.calibration import report
 from mocap.calibration.dlt import dlt_camera
+from mocap.calibration.lens_choice import calibrate_choosing_lens
 from mocap.calibration.problem import Observations
 from mocap.calibration.solve import CalibrationOptions, calibrate, template_camera
 from mocap.errors import InputError
@@ -32,6 +33,7 @@ class CalibrateRequest:
     guess: str | None = None
     reference: str | None = None
     points_out: str | None = None
+    choose_lens: bool = False  # the distortion model chosen by the data (options.distortion ignored)
 
 
 def run_calibrate(request: CalibrateRequest) -> str:
@@ -59,11 +61,18 @@ def run_calibrate(request: CalibrateRequest) -> str:
         np.array([index[c] for c in rows.camera], dtype=int), machine.marker_index(rows.marker), rows.xy
     )
     guess = load_guess(request.guess, machine) if request.guess else None
-    result = calibrate(machine, observations, templates, request.options, guess)
+    chosen = ""
+    if request.choose_lens:
+        result, criterion = calibrate_choosing_lens(machine, observations, templates, request.options, guess)
+        model = next(m for m, v in criterion.items() if v == min(criterion.values()))
+        tried = ", ".join(f"{m} {v:.0f}" for m, v in criterion.items())
+        chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}; --distortion overrides)"
+    else:
+        result = calibrate(machine, observations, templates, request.options, guess)
     save_calibration(report.to_calibration(result, frame), request.out)
     points_out = request.points_out or str(Path(request.out).with_name("reference_points.csv"))
     save_points(report.reference_points(result, frame), points_out)
-    return report.format_report(result, frame) + f"\nwrote {request.out} and {points_out}"
+    return report.format_report(result, frame) + chosen + f"\nwrote {request.out} and {points_out}"
 
 
 def _frame_rows(tracks: Tracks, request: CalibrateRequest) -> tuple[int, Tracks]:

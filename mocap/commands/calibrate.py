@@ -42,8 +42,9 @@ def add_parser(sub) -> None:
                    "beside --out)")
     p.add_argument("--guess", help="initial guess TOML in the paper's parameters (optional)")
     p.add_argument("--fit-principal-point", action="store_true", help="fit cx, cy too")
-    p.add_argument("--distortion", choices=("none", "k1", "k1k2", "full"), default="none",
-                   help="distortion coefficients to fit (default none)")
+    p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "full"), default="auto",
+                   help="distortion coefficients to fit; auto (default): none, k1, k1 k2 in turn while the "
+                   "Bayesian information criterion of the residuals falls")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX",
                    help="robust loss scale in pixels (default 2)")
     p.add_argument("--outlier-px", type=float, help="residual beyond which an observation is "
@@ -79,7 +80,7 @@ def run(args) -> int:
     options = CalibrationOptions(
         per_camera=args.per_camera,
         fit_principal_point=args.fit_principal_point,
-        distortion=args.distortion,
+        distortion="none" if args.distortion == "auto" else args.distortion,
         f_scale_px=args.loss_scale,
         outlier_px=args.outlier_px,
         max_rms_px=args.max_rms,
@@ -88,7 +89,7 @@ def run(args) -> int:
     request = CalibrateRequest(
         machine=args.machine, tracks=tuple(args.tracks), sizes=parse_sizes(args.size), out=args.out,
         frame=args.frame, method=args.method, options=options, guess=args.guess,
-        reference=args.reference, points_out=args.points,
+        reference=args.reference, points_out=args.points, choose_lens=args.distortion == "auto",
     )
     print(run_calibrate(request))
     return 0

@@ -8,7 +8,7 @@ from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.refine import RefineOptions
+from mocap.reconstruct.refine import DISTORTION_CHOICES, RefineOptions
 from mocap.reconstruct.stage import run_refine
 
 EXAMPLE = """example:
@@ -36,6 +36,14 @@ def add_parser(sub) -> None:
                    "within it (default: the model file's tolerance; 5%% with --markers)")
     p.add_argument("--frames", type=int, default=120, help="frames used, at most (default 120)")
     p.add_argument("--fixed-focal", action="store_true", help="keep the focal lengths")
+    p.add_argument("--distortion", choices=DISTORTION_CHOICES, default="auto",
+                   help="lens distortion coefficients to free: none, k1, k1k2, full, or auto (default): "
+                   "none, k1, k1 k2 in turn while the Bayesian information criterion falls")
+    p.add_argument("--fit-principal-point", action="store_true", help="free each camera's principal point")
+    p.add_argument("--base-motion", action="store_true", help="the base moves every frame (a hand-held board, "
+                   "a bouncing or walking machine): fit its 6-DoF pose per frame")
+    p.add_argument("--intrinsics", metavar="FILE", help="known intrinsics, used and kept: a calibration TOML "
+                   "(ours or anipose's), an OpenCV YAML/XML (camera named after the file) or COLMAP cameras")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
     p.add_argument("--max-median", type=float, default=1.0, metavar="PX",
                    help="refuse the refinement when a camera's tracks lie further than this from the refined "
@@ -45,14 +53,16 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     check_outputs({"--out": args.out, "--out-machine": args.out_machine},
-                  {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
+                  {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks,
+                   "intrinsics": args.intrinsics})
     if args.out_machine and not args.markers:
         raise InputError("--out-machine needs --markers (without it the model is not changed)")
     try:
         options = RefineOptions(frames=args.frames, markers=args.markers, tolerance=args.tolerance,
                                 fit_focal=not args.fixed_focal, scale_px=args.loss_scale,
-                                max_median_px=args.max_median)
+                                max_median_px=args.max_median, distortion=args.distortion,
+                                fit_principal_point=args.fit_principal_point, base_motion=args.base_motion)
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
-    print(run_refine(args.machine, args.calibration, args.tracks, args.out, args.out_machine, options))
+    print(run_refine(args.machine, args.calibration, args.tracks, args.out, args.out_machine, options, args.intrinsics))
     return 0

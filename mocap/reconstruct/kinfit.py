@@ -443,7 +443,9 @@ class _Problem(KinematicModel):
         joints = np.where(valid[:, None], state.joints, np.nan)
         base = None
         if state.rotation is not None:
-            base = np.where(valid[:, None], np.c_[matrix_to_rotvec(state.rotation), state.translation], np.nan)
+            finite = np.isfinite(state.rotation).all((1, 2)) & np.isfinite(state.translation).all(1)
+            rotation = np.where(finite[:, None, None], state.rotation, np.eye(3))  # a diverged frame is no rotation
+            base = np.where((valid & finite)[:, None], np.c_[matrix_to_rotvec(rotation), state.translation], np.nan)
         residual_out = np.where(seen[..., None], np.moveaxis(residual.reshape(n_frames, n_cams, n_markers, 2), 0, 1), np.nan)
         weight_out = np.moveaxis(weight[:, ::2].reshape(n_frames, n_cams, n_markers), 0, 1)
         return JointFit(

@@ -14,7 +14,16 @@ positions (so a link's mean angular marker error is not recoverable). The named 
 model puts them relative to their links.
 
 Camera parameters: a rotation increment (3,) on the left of ``cam_from_world``, a
-translation increment (3,) and, with `fit_focal`, the log of a focal-length scale.
+translation increment (3,), with `fit_focal` the log of a focal-length scale, with
+`fit_principal_point` the principal point's increment (2,) px and with `distortion` the
+increments of the chosen OpenCV coefficients (k1; k1, k2; or all five). Cameras whose
+intrinsics are known (`fixed_intrinsics`) keep them: those columns are not solved for.
+With `base_motion` the base moves every frame (a hand-held board, a bouncing or walking
+machine): a rotation increment (3,) on the left of ``world_from_base`` and a translation
+(3,) per frame, started from each frame's pose seen by its best camera; the best-seen
+frame's base pose is held to fix the world. With distortion "auto" the lens model is
+chosen by the data: none, k1, then k1 k2 while the Bayesian information criterion of the
+pixel residuals falls.
 Shapes: C cameras, K frames used, M markers, J joints.
 """
 
@@ -27,16 +36,21 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
+from mocap.calibration.problem import DISTORTION_MODELS
 from mocap.camera import Camera, project_cam
 from mocap.errors import ConvergenceError, DegenerateError
-from mocap.geometry import Rigid, cross, rotvec_to_matrix
+from mocap.geometry import Rigid, cross, matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine, Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
+from mocap.reconstruct.lens_start import board_poses
 
 log = logging.getLogger(__name__)
 
 DEFAULT_TOLERANCE = Tolerance(0.05)  # the paper's tape measurement, when nothing is stated
+DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
+PLAIN_EVALUATIONS = 100  # plain least-squares evaluations before the robust loss
+AUTO_MODELS = ("none", "k1", "k1k2")  # tried in turn by "auto" while the criterion falls
 
 
 @dataclass(frozen=True)
@@ -45,7 +59,11 @@ class RefineOptions:
     markers: also refine the marker positions (always, when the tolerance is stated here or
     in the model); tolerance: how far they may be off (default: the model's, else 5 %);
     fit_focal: refine each camera's focal length; scale_px: robust loss scale;
-    max_evaluations: residual evaluations allowed to the solver."""
+    max_evaluations: residual evaluations allowed to the solver; distortion: the lens
+    coefficients freed ("none", "k1", "k1k2", "full", or "auto": chosen by the data);
+    fit_principal_point: free the principal point; base_motion: a 6-DoF base pose per frame;
+    fixed_intrinsics: names of cameras whose focal length, principal point and distortion
+    are known and kept."""
 
     frames: int = 120
     markers: bool = False
@@ -54,8 +72,14 @@ class RefineOptions:
     scale_px: float = 2.0
     max_evaluations: int = 100
     max_median_px: float = 1.0
+    distortion: str = "none"
+    fit_principal_point: bool = False
+    base_motion: bool = False
+    fixed_intrinsics: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
+        if self.distortion not in DISTORTION_CHOICES:
+            raise ValueError(f"distortion must be one of {', '.join(DISTORTION_CHOICES)}, got {self.distortion!r}")
         if self.frames < 2 or not self.scale_px > 0 or self.max_evaluations < 1:
             raise ValueError("frames >= 2, scale_px > 0 and max_evaluations >= 1 are required")
         if not self.max_median_px > 0:
@@ -66,7 +90,10 @@ class RefineOptions:
 class RefineResult:
     """cameras (C) refined; machine with refined marker positions (or the input model);
     frames (K,) indices of the frames used; joints (K, J) their fitted joint values;
-    rms_before / rms_after the pixel residual RMS (per coordinate) over those frames; message the solver's."""
+    rms_before / rms_after the pixel residual RMS (per coordinate) over those frames; message the solver's;
+    base (K, 6) the frames' ``world_from_base`` (rotation vector, translation m) with base
+    motion, else None; distortion the lens model used; criterion {model: BIC} of the models
+    tried by "auto" (empty otherwise)."""
 
     cameras: tuple[Camera, ...]
     machine: Machine
@@ -75,6 +102,9 @@ class RefineResult:
     rms_before: float
     rms_after: float
     message: str
+    base: np.ndarray | None = None
+    distortion: str = "none"
+    criterion: dict | None = None
 
 
 def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
@@ -93,23 +123,37 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     obs = pixels[:, frames]
     stated = options.tolerance or machine.tolerance
     options = replace(options, markers=options.markers or bool(stated), tolerance=stated or DEFAULT_TOLERANCE)
+    fit_options = FitOptions(scale_px=options.scale_px, tolerance=stated, base_motion=options.base_motion)
+    base = board_poses(machine, cameras, obs) if options.base_motion else None
     if n_joints:
-        fit = fit_joints(machine, cameras, obs, options=FitOptions(scale_px=options.scale_px, tolerance=stated))
+        fit = fit_joints(machine, cameras, obs, options=fit_options, initial_base=base)
         joints, noise_px = np.nan_to_num(fit.joints), fit.noise_px
-    else:  # a rigid model holds its calibration pose: no joints to start, the loss scale for the noise
+        base = None if fit.base is None else np.where(np.isfinite(fit.base), fit.base, np.nan_to_num(base))
+    else:  # a rigid model: its pose (calibration's, or each frame's seen by PnP), the loss scale for the noise
         joints, noise_px = np.zeros((len(frames), 0)), options.scale_px
-    problem = _Bundle(machine, tuple(cameras), obs, options, noise_px)
-    x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), joints.ravel(), np.zeros(3 * n_markers * options.markers)]
-    before = problem.pixel_rms(x0)
-    # plain least squares first: a robust loss from a start pixels off stalls the trust region
-    start = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf", x_scale="jac", max_nfev=10)
-    solution = least_squares(
-        problem.residuals, start.x, jac=problem.jacobian, method="trf", loss="huber",
-        f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations,
-    )
-    cams, joints, refined = problem.unpack(solution.x)
+    models = AUTO_MODELS if options.distortion == "auto" else (options.distortion,)
+    criterion: dict[str, float] = {}
+    best = None
+    start_cameras = tuple(cameras)
+    for model in models:
+        problem = _Bundle(machine, start_cameras, obs, replace(options, distortion=model), noise_px, base)
+        x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), joints.ravel(), np.zeros(6 * len(frames) * options.base_motion),
+                   np.zeros(3 * n_markers * options.markers)]
+        if best is None:
+            before = problem.pixel_rms(x0)
+        solution = _solve(problem, x0, options)
+        criterion[model] = problem.bic(solution.x)
+        if best is not None and criterion[model] >= criterion[best[0]]:
+            break
+        best = (model, problem, solution, x0)
+        if model != models[-1]:  # the next model starts where this one ended
+            start_cameras, joints, _, base = problem.unpack(solution.x)
+            start_cameras = tuple(start_cameras)
+    model, problem, solution, x0 = best
+    cams, joints, refined, base = problem.unpack(solution.x)
     after = problem.pixel_rms(solution.x)
-    log.info("bundle adjustment over %d frames: %.3f -> %.3f px (%s)", len(frames), before, after, solution.message)
+    log.info("bundle adjustment over %d frames: %.3f -> %.3f px, distortion %s (%s)", len(frames), before, after,
+             model, solution.message)
     distance = np.linalg.norm(problem.pixel_residuals(solution.x), axis=-1)  # (C, K, M), 0 where not seen
     for camera, d, seen in zip(cameras, distance, problem.seen):
         median = float(np.median(d[seen])) if np.any(seen) else 0.0
@@ -119,7 +163,32 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
                 f"{options.max_median_px:g} px: the tracks disagree with each other (wrong labels or a bad sync?); "
                 "the calibration is left as it is (check the tracks, or raise --max-median)"
             )
-    return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message))
+    return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
+                        criterion if len(models) > 1 else {})
+
+
+def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions):
+    """Plain least squares first (a robust loss from a start pixels off stalls the trust
+    region), then the robust loss; over the free parameters only."""
+    free = problem.free
+
+    def residuals(z):
+        return problem.residuals(_full(x0, free, z))
+
+    def jacobian(z):
+        return problem.jacobian(_full(x0, free, z))[:, free]
+
+    start = least_squares(residuals, x0[free], jac=jacobian, method="trf", x_scale="jac", max_nfev=PLAIN_EVALUATIONS)
+    solution = least_squares(residuals, start.x, jac=jacobian, method="trf", loss="huber",
+                             f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations)
+    solution.x = _full(x0, free, solution.x)
+    return solution
+
+
+def _full(x0: np.ndarray, free: np.ndarray, z: np.ndarray) -> np.ndarray:
+    x = x0.copy()
+    x[free] = z
+    return x
 
 
 def select_frames(pixels: np.ndarray, count: int, minimum: int) -> np.ndarray:
@@ -134,41 +203,84 @@ def select_frames(pixels: np.ndarray, count: int, minimum: int) -> np.ndarray:
 
 class _Bundle:
     """Residuals of the bundle adjustment as a pure function of the parameter vector:
-    camera parameters (C, n_camera_params), joints (K, J), marker offsets (M, 3)."""
+    camera parameters (C, n_camera_params), joints (K, J), with base motion the base
+    increments (K, 6), with markers the marker offsets (M, 3). `free` (parameters,) marks
+    what is solved for: known intrinsics and the reference frame's base pose are held."""
 
-    def __init__(self, machine: Machine, cameras: tuple[Camera, ...], pixels: np.ndarray, options: RefineOptions, noise_px: float):
+    def __init__(self, machine: Machine, cameras: tuple[Camera, ...], pixels: np.ndarray, options: RefineOptions,
+                 noise_px: float, base: np.ndarray | None = None):
         self.machine, self.cameras, self.pixels, self.options = machine, cameras, pixels, options
         self.seen = np.isfinite(pixels[..., 0])  # (C, K, M)
-        self.n_camera_params = 7 if options.fit_focal else 6
+        self.terms = list(DISTORTION_MODELS[options.distortion])
+        self.n_camera_params = 6 + options.fit_focal + 2 * options.fit_principal_point + len(self.terms)
         self.prior_sd = (options.tolerance or machine.tolerance or DEFAULT_TOLERANCE).sd(machine.marker_positions)
         self.noise_px = noise_px
+        n_cams, n_frames, n_markers = self.seen.shape
+        self.base0 = None
+        if options.base_motion:
+            self.base0 = np.zeros((n_frames, 6)) if base is None else np.asarray(base, dtype=float)
+        self.joint_start = self.n_camera_params * n_cams
+        self.base_start = self.joint_start + n_frames * machine.n_joints
+        self.marker_start = self.base_start + 6 * n_frames * options.base_motion
+        self.free = np.ones(self.marker_start + 3 * n_markers * options.markers, dtype=bool)
+        for c, camera in enumerate(cameras):
+            if camera.name in options.fixed_intrinsics:
+                self.free[c * self.n_camera_params + 6 : (c + 1) * self.n_camera_params] = False
+        if options.base_motion:  # the best-seen frame's base fixes the world
+            reference = int(np.argmax(self.seen.sum((0, 2))))
+            self.free[self.base_start + 6 * reference : self.base_start + 6 * reference + 6] = False
+
+    def _split(self, x: np.ndarray):
+        n_cams, n_frames, n_markers = self.seen.shape
+        camera_params = x[: self.joint_start].reshape(n_cams, self.n_camera_params)
+        joints = x[self.joint_start : self.base_start].reshape(n_frames, self.machine.n_joints)
+        increments = x[self.base_start : self.marker_start].reshape(n_frames, 6) if self.options.base_motion else None
+        offsets = x[self.marker_start :].reshape(n_markers, 3) if self.options.markers else None
+        return camera_params, joints, increments, offsets
+
+    def _base(self, increments: np.ndarray | None):
+        """world_from_base rotation (K, 3, 3) and translation (K, 3), or None, None."""
+        if increments is None:
+            return None, None
+        rotation = rotvec_to_matrix(increments[:, :3]) @ rotvec_to_matrix(self.base0[:, :3])
+        return rotation, self.base0[:, 3:] + increments[:, 3:]
 
     def unpack(self, x: np.ndarray):
-        n_cams, n_frames, n_markers = self.seen.shape
-        n_joints = self.machine.n_joints
-        k = self.n_camera_params * n_cams
-        camera_params = x[:k].reshape(n_cams, self.n_camera_params)
-        joints = x[k : k + n_frames * n_joints].reshape(n_frames, n_joints)
+        """cameras (C), joints (K, J), machine (its markers moved), base (K, 6) or None."""
+        camera_params, joints, increments, offsets = self._split(x)
         machine = self.machine
-        if self.options.markers:
-            offsets = x[k + n_frames * n_joints :].reshape(n_markers, 3)
+        if offsets is not None:
             machine = replace(machine, marker_positions=machine.marker_positions + offsets)
         cameras = [self._camera(camera, p) for camera, p in zip(self.cameras, camera_params)]
-        return cameras, joints, machine
+        rotation, translation = self._base(increments)
+        base = None if rotation is None else np.c_[matrix_to_rotvec(rotation), translation]
+        return cameras, joints, machine, base
 
     def _camera(self, camera: Camera, params: np.ndarray) -> Camera:
         pose = camera.cam_from_world
         rotation = rotvec_to_matrix(params[:3]) @ pose.rotation
-        moved = replace(camera, cam_from_world=Rigid(rotation, pose.translation + params[3:6]))
+        matrix, distortion = camera.matrix.copy(), camera.distortion.copy()
+        k = 6
         if self.options.fit_focal:
-            matrix = camera.matrix.copy()
-            matrix[:2, :2] *= np.exp(params[6])
-            moved = replace(moved, matrix=matrix)
-        return moved
+            matrix[:2, :2] *= np.exp(params[k])
+            k += 1
+        if self.options.fit_principal_point:
+            matrix[:2, 2] += params[k : k + 2]
+            k += 2
+        distortion[self.terms] += params[k:]
+        return replace(camera, cam_from_world=Rigid(rotation, pose.translation + params[3:6]), matrix=matrix,
+                       distortion=distortion)
+
+    def _world(self, x: np.ndarray):
+        cameras, joints, machine, _ = self.unpack(x)
+        world = machine.markers(joints)  # (K, M, 3) in the base frame
+        rotation, translation = self._base(self._split(x)[2])
+        if rotation is not None:
+            world = world @ np.swapaxes(rotation, 1, 2) + translation[:, None]
+        return cameras, world
 
     def pixel_residuals(self, x: np.ndarray) -> np.ndarray:
-        cameras, joints, machine = self.unpack(x)
-        world = machine.markers(joints)  # (K, M, 3)
+        cameras, world = self._world(x)
         out = np.stack([c.project(world) for c in cameras])  # (C, K, M, 2)
         residual = self.pixels - out
         return np.where(self.seen[..., None], np.nan_to_num(residual, nan=1e3), 0.0)
@@ -177,37 +289,58 @@ class _Bundle:
         pixel = self.pixel_residuals(x).ravel()
         if not self.options.markers:
             return pixel
-        n_cams, n_frames, n_markers = self.seen.shape
-        start = self.n_camera_params * n_cams + n_frames * self.machine.n_joints
-        offsets = x[start:].reshape(n_markers, 3)
+        offsets = self._split(x)[3]
         return np.r_[pixel, (offsets / self.prior_sd[:, None] * self.noise_px).ravel()]
 
     def pixel_rms(self, x: np.ndarray) -> float:
         residual = self.pixel_residuals(x)
         return float(np.sqrt((residual**2).sum() / max(2 * self.seen.sum(), 1)))  # per coordinate
 
+    def bic(self, x: np.ndarray) -> float:
+        """Bayesian information criterion of the pixel residuals at x: n log(cost / n) +
+        p log(n), with the Huber cost at the loss scale (an outlier counts linearly) and p the
+        free parameters."""
+        n = max(2 * int(self.seen.sum()), 1)
+        e = np.abs(self.pixel_residuals(x)[self.seen]).ravel()
+        s = self.options.scale_px
+        cost = np.where(e <= s, e * e, 2 * s * e - s * s).sum()
+        return float(n * np.log(max(cost, 1e-300) / n) + self.free.sum() * np.log(n))
+
     def jacobian(self, x: np.ndarray):
         """Sparse (rows, parameters) Jacobian of `residuals`, analytic: every pixel row
-        depends on its camera's parameters, its frame's joints and its marker's offset."""
+        depends on its camera's parameters, its frame's joints and base and its marker's offset."""
         n_cams, n_frames, n_markers = self.seen.shape
         n_joints = self.machine.n_joints
-        cameras, joints, machine = self.unpack(x)
-        model = KinematicModel(machine, ())
-        state = FrameState(joints, None, None, np.zeros(n_frames))
-        world, d_joints = model.world_markers(state)  # (K, M, 3), (K, M, 3, J)
+        cameras, joints, machine, _ = self.unpack(x)
+        camera_params, _, increments, _ = self._split(x)
+        rotation, translation = self._base(increments)
+        model = KinematicModel(machine, (), base_motion=self.options.base_motion)
+        world, d_world_params = model.world_markers(FrameState(joints, rotation, translation, np.zeros(n_frames)))
+        d_joints = d_world_params[..., :n_joints]
         link_rotation = machine.link_poses(joints)[:, machine.marker_links, :3, :3]  # (K, M, 3, 3)
+        if rotation is not None:
+            link_rotation = rotation[:, None] @ link_rotation
+            left = np.stack([_left_jacobian(w) for w in increments[:, :3]])  # (K, 3, 3)
+            d_base = np.concatenate([d_world_params[..., n_joints : n_joints + 3] @ left[:, None],
+                                     d_world_params[..., n_joints + 3 :]], -1)  # (K, M, 3, 6)
         blocks = []
-        camera_params = x[: self.n_camera_params * n_cams].reshape(n_cams, self.n_camera_params)
         for camera, params in zip(cameras, camera_params):
             rot = camera.cam_from_world.rotation
             rotated = world @ rot.T
-            uv, d_uv = project_cam(rotated + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+            points_cam = rotated + camera.cam_from_world.translation
+            uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, True)
             d_rot = np.stack([cross(np.eye(3)[i], rotated) for i in range(3)], -1) @ _left_jacobian(params[:3])
             parts = [d_uv @ d_rot, d_uv]  # rotation increment, translation
             if self.options.fit_focal:
                 parts.append((uv - camera.matrix[:2, 2])[..., None])  # d uv / d log(focal scale)
+            if self.options.fit_principal_point:
+                parts.append(np.broadcast_to(np.eye(2), uv.shape + (2,)))
+            if self.terms:
+                parts.append(_distortion_jacobian(points_cam, camera.matrix, self.terms))
             d_world = d_uv @ rot  # (K, M, 2, 3)
             parts.append(d_world @ d_joints)
+            if rotation is not None:
+                parts.append(d_world @ d_base)
             if self.options.markers:
                 parts.append(d_world @ link_rotation)
             blocks.append(-np.concatenate(parts, -1))  # residual = observed - projected
@@ -216,11 +349,11 @@ class _Bundle:
         c, k, m, a = np.meshgrid(np.arange(n_cams), np.arange(n_frames), np.arange(n_markers), np.arange(2), indexing="ij")
         rows = np.arange(values[..., 0].size).reshape(c.shape)
         columns = [c * self.n_camera_params + p for p in range(self.n_camera_params)]
-        joint_start = self.n_camera_params * n_cams
-        columns += [joint_start + k * n_joints + j for j in range(n_joints)]
-        marker_start = joint_start + n_frames * n_joints
+        columns += [self.joint_start + k * n_joints + j for j in range(n_joints)]
+        if rotation is not None:
+            columns += [self.base_start + 6 * k + p for p in range(6)]
         if self.options.markers:
-            columns += [marker_start + 3 * m + axis for axis in range(3)]
+            columns += [self.marker_start + 3 * m + axis for axis in range(3)]
         column_index = np.stack(columns, -1)
         row_index = np.broadcast_to(rows[..., None], column_index.shape)
         data, row_list, col_list = [values.ravel()], [row_index.ravel()], [column_index.ravel()]
@@ -229,10 +362,21 @@ class _Bundle:
             prior = np.arange(3 * n_markers)
             data.append(np.repeat(self.noise_px / self.prior_sd, 3))
             row_list.append(n_rows + prior)
-            col_list.append(marker_start + prior)
+            col_list.append(self.marker_start + prior)
             n_rows += 3 * n_markers
-        n_params = marker_start + 3 * n_markers * self.options.markers
-        return coo_matrix((np.concatenate(data), (np.concatenate(row_list), np.concatenate(col_list))), shape=(n_rows, n_params)).tocsr()
+        return coo_matrix((np.concatenate(data), (np.concatenate(row_list), np.concatenate(col_list))),
+                          shape=(n_rows, len(self.free))).tocsr()
+
+
+def _distortion_jacobian(points_cam: np.ndarray, matrix: np.ndarray, terms: list[int]) -> np.ndarray:
+    """d uv / d (distortion coefficients `terms`) (*, 2, len(terms)) of camera-frame points (*, 3)."""
+    x = points_cam[..., 0] / points_cam[..., 2]
+    y = points_cam[..., 1] / points_cam[..., 2]
+    r2 = x * x + y * y
+    normalised = {0: (x * r2, y * r2), 1: (x * r2 * r2, y * r2 * r2), 2: (2 * x * y, r2 + 2 * y * y),
+                  3: (r2 + 2 * x * x, 2 * x * y), 4: (x * r2**3, y * r2**3)}
+    d = np.stack([np.stack(normalised[t], -1) for t in terms], -1)  # (*, 2, T) in normalised coordinates
+    return matrix[:2, :2] @ d
 
 
 def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:

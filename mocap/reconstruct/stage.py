@@ -9,8 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from mocap.camera import Camera
 from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.intrinsics import load_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
@@ -178,11 +180,16 @@ def _dropped(clock: Resampled) -> str:
 
 
 def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, out_machine,
-               options: RefineOptions) -> str:
+               options: RefineOptions, intrinsics_path=None) -> str:
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
+    cameras = list(calibration.cameras)
+    if intrinsics_path is not None:  # known intrinsics: used and kept
+        known = load_intrinsics(intrinsics_path)
+        cameras = with_known_intrinsics(cameras, known, intrinsics_path)
+        options = replace(options, fixed_intrinsics=frozenset(c.name for c in cameras if c.name in known))
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
-    result = refine(machine, list(calibration.cameras), clock.pixels, options)
+    result = refine(machine, cameras, clock.pixels, options)
     refined = Calibration(result.cameras, calibration.extras, {
         **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),
     })
@@ -191,9 +198,36 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
         f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
         f"{result.rms_after:.2f} px, written to {out_calibration}"
     )
+    if result.criterion:
+        tried = ", ".join(f"{name} {value:.0f}" for name, value in result.criterion.items())
+        report += f"; lens distortion chosen by the data: {result.distortion} (BIC {tried})"
+    elif result.distortion != "none":
+        report += f"; lens distortion {result.distortion} freed"
+    if options.fixed_intrinsics:
+        report += f"; intrinsics of {', '.join(sorted(options.fixed_intrinsics))} kept as given"
     if out_machine is not None:
         save_machine(result.machine, out_machine)
         moved = np.linalg.norm(result.machine.marker_positions - machine.marker_positions, axis=1)
         report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
     return report
 
+
+
+def with_known_intrinsics(cameras: list[Camera], known: dict, path) -> list[Camera]:
+    """The cameras with the intrinsics (matrix, distortion) that `known` names, which must
+    match their image size."""
+    out = []
+    for camera in cameras:
+        given = known.get(camera.name)
+        if given is None:
+            out.append(camera)
+            continue
+        if tuple(given.size) != tuple(camera.size):
+            raise InputError(f"camera {camera.name}'s known intrinsics are for {given.size[0]}x{given.size[1]} images, "
+                             f"the calibration's for {camera.size[0]}x{camera.size[1]}; give the intrinsics of "
+                             "the same video size", path=path)
+        out.append(replace(camera, matrix=given.matrix, distortion=given.distortion))
+    if not any(c.name in known for c in cameras):
+        raise InputError(f"the intrinsics file names camera(s) {sorted(known)[:5]}, none of the calibration's "
+                         f"{[c.name for c in cameras]}; name them alike", path=path)
+    return out
