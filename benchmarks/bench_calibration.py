@@ -63,7 +63,7 @@ from mocap.geometry import Rigid, matrix_to_rotvec, rotation_angle_between, rotv
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
 from mocap.io.tracks_csv import save_tracks
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 HERE = Path(__file__).resolve().parent
 NOISE_PX = 0.5

@@ -35,7 +35,7 @@ from mocap.reconstruct.motion import reconstruct_motion
 from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic import make_session
 
 HERE = Path(__file__).resolve().parent

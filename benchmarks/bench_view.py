@@ -27,7 +27,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import Motion
 from mocap.synthetic.encode import video_writer
 from mocap.io.points_csv import Points
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.viewer import Cycles, Replay, Sinks, run_replay
 from mocap.viewer import record, scene
 from mocap.viewer.replay import frustum_depth

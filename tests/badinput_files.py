@@ -15,7 +15,7 @@ from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import MACHINES_DIR, load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 SIZE = (320, 240)
 FPS = 30.0

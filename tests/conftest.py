@@ -9,7 +9,7 @@ import pytest
 
 from mocap.calibration import Observations
 from mocap.io.machine_toml import load_machine
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 
 @pytest.fixture(scope="session")

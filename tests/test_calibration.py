@@ -11,7 +11,7 @@ from mocap.camera import Camera, PaperCamera
 from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import rotation_angle_between
 from mocap.io.machine_toml import machine_from_dict, machine_to_dict
-from mocap.simulate import look_at_camera, observe
+from mocap.synthetic.scenes import look_at_camera, observe
 
 
 def templates(cameras):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mocap.camera import Camera, PaperCamera, project, project_cam
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 
 
 def _camera(distortion=None):

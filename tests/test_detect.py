@@ -19,7 +19,7 @@ from mocap.detect import (
     tag_dictionary,
     as_gray,
 )
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 
 SUPERSAMPLE = 8
 

@@ -15,7 +15,7 @@ from mocap.io.points_csv import Points, load_points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.trc import load_trc
 from mocap.io.tracks_csv import Tracks, save_tracks
-from mocap.simulate import random_joints, ring_of_cameras
+from mocap.synthetic.scenes import random_joints, ring_of_cameras
 
 FPS = 29.97
 

@@ -90,7 +90,7 @@ def test_colmap_cameras_txt_guards(tmp_path, line, message):
 
 def test_colmap_model_folder_names_cameras_by_their_images(tmp_path):
     from mocap.io.colmap import write_model
-    from mocap.simulate import ring_of_cameras
+    from mocap.synthetic.scenes import ring_of_cameras
 
     cameras = ring_of_cameras(2, np.zeros(3), (5.0, 8.0), np.random.default_rng(2), size=(800, 600))
     cameras[1] = cameras[1].__class__(cameras[1].name, cameras[1].size, cameras[1].matrix,

@@ -7,7 +7,7 @@ from mocap.geometry import rotvec_to_matrix
 from mocap.io.machine_toml import load_machine
 from mocap.reconstruct import kinfit, kinmodel
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 NOISE = 0.5
 

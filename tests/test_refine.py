@@ -13,7 +13,7 @@ from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.reconstruct.kinfit import fit_joints
 from mocap.reconstruct.refine import RefineOptions, refine
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 NOISE = 0.5
 

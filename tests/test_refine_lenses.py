@@ -11,7 +11,7 @@ from mocap.calibration.solve import template_camera
 from mocap.io.machine_toml import load_machine
 from mocap.reconstruct.refine import RefineOptions, _Bundle, refine
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.lens_scene import board_scene
 
 NOISE = 0.3

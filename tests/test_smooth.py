@@ -13,7 +13,7 @@ from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
 from mocap.reconstruct.motion import reconstruct_motion
 from mocap.reconstruct.smooth import SmoothOptions, smooth
 from mocap.reconstruct.uncertainty import point_quantities
-from mocap.simulate import observe, ring_of_cameras
+from mocap.synthetic.scenes import observe, ring_of_cameras
 
 NOISE = 0.5
 FPS = 30.0

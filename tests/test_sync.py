@@ -12,8 +12,8 @@ from mocap.cli import main
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
-from mocap.simulate import observe, ring_of_cameras
-from mocap.sync import JointCurves, joint_curves, synchronise
+from mocap.synthetic.scenes import observe, ring_of_cameras
+from mocap.sync.align import JointCurves, joint_curves, synchronise
 
 FPS = np.array([30.0, 29.97, 25.0])
 OFFSETS = np.array([0.0, 0.437, -1.213])

@@ -13,7 +13,7 @@ from mocap.io.motion_csv import load_motion, world_from_base_of
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import load_session_config
 from mocap.io.tracks_csv import load_tracks
-from mocap.simulate import random_joints
+from mocap.synthetic.scenes import random_joints
 from mocap.synthetic import SessionOptions, make_session
 from mocap.ik import PlanarChain
 from mocap.synthetic.motion import check_limits, plan_session

@@ -15,7 +15,7 @@ from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
 from mocap.io.video import Video
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 from mocap.tracking import CameraModel, TrackOptions, track_frames
 from mocap.tracking.labels import labels_from_pixels
 from mocap.tracking.tracker import assign

@@ -14,7 +14,7 @@ from mocap.io.points_csv import load_points
 from mocap.io.tracks_csv import Tracks, save_tracks
 from mocap.reconstruct.timing import resample, tracks_on_reference_clock
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 NOISE = 0.5
 

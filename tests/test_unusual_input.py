@@ -29,8 +29,8 @@ from mocap.io.motion_csv import load_motion
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks
-from mocap.simulate import look_at_camera
-from mocap.sync_stage import frame_rates
+from mocap.synthetic.scenes import look_at_camera
+from mocap.sync.stage import frame_rates
 
 
 @pytest.fixture(scope="module")

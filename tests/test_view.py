@@ -22,7 +22,7 @@ from mocap.io.motion_csv import Motion, load_motion, save_motion
 from mocap.io.points_csv import Points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
-from mocap.simulate import observe, random_joints, ring_of_cameras
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.encode import video_writer
 from mocap.viewer import Cycles, Replay, Sinks, load_cycles, run_replay
 from mocap.viewer import replay as replay_module

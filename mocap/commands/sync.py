@@ -6,7 +6,7 @@ import argparse
 
 from mocap.cli import COMMANDS
 from mocap.io.outputs import check_outputs
-from mocap.sync_stage import run_sync
+from mocap.sync.stage import run_sync
 
 EXAMPLE = """example:
   mocap sync calibration/cameras.toml tracks/cam1.csv tracks/cam2.csv tracks/cam3.csv \\

@@ -142,7 +142,7 @@ def load_cycle_table(path: str | Path) -> dict[str, np.ndarray]:
     return {h: np.array([r[i].strip() for r in body], dtype=object) for i, h in enumerate(header)}
 
 
-PHASE_COLUMNS = ("cycle", "class", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame")
+FLEET_COLUMNS = ("cycle", "class", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame")
 
 
 @dataclass(frozen=True)
@@ -162,13 +162,13 @@ class CyclePhases:
 
 
 def load_cycle_phases(path: str | Path) -> CyclePhases:
-    """Read the columns `PHASE_COLUMNS` of a cycles CSV (others are ignored)."""
+    """Read the columns `FLEET_COLUMNS` of a cycles CSV (others are ignored)."""
     path = Path(path)
     table = csv_rows(read_text(path, "check the cycles path"), path)
     header = [h.strip() for h in (table[0] if table else [])]
-    missing = [c for c in PHASE_COLUMNS if c not in header]
+    missing = [c for c in FLEET_COLUMNS if c not in header]
     if missing:
-        raise InputError(f"header lacks {', '.join(missing)}; expected {','.join(PHASE_COLUMNS)}",
+        raise InputError(f"header lacks {', '.join(missing)}; expected {','.join(FLEET_COLUMNS)}",
                          path=path, where="line 1")
     col = {h: i for i, h in enumerate(header)}
     rows = []
@@ -176,10 +176,10 @@ def load_cycle_phases(path: str | Path) -> CyclePhases:
         if not row or all(not v.strip() for v in row):
             continue
         try:
-            frames = [int(row[col[c]]) for c in PHASE_COLUMNS[2:]]
+            frames = [int(row[col[c]]) for c in FLEET_COLUMNS[2:]]
         except (ValueError, IndexError):
             raise InputError("the frame columns must be integers", path=path, where=f"line {line}") from None
         rows.append((row[col["cycle"]].strip(), row[col["class"]].strip(), *frames))
-    columns = list(zip(*rows)) if rows else [()] * len(PHASE_COLUMNS)
+    columns = list(zip(*rows)) if rows else [()] * len(FLEET_COLUMNS)
     return CyclePhases(tuple(columns[0]), tuple(columns[1]),
                        *(np.array(c, dtype=np.int64) for c in columns[2:]))

@@ -14,7 +14,7 @@ import numpy as np
 
 from mocap.camera import Camera
 from mocap.geometry import Rigid, rot_x, rot_y, rpy_to_matrix
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 from mocap.synthetic.paths import SmoothNoise
 
 FRAME_RATES = (29.97, 30.0)

@@ -14,7 +14,7 @@ from mocap.camera import Camera
 from mocap.geometry import rotvec_to_matrix
 from mocap.io.machine_toml import machine_from_dict
 from mocap.machine import Machine
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 
 
 def chessboard(columns: int = 9, rows: int = 6, square: float = 0.04) -> Machine:

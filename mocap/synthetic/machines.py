@@ -26,7 +26,7 @@ from mocap.errors import DegenerateError
 from mocap.io.machine_toml import machine_from_dict
 from mocap.io.tracks_csv import Tracks
 from mocap.machine import Machine
-from mocap.simulate import look_at_camera
+from mocap.synthetic.scenes import look_at_camera
 
 IMAGE_SIZES = ((1280, 720), (1920, 1080), (2560, 1440), (3840, 2160))
 _WORDS = ("alder", "birch", "cedar", "dogwood", "elm", "fir", "ginkgo", "hazel", "ivy", "juniper")

@@ -11,7 +11,7 @@ from mocap.errors import InputError
 from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.sync import joint_curves, pose_curves, synchronise
+from mocap.sync.align import joint_curves, pose_curves, synchronise
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
