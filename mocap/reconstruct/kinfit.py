@@ -179,12 +179,12 @@ def fit_joints(
     for _ in range(options.repair_passes):
         if not problem.repair(pixels, state):
             break
-    for _ in range(2):  # a second round starts from the frames the first one mended
+    for sweep in (False, True):  # neighbours' solutions first; the grid and joint sweeps for what is left
         noise = options.noise_px or problem.noise(pixels, state)
-        suspect = problem.misfit(pixels, state, noise, tail=1e-4, far_share=0.0)
+        suspect = problem.misfit(pixels, state, noise, 1e-4, 0.2) if not sweep else problem.misfit(pixels, state, noise)
         if not suspect.any():
             break
-        problem.multistart(pixels, state, np.nonzero(suspect)[0])
+        problem.multistart(pixels, state, np.nonzero(suspect)[0], sweep)
         for _ in range(n_frames):  # mended frames hand their solution on along a wrong stretch
             if not problem.repair(pixels, state):
                 break
@@ -381,30 +381,38 @@ class _Problem(KinematicModel):
         dof_share = 1.0 - self.n_params * valid.sum() / (2.0 * n_obs[valid].sum())
         return float(max(sigma / np.sqrt(max(dof_share, 0.1)), 1e-6))
 
-    def misfit(self, pixels: np.ndarray, state: FrameState, noise: float, tail: float = 1e-6,
-               far_share: float = 0.25) -> np.ndarray:
+    def misfit(self, pixels: np.ndarray, state: FrameState, noise: float, tail: float | None = None,
+               far_share: float = 0.5) -> np.ndarray:
         """(F,) frames whose residuals the pixel noise does not explain: more than
-        `far_share` of their observations beyond 4 sigma (a chance of 3e-4 each), or the
-        others' chi-square beyond its `tail` quantile. With the defaults a few wild pixels
-        (outliers) leave a frame explained; with far_share 0 any far pixel makes it suspect."""
+        `far_share` of their observations beyond 4 sigma (a chance of 3e-4 each), or, with a
+        `tail`, the others' chi-square beyond that quantile. With the defaults (most pixels
+        far: no pose explains the frame) wild pixels, a little model error or the clock's
+        interpolation during fast motion leave a frame explained; the stricter setting
+        picks the frames worth fitting again."""
         seen = np.isfinite(pixels[..., 0]).transpose(1, 0, 2).reshape(pixels.shape[1], -1)
         e2 = (state.residual.reshape(len(seen), -1, 2) ** 2).sum(-1) / noise**2
         far = seen & (e2 > 16.0)
         n_obs, n_far = seen.sum(1), far.sum(1)
         dof = 2 * (n_obs - n_far) - self.n_params
         inlier_chi2 = np.where(seen & ~far, e2, 0.0).sum(1)
-        limit = chdtri(np.maximum(dof, 1), tail)  # the chi-square upper quantile
-        return (2 * n_obs > self.n_params) & ((n_far > far_share * n_obs) | ((dof > 0) & (inlier_chi2 > limit)))
+        misfit = n_far > far_share * n_obs
+        if tail is not None:
+            limit = chdtri(np.maximum(dof, 1), tail)  # the chi-square upper quantile
+            misfit |= (dof > 0) & (inlier_chi2 > limit)
+        return (2 * n_obs > self.n_params) & misfit
 
-    def multistart(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> None:
+    def multistart(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, sweep: bool = True) -> None:
         """Fit `frames` again from many starts and keep each frame's best: the solutions of
-        frames 1 to 32 away (a wrong stretch is left from both ends), the best grid
-        candidates, and each joint swept over its range with the others kept (a joint's
-        mirror solutions)."""
+        frames 1 to 32 away (a wrong stretch is left from both ends) and, with `sweep`, the
+        best grid candidates and each joint swept over its range with the others kept (a
+        joint's mirror solutions)."""
         n_frames, n_joints = pixels.shape[1], self.machine.n_joints
         sources = [np.clip(frames + shift, 0, n_frames - 1) for step in (1, 2, 4, 8, 16, 32) for shift in (step, -step)]
         starts = [state.take(s) for s in sources]
         own = state.take(frames)
+        if not sweep:
+            self._keep_best(pixels, state, frames, starts)
+            return
         grid = self.grid()
         predicted = self.grid_costs(np.moveaxis(pixels[:, frames], 1, 0), grid)
         for k in np.argsort(predicted, axis=1)[:, :8].T:
@@ -416,6 +424,11 @@ class _Problem(KinematicModel):
                 joints = own.joints.copy()
                 joints[:, j] = lower[j] + level * (upper[j] - lower[j])
                 starts.append(FrameState(joints, own.rotation, own.translation, own.cost))
+        self._keep_best(pixels, state, frames, starts)
+
+    def _keep_best(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, starts: list[FrameState]) -> None:
+        """LM on `frames` from every start (each a FrameState over the frames); the best kept
+        where it beats the frame's own solution."""
         tries = FrameState.concatenate([
             FrameState(s.joints, s.rotation, s.translation, s.cost) for s in starts
         ])
