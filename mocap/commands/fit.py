@@ -8,9 +8,6 @@ from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.kinfit import FitOptions
-from mocap.reconstruct.smooth import SmoothOptions
-from mocap.reconstruct.stage import run_fit
 
 EXAMPLE = """example:
   mocap fit calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml \\
@@ -50,6 +47,10 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.smooth import SmoothOptions
+    from mocap.reconstruct.stage import run_fit
+
     check_outputs({"--out": args.out},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
     try:

@@ -120,11 +120,12 @@ def load_tracks(paths) -> Tracks:
 
         def place(k: int) -> str:
             i = int(np.searchsorted(starts, k, side="right")) - 1
+            if is_parquet(paths[i]):
+                return f"{paths[i]} row {k - starts[i] + 1}"
             lines = parts[i][1]
             if lines is None:  # read columnar: number the lines the checked way
                 lines = _parse(read_text(paths[i], "check the tracks path"), paths[i])[2]
-            unit = "row" if is_parquet(paths[i]) else "line"
-            return f"{paths[i]} {unit} {lines[k - starts[i]]}"
+            return f"{paths[i]} line {lines[k - starts[i]]}"
 
         where = ", ".join(map(str, paths))
         _check_duplicates(tracks, place, where)
