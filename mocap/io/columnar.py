@@ -118,8 +118,10 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
     if column.null_count:
         return None
     if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
-        digits = len(str(largest))
-        if pc.all(pc.match_substring_regex(column, f"^[0-9]{{1,{digits}}}$")).as_py() is False:
+        length = pc.binary_length(column)
+        if pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest)):
+            return None
+        if pc.all(pc.and_(pc.string_is_ascii(column), pc.utf8_is_digit(column))).as_py() is False:
             return None
         column = pc.cast(column, pa.int64())
     elif not pa.types.is_integer(column.type):

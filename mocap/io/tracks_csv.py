@@ -305,7 +305,12 @@ def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[in
     camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
     marker_id = columnar.codes(tracks.marker) if marker_id is None else marker_id
     key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
-    pair = key_id * (MAX_FRAME + 1) + tracks.frame
+    low = int(tracks.frame.min())
+    span = int(tracks.frame.max()) - low + 1
+    pair = key_id * span + (tracks.frame - low)
+    if int(key_id.max() + 1) * span <= 8 * len(tracks):  # a dense count finds a repeat without sorting
+        if np.bincount(pair).max() < 2:
+            return None
     order = np.argsort(pair, kind="stable")
     repeat = np.flatnonzero(pair[order][1:] == pair[order][:-1])
     if not len(repeat):
@@ -331,7 +336,7 @@ def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | Non
     stages allocate by the span): its name, the row of its last frame and the count of its
     frames, or None; the cameras' codes (R,) when known."""
     camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
-    for code in np.unique(camera_id):
+    for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
         mine = np.flatnonzero(camera_id == code)
         name = tracks.camera[mine[0]]
         frames = tracks.frame[mine]
