@@ -7,6 +7,7 @@ the point; `views` the number of cameras that saw it.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,20 +52,13 @@ def save_points(points: Points, path: str | Path) -> None:
     with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(COLUMNS)
-        for k in range(len(points)):
-            x, y, z = points.xyz[k]
-            err = points.error_px[k]
-            writer.writerow(
-                [
-                    int(points.frame[k]),
-                    points.marker[k],
-                    f"{x:.5f}",
-                    f"{y:.5f}",
-                    f"{z:.5f}",
-                    f"{err:.4f}" if np.isfinite(err) else "",
-                    int(points.views[k]),
-                ]
-            )
+        x, y, z = (points.xyz[:, k].tolist() for k in range(3))  # Python floats: formatted fast
+        writer.writerows(zip(
+            np.asarray(points.frame, dtype=np.int64).tolist(), points.marker.tolist(),
+            [f"{v:.5f}" for v in x], [f"{v:.5f}" for v in y], [f"{v:.5f}" for v in z],
+            [f"{v:.4f}" if math.isfinite(v) else "" for v in points.error_px.tolist()],
+            np.asarray(points.views, dtype=np.int64).tolist(),
+        ))
 
 
 def load_points(path: str | Path) -> Points:
