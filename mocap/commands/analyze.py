@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from mocap.analysis.stage import run_analyze
 from mocap.cli import COMMANDS
 
 EXAMPLE = """example:
@@ -29,5 +28,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.analysis.stage import run_analyze
+
     print(run_analyze(args.machine, args.motion, args.out, args.cycles))
     return 0

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from mocap.machine import Tolerance
+if TYPE_CHECKING:  # mocap.machine (and scipy with it) only when the option is given
+    from mocap.machine import Tolerance
 
 
 def tolerance(text: str) -> Tolerance:
     """--tolerance: "5%" or 0.05 (a fraction of each marker's distance from its link's
     origin), or "0.03m" / "3cm" / "30mm" (a length)."""
+    from mocap.machine import Tolerance
+
     try:
         return Tolerance.parse(text)
     except ValueError:

@@ -8,9 +8,6 @@ from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.kinfit import FitOptions
-from mocap.reconstruct.smooth import SmoothOptions
-from mocap.reconstruct.stage import run_fit
 
 EXAMPLE = """example:
   mocap fit calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml \\
@@ -53,6 +50,10 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.smooth import SmoothOptions
+    from mocap.reconstruct.stage import run_fit
+
     if not args.max_noise_px > 0:
         raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
     check_outputs({"--out": args.out},

@@ -8,8 +8,7 @@ from mocap.cli import COMMANDS
 from mocap.commands.arguments import TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.refine import DISTORTION_CHOICES, RefineOptions
-from mocap.reconstruct.stage import run_refine
+from mocap.reconstruct.refine import DISTORTION_CHOICES
 
 EXAMPLE = """example:
   mocap refine calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml tracks/*.csv \\
@@ -52,6 +51,9 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.reconstruct.refine import RefineOptions
+    from mocap.reconstruct.stage import run_refine
+
     check_outputs({"--out": args.out, "--out-machine": args.out_machine},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks,
                    "intrinsics": args.intrinsics})

@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from mocap.cli import COMMANDS
-from mocap.pipeline import RunOptions, run_session
 
 EXAMPLE = """example:
   mocap run SESSION_DIR          # needs SESSION_DIR/calibration/labels.csv (the first frame's markers)"""
@@ -30,4 +29,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.pipeline import RunOptions, run_session
+
     return run_session(args.session, RunOptions(args.labels, args.refine, not args.no_view))

@@ -6,7 +6,6 @@ import argparse
 
 from mocap.cli import COMMANDS
 from mocap.io.outputs import check_outputs
-from mocap.sync.stage import run_sync
 
 EXAMPLE = """example:
   mocap sync calibration/cameras.toml tracks/cam1.csv tracks/cam2.csv tracks/cam3.csv \\
@@ -36,6 +35,8 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.sync.stage import run_sync
+
     check_outputs({"--out": args.out},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks},
                   may_replace=("calibration",))

@@ -7,8 +7,6 @@ import argparse
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.stage import run_triangulate
-from mocap.reconstruct.triangulate import TriangulateOptions
 
 EXAMPLE = """example:
   mocap triangulate calibration/cameras.toml tracks/cam1.csv tracks/cam2.csv tracks/cam3.csv \\
@@ -42,6 +40,9 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.reconstruct.stage import run_triangulate
+    from mocap.reconstruct.triangulate import TriangulateOptions
+
     if not args.max_noise_px > 0:
         raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
     check_outputs({"--out": args.out},

@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
+from mocap.io import columnar
 from mocap.io.atomic import atomic_path
+from mocap.io.columnar import is_parquet
 from mocap.geometry import matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
 from mocap.io.text import csv_rows, read_text
 from mocap.machine import REVOLUTE, Machine
@@ -117,7 +119,8 @@ def _joint_scale(machine: Machine) -> np.ndarray:
 
 
 def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
-    """Write the motion CSV (joint values converted to degrees / metres)."""
+    """Write the motion CSV (joint values converted to degrees / metres), or Parquet with
+    the same columns for a ``.parquet`` path."""
     scale = _joint_scale(machine)
     header = ["frame", "time", *motion.joint_names]
     columns = [motion.frame, motion.time, *(motion.joints * scale).T]
@@ -138,6 +141,10 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
     header += list(motion.extra)
     columns += [np.asarray(v, dtype=float) for v in motion.extra.values()]
 
+    if is_parquet(path):
+        columnar.write_parquet({h: np.asarray(c, dtype=float) for h, c in zip(header, columns)}
+                               | {"frame": np.asarray(motion.frame, dtype=np.int64)}, path)
+        return
     table = np.column_stack([np.asarray(c, dtype=float) for c in columns]) if len(motion) else None
     with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
@@ -162,24 +169,16 @@ def _columns(col: dict, names: list[str], n: int) -> np.ndarray:
     return np.column_stack([col[c] for c in names]) if names else np.zeros((n, 0))
 
 
-def load_motion(path: str | Path, machine: Machine) -> Motion:
-    """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`)."""
-    path = Path(path)
+def _read_csv(path: Path, check_header) -> tuple[list[str], np.ndarray, np.ndarray, str]:
+    """The header (checked by `check_header`(header, where)), the values (R, K) (NaN where
+    empty) and the rows' line numbers (R,)."""
     text = read_text(path, "check the motion path")
     reader = iter(csv_rows(text, path))
     header = [h.strip() for h in next(reader, [])]
-    joint_cols = list(machine.joint_names)
-    point_cols = [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
-    bucket = ["bucket_angle_deg"] if machine.bucket_angle is not None else []  # else NaN, optional
-    required = ["frame", "time", *joint_cols, *point_cols, *bucket]
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise InputError(
-            f"header lacks {', '.join(missing)} (is it the motion of {machine.name!r}?)",
-            path=path,
-            where="line 1",
-        )
+    check_header(header, "line 1")
     rows = [(line, row) for line, row in enumerate(reader, start=2) if row]
+    if not rows:
+        return header, np.zeros((0, len(header))), np.zeros(0, dtype=int), "line"
     bad = [(line, len(row)) for line, row in rows if len(row) != len(header)]
     if bad:
         raise InputError(f"{bad[0][1]} fields, the header has {len(header)}", path=path, where=f"line {bad[0][0]}")
@@ -189,19 +188,50 @@ def load_motion(path: str | Path, machine: Machine) -> Motion:
     except ValueError:
         line = next(line for line, row in rows if not all(_is_number(v) for v in row))
         raise InputError("a field is not a number", path=path, where=f"line {line}") from None
+    return header, table, np.array([line for line, _ in rows], dtype=int), "line"
+
+
+def _read_parquet(path: Path, check_header) -> tuple[list[str], np.ndarray, np.ndarray, str]:
+    table = columnar.read_parquet(path, "check the motion path")
+    check_header(table.column_names, None)
+    values = []
+    for name in table.column_names:
+        column = columnar.floats(table[name])
+        if column is None:
+            raise InputError(f"column {name!r} is not numeric", path=path)
+        values.append(column)
+    array = np.column_stack(values) if values else np.zeros((table.num_rows, 0))
+    return table.column_names, array, np.arange(1, table.num_rows + 1), "row"
+
+
+def load_motion(path: str | Path, machine: Machine) -> Motion:
+    """Read a motion CSV written for `machine` (columns beyond the known ones go to `extra`),
+    or Parquet with the same columns for a ``.parquet`` path."""
+    path = Path(path)
+    joint_cols = list(machine.joint_names)
+    point_cols = [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
+    bucket = ["bucket_angle_deg"] if machine.bucket_angle is not None else []  # else NaN, optional
+    required = ["frame", "time", *joint_cols, *point_cols, *bucket]
+
+    def check_header(header: list[str], where: str | None) -> None:
+        missing = [c for c in required if c not in header]
+        if missing:
+            raise InputError(f"header lacks {', '.join(missing)} (is it the motion of {machine.name!r}?)",
+                             path=path, where=where)
+
+    header, table, lines, unit = (_read_parquet if is_parquet(path) else _read_csv)(path, check_header)
     col = {h: table[:, i] for i, h in enumerate(header)}
-    lines = np.array([line for line, _ in rows], dtype=int)
     frame = col["frame"]
     bad = np.flatnonzero(~np.isfinite(frame) | (frame < 0) | (frame != np.round(frame)) | (frame > 1e8))
     if len(bad):
         raise InputError(f"frame {frame[bad[0]]:g} is not a frame number (a whole number >= 0)",
-                         path=path, where=f"line {lines[bad[0]]}")
+                         path=path, where=f"{unit} {lines[bad[0]]}")
     bad = np.flatnonzero(~np.isfinite(col["time"]))
     if len(bad):
-        raise InputError("time must be a finite number of seconds", path=path, where=f"line {lines[bad[0]]}")
+        raise InputError("time must be a finite number of seconds", path=path, where=f"{unit} {lines[bad[0]]}")
     if np.any(np.diff(frame) <= 0):
         raise InputError("frames must increase from row to row", path=path,
-                         where=f"line {lines[np.flatnonzero(np.diff(frame) <= 0)[0] + 1]}")
+                         where=f"{unit} {lines[np.flatnonzero(np.diff(frame) <= 0)[0] + 1]}")
     scale = _joint_scale(machine)
     n_points = len(machine.point_names)
 

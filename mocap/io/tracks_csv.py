@@ -13,8 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+import pyarrow as pa
+
 from mocap.errors import InputError
+from mocap.io import columnar
 from mocap.io.atomic import atomic_path
+from mocap.io.columnar import is_parquet
 from mocap.io.text import read_text
 
 REQUIRED = ("camera", "frame", "marker", "x", "y")
@@ -104,23 +108,90 @@ SPARSE_SPAN = 100_000  # frames: a longer span must have rows in at least a tent
 
 
 def load_tracks(paths) -> Tracks:
-    """Read one or several tracks CSV files (one per camera, or all cameras in one)."""
+    """Read one or several tracks files (one per camera, or all cameras in one): CSV, or
+    Parquet with the same columns for a ``.parquet`` path."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    parts = [_load_one(Path(p)) for p in paths]
+    paths = [Path(p) for p in paths]
+    parts = [_load_one(p) for p in paths]
     tracks = concatenate([part for part, _ in parts])
     if len(paths) > 1:  # rows named by file and line
-        places = np.concatenate([np.char.add(f"{p} line ", lines.astype(str)) for p, (_, lines) in zip(paths, parts)])
+        starts = np.cumsum([0] + [len(part) for part, _ in parts])
+
+        def place(k: int) -> str:
+            i = int(np.searchsorted(starts, k, side="right")) - 1
+            if is_parquet(paths[i]):
+                return f"{paths[i]} row {k - starts[i] + 1}"
+            lines = parts[i][1]
+            if lines is None:  # read columnar: number the lines the checked way
+                lines = _parse(read_text(paths[i], "check the tracks path"), paths[i])[2]
+            return f"{paths[i]} line {lines[k - starts[i]]}"
+
         where = ", ".join(map(str, paths))
-        _check_duplicates(tracks, places, where)
-        _check_span(tracks, places, where)
+        _check_duplicates(tracks, place, where)
+        _check_span(tracks, place, where)
     return tracks
 
 
-def _load_one(path: Path) -> tuple[Tracks, np.ndarray]:
-    """The file's tracks and each row's line number (R,)."""
+TYPES = {"camera": pa.string(), "frame": pa.string(), "marker": pa.string(), "x": pa.float64(),
+         "y": pa.float64(), "time": pa.float64(), "score": pa.float64()}
+
+
+def _load_one(path: Path) -> tuple[Tracks, np.ndarray | None]:
+    """The file's tracks and each row's line number (R,), None when it was read columnar
+    with nothing to report."""
+    if is_parquet(path):
+        return _load_parquet(path)
+    table = columnar.read_csv_strict(path, TYPES)
+    tracks = None if table is None else _from_table(table)
+    if tracks is not None:
+        return tracks, None
     header, columns, lines = _parse(read_text(path, "check the tracks path"), path)
     return _validate(header, columns, lines, path), lines
+
+
+def _load_parquet(path: Path) -> tuple[Tracks, np.ndarray | None]:
+    table = columnar.read_parquet(path, "check the tracks path")
+    missing = [h for h in REQUIRED if h not in table.column_names]
+    if missing:
+        raise InputError(f"lacks the columns {', '.join(missing)}; expected columns "
+                         f"{','.join(REQUIRED)}[,time,score]", path=path)
+    tracks = _from_table(table)
+    if tracks is not None:
+        return tracks, None
+    header = [h for h in REQUIRED + OPTIONAL if h in table.column_names]
+    text = {h: np.array(["" if v is None else str(v) for v in table[h].to_pylist()], dtype=str).reshape(-1)
+            for h in header}
+    rows = np.arange(1, table.num_rows + 1)
+    return _validate(header, {h: np.char.strip(v) for h, v in text.items()}, rows, path, unit="row"), rows
+
+
+def _from_table(table) -> Tracks | None:
+    """Tracks of a typed table that passes every check, else None (the checked reader then
+    names the first bad row)."""
+    if any(h not in table.column_names for h in REQUIRED):
+        return None
+    if not (columnar.plain_names(table["camera"], MAX_NAME) and columnar.plain_names(table["marker"], MAX_NAME)):
+        return None
+    frame = columnar.whole_numbers(table["frame"], MAX_FRAME)
+    values = {}
+    for key in ("x", "y", "time", "score"):
+        values[key] = columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
+    if frame is None or any(v is None for v in values.values()):
+        return None
+    xy = np.c_[values["x"], values["y"]]
+    if not np.all(np.isfinite(xy)) or np.any(np.abs(xy) > MAX_PIXEL):
+        return None
+    if any(np.any(np.isinf(values[key])) for key in ("time", "score")):
+        return None
+    if any(key in table.column_names and table[key].null_count < np.isnan(values[key]).sum()
+           for key in ("time", "score")):  # a NaN written out, not an empty field
+        return None
+    (camera, camera_id), (marker, marker_id) = columnar.strings(table["camera"]), columnar.strings(table["marker"])
+    tracks = Tracks(camera, frame, marker, xy, values["time"], values["score"])
+    if _first_duplicate(tracks, camera_id, marker_id) is not None or _sparse_camera(tracks, camera_id) is not None:
+        return None
+    return tracks
 
 
 def _parse(text: str, path: Path) -> tuple[list[str], dict[str, np.ndarray], np.ndarray]:
@@ -157,14 +228,16 @@ def _parse(text: str, path: Path) -> tuple[list[str], dict[str, np.ndarray], np.
     return header, columns, lines
 
 
-def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarray, path: Path) -> Tracks:
-    """Whole-column checks of parsed text columns -> Tracks; the first bad row is named."""
+def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarray, path: Path,
+              unit: str = "line") -> Tracks:
+    """Whole-column checks of parsed text columns -> Tracks; the first bad row is named
+    (its `unit` and number: line of a CSV, row of a Parquet file)."""
 
     def fail(mask: np.ndarray, message) -> None:
         bad = np.flatnonzero(mask)
         if len(bad):
             k = bad[0]
-            raise InputError(message(k), path=path, where=f"line {lines[k]}")
+            raise InputError(message(k), path=path, where=f"{unit} {lines[k]}")
 
     camera, marker = columns["camera"], columns["marker"]
     fail((np.char.str_len(camera) == 0) | (np.char.str_len(marker) == 0),
@@ -190,7 +263,7 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
         empty = np.char.str_len(text) == 0
         if key in ("x", "y"):
             fail(empty, lambda k: f"{key} is empty; a marker not seen has no row")
-        values[key] = _floats(np.where(empty, "nan", text), key, lines, path)
+        values[key] = _floats(np.where(empty, "nan", text), key, lines, path, unit)
         fail(~empty & ~np.isfinite(values[key]),
              lambda k: f"{'x and y must be finite numbers' if key in 'xy' else key + ' must be a finite number'}, "
                      f"got {key} {str(text[k])!r}")
@@ -200,9 +273,8 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
 
     tracks = Tracks.from_rows(camera.astype(object), frame, marker.astype(object), xy,
                               values["time"], values["score"])
-    places = np.char.add("line ", lines.astype(str))
-    _check_duplicates(tracks, places, path)
-    _check_span(tracks, places, path)
+    _check_duplicates(tracks, lambda k: f"{unit} {lines[k]}", path)
+    _check_span(tracks, lambda k: f"{unit} {lines[k]}", path)
     return tracks
 
 
@@ -212,7 +284,7 @@ def ascii_digits(text: np.ndarray) -> np.ndarray:
     return np.char.isdigit(text) & ascii
 
 
-def _floats(text: np.ndarray, key: str, lines: np.ndarray, path) -> np.ndarray:
+def _floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str = "line") -> np.ndarray:
     try:
         return text.astype(float)
     except ValueError:
@@ -221,47 +293,86 @@ def _floats(text: np.ndarray, key: str, lines: np.ndarray, path) -> np.ndarray:
                 float(value)
             except ValueError:
                 raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
-                                 where=f"line {lines[k]}") from None
+                                 where=f"{unit} {lines[k]}") from None
         raise
 
 
-def _check_duplicates(tracks: Tracks, places: np.ndarray, where) -> None:
-    """One row per (camera, frame, marker): a second is an error naming both."""
+def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[int, int] | None:
+    """The first two rows (in file order) of one (camera, marker, frame), or None; the
+    names' codes (R,) (`columnar.codes`) when known."""
     if len(tracks) < 2:
-        return
-    keys = np.char.add(np.char.add(tracks.camera.astype(str), "\0"), tracks.marker.astype(str))
-    _, key_id = np.unique(keys, return_inverse=True)
-    pair = key_id.astype(np.int64) * (MAX_FRAME + 1) + tracks.frame
+        return None
+    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
+    marker_id = columnar.codes(tracks.marker) if marker_id is None else marker_id
+    key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
+    low = int(tracks.frame.min())
+    span = int(tracks.frame.max()) - low + 1
+    pair = key_id * span + (tracks.frame - low)
+    if int(key_id.max() + 1) * span <= 8 * len(tracks):  # a dense count finds a repeat without sorting
+        if np.bincount(pair).max() < 2:
+            return None
     order = np.argsort(pair, kind="stable")
     repeat = np.flatnonzero(pair[order][1:] == pair[order][:-1])
-    if len(repeat):
-        first, second = sorted((order[repeat[0]], order[repeat[0] + 1]))
+    if not len(repeat):
+        return None
+    first, second = sorted((order[repeat[0]], order[repeat[0] + 1]))
+    return int(first), int(second)
+
+
+def _check_duplicates(tracks: Tracks, place, where) -> None:
+    """One row per (camera, frame, marker): a second is an error naming both (`place`(k)
+    names row k)."""
+    pair = _first_duplicate(tracks)
+    if pair is not None:
+        first, second = pair
         raise InputError(
             f"marker {tracks.marker[first]!r} of camera {tracks.camera[first]!r} appears twice in frame "
-            f"{tracks.frame[first]} ({places[first]} and {places[second]}); keep one row per marker "
+            f"{tracks.frame[first]} ({place(first)} and {place(second)}); keep one row per marker "
             "and frame", path=where)
 
 
-def _check_span(tracks: Tracks, places: np.ndarray, where) -> None:
-    """A camera's frames must not run over a span far larger than the frames it has rows in
-    (the stages allocate by the span): a stray frame number is refused, naming its row."""
-    for name in tracks.cameras:
-        mine = np.flatnonzero(tracks.camera == name)
+def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | None:
+    """A camera whose frames run over a span far larger than the frames it has rows in (the
+    stages allocate by the span): its name, the row of its last frame and the count of its
+    frames, or None; the cameras' codes (R,) when known."""
+    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
+    for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
+        mine = np.flatnonzero(camera_id == code)
+        name = tracks.camera[mine[0]]
         frames = tracks.frame[mine]
         span = int(frames.max() - frames.min()) + 1
+        if span <= SPARSE_SPAN:
+            continue
         present = len(np.unique(frames))
-        if span > SPARSE_SPAN and present * 10 < span:
-            k = mine[np.argmax(frames)]
-            raise InputError(
-                f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
-                f"{frames.min()} to {frames.max()} ({places[k]}); a stray frame number?",
-                path=where)
+        if present * 10 < span:
+            return name, int(mine[np.argmax(frames)]), present
+    return None
+
+
+def _check_span(tracks: Tracks, place, where) -> None:
+    """A stray frame number far from a camera's others is refused, naming its row."""
+    sparse = _sparse_camera(tracks)
+    if sparse is not None:
+        name, k, present = sparse
+        frames = tracks.frame[tracks.camera == name]
+        span = int(frames.max() - frames.min()) + 1
+        raise InputError(
+            f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
+            f"{frames.min()} to {frames.max()} ({place(k)}); a stray frame number?",
+            path=where)
 
 
 def save_tracks(tracks: Tracks, path: str | Path) -> None:
+    """Write the tracks as CSV, or as Parquet for a ``.parquet`` path."""
     has_time = bool(np.any(np.isfinite(tracks.time)))
     has_score = bool(np.any(np.isfinite(tracks.score)))
     header = list(REQUIRED) + (["time"] if has_time else []) + (["score"] if has_score else [])
+    if is_parquet(path):
+        columns = {"camera": tracks.camera.astype(str), "frame": tracks.frame.astype(np.int64),
+                   "marker": tracks.marker.astype(str), "x": tracks.xy[:, 0], "y": tracks.xy[:, 1],
+                   "time": tracks.time, "score": tracks.score}
+        columnar.write_parquet({h: columns[h] for h in header}, path)
+        return
     with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(header)

@@ -18,7 +18,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ def _rts(time, values, information, valid, q, options):
     first = int(np.argmax(valid))
     x = np.r_[values[first], np.zeros(p)]
     cov = _PRIOR_SD**2 * eye_s
-    gate = chi2.ppf(options.gate_probability, p) if options.gate_probability < 1 else np.inf
+    gate = 2 * gammaincinv(p / 2, options.gate_probability)  # chi2.ppf, without scipy.stats' if options.gate_probability < 1 else np.inf
     pred_mean = np.empty((n, 2 * p))
     pred_cov = np.empty((n, 2 * p, 2 * p))
     post_mean = np.empty((n, 2 * p))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,13 +20,14 @@ from mocap.io.points_csv import Points, save_points
 from mocap.io.tracks_csv import SPARSE_SPAN, Tracks, check_in_images, load_tracks
 from mocap.machine import Machine
 from mocap.progress import progress
-from mocap.reconstruct.kinfit import FitOptions
-from mocap.reconstruct.motion import reconstruct_motion
 from mocap.reconstruct.outliers import noise_from_fits
-from mocap.reconstruct.refine import RefineOptions, refine
-from mocap.reconstruct.smooth import SmoothOptions
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
+
+if TYPE_CHECKING:  # the fit and the refinement are imported by the stages that use them
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.refine import RefineOptions
+    from mocap.reconstruct.smooth import SmoothOptions
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +134,8 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
             smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX) -> str:
+    from mocap.reconstruct.motion import reconstruct_motion
+
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
@@ -181,6 +185,8 @@ def _dropped(clock: Resampled) -> str:
 
 def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, out_machine,
                options: RefineOptions, intrinsics_path=None) -> str:
+    from mocap.reconstruct.refine import refine
+
     machine = load_machine(machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
     cameras = list(calibration.cameras)

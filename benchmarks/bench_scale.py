@@ -1,0 +1,230 @@
+"""Scale benchmarks: long sessions through the command line, beside a naive reference.
+
+    python benchmarks/bench_scale.py [--frames 9000] [--long-frames 216000] [--skip-long]
+
+A synthetic session of the EX3500 (`mocap synth --no-video`, truth tracks of 3 cameras and
+18 markers) is repeated end to end up to --frames frames and given 0.5 px of pixel noise.
+Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive numpy/scipy
+reference run through its own small command line (the csv module, one
+`scipy.optimize.least_squares` per point and per frame, the previous frame's joints as the
+start), and the ratio; (2) tracks CSV parsing in rows/s, the columnar reader beside the
+csv module's checked reader; (3) start time of `mocap --help` and of a command's --help;
+(4) a --long-frames session (216,000 frames: two hours at 30 fps) from tracks through `fit`
+and `analyze`: wall time and the peak resident memory of the commands. Wall times, so other
+work on the machine lengthens them. The naive reference ignores the cameras' time offsets
+(it pairs equal frame numbers); that makes it faster, not slower.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+
+from mocap.io.text import read_text
+from mocap.io.tracks_csv import _parse, _validate, load_tracks
+
+MACHINE = "hitachi_ex3500"
+NOISE_PX = 0.5
+TARGETS = {"triangulate": 10.0, "fit": 20.0}
+
+NAIVE = r'''
+"""The textbook way: the csv module, one least_squares per point / per frame."""
+import csv, sys
+import numpy as np
+from scipy.optimize import least_squares
+from mocap.io.cameras_toml import load_calibration
+from mocap.io.machine_toml import load_machine
+
+def read(path):
+    frames = {}
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            frames.setdefault(int(row["frame"]), []).append((row["camera"], row["marker"], float(row["x"]), float(row["y"])))
+    return frames
+
+def triangulate(cal, tracks, out):
+    cams = {c.name: c for c in load_calibration(cal).cameras}
+    P = {n: c.matrix @ np.c_[c.cam_from_world.rotation, c.cam_from_world.translation] for n, c in cams.items()}
+    rows = []
+    for frame, obs in sorted(read(tracks).items()):
+        by_marker = {}
+        for cam, marker, x, y in obs:
+            by_marker.setdefault(marker, []).append((cam, x, y))
+        for marker, views in by_marker.items():
+            if len(views) < 2:
+                continue
+            A = np.concatenate([[x * P[c][2] - P[c][0], y * P[c][2] - P[c][1]] for c, x, y in views])
+            X = np.linalg.svd(A)[2][-1]
+            uv = np.array([[x, y] for _, x, y in views])
+            res = least_squares(lambda p: np.concatenate([cams[c].project(p) for c, _, _ in views]) - uv.ravel(), X[:3] / X[3])
+            rows.append([frame, marker, *res.x])
+    with open(out, "w", newline="") as fh:
+        csv.writer(fh).writerows([["frame", "marker", "x", "y", "z"], *rows])
+
+def fit(machine, cal, tracks, out):
+    m = load_machine(machine)
+    cams = {c.name: c for c in load_calibration(cal).cameras}
+    index = {n: i for i, n in enumerate(m.marker_names)}
+    q = np.clip(np.zeros(m.n_joints), m.joint_limits[:, 0], m.joint_limits[:, 1])
+    rows = []
+    for frame, obs in sorted(read(tracks).items()):
+        groups = {}
+        for cam, marker, x, y in obs:
+            groups.setdefault(cam, ([], []))
+            groups[cam][0].append(index[marker]); groups[cam][1].append((x, y))
+        groups = {c: (np.array(i), np.array(uv)) for c, (i, uv) in groups.items()}
+
+        def residual(joints):
+            world = m.markers(joints[None])[0]
+            return np.concatenate([(cams[c].project(world[i]) - uv).ravel() for c, (i, uv) in groups.items()])
+
+        q = least_squares(residual, q, loss="huber", f_scale=2.0).x
+        rows.append([frame, *q])
+    with open(out, "w", newline="") as fh:
+        csv.writer(fh).writerows([["frame", *m.joint_names], *rows])
+
+if __name__ == "__main__":
+    {"triangulate": triangulate, "fit": fit}[sys.argv[1]](*sys.argv[2:])
+'''
+
+
+def run(argv: list[str], cwd: Path) -> float:
+    """Wall seconds of a child process; its failure stops the benchmark."""
+    start = time.perf_counter()
+    done = subprocess.run(argv, cwd=cwd, capture_output=True, text=True)
+    if done.returncode:
+        sys.exit(f"{' '.join(map(str, argv))} failed:\n{done.stderr[-2000:]}")
+    return time.perf_counter() - start
+
+
+def mocap(*args) -> list[str]:
+    return [sys.executable, "-m", "mocap.cli", *map(str, args)]
+
+
+def make_session(work: Path, root: Path, seed: int) -> Path:
+    base = work / "base"
+    if not (base / "truth" / "tracks.csv").exists():
+        run(mocap("synth", "--machine", MACHINE, "--no-video", "--seed", seed, "--out", base), root)
+    return base / "truth"
+
+
+def write_long_tracks(truth: Path, n_frames: int, path: Path, rng) -> int:
+    """The truth tracks repeated end to end over `n_frames` frames, with pixel noise; rows."""
+    tracks = load_tracks(truth / "tracks.csv")
+    block = int(tracks.frame.max()) + 1
+    repeats = -(-n_frames // block)
+    frame = (tracks.frame[None] + block * np.arange(repeats)[:, None]).ravel()
+    keep = frame < n_frames
+    xy = np.tile(tracks.xy, (repeats, 1))[keep] + rng.normal(0, NOISE_PX, (int(keep.sum()), 2))
+    table = pa.table({"camera": np.tile(tracks.camera.astype(str), repeats)[keep], "frame": frame[keep],
+                      "marker": np.tile(tracks.marker.astype(str), repeats)[keep],
+                      "x": np.round(xy[:, 0], 4), "y": np.round(xy[:, 1], 4)})
+    with open(path, "wb") as fh:
+        fh.write(b"camera,frame,marker,x,y\n")
+        pacsv.write_csv(table, fh, pacsv.WriteOptions(include_header=False, quoting_style="none"))
+    return table.num_rows
+
+
+def speed_table(work: Path, truth: Path, root: Path, tracks: Path) -> None:
+    naive = work / "naive.py"
+    naive.write_text(NAIVE)
+    cal = truth / "cameras.toml"
+    print("\n(1) through the command line: mocap vs the naive numpy/scipy reference")
+    print(f"{'command':<12} {'mocap s':>9} {'naive s':>9} {'ratio':>7} {'target':>7}")
+    for name, ours, theirs in [
+        ("triangulate", mocap("triangulate", cal, tracks, "--out", work / "points.csv"),
+         [sys.executable, naive, "triangulate", cal, tracks, work / "naive_points.csv"]),
+        ("fit", mocap("fit", MACHINE, cal, tracks, "--out", work / "motion.csv"),
+         [sys.executable, naive, "fit", MACHINE, cal, tracks, work / "naive_motion.csv"]),
+    ]:
+        a, b = run(ours, root), run(theirs, root)
+        print(f"{name:<12} {a:9.2f} {b:9.2f} {b / a:6.1f}x {TARGETS[name]:6.0f}x")
+
+
+def parse_table(tracks: Path) -> None:
+    def best(fn) -> tuple[float, int]:
+        times, n = [], 0
+        for _ in range(3):
+            start = time.perf_counter()
+            n = fn()
+            times.append(time.perf_counter() - start)
+        return min(times), n
+
+    def checked() -> int:
+        header, columns, lines = _parse(read_text(tracks, ""), tracks)
+        return len(_validate(header, columns, lines, tracks))
+
+    columnar, n = best(lambda: len(load_tracks(tracks)))
+    csv_module, _ = best(checked)
+    print(f"\n(2) tracks CSV parsing, {n:,} rows (best of 3)")
+    print(f"{'reader':<28} {'s':>7} {'M rows/s':>9}")
+    print(f"{'pyarrow (load_tracks)':<28} {columnar:7.3f} {n / columnar / 1e6:9.2f}   target 5")
+    print(f"{'csv module (checked)':<28} {csv_module:7.3f} {n / csv_module / 1e6:9.2f}   ratio {csv_module / columnar:.1f}x")
+
+
+def start_table(root: Path) -> None:
+    print("\n(3) start time, wall s (best of 5; target 0.3)")
+    for args in [("--help",), ("triangulate", "--help"), ("fit", "--help"), ("analyze", "--help")]:
+        best = min(run(mocap(*args), root) for _ in range(5))
+        print(f"  mocap {' '.join(args):<20} {best:6.2f}")
+
+
+def long_child(work: Path, truth: Path, root: Path, tracks: Path) -> None:
+    """Run fit and analyze on the long session; print their wall times and peak RSS."""
+    fit = run(mocap("fit", MACHINE, truth / "cameras.toml", tracks, "--out", work / "long_motion.csv"), root)
+    analyze = run(mocap("analyze", MACHINE, work / "long_motion.csv", "--out", work / "long_analysis"), root)
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20  # KiB -> GiB
+    print(json.dumps({"fit": fit, "analyze": analyze, "peak_gib": peak}))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=9000)
+    parser.add_argument("--long-frames", type=int, default=216_000)
+    parser.add_argument("--skip-long", action="store_true")
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--work", type=Path, help="folder to keep the files in (default: a temporary one)")
+    parser.add_argument("--long-child", nargs=2, metavar=("WORK", "TRACKS"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    root = Path(__file__).resolve().parents[1]
+    if args.long_child:
+        work = Path(args.long_child[0])
+        return long_child(work, work / "base" / "truth", root, Path(args.long_child[1]))
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        rng = np.random.default_rng(args.seed)
+        truth = make_session(work, root, args.seed)
+        tracks = work / "tracks.csv"
+        rows = write_long_tracks(truth, args.frames, tracks, rng)
+        print(f"session: {args.frames:,} frames x 3 cameras x 18 markers, {rows:,} track rows, {NOISE_PX} px noise")
+        speed_table(work, truth, root, tracks)
+        parse_table(tracks)
+        start_table(root)
+        if args.skip_long:
+            return
+        long_tracks = work / "long_tracks.csv"
+        rows = write_long_tracks(truth, args.long_frames, long_tracks, rng)
+        done = subprocess.run([sys.executable, __file__, "--long-child", str(work), str(long_tracks)],
+                              cwd=root, capture_output=True, text=True)
+        if done.returncode:
+            sys.exit(done.stdout[-2000:] + done.stderr[-2000:])
+        result = json.loads(done.stdout.strip().splitlines()[-1])
+        print(f"\n(4) {args.long_frames:,} frames ({rows:,} track rows), tracks -> fit -> analyze")
+        print(f"  fit {result['fit']:.1f} s, analyze {result['analyze']:.1f} s, "
+              f"total {result['fit'] + result['analyze']:.1f} s (target 120), "
+              f"peak memory {result['peak_gib']:.2f} GiB (target 4)")
+
+
+if __name__ == "__main__":
+    main()

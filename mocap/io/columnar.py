@@ -1,0 +1,140 @@
+"""Columnar reading and writing of the tables (tracks, points, motion) through pyarrow.
+
+A CSV file is first read by pyarrow with strict types; any file it cannot read that way
+(quotes it disagrees on, padded fields, a bad number, ...) returns None and the caller
+reads it with the csv module, whose checks name the line. A ``.parquet`` path is read and
+written as Parquet with the same columns.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from mocap.errors import InputError
+from mocap.io.atomic import atomic_path
+
+MAX_BYTES = 2**31  # as mocap.io.text: a larger file is left to the checked reader
+
+
+def is_parquet(path: str | Path) -> bool:
+    return Path(path).suffix.lower() == ".parquet"
+
+
+def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | None:
+    """The columns of `types` present in the header, typed; an empty field is null. None
+    when the file is anything but a plain UTF-8 CSV of one header line, stripped unique
+    names and rows of the header's width (the caller then reads it the checked way)."""
+    try:
+        if not path.is_file() or path.stat().st_size > MAX_BYTES:
+            return None
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    if b"\0" in data or b'"' in data:
+        return None
+    first = data.split(b"\n", 1)[0].rstrip(b"\r")
+    try:
+        header = next(csv.reader([first.decode("utf-8")]), [])
+    except UnicodeDecodeError:
+        return None
+    if not header or len(set(header)) != len(header) or any(h != h.strip() or not h for h in header):
+        return None
+    wanted = [h for h in header if h in types]
+    try:
+        table = pacsv.read_csv(
+            pa.py_buffer(data),
+            parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=True),
+            convert_options=pacsv.ConvertOptions(
+                column_types={h: types[h] for h in wanted}, include_columns=wanted, null_values=[""],
+                strings_can_be_null=True, quoted_strings_can_be_null=True, true_values=[], false_values=[]),
+        )
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+        return None
+    return table if table.num_rows else None
+
+
+def read_parquet(path: Path, hint: str) -> pa.Table:
+    """The Parquet file's table; an unreadable one is an InputError."""
+    try:
+        return pq.read_table(path)
+    except FileNotFoundError:
+        raise InputError(f"file not found; {hint}", path=path) from None
+    except IsADirectoryError:
+        raise InputError(f"is a folder, not a file; {hint}", path=path) from None
+    except PermissionError:
+        raise InputError(f"not readable (permission denied); {hint}", path=path) from None
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(f"not a readable Parquet file ({str(exc).splitlines()[0][:200]}); {hint}",
+                         path=path) from None
+
+
+def write_parquet(columns: dict[str, np.ndarray], path: str | Path) -> None:
+    """Write named (N,) columns as a Parquet file, atomically."""
+    table = pa.table({name: pa.array(value, from_pandas=True) for name, value in columns.items()})  # NaN -> null
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
+
+
+def strings(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) object array of Python str from a string column without nulls, one object per
+    distinct value, and (N,) int codes of the values (equal where the values are equal)."""
+    encoded = column.combine_chunks().dictionary_encode()
+    codes = encoded.indices.to_numpy()
+    return np.array(encoded.dictionary.to_pylist(), dtype=object)[codes], codes
+
+
+def codes(names: np.ndarray) -> np.ndarray:
+    """(N,) int codes of (N,) names, equal where the names are equal."""
+    return pa.array(names, pa.string()).dictionary_encode().indices.to_numpy()
+
+
+def plain_names(column: pa.ChunkedArray, longest: int) -> bool:
+    """Whether every value is a non-empty string of at most `longest` characters without
+    surrounding white space."""
+    column = column.combine_chunks()
+    if not pa.types.is_string(column.type) and not pa.types.is_large_string(column.type):
+        return False
+    if column.null_count:
+        return False
+    length = pc.utf8_length(column)
+    if len(column) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
+        return False
+    return pc.all(pc.equal(pc.utf8_trim_whitespace(column), column)).as_py() is not False
+
+
+def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
+    """(N,) int64 of a column of whole numbers 0 ... `largest` (written with at most as
+    many digits as `largest`), or None."""
+    column = column.combine_chunks()
+    if column.null_count:
+        return None
+    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        length = pc.binary_length(column)
+        if pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest)):
+            return None
+        if pc.all(pc.and_(pc.string_is_ascii(column), pc.utf8_is_digit(column))).as_py() is False:
+            return None
+        column = pc.cast(column, pa.int64())
+    elif not pa.types.is_integer(column.type):
+        return None
+    values = column.to_numpy(zero_copy_only=False).astype(np.int64)
+    if len(values) and (values.min() < 0 or values.max() > largest):
+        return None
+    return values
+
+
+def floats(column: pa.ChunkedArray) -> np.ndarray | None:
+    """(N,) float64, NaN for null, or None if the column is not numeric."""
+    column = column.combine_chunks()
+    if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
+        return None
+    return pc.cast(column, pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)

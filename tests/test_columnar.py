@@ -1,0 +1,121 @@
+"""Columnar reading: the pyarrow reader agrees with the checked csv reader, and Parquet
+round-trips tracks, points and motion."""
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from mocap.errors import InputError
+from mocap.io.machine_toml import load_machine
+from mocap.io.motion_csv import Motion, load_motion, save_motion
+from mocap.io.points_csv import Points, load_points, save_points
+from mocap.io.text import read_text
+from mocap.io.tracks_csv import Tracks, _parse, _validate, load_tracks, save_tracks
+
+FIELDS = ("camera", "frame", "marker", "xy", "time", "score")
+
+
+def random_tracks(rng, n_frames=50, with_time=True) -> Tracks:
+    cameras = [f"cam {k}é" for k in range(rng.integers(1, 4))]
+    markers = [f"M{k}" for k in range(rng.integers(1, 9))]
+    c, f, m = np.meshgrid(np.arange(len(cameras)), np.arange(n_frames), np.arange(len(markers)), indexing="ij")
+    keep = rng.random(c.size) < 0.7
+    n = int(keep.sum())
+    time = f.ravel()[keep] / 29.97 if with_time else None
+    return Tracks.from_rows(np.array(cameras, dtype=object)[c.ravel()[keep]], f.ravel()[keep] + 3,
+                            np.array(markers, dtype=object)[m.ravel()[keep]], rng.uniform(-200, 2200, (n, 2)),
+                            time, np.where(rng.random(n) < 0.2, np.nan, rng.random(n)))
+
+
+def assert_same(a: Tracks, b: Tracks, atol=0.0) -> None:
+    for name in FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        if x.dtype == object:
+            assert list(x) == list(y), name
+        else:
+            np.testing.assert_allclose(x, y, atol=atol, err_msg=name)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_columnar_reading_equals_the_checked_reader(tmp_path, seed):
+    rng = np.random.default_rng(seed)
+    tracks = random_tracks(rng, with_time=seed % 2 == 0)
+    path = tmp_path / "tracks.csv"
+    save_tracks(tracks, path)
+    header, columns, lines = _parse(read_text(path, ""), path)
+    assert_same(load_tracks(path), _validate(header, columns, lines, path))
+    assert_same(load_tracks(path), tracks, atol=5e-5)  # 4 decimals written
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_tracks_parquet_round_trip(tmp_path, seed):
+    tracks = random_tracks(np.random.default_rng(seed))
+    save_tracks(tracks, tmp_path / "t.parquet")
+    assert_same(load_tracks(tmp_path / "t.parquet"), tracks)
+    save_tracks(tracks, tmp_path / "t.csv")
+    assert_same(load_tracks(tmp_path / "t.csv"), load_tracks(tmp_path / "t.parquet"), atol=5e-5)
+
+
+def test_parquet_tracks_are_checked_and_named_by_row(tmp_path):
+    tracks = random_tracks(np.random.default_rng(5))
+    bad = Tracks(tracks.camera, tracks.frame, tracks.marker, tracks.xy.copy(), tracks.time, tracks.score)
+    bad.xy[7, 1] = np.inf
+    save_tracks(bad, tmp_path / "bad.parquet")
+    with pytest.raises(InputError, match=r"bad.parquet: row 8: x and y must be finite numbers"):
+        load_tracks(tmp_path / "bad.parquet")
+    (tmp_path / "junk.parquet").write_text("camera,frame\n")
+    with pytest.raises(InputError, match="not a readable Parquet file"):
+        load_tracks(tmp_path / "junk.parquet")
+    with pytest.raises(InputError, match="file not found; check the tracks path"):
+        load_tracks(tmp_path / "none.parquet")
+
+
+def test_duplicates_across_a_parquet_and_a_csv_name_both_rows(tmp_path):
+    tracks = random_tracks(np.random.default_rng(2))
+    save_tracks(tracks, tmp_path / "a.parquet")
+    save_tracks(tracks.select(np.arange(len(tracks)) == 4), tmp_path / "b.csv")
+    with pytest.raises(InputError, match=r"a.parquet row 5 and .*b.csv line 2"):
+        load_tracks([tmp_path / "a.parquet", tmp_path / "b.csv"])
+
+
+def test_points_parquet_round_trip_and_check(tmp_path):
+    rng = np.random.default_rng(3)
+    n = 40
+    points = Points(np.arange(n) // 4, np.array([f"P{k % 4}" for k in range(n)], dtype=object),
+                    rng.normal(size=(n, 3)), np.where(rng.random(n) < 0.3, np.nan, rng.random(n)),
+                    rng.integers(2, 5, n))
+    save_points(points, tmp_path / "p.parquet")
+    back = load_points(tmp_path / "p.parquet")
+    assert list(back.marker) == list(points.marker)
+    np.testing.assert_array_equal(back.frame, points.frame)
+    np.testing.assert_array_equal(back.xyz, points.xyz)
+    np.testing.assert_array_equal(back.error_px, points.error_px)
+    np.testing.assert_array_equal(back.views, points.views)
+    points.xyz[3, 2] = np.nan
+    save_points(points, tmp_path / "bad.parquet")
+    with pytest.raises(InputError, match=r"row 4: x, y and z must be finite"):
+        load_points(tmp_path / "bad.parquet")
+
+
+def test_motion_parquet_round_trip_and_check(tmp_path):
+    machine = load_machine("hitachi_ex3500")
+    rng = np.random.default_rng(4)
+    n, j, p = 30, len(machine.joint_names), len(machine.point_names)
+    motion = Motion(machine.joint_names, machine.point_names, np.arange(n) * 2, np.arange(n) / 15.0,
+                    rng.normal(size=(n, j)), rng.normal(size=(n, p, 3)), rng.normal(size=n),
+                    joints_sd=np.abs(rng.normal(size=(n, j))), extra={"filled": (rng.random(n) < 0.5) * 1.0})
+    save_motion(motion, machine, tmp_path / "m.parquet")
+    back = load_motion(tmp_path / "m.parquet", machine)
+    np.testing.assert_array_equal(back.frame, motion.frame)
+    np.testing.assert_allclose(back.joints, motion.joints, rtol=1e-12)
+    np.testing.assert_allclose(back.points, motion.points, rtol=1e-12)
+    np.testing.assert_allclose(back.joints_sd, motion.joints_sd, rtol=1e-12)
+    np.testing.assert_array_equal(back.extra["filled"], motion.extra["filled"])
+    shuffled = Motion(**{**motion.__dict__, "frame": motion.frame[::-1].copy()})
+    save_motion(shuffled, machine, tmp_path / "bad.parquet")
+    with pytest.raises(InputError, match=r"row 2: frames must increase"):
+        load_motion(tmp_path / "bad.parquet", machine)
+    table = pq.read_table(tmp_path / "m.parquet")
+    pq.write_table(table.drop_columns(["arm"]), tmp_path / "no_arm.parquet")
+    with pytest.raises(InputError, match=r"header lacks arm \(is it the motion of"):
+        load_motion(tmp_path / "no_arm.parquet", machine)
