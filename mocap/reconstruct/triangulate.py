@@ -142,7 +142,12 @@ def _solve(cameras, pixels, normalised, used, iterations, start=None):
     for _ in range(iterations):
         residual, jac = _residuals(cameras, pixels, used, xyz)  # (N, 2C), (N, 2C, 3)
         jac_t = np.swapaxes(jac, 1, 2)
-        xyz = xyz + np.linalg.solve(jac_t @ jac + eye, jac_t @ residual[..., None])[..., 0]
+        normal = jac_t @ jac
+        lhs = normal + (1.0 + np.trace(normal, axis1=1, axis2=2) / 3)[:, None, None] * eye  # damped relative to its scale
+        rhs = jac_t @ residual[..., None]
+        bad = ~(np.isfinite(lhs).all((1, 2)) & np.isfinite(rhs).all((1, 2)))  # a point gone behind a camera
+        lhs[bad], rhs[bad] = np.eye(3), 0.0
+        xyz = xyz + np.linalg.solve(lhs, rhs)[..., 0]
     residual, jac = _residuals(cameras, pixels, used, xyz)
     return xyz, np.moveaxis(residual.reshape(len(xyz), len(cameras), 2), 1, 0), jac
 
