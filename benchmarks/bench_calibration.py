@@ -64,6 +64,7 @@ from mocap.io.cameras_toml import Calibration, load_calibration, save_calibratio
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
+from mocap.synthetic.bounds import numeric_jacobian
 
 HERE = Path(__file__).resolve().parent
 NOISE_PX = 0.5
@@ -122,16 +123,6 @@ def ex3500_scene(machine, n_cameras: int, rng, distance=(30.0, 60.0), fov_deg=(2
 
 
 # --- 1. accuracy against the Cramér–Rao bound ---------------------------------------------
-def numeric_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
-    base = function(x)
-    out = np.empty((len(base), len(x)))
-    for i in range(len(x)):
-        dx = np.zeros_like(x)
-        dx[i] = step * max(1.0, abs(x[i]))
-        out[:, i] = (function(x + dx) - function(x - dx)) / (2 * dx[i])
-    return out
-
-
 def crb_variances(machine, cameras, joints, obs: Observations) -> dict:
     """Per quantity the bound on the mean squared error: camera centre (m^2, summed over
     x, y, z), rotation angle (rad^2, summed over the three small-angle components), focal

@@ -44,7 +44,7 @@ def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.nd
     out = np.empty(len(cameras))
     for c in range(len(cameras)):
         s = layout.camera_slice(c)
-        gradient = _numeric_jacobian(_centre, x[s])
+        gradient = numeric_jacobian(_centre, x[s])
         out[c] = np.sqrt(np.trace(gradient @ covariance[s, s] @ gradient.T))
     return out
 
@@ -113,7 +113,8 @@ def _centre(block: np.ndarray) -> np.ndarray:
     return -rotvec_to_matrix(block[:3]).T @ block[3:6]
 
 
-def _numeric_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
+def numeric_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(K, N) central differences of function (N,) -> (K,) at x, steps relative to |x|."""
     base = function(x)
     out = np.empty((len(base), len(x)))
     for i in range(len(x)):
