@@ -17,7 +17,7 @@ from mocap.batch.plan import ANALYSIS_DIR, Stage, find_sessions, split_tasks, st
 from mocap.batch.stage import BatchOptions, run_batch
 from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
-from mocap.io.cycles_csv import load_cycle_phases
+from mocap.io.cycles_csv import load_cycles
 from mocap.io.motion_csv import load_motion
 from mocap.io.session_toml import load_session_config, save_session_config
 from mocap.io.tracks_csv import load_tracks, save_tracks
@@ -117,7 +117,7 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     assert np.abs(synced.time_offsets - truth.time_offsets).max() < 0.5 / 30  # within half a frame
     config = load_session_config(roots[0] / "session.toml")
     fps = config.cameras[0].fps
-    phases = load_cycle_phases(roots[0] / "truth" / "cycles.csv")
+    phases = load_cycles(roots[0] / "truth" / "cycles.csv")
     hours = len(load_motion(roots[0] / "results" / "motion.csv", Session.open(roots[0]).machine())) / fps / 3600
     row = rows["s1"]
     assert (row["machine"], row["day"]) == ("EX3500 #1", "2026-11-30")
@@ -125,7 +125,7 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     assert int(row["cycles"]) == len(phases) >= 1
     assert float(row["cycles_per_hour"]) == pytest.approx(len(phases) / hours, rel=1e-3)
     cycle_s = np.mean((phases.end - phases.start + 1) / fps)
-    dig_s = np.mean((phases.dig_end - phases.dig_start + 1) / fps)
+    dig_s = np.mean((phases.phases[:, 1] - phases.phases[:, 0] + 1) / fps)
     assert float(row["mean_cycle_s"]) == pytest.approx(cycle_s, abs=1e-3)
     assert float(row["mean_dig_s"]) == pytest.approx(dig_s, abs=1e-3)
     assert float(row["mean_rest_s"]) == pytest.approx(cycle_s - dig_s, abs=2e-3)

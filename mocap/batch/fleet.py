@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mocap.io.cycles_csv import CyclePhases
+from mocap.io.cycles_csv import Cycles
 
 CLASSES = ("Type 1", "Type 2", "Type 3", "other")
 
@@ -62,20 +62,23 @@ def machine_and_day(metadata: dict, model_name: str) -> tuple[str, str]:
     return machine, day
 
 
-def cycle_figures(phases: CyclePhases | None, fps: float, n_frames: int) -> dict:
+def cycle_figures(cycles: Cycles | None, fps: float, n_frames: int) -> dict:
     """Hours (n_frames / fps / 3600), cycle count, summed cycle and dig seconds (frames are
-    inclusive: a cycle from frame a to b lasts (b - a + 1) / fps), class counts."""
+    inclusive: a cycle from frame a to b lasts (b - a + 1) / fps; the dig from where it
+    begins to where the loaded swing does), class counts."""
     hours = n_frames / fps / 3600.0
-    if phases is None:
+    if cycles is None:
         return {"hours": hours}
-    labels = np.array(phases.label, dtype=object)
+    labels = np.array(cycles.label, dtype=object)
     counts = tuple(int(np.sum(labels == c)) for c in CLASSES[:-1])
+    digs = cycles.phases if cycles.phases is not None else np.full((len(cycles), 2), -1)
+    known = (digs[:, 0] >= 0) & (digs[:, 1] >= 0)
     return {
         "hours": hours,
-        "cycles": len(phases),
-        "cycle_seconds": float(np.sum(phases.end - phases.start + 1) / fps),
-        "dig_seconds": float(np.sum(phases.dig_end - phases.dig_start + 1) / fps),
-        "classes": counts + (len(phases) - sum(counts),),
+        "cycles": len(cycles),
+        "cycle_seconds": float(np.sum(cycles.end - cycles.start + 1) / fps),
+        "dig_seconds": float(np.sum((digs[:, 1] - digs[:, 0] + 1)[known]) / fps),
+        "classes": counts + (len(cycles) - sum(counts),),
         "analysed": True,
     }
 

@@ -73,7 +73,7 @@ def dask_client(scheduler: str | None, workers: int):
 
 def summarize(root: Path, label: str, results: list[TaskResult]) -> SessionSummary:
     """A session's summary (named `label`) from its tasks' results and, if its chain ran, its cycles."""
-    from mocap.io.cycles_csv import load_cycle_phases
+    from mocap.io.cycles_csv import load_cycles
     from mocap.io.motion_csv import load_motion
     from mocap.session import Session
 
@@ -92,10 +92,10 @@ def summarize(root: Path, label: str, results: list[TaskResult]) -> SessionSumma
     cycles_path = root / ANALYSIS_DIR / "cycles.csv"
     try:
         n_frames = len(load_motion(session.motion_path, session.machine())) if session.motion_path.is_file() else 0
-        phases = load_cycle_phases(cycles_path) if cycles_path.is_file() else None
+        cycles = load_cycles(cycles_path) if cycles_path.is_file() else None
     except InputError as exc:
         return SessionSummary(label, machine, day, FAILED, f"summary: {exc}", **counts)
-    figures = cycle_figures(phases, config.cameras[0].fps, n_frames)
+    figures = cycle_figures(cycles, config.cameras[0].fps, n_frames)
     return SessionSummary(label, machine, day, "ok", "", **counts, **figures)
 
 
