@@ -138,3 +138,18 @@ def floats(column: pa.ChunkedArray) -> np.ndarray | None:
     if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
         return None
     return pc.cast(column, pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+
+
+def parse_floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str = "line") -> np.ndarray:
+    """Text (N,) as floats; the first that is not a number is an InputError naming its
+    `unit` and number from `lines` (N,)."""
+    try:
+        return text.astype(float)
+    except ValueError:
+        for k, value in enumerate(text):  # only on the way to the error: find the row
+            try:
+                float(value)
+            except ValueError:
+                raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
+                                 where=f"{unit} {lines[k]}") from None
+        raise

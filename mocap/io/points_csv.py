@@ -112,10 +112,10 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path, unit
          f"frame must be a whole number from 0 to {MAX_FRAME:,}")
     frame = column["frame"].astype(np.int64)
     fail(np.char.str_len(column["marker"]) == 0, "the marker name is empty")
-    xyz = np.stack([_floats(column[c], lines, path, c, unit) for c in "xyz"], axis=1).reshape(n, 3)
+    xyz = np.stack([columnar.parse_floats(column[c], c, lines, path, unit) for c in "xyz"], axis=1).reshape(n, 3)
     fail(~np.all(np.isfinite(xyz), axis=1), "x, y and z must be finite numbers (metres)")
     error = column.get("error_px", np.full(n, ""))
-    error = _floats(np.where(error == "", "nan", error), lines, path, "error_px", unit)
+    error = columnar.parse_floats(np.where(error == "", "nan", error), "error_px", lines, path, unit)
     views = column.get("views", np.full(n, "0"))
     fail(~ascii_digits(views) | (np.char.str_len(views) > 3), "views must be a whole number of cameras")
     marker = column["marker"].astype(object)
@@ -125,14 +125,3 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path, unit
     return Points(frame, marker, xyz, error, views.astype(int))
 
 
-def _floats(text: np.ndarray, lines: np.ndarray, path, key: str, unit: str = "line") -> np.ndarray:
-    try:
-        return text.astype(float)
-    except ValueError:
-        for k, value in enumerate(text):  # only on the way to the error: find the row
-            try:
-                float(value)
-            except ValueError:
-                raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
-                                 where=f"{unit} {lines[k]}") from None
-        raise

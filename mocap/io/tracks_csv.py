@@ -263,7 +263,7 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
         empty = np.char.str_len(text) == 0
         if key in ("x", "y"):
             fail(empty, lambda k: f"{key} is empty; a marker not seen has no row")
-        values[key] = _floats(np.where(empty, "nan", text), key, lines, path, unit)
+        values[key] = columnar.parse_floats(np.where(empty, "nan", text), key, lines, path, unit)
         fail(~empty & ~np.isfinite(values[key]),
              lambda k: f"{'x and y must be finite numbers' if key in 'xy' else key + ' must be a finite number'}, "
                      f"got {key} {str(text[k])!r}")
@@ -282,19 +282,6 @@ def ascii_digits(text: np.ndarray) -> np.ndarray:
     """(R,) whether each string is made of the digits 0-9 only (no '²', no other scripts' digits)."""
     ascii = np.char.str_len(np.char.encode(text, "utf-8")) == np.char.str_len(text)
     return np.char.isdigit(text) & ascii
-
-
-def _floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str = "line") -> np.ndarray:
-    try:
-        return text.astype(float)
-    except ValueError:
-        for k, value in enumerate(text):  # only on the way to the error: find the row
-            try:
-                float(value)
-            except ValueError:
-                raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
-                                 where=f"{unit} {lines[k]}") from None
-        raise
 
 
 def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[int, int] | None:
