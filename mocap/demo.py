@@ -8,15 +8,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
+from typing import TYPE_CHECKING
 
-from mocap.analysis.score import format_analysis_score, score_files
 from mocap.errors import InputError
-from mocap.evaluate import format_score, score_session
 from mocap.io.outputs import check_output_folder
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
-from mocap.pipeline import RunOptions, run_session
-from mocap.session import Session
+
+if TYPE_CHECKING:  # the chain's modules are imported when the demo runs, not for `mocap demo --help`
+    import numpy as np
+
+    from mocap.session import Session
 
 DIGITISING_NOISE_PX = 0.5
 
@@ -34,6 +34,8 @@ class DemoOptions:
 def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
     """Stand in for the person who clicks each camera's markers in its first frame: the true
     centres of the visible markers with 0.5 px of clicking noise, written as the labels CSV."""
+    from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+
     truth = load_tracks(session.truth_dir / "tracks.csv")
     frame = int(session.config().options.get("calibration_frame", 0))
     first = truth.select(truth.frame == frame)
@@ -46,7 +48,13 @@ def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
 
 
 def run_demo(options: DemoOptions) -> int:
+    import numpy as np
+
     from mocap import cli
+    from mocap.analysis.score import format_analysis_score, score_files
+    from mocap.evaluate import format_score, score_session
+    from mocap.pipeline import RunOptions, run_session
+    from mocap.session import Session
 
     start = time.perf_counter()
     out = options.out

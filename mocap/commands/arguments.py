@@ -9,6 +9,9 @@ if TYPE_CHECKING:  # mocap.machine (and scipy with it) only when the option is g
     from mocap.machine import Tolerance
 
 
+DISTORTION_CHOICES = ("auto", "none", "k1", "k1k2", "full")  # the calibration's models and auto, without scipy
+
+
 def tolerance(text: str) -> Tolerance:
     """--tolerance: "5%" or 0.05 (a fraction of each marker's distance from its link's
     origin), or "0.03m" / "3cm" / "30mm" (a length)."""

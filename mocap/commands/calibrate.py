@@ -6,12 +6,9 @@ import argparse
 import re
 from pathlib import Path
 
-from mocap.calibration.solve import CalibrationOptions
-from mocap.calibration.stage import CalibrateRequest, run_calibrate
 from mocap.cli import COMMANDS
-from mocap.commands.arguments import TOLERANCE_HELP, tolerance
+from mocap.commands.arguments import DISTORTION_CHOICES, TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
-from mocap.io.cameras_toml import MAX_IMAGE_SIDE
 from mocap.io.outputs import check_outputs
 
 EXAMPLE = """example:
@@ -42,7 +39,7 @@ def add_parser(sub) -> None:
                    "beside --out)")
     p.add_argument("--guess", help="initial guess TOML in the paper's parameters (optional)")
     p.add_argument("--fit-principal-point", action="store_true", help="fit cx, cy too")
-    p.add_argument("--distortion", choices=("auto", "none", "k1", "k1k2", "full"), default="auto",
+    p.add_argument("--distortion", choices=DISTORTION_CHOICES, default="auto",
                    help="distortion coefficients to fit; auto (default): none, k1, k1 k2 in turn while the "
                    "Bayesian information criterion of the residuals falls")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX",
@@ -57,6 +54,8 @@ def add_parser(sub) -> None:
 
 
 def parse_sizes(values: list[str]) -> dict:
+    from mocap.io.cameras_toml import MAX_IMAGE_SIDE
+
     sizes = {}
     for value in values:
         match = re.fullmatch(r"(?:([^=]+)=)?(\d+)x(\d+)", value.strip())
@@ -69,6 +68,9 @@ def parse_sizes(values: list[str]) -> dict:
 
 
 def run(args) -> int:
+    from mocap.calibration.solve import CalibrationOptions
+    from mocap.calibration.stage import CalibrateRequest, run_calibrate
+
     for option, value in (("--loss-scale", args.loss_scale), ("--outlier-px", args.outlier_px),
                           ("--max-rms", args.max_rms)):
         if value is not None and not 0 < value < float("inf"):

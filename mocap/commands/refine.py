@@ -5,10 +5,9 @@ from __future__ import annotations
 import argparse
 
 from mocap.cli import COMMANDS
-from mocap.commands.arguments import TOLERANCE_HELP, tolerance
+from mocap.commands.arguments import DISTORTION_CHOICES, TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.reconstruct.refine import DISTORTION_CHOICES
 
 EXAMPLE = """example:
   mocap refine calibrations/machines/hitachi_ex3500.toml calibration/cameras.toml tracks/*.csv \\

@@ -6,22 +6,14 @@ import argparse
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
-from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.io.outputs import check_output_folder
-from mocap.session import Session, mark_complete
-from mocap.synthetic import CLASSES, SessionOptions, make_session, summary, write_truth
-from mocap.synthetic.effects import EffectOptions
-from mocap.synthetic.encode import CODECS
-from mocap.synthetic.looks import Look, random_look
-from mocap.synthetic.render import RenderOptions, render_videos
 
 log = logging.getLogger(__name__)
 
 MAX_CYCLES = 100  # about an hour of digging
+CODECS = ("h264", "mp4v")  # mocap.synthetic.encode's, named here so that --help needs no video library
 
 
 def add_parser(subparsers) -> None:
@@ -72,6 +64,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def parse_classes(text: str) -> tuple[str, ...]:
+    from mocap.synthetic import CLASSES
+
     picks = [v.strip() for v in text.split(",") if v.strip()]
     if not picks or any(v not in ("1", "2", "3") for v in picks):
         raise InputError(f"--classes {text!r}: expected a comma list of 1, 2, 3")
@@ -79,6 +73,15 @@ def parse_classes(text: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from mocap.io.machine_toml import load_machine, resolve_machine_path
+    from mocap.session import Session, mark_complete
+    from mocap.synthetic import SessionOptions, make_session, summary, write_truth
+    from mocap.synthetic.effects import EffectOptions
+    from mocap.synthetic.looks import Look, random_look
+    from mocap.synthetic.render import RenderOptions, render_videos
+
     machine_path = resolve_machine_path(args.machine)
     machine = load_machine(machine_path)
     if not 1 <= args.cameras <= 8:

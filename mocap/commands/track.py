@@ -7,11 +7,8 @@ import sys
 from pathlib import Path
 
 from mocap.cli import COMMANDS
-from mocap.detect import DetectOptions
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.tracking.stage import TrackRequest, run_track
-from mocap.tracking.tracker import TrackOptions
 
 EXAMPLE = """examples:
   mocap track videos/cam1.mp4 --machine hitachi_ex3500 --calibration calibration/cameras.toml \\
@@ -57,6 +54,10 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from mocap.detect import DetectOptions
+    from mocap.tracking.stage import TrackRequest, run_track
+    from mocap.tracking.tracker import TrackOptions
+
     if args.propose_labels is None and args.out is None:
         raise InputError("give --out TRACKS.csv (or --propose-labels OUT.csv to check the first frame)")
     if args.preview and Path(args.preview).suffix.lower() != ".mp4":

@@ -8,10 +8,6 @@ from pathlib import Path
 from mocap.cli import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
-from mocap.io.video import probe_video
-from mocap.session import Session
-from mocap.viewer import Sinks, run_replay
-from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
 
 EXAMPLES = """examples:
   mocap view SESSION_DIR                       # writes SESSION_DIR/results/session.rrd
@@ -50,6 +46,11 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
+    from mocap.io.video import probe_video
+    from mocap.session import Session
+    from mocap.viewer import Sinks, run_replay
+    from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
+
     files = ReplayFiles(
         machine=args.machine,
         calibration=args.calibration,
