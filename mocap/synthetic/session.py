@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
@@ -157,7 +158,10 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                         redirect_probability=options.redirect_probability, reactive=options.reactive,
                         bounce=options.bounce, hold=options.hold)
     coarse = np.arange(0.0, plan.duration, 0.5)
-    check_limits(machine, plan.joints(coarse))
+    try:
+        check_limits(machine, plan.joints(coarse))
+    except ValueError as exc:  # a model whose linkage cannot carry the bucket to the truck
+        raise InputError(f"the planned session does not suit this machine: {exc}", path=machine_ref or machine.name) from None
     boxes = link_boxes(machine)
     poses = machine.link_poses(plan.joints(coarse), plan.world_from_base(coarse))
     corners = np.array([box_corners(box) for box in boxes])  # (L, 8, 3)
