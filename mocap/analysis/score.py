@@ -123,7 +123,7 @@ def planned_truth(machine, plan, fps: float = 30.0):
     truth = {
         "class": np.array([c.label for c in cycles], dtype=object),
         "redirection": np.array([c.redirection for c in cycles], dtype=object),
-        "scale_x": np.array([c.scale[0] for c in cycles]), "scale_z": np.array([c.scale[1] for c in cycles]),
+        "scale_x": np.array([c.stretch[0] for c in cycles]), "scale_z": np.array([c.stretch[1] for c in cycles]),
         "dig_start_time": np.array([c.dig_start for c in cycles]), "dig_end_time": np.array([c.dig_end for c in cycles]),
     }
     return motion, truth

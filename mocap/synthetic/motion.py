@@ -21,7 +21,8 @@ from mocap.errors import InputError
 from mocap.geometry import rpy_to_matrix
 from mocap.ik import PlanarChain
 from mocap.machine import Machine
-from mocap.synthetic.paths import CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk
+from mocap.synthetic.paths import (CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk, nominal_shape,
+                                   stretch)
 
 ADVANCE_CYCLES = 10  # the face advances by 0.8 % of the reach a dig for this many digs, then the machine
 # steps forward (its frame is the world's, so the face is back where it began)
@@ -54,7 +55,10 @@ class Truck:
 
 @dataclass(frozen=True)
 class Cycle:
-    """One dig cycle's truth; times in seconds on the reference clock."""
+    """One dig cycle's truth; times in seconds on the reference clock. `scale` (sx, sz) the
+    operator's scaling of this dig's own shape; `stretch` (sx, sz) the dig's size against its
+    class's general shape (`paths.stretch`: the scaling and the dig's own push and rise),
+    what an analysis can measure and truth/cycles.csv's scale_x, scale_z."""
 
     index: int
     label: str
@@ -65,6 +69,7 @@ class Cycle:
     dig_start: float
     dig_end: float
     end: float
+    stretch: tuple[float, float] = (1.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -232,7 +237,7 @@ def plan_session(
         cycles.append(Cycle(i, label, "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
-                            start, dig_start, dig_end, end))
+                            start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach))))
         t, state = end, carry
     segments.append(_Segment(t, t + 4.0 * pace, state, carry))
     swing_t += [t, t + 4.0 * pace]

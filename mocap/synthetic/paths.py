@@ -96,7 +96,7 @@ class DigShape:
         return self.angle0 + (self.angle1 - self.angle0) * profile
 
 
-def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random.Generator) -> DigShape:
+def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random.Generator | _Middle) -> DigShape:
     """A dig of class `label` into a pile whose toe is `toe` m from the swing axis with a
     face at `slope` rad, sized by the machine's `reach` (m, boom + arm + bucket)."""
     deg = np.radians
@@ -114,6 +114,41 @@ def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random
         return DigShape(label, start, 0.0, 0.0, slope, rng.uniform(0.24, 0.28) * reach,
                         deg(rng.uniform(-4, 4)), deg(rng.uniform(35, 45)))
     raise ValueError(f"unknown dig class {label!r}; one of {CLASSES}")
+
+
+class _Middle:
+    """Stands in for a random generator: every uniform draw is its range's middle."""
+
+    @staticmethod
+    def uniform(low: float, high: float) -> float:
+        return 0.5 * (low + high)
+
+
+def nominal_shape(label: str, toe: float, slope: float, reach: float) -> DigShape:
+    """The class's general shape: `dig_shape` with every drawn size at its range's middle."""
+    return dig_shape(label, toe, slope, reach, _Middle())
+
+
+def _even(xz: np.ndarray, n: int) -> np.ndarray:
+    """A path (T, 2) resampled at `n` points of even arc length."""
+    step = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xz, axis=0).T))])
+    u, keep = np.unique(step / max(step[-1], 1e-12), return_index=True)
+    even = np.linspace(0.0, 1.0, n)
+    return np.column_stack([np.interp(even, u, xz[keep, d]) for d in range(2)])
+
+
+def stretch(dig: DigShape, reference: DigShape, n: int = 128, iterations: int = 6) -> tuple[float, float]:
+    """The stretch (sx, sz) of `reference`'s path about its start that best matches `dig`'s
+    (scale included), point by point at even arc length (least squares): how much larger
+    than its class's general shape a dig is along and across."""
+    fine = np.linspace(0.0, 1.0, 4 * n)
+    path = _even(dig.tip(fine) - dig.start, n)
+    shape = reference.tip(fine) - reference.start
+    scale = np.ones(2)
+    for _ in range(iterations):
+        q = _even(shape * scale, n) / scale
+        scale = (path * q).sum(axis=0) / np.maximum((q * q).sum(axis=0), 1e-12)
+    return float(scale[0]), float(scale[1])
 
 
 @dataclass(frozen=True)
