@@ -104,7 +104,7 @@ def random_digger_document(rng: np.random.Generator) -> dict:
     words = rng.permutation(_WORDS)
     names = [f"{words[k]}_{k}" for k in range(5)]
     links = [{"name": names[0]}, {"name": names[1], "parent": names[0], "joint": {
-        "name": f"q{int(rng.integers(10, 99))}", "type": "revolute", "axis": [0.0, 0.0, float(rng.choice([-1.0, 1.0]))],
+        "name": f"q{int(rng.integers(0, 10))}", "type": "revolute", "axis": [0.0, 0.0, float(rng.choice([-1.0, 1.0]))],
         "origin": [0.0, 0.0, round(house, 4)], "rpy_deg": [0.0, 0.0, 0.0], "limits": [-180.0, 180.0]}}]
     origins = [np.array([pin[0], 0.0, pin[1]])]
     ends = [lengths[k] * np.array([np.cos(leave[k]), 0.0, np.sin(leave[k])]) for k in range(3)]

@@ -21,8 +21,8 @@ from mocap.errors import InputError
 from mocap.geometry import rpy_to_matrix
 from mocap.ik import PlanarChain
 from mocap.machine import Machine
-from mocap.synthetic.paths import (CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk, nominal_shape,
-                                   stretch)
+from mocap.synthetic.paths import (BACKHOE, CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk,
+                                   nominal_shape, stretch)
 
 ADVANCE_CYCLES = 10  # the face advances by 0.8 % of the reach a dig for this many digs, then the machine
 # steps forward (its frame is the world's, so the face is back where it began)
@@ -171,7 +171,7 @@ def plan_session(
     hold: float = 2.0,
 ) -> DigMotion:
     """Plan `n_cycles` dig cycles of `machine`; the classes cycle through `classes` in a
-    random order; `reactive` and `bounce` scale the reactive noise and the base's bouncing
+    random order (`paths.BACKHOE` plans a backhoe's digs, whose truth class is ``other``); `reactive` and `bounce` scale the reactive noise and the base's bouncing
     (0 turns them off)."""
     chain = PlanarChain.from_machine(machine)
     reach = float(np.linalg.norm(chain.offsets, axis=1).sum())
@@ -199,7 +199,7 @@ def plan_session(
         else:
             sx = rng.uniform(0.88, 1.05)
             scale = (sx, sx * rng.choice([0.85, 1.15]) * rng.uniform(0.97, 1.03))
-        dig = DigShape(dig.label, dig.start, dig.push, dig.radius, dig.climb, dig.rise, dig.angle0, dig.angle1, scale)
+        dig = replace(dig, scale=scale)
         redirection = None
         if rng.random() < redirect_probability:
             redirection = Redirection(
@@ -234,7 +234,7 @@ def plan_session(
         segments.append(_Segment(at_truck, tipped, carry, dump))
         end = tipped + 0.5 * t_dump
         segments.append(_Segment(tipped, end, dump, carry))
-        cycles.append(Cycle(i, label, "proportional" if proportional else "non-proportional",
+        cycles.append(Cycle(i, "other" if label == BACKHOE else label, "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
                             start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach))))
@@ -264,8 +264,9 @@ def fit_in_reach(chain: PlanarChain, limits: np.ndarray, dig: DigShape, redirect
     `before` (x, z, beta), the dig over the times `span` (s) with its noise and redirection,
     the lift to `after` — inside the joint `limits` (J, 2); else the dig made smaller about
     its start (`SHRINK`, the truth's scale shrinks with it) and then, if need be, started
-    nearer the machine (`SHIFT` × `reach` m) too: the first that fits. A pile that has
-    advanced beyond the reach over many cycles is dug where the machine reaches it.
+    nearer the machine (`SHIFT` × `reach` m; a backhoe's drag farther out) too: the first
+    that fits. A pile that has advanced beyond the reach over many cycles is dug where the
+    machine reaches it.
 
     Raises InputError when no such dig fits the machine.
     """
@@ -274,7 +275,8 @@ def fit_in_reach(chain: PlanarChain, limits: np.ndarray, dig: DigShape, redirect
     for shift in SHIFT:
         for f in SHRINK:
             trial = dig if shift == 0 and f == 1 else replace(
-                dig, start=dig.start - np.array([shift * reach, 0.0]), scale=(dig.scale[0] * f, dig.scale[1] * f))
+                dig, start=dig.start - np.array([dig.forward * shift * reach, 0.0]),
+                scale=(dig.scale[0] * f, dig.scale[1] * f))
             begin = np.concatenate([trial.start, [trial.angle0]])
             end = dig_state(trial, np.ones(1), None, redirection)[0]
             states = np.concatenate([
@@ -287,7 +289,7 @@ def fit_in_reach(chain: PlanarChain, limits: np.ndarray, dig: DigShape, redirect
                 return trial
     raise InputError(
         f"{label} does not fit the linkage even {1 - SHRINK[-1]:.0%} smaller and {SHIFT[-1]:.0%} of the reach "
-        "nearer the machine; its joint limits or proportions do not suit a front shovel's digs",
+        "moved; its joint limits or proportions do not suit these digs",
         path=machine_name,
     )
 
