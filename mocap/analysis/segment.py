@@ -148,7 +148,9 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
             continue
         dr = series.reach[e] - series.reach[k]
         dz = series.height[e] - series.height[k]
-        moved = np.hypot(dr, dz) > 0.25 * low * options.horizon_s  # more than the base's bouncing
+        # more than the base's bouncing, and than a hundredth of the tip's distance from the
+        # swing axis (a machine at rest has no speed scale of its own)
+        moved = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * float(np.median(series.reach)))
         if moved and dz > -0.3 * abs(dr):  # not the lowering: out, up, or in along the floor (a backhoe)
             start = k
             break
