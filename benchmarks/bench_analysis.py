@@ -111,7 +111,7 @@ def accuracy(root: Path, quick: bool) -> None:
             rows.append([name, seed, label, r["true"], r["found"], r["missed"], r["extra"],
                          r["start_med_s"], r["start_p95_s"], r["end_med_s"], r["end_p95_s"], r["class_acc"],
                          r["redir_precision"], r["redir_recall"], r["redir_kind_acc"], r["scale_med"],
-                         r["scale_within_5pct"], r["scale_within_5pct_unkept"], f"{peer[0]:.2f}/{peer[1]:.2f}",
+                         r["scale_within_5pct"], r["scale_within_5pct_plain"], f"{peer[0]:.2f}/{peer[1]:.2f}",
                          f"{peer[0] / max(r['start_med_s'], 1e-3):.1f}/{peer[1] / max(r['end_med_s'], 1e-3):.1f}",
                          a.grouping.count, int((a.grouping.groups == 0).sum()), purity(a)])
             if label == "truth":
@@ -124,23 +124,23 @@ def accuracy(root: Path, quick: bool) -> None:
     table("(1) accuracy against the truth (errors in s; scale error as a share, relative to each class's size)",
           ["machine", "seed", "motion", "true", "found", "missed", "extra", "start med", "start p95", "end med",
            "end p95", "class acc", "redir P", "redir R", "redir kind", "scale err med", "scale <=5%",
-           "scale <=5% (no kept lift)", "peer start/end med", "peer / ours", "groups", "outliers", "group purity"], rows)
+           "scale <=5% (no redirection)", "peer start/end med", "peer / ours", "groups", "outliers", "group purity"], rows)
     summary = []
     for label, scores in pooled.items():
         start = np.abs(np.concatenate([s.start_errors for s in scores]))
         end = np.abs(np.concatenate([s.end_errors for s in scores]))
         errors = np.abs(np.concatenate([s.scale_errors for s in scores]))
-        kept = np.concatenate([s.scale_kept for s in scores])
+        redirected = np.concatenate([s.scale_redirected for s in scores])
         tp, fp, fn = (sum(getattr(s, k) for s in scores) for k in ("redirect_tp", "redirect_fp", "redirect_fn"))
         true = sum(s.true for s in scores)
         summary.append([label, true, sum(s.found for s in scores), sum(s.missed for s in scores),
                         sum(s.extra for s in scores), float(np.median(start)), float(np.percentile(start, 95)),
                         float(np.median(end)), float(np.percentile(end, 95)),
                         sum(s.class_correct for s in scores) / true, tp / max(tp + fp, 1), tp / max(tp + fn, 1),
-                        float(np.mean(errors <= 0.05)), float(np.mean(errors[~kept] <= 0.05))])
+                        float(np.mean(errors <= 0.05)), float(np.mean(errors[~redirected] <= 0.05))])
     table("(1b) all sessions of (1) pooled",
           ["motion", "true", "found", "missed", "extra", "start med", "start p95", "end med", "end p95", "class acc",
-           "redir P", "redir R", "scale <=5%", "scale <=5% (no kept lift)"], summary)
+           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], summary)
     table("(2) the same digs played backwards (pulling towards the machine)",
           ["machine", "seed", "digs found", "share other"], backwards)
 
