@@ -350,3 +350,12 @@ def test_a_linkage_that_cannot_dig_is_one_line_and_exit_2(tmp_path, capsys):
     assert err.count("\n") == 1 and "does not fit the linkage" in err
     with pytest.raises(InputError, match="dig 1 .* does not fit the linkage"):
         plan_session(load_machine(cramped), 1, np.random.default_rng(0))
+
+
+def test_truth_stretch_is_the_scale_of_a_dig_of_the_general_shape():
+    from dataclasses import replace
+    from mocap.synthetic.paths import CLASSES as LABELS, nominal_shape, stretch
+    for label in LABELS:
+        general = nominal_shape(label, 10.0, np.radians(68.0), 15.5)
+        for scale in ((1.0, 1.0), (1.1, 0.9), (0.9, 1.15)):
+            np.testing.assert_allclose(stretch(replace(general, scale=scale), general), scale, rtol=2e-3)
