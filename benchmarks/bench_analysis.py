@@ -49,7 +49,8 @@ from mocap.synthetic.paths import BACKHOE, CLASSES
 SESSIONS = [("hitachi_ex3500", 3), ("hitachi_ex3500", 5), ("hitachi_ex3500", 8),
             ("bobcat_225", 3), ("bobcat_225", 5), ("bobcat_225", 7)]
 PIXEL_NOISE = 0.5
-NOISE_TIP, NOISE_ANGLE_DEG = 0.001, 0.3  # about twice the tip error (0.05 % of the reach) and 0.2 deg `mocap fit` leaves
+# about twice the tip error (0.05 % of the reach) and the 0.2 deg of bucket angle `mocap fit` leaves
+NOISE_TIP, NOISE_ANGLE_DEG = 0.001, 0.3
 
 
 def table(title, header, rows):
@@ -124,7 +125,8 @@ def accuracy(root: Path, quick: bool) -> None:
     table("(1) accuracy against the truth (errors in s; scale error as a share, relative to each class's size)",
           ["machine", "seed", "motion", "true", "found", "missed", "extra", "start med", "start p95", "end med",
            "end p95", "class acc", "redir P", "redir R", "redir kind", "scale err med", "scale <=5%",
-           "scale <=5% (no redirection)", "peer start/end med", "peer / ours", "groups", "outliers", "group purity"], rows)
+           "scale <=5% (no redirection)", "peer start/end med", "peer / ours", "groups", "outliers", "group purity"],
+          rows)
     summary = []
     for label, scores in pooled.items():
         start = np.abs(np.concatenate([s.start_errors for s in scores]))

@@ -92,7 +92,8 @@ def resample_digs(series: TipSeries, starts: np.ndarray, ends: np.ndarray, n: in
     return DigPaths(s, out)
 
 
-def fit_scales(path: np.ndarray, template: np.ndarray, events: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def fit_scales(path: np.ndarray, template: np.ndarray,
+               events: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2), and the
     lift (K,) m of each dig's redirection: with `events` (K, N), the unit shape of each
     dig's redirection at its samples (zero without), the height is fitted as stretch x

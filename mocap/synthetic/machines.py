@@ -130,7 +130,8 @@ def random_digger_document(rng: np.random.Generator) -> dict:
         "links": links,
         "markers": markers,
         "points": [{"name": "bucket_tip", "link": names[4], "position": ends[2].round(4).tolist()}],
-        "bucket_angle": {"link": names[4], "direction": (np.array([c, 0.0, s]) * rng.uniform(0.3, 3.0)).round(6).tolist()},
+        "bucket_angle": {"link": names[4],
+                         "direction": (np.array([c, 0.0, s]) * rng.uniform(0.3, 3.0)).round(6).tolist()},
     }
 
 

@@ -1,8 +1,9 @@
 """Dig cycles of a shovel or excavator, planned in the bucket's space and turned into joints.
 
 A session holds still for `hold` seconds (the calibration frame), then runs dig cycles:
-lower to the face, dig (one of the three classes of PAPER.md, with reactive noise, an
-operator's redirection and proportional or non-proportional scaling), lift, swing to the
+lower to the face, dig (one of the three classes of PAPER.md or a backhoe's drag, with
+reactive noise, an operator's redirection and proportional or non-proportional scaling;
+within the linkage's reach and joint limits, see `fit_in_reach`), lift, swing to the
 truck, dump, swing back. The tip (x forward from the swing axis, z above the ground) and
 bucket angle are planned in the house's vertical plane, the swing separately; joint values
 come from the linkage's closed-form inverse kinematics at any requested times, so every
@@ -171,7 +172,8 @@ def plan_session(
     hold: float = 2.0,
 ) -> DigMotion:
     """Plan `n_cycles` dig cycles of `machine`; the classes cycle through `classes` in a
-    random order (`paths.BACKHOE` plans a backhoe's digs, whose truth class is ``other``); `reactive` and `bounce` scale the reactive noise and the base's bouncing
+    random order (`paths.BACKHOE` plans a backhoe's digs, whose truth class is ``other``);
+    `reactive` and `bounce` scale the reactive noise and the base's bouncing
     (0 turns them off)."""
     chain = PlanarChain.from_machine(machine)
     reach = float(np.linalg.norm(chain.offsets, axis=1).sum())
@@ -234,7 +236,8 @@ def plan_session(
         segments.append(_Segment(at_truck, tipped, carry, dump))
         end = tipped + 0.5 * t_dump
         segments.append(_Segment(tipped, end, dump, carry))
-        cycles.append(Cycle(i, "other" if label == BACKHOE else label, "proportional" if proportional else "non-proportional",
+        cycles.append(Cycle(i, "other" if label == BACKHOE else label,
+                            "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
                             start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach))))

@@ -161,7 +161,8 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     try:
         check_limits(machine, plan.joints(coarse))
     except ValueError as exc:  # a model whose linkage cannot carry the bucket to the truck
-        raise InputError(f"the planned session does not suit this machine: {exc}", path=machine_ref or machine.name) from None
+        raise InputError(f"the planned session does not suit this machine: {exc}",
+                         path=machine_ref or machine.name) from None
     boxes = link_boxes(machine)
     poses = machine.link_poses(plan.joints(coarse), plan.world_from_base(coarse))
     corners = np.array([box_corners(box) for box in boxes])  # (L, 8, 3)
