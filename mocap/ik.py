@@ -125,6 +125,27 @@ class PlanarChain:
         tip = self.pin + sum(_turn(phi[:, i], self.offsets[i]) for i in range(3))
         return tip, _wrap(phi[:, 2] + self.angle_offset)
 
+    def reachable(self, tip: np.ndarray, bucket_angle: np.ndarray, limits: np.ndarray | None = None,
+                  margin: float = 0.0) -> np.ndarray:
+        """(F,) whether the tip at `tip` (F, 2) with `bucket_angle` (F,) rad is reached with
+        the boom-arm reach to spare by `margin` (a share of its length) and, given `limits`
+        (J, 2) rad / m of all joints, with boom, arm and bucket inside them."""
+        wrist = self._wrist(np.asarray(tip, dtype=float), np.asarray(bucket_angle, dtype=float))
+        l1, l2 = np.linalg.norm(self.offsets[:2], axis=1)
+        distance = np.linalg.norm(wrist, axis=-1)
+        ok = (distance <= (1.0 - margin) * (l1 + l2)) & (distance >= abs(l1 - l2) + margin * (l1 + l2))
+        if limits is None or not ok.any():
+            return ok
+        joints = self.inverse(np.asarray(tip)[ok], np.asarray(bucket_angle)[ok], np.zeros(int(ok.sum())))
+        planar = list(self.joints)
+        inside = (joints[:, planar] >= limits[planar, 0] - 1e-9) & (joints[:, planar] <= limits[planar, 1] + 1e-9)
+        ok[ok] = inside.all(axis=1)
+        return ok
+
+    def _wrist(self, tip: np.ndarray, bucket_angle: np.ndarray) -> np.ndarray:
+        """The bucket pin (F, 2) from the boom pin for a tip (F, 2) and bucket angle (F,)."""
+        return tip - _turn(bucket_angle - self.angle_offset, self.offsets[2]) - self.pin
+
     def inverse(self, tip: np.ndarray, bucket_angle: np.ndarray, swing: np.ndarray) -> np.ndarray:
         """Joint values (F, J) that put the tip at `tip` (F, 2) (house x-z plane, m) with
         the bucket angle `bucket_angle` (F,) rad and the house at `swing` (F,) rad.
@@ -133,7 +154,7 @@ class PlanarChain:
         """
         tip = np.asarray(tip, dtype=float)
         phi_bucket = np.asarray(bucket_angle, dtype=float) - self.angle_offset
-        wrist = tip - _turn(phi_bucket, self.offsets[2]) - self.pin  # bucket pin from boom pin
+        wrist = self._wrist(tip, np.asarray(bucket_angle, dtype=float))  # bucket pin from boom pin
         l1, l2 = np.linalg.norm(self.offsets[:2], axis=1)
         alpha = np.arctan2(self.offsets[:2, 1], self.offsets[:2, 0])
         reach2 = np.einsum("fi,fi->f", wrist, wrist)

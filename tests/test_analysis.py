@@ -15,14 +15,16 @@ from mocap.analysis.core import FIRST, analyze
 from mocap.analysis.features import ClassRules, classify
 from mocap.analysis.score import planned_truth, score_analysis
 from mocap.analysis.series import tip_series
-from mocap.analysis.shape import build_templates, DigPaths
+from mocap.analysis.shape import build_templates, DigPaths, fit_scales
 from mocap.analysis.similarity import group_digs
 from mocap.errors import InputError
 from mocap.ik import PlanarChain
 from mocap.io.cycles_csv import load_cycle_table, save_cycle_table
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import save_motion
+from mocap.synthetic.machines import random_digger
 from mocap.synthetic.motion import plan_session
+from mocap.synthetic.paths import BACKHOE, CLASSES
 
 SESSIONS = [("hitachi_ex3500", 3), ("hitachi_ex3500", 8), ("bobcat_225", 4), ("bobcat_225", 9)]
 
@@ -61,21 +63,25 @@ def test_every_cycle_found_with_its_dig_bounds_and_class(name, seed):
 
 def test_redirections_and_scales_over_sessions():
     tp = fp = fn = 0
-    errors = []
+    errors, redirected = [], []
     for name, seed in SESSIONS:
         a, truth = analysed(name, seed)
         score = score_analysis(a.table, truth)
         tp, fp, fn = tp + score.redirect_tp, fp + score.redirect_fp, fn + score.redirect_fn
         errors.append(score.scale_errors)
+        redirected.append(score.scale_redirected)
         found = a.table["redirection"] != "none"
         assert np.all(np.isfinite(a.table["redirection_time"][found]))
         inside = (a.table["redirection_time"] >= a.table["dig_start_time"]) & (
             a.table["redirection_time"] <= a.table["dig_end_time"])
         assert np.all(inside[found])
     assert tp / (tp + fp) >= 0.8 and tp / (tp + fn) >= 0.8, (tp, fp, fn)
-    # each dig's own shape varies by about +-4 % around its class (push, rise), on top of
-    # the scaling: the median error stays within 5 %
-    assert np.median(np.abs(np.concatenate(errors))) < 0.05
+    # the truth's scale is each dig's stretch against its class's general shape; what a
+    # stretch cannot express of a dig's own push and rise is a few per cent; an operator's
+    # kept lift is confounded with a vertical stretch as far as its fit is off
+    errors, redirected = np.abs(np.concatenate(errors)), np.concatenate(redirected)
+    assert np.median(errors) < 0.02 and np.mean(errors <= 0.05) >= 0.9
+    assert np.all(errors[~redirected] <= 0.05)
 
 
 def test_scale_fit_recovers_exact_stretches():
@@ -270,3 +276,41 @@ def test_a_machine_at_rest_has_no_cycle(tmp_path, capsys):
     table = load_cycle_table(tmp_path / "out" / "cycles.csv")
     assert list(table)[:6] == list(FIRST) and len(table["cycle"]) == 0
     assert tomllib.loads((tmp_path / "out" / "templates.toml").read_text())["templates"] == []
+
+
+@pytest.mark.parametrize("seed", [4, 13, 22])
+def test_random_diggers_and_backhoe_digs(seed):
+    """Machines nobody designed: a random boom-arm-bucket linkage digging like a shovel is
+    segmented and classed by the rules; its backhoe digs (dragged towards the machine) and
+    the Bobcat's are found with their bounds and reported `other`."""
+    digger = random_digger(np.random.default_rng(seed))
+    starts, ends = [], []
+    for machine, classes in ((digger, CLASSES), (digger, (BACKHOE,)), (load_machine("bobcat_225"), (BACKHOE,))):
+        motion, truth = planned_truth(machine, plan_session(machine, 6, np.random.default_rng(seed), classes=classes))
+        a = analyze(tip_series(motion))
+        score = score_analysis(a.table, truth)
+        assert score.missed == 0 and score.extra == 0, machine.name
+        assert score.class_correct == score.true, (machine.name, list(a.table["class"]), list(truth["class"]))
+        if classes == (BACKHOE,):
+            assert np.all(a.table["class"] == "other") and np.all(a.table["dig_advance_m"] < 0)
+        starts.append(score.start_errors)
+        ends.append(score.end_errors)
+    # the issue's bounds on the dig's bounds: median 0.5 s, none beyond 1.5 s
+    for errors in (np.abs(np.concatenate(starts)), np.abs(np.concatenate(ends))):
+        assert np.median(errors) < 0.5 and errors.max() < 1.5
+
+
+def test_vertical_scale_and_kept_lift_are_fitted_together():
+    s = np.linspace(0, 1, 64)
+    template = np.column_stack([4 * s, 3 * s**2])
+    step = np.clip((s - 0.4) / 0.2, 0, 1)
+    steps = np.stack([step, np.zeros_like(s), step])
+    scale = np.array([[1.1, 0.9], [0.8, 1.2], [1.0, 1.05]])
+    lift = np.array([0.3, 0.0, -0.2])
+    paths = template[None] * scale[:, None, :]
+    paths[:, :, 1] += lift[:, None] * steps
+    fitted, lifts = fit_scales(paths, template, steps)
+    np.testing.assert_allclose(fitted, scale, atol=1e-9)
+    np.testing.assert_allclose(lifts, lift, atol=1e-9)
+    alone, _ = fit_scales(paths, template)  # without the event the lift reads as a taller dig
+    assert abs(alone[0, 1] - 0.9) > 0.02

@@ -8,7 +8,7 @@ import pytest
 from mocap.cli import main
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
-from mocap.io.machine_toml import load_machine
+from mocap.io.machine_toml import MACHINES_DIR, load_machine
 from mocap.io.motion_csv import load_motion, world_from_base_of
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import load_session_config
@@ -17,6 +17,7 @@ from mocap.synthetic.scenes import random_joints
 from mocap.synthetic import SessionOptions, make_session
 from mocap.ik import PlanarChain
 from mocap.synthetic.motion import check_limits, plan_session
+from mocap.synthetic.paths import min_jerk
 from mocap.visibility import marker_normals, segment_hits_box
 from mocap.shapes import link_boxes
 
@@ -308,3 +309,53 @@ def test_cli_copies_a_model_from_outside_into_the_session(tmp_path):
     assert main(["synth", "--machine", str(model), "--cameras", "1", "--cycles", "1", "--out", str(out), "--no-video"]) == 0
     assert load_session_config(out / "session.toml").machine == "machine.toml"
     assert Session.open(out).machine().joint_names == load_machine("bobcat_225").joint_names
+
+
+@pytest.mark.parametrize("name", MACHINES)
+def test_long_sessions_of_every_seed_are_reached_and_follow_their_digs(name):
+    """12 digs for 31 seeds: the face advancing dig by dig once carried late digs beyond the
+    reach. Every planned state is reached inside the joint limits, forward kinematics of the
+    joints puts the tip on the requested path, and each dig is the one its truth records."""
+    machine = load_machine(name)
+    chain = PlanarChain.from_machine(machine)
+    for seed in range(31):
+        plan = plan_session(machine, 12, np.random.default_rng(seed), bounce=0.0)
+        t = np.arange(0.0, plan.duration, 0.2)
+        joints = plan.joints(t)
+        check_limits(machine, joints)
+        planned = plan.tip_plan(t)
+        tip, angle = house_plane(machine, joints, chain)
+        np.testing.assert_allclose(tip, planned[:, :2], atol=1e-9)
+        np.testing.assert_allclose(angle, planned[:, 2], atol=1e-9)
+        digs = [s for s in plan.segments if s.dig is not None]
+        assert len(digs) == len(plan.cycles) == 12
+        for cycle, segment in zip(plan.cycles, digs):
+            assert (segment.t0, segment.t1) == (cycle.dig_start, cycle.dig_end)
+            assert segment.dig.scale == cycle.scale and segment.dig.label == cycle.label
+            # scaled at most 20 % below the drawn range (0.88 x 0.85 x 0.97 .. 1.08 x 1.15 x 1.03)
+            assert 0.8 * 0.72 < min(cycle.scale) and max(cycle.scale) < 1.28
+            inside = (t > cycle.dig_start) & (t < cycle.dig_end)
+            tau = (t[inside] - cycle.dig_start) / (cycle.dig_end - cycle.dig_start)
+            clean = segment.dig.tip(min_jerk(tau))  # the requested path without noise or redirection
+            bound = 0.04 * np.linalg.norm(chain.offsets, axis=1).sum()  # redirection + noise: <= 3 % + 1 %
+            assert np.abs(tip[inside] - clean).max() < bound
+
+
+def test_a_linkage_that_cannot_dig_is_one_line_and_exit_2(tmp_path, capsys):
+    text = (MACHINES_DIR / "bobcat_225.toml").read_text()
+    cramped = tmp_path / "cramped.toml"
+    cramped.write_text(text.replace("limits = [-35, 75]", "limits = [-2, 2]"))
+    assert main(["synth", "--machine", str(cramped), "--cycles", "2", "--no-video", "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not fit the linkage" in err
+    with pytest.raises(InputError, match="dig 1 .* does not fit the linkage"):
+        plan_session(load_machine(cramped), 1, np.random.default_rng(0))
+
+
+def test_truth_stretch_is_the_scale_of_a_dig_of_the_general_shape():
+    from dataclasses import replace
+    from mocap.synthetic.paths import CLASSES as LABELS, nominal_shape, stretch
+    for label in LABELS:
+        general = nominal_shape(label, 10.0, np.radians(68.0), 15.5)
+        for scale in ((1.0, 1.0), (1.1, 0.9), (0.9, 1.15)):
+            np.testing.assert_allclose(stretch(replace(general, scale=scale), general), scale, rtol=2e-3)

@@ -13,7 +13,8 @@ import numpy as np
 from mocap.analysis.features import ClassRules, cycle_parameters
 from mocap.analysis.segment import SegmentOptions, Segments, segment
 from mocap.analysis.series import TipSeries
-from mocap.analysis.shape import DigPaths, Deviations, Template, build_templates, deviations, resample_digs
+from mocap.analysis.shape import (DigPaths, Deviations, Template, build_templates, deviations, resample_digs,
+                                  redirection_shapes)
 from mocap.analysis.similarity import Grouping, Relation, correlations, direction_relation, dtw_matrix, group_digs
 
 FIRST = ("cycle", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame", "class")
@@ -60,8 +61,10 @@ def analyze(series: TipSeries, rules: ClassRules = ClassRules(), options: Segmen
     labels = table["class"]
     paths = resample_digs(series, seg.dig_start, seg.dig_end)
     starts = np.column_stack([table["start_reach_m"], table["start_height_m"], np.radians(table["start_angle_deg"])])
-    templates, scales = build_templates(paths, labels, starts)
-    dev = deviations(series, seg.dig_start, seg.dig_end, scales)
+    dev = deviations(series, seg.dig_start, seg.dig_end, np.ones((len(labels), 2)))
+    events = redirection_shapes(series, seg.dig_start, seg.dig_end, dev)
+    templates, scales = build_templates(paths, labels, starts, events)
+    dev = replace(dev, scale_x=scales[:, 0], scale_z=scales[:, 1])
     distance = dtw_matrix(paths.path)
     grouping = group_digs(distance)
     aspect = dev.scale_z / dev.scale_x

@@ -83,10 +83,13 @@ def _window(rate: float, seconds: float) -> int:
     return max(5, int(round(seconds * rate)) // 2 * 2 + 1)
 
 
-def tip_series(motion: Motion, smooth_s: float = 0.4) -> TipSeries:
+def tip_series(motion: Motion, smooth_s: float = 0.4, speed_s: float = 0.8) -> TipSeries:
     """The tip's series from a motion; InputError if it has no bucket tip or too few frames.
 
-    `smooth_s` the Savitzky-Golay window (s) for positions, angles and their rates.
+    `smooth_s` the Savitzky-Golay window (s) for positions and angles; `speed_s` the wider
+    one for the tip's velocity, whose minima bound the digs: a machine's moves last seconds,
+    while the base's bouncing (1-4 Hz, centimetres at the tip of a large shovel) and the
+    reconstruction's noise would put false minima into a narrower one.
     """
     if TIP not in motion.point_names:
         raise InputError(f"the motion has no '{TIP}' point; the analysis follows the bucket tip")
@@ -113,7 +116,8 @@ def tip_series(motion: Motion, smooth_s: float = 0.4) -> TipSeries:
     rate = 1.0 / float(np.median(np.diff(time)))
     w = min(_window(rate, smooth_s), len(time) // 2 * 2 - 1)
     sx, sy, sz, sa = (savgol_filter(v, w, 2) for v in (x, y, z, angle))
-    vx, vy, vz = (savgol_filter(v, w, 2, deriv=1) * rate for v in (x, y, z))
+    wv = min(_window(rate, speed_s), len(time) // 2 * 2 - 1)
+    vx, vy, vz = (savgol_filter(v, wv, 2, deriv=1) * rate for v in (x, y, z))
     azimuth = np.unwrap(np.arctan2(sy, sx))
     wide = min(_window(rate, 2.5 * smooth_s), len(time) // 2 * 2 - 1)
     swing_rate = savgol_filter(azimuth, wide, 2, deriv=1) * rate

@@ -56,8 +56,8 @@ class Template:
 @dataclass(frozen=True)
 class Deviations:
     """Per dig (K,): scale_x, scale_z; reactive_m, reactive_deg (RMS); redirection
-    ('none', 'temporary', 'kept'), its time (s, NaN without), angle change (rad), lift (m)
-    and kind in words."""
+    ('none', 'temporary', 'kept'), its time (s, NaN without), angle change (rad), lift (m),
+    kind in words, and its centre and half-width as shares of the dig's time (NaN without)."""
 
     scale_x: np.ndarray
     scale_z: np.ndarray
@@ -68,6 +68,8 @@ class Deviations:
     redirection_angle: np.ndarray
     redirection_lift: np.ndarray
     redirection_kind: np.ndarray
+    redirection_centre: np.ndarray
+    redirection_width: np.ndarray
 
 
 def _arc(r: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -90,45 +92,67 @@ def resample_digs(series: TipSeries, starts: np.ndarray, ends: np.ndarray, n: in
     return DigPaths(s, out)
 
 
-def fit_scales(path: np.ndarray, template: np.ndarray) -> np.ndarray:
-    """Least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2)."""
+def fit_scales(path: np.ndarray, template: np.ndarray,
+               events: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2), and the
+    lift (K,) m of each dig's redirection: with `events` (K, N), the unit shape of each
+    dig's redirection at its samples (zero without), the height is fitted as stretch x
+    template + lift x event together, so that a kept lift is not taken for a taller dig."""
     num = np.einsum("knd,nd->kd", path, template)
-    return num / np.maximum((template**2).sum(axis=0), 1e-12)
+    tt = np.maximum((template**2).sum(axis=0), 1e-12)
+    scale = num / tt
+    lift = np.zeros(len(path))
+    if events is None:
+        return scale, lift
+    ee = np.einsum("kn,kn->k", events, events)
+    te = events @ template[:, 1]
+    ze = np.einsum("kn,kn->k", events, path[:, :, 1])
+    det = tt[1] * ee - te**2
+    ok = (ee > 1e-9) & (det > 1e-6 * tt[1] * np.maximum(ee, 1e-12))
+    scale[ok, 1] = (num[ok, 1] * ee[ok] - te[ok] * ze[ok]) / det[ok]
+    lift[ok] = (tt[1] * ze[ok] - te[ok] * num[ok, 1]) / det[ok]
+    return scale, lift
 
 
 def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Digs' paths (K, N, 2) resampled at even arc length of the paths divided by their
-    scales (K, 2), so that a stretched dig's points meet the template's at the same place."""
+    """Digs' paths (K, N, C) resampled at even arc length of their first two channels
+    divided by their scales (K, 2), so that a stretched dig's points meet the template's
+    at the same place; further channels (events) follow their points."""
     out = np.empty_like(xy)
     n = xy.shape[1]
     even = np.linspace(0.0, 1.0, n)
     for k in range(len(xy)):
-        q = xy[k] / scale[k]
+        q = xy[k, :, :2] / scale[k]
         u = _arc(q[:, 0], q[:, 1])
         u, keep = np.unique(u, return_index=True)
-        for d in range(2):
+        for d in range(xy.shape[2]):
             out[k, :, d] = np.interp(even, u, xy[k, keep, d])
     return out
 
 
-def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray,
+def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, events: np.ndarray | None = None,
                     iterations: int = 4) -> tuple[dict[str, Template], np.ndarray]:
     """Per-label templates and every dig's scale (K, 2) against its label's template.
 
-    `starts` (K, 3) start reach, height, angle of each dig.
+    `starts` (K, 3) start reach, height, angle of each dig; `events` (K, N) the unit shape
+    of each dig's redirection at its samples (`redirection_shapes`), fitted beside the scale.
     """
     scales = np.ones((len(labels), 2))
+    events = np.zeros(paths.path.shape[:2]) if events is None else events
     templates: dict[str, Template] = {}
     for label in dict.fromkeys(labels):
         pick = labels == label
-        xy = paths.path[pick, :, :2]
-        template = np.median(xy, axis=0)
+        xy = np.concatenate([paths.path[pick, :, :2], events[pick, :, None]], axis=-1)
+        template = np.median(xy[..., :2], axis=0)
         sc = np.ones((len(xy), 2))
         for _ in range(iterations):
             even = _descaled(xy, sc)
-            sc = np.clip(fit_scales(even, template), 0.05, 20.0)
+            sc, lift = fit_scales(even[..., :2], template, even[..., 2])
+            sc = np.clip(sc, 0.05, 20.0)
             sc /= np.exp(np.log(sc).mean(axis=0))
-            template = np.median(_descaled(xy, sc) / sc[:, None, :], axis=0)
+            general = _descaled(xy, sc)
+            general[..., 1] -= lift[:, None] * general[..., 2]
+            template = np.median(general[..., :2] / sc[:, None, :], axis=0)
         scales[pick] = sc
         angle = np.median(paths.path[pick, :, 2], axis=0)
         templates[label] = Template(label, int(pick.sum()), paths.s, np.column_stack([template, angle]),
@@ -136,19 +160,40 @@ def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray,
     return templates, scales
 
 
+def event_shape(tau: np.ndarray, centre: np.ndarray, width: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """Event shapes (G, T) over time fraction `tau` (T,): a raised-cosine pulse (temporary)
+    or a minimum-jerk step (kept) at `centre` (G,) of half-width `width` (G,)."""
+    x = (tau[None] - centre[:, None]) / width[:, None]
+    pulse = np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
+    y = np.clip((x + 1) / 2, 0, 1)
+    step = y**3 * (10 + y * (-15 + 6 * y))
+    return np.where(np.asarray(kept)[:, None], step, pulse)
+
+
 def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Event shapes (G, T) over time fraction `tau` (T,): pulses and steps at a grid of
     centres and half-widths; their kept flag (G,), centre (G,), half-width (G,)."""
     centre = np.arange(0.15, 0.851, 0.025)
     width = np.array([0.06, 0.1, 0.14])
-    c, w = (v.ravel() for v in np.meshgrid(centre, width, indexing="ij"))
-    x = (tau[None] - c[:, None]) / w[:, None]
-    pulse = np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
-    y = np.clip((x + 1) / 2, 0, 1)
-    step = y**3 * (10 + y * (-15 + 6 * y))
-    shapes = np.concatenate([pulse, step])
-    kept = np.concatenate([np.zeros(len(c), bool), np.ones(len(c), bool)])
-    return shapes, kept, np.concatenate([c, c]), np.concatenate([w, w])
+    c, w = (np.tile(v.ravel(), 2) for v in np.meshgrid(centre, width, indexing="ij"))
+    kept = np.repeat([False, True], len(c) // 2)
+    return event_shape(tau, c, w, kept), kept, c, w
+
+
+def redirection_shapes(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations,
+                       n: int = N_SAMPLES) -> np.ndarray:
+    """(K, N) each found redirection's unit shape (`event_shape`) at the dig's `n` samples of
+    normalised arc length (as `resample_digs` takes them); zero for digs without one."""
+    out = np.zeros((len(starts), n))
+    s = np.linspace(0.0, 1.0, n)
+    for i in np.flatnonzero(dev.redirection != "none"):
+        a, b = starts[i], ends[i]
+        tau = np.linspace(0.0, 1.0, b - a + 1)
+        shape = event_shape(tau, dev.redirection_centre[i:i + 1], dev.redirection_width[i:i + 1],
+                            np.array([dev.redirection[i] == "kept"]))[0]
+        u, keep = np.unique(_arc(series.reach[a:b + 1], series.height[a:b + 1]), return_index=True)
+        out[i] = np.interp(s, u, shape[keep])
+    return out
 
 
 def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -177,6 +222,7 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
     kind = np.full(k, "none", dtype=object)
     what = np.full(k, "", dtype=object)
     when, d_angle, lift = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.nan)
+    at, half = np.full(k, np.nan), np.full(k, np.nan)
     for i, (a, b) in enumerate(zip(starts, ends)):
         r, z, angle = series.raw_reach[a:b + 1], series.raw_height[a:b + 1], series.raw_angle[a:b + 1]
         if len(r) > 15:
@@ -196,7 +242,7 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
             continue
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
-        d_angle[i], lift[i] = amp[g], amp_z[g]
+        d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
         length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
         words = []
         if abs(lift[i]) > 0.015 * length:
@@ -209,4 +255,4 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
             words.append("reversal")
         words.append(kind[i])
         what[i] = ", ".join(words)
-    return Deviations(scales[:, 0], scales[:, 1], reactive_m, reactive_deg, kind, when, d_angle, lift, what)
+    return Deviations(scales[:, 0], scales[:, 1], reactive_m, reactive_deg, kind, when, d_angle, lift, what, at, half)

@@ -81,6 +81,66 @@ def random_machine(rng: np.random.Generator, n_moving: int | None = None) -> Mac
     return machine_from_dict(random_machine_document(rng, n_moving), "<random machine>")
 
 
+def random_digger_document(rng: np.random.Generator) -> dict:
+    """A random machine with a digging linkage, as a parsed TOML document: base, a house
+    swinging about the vertical (either sense), and boom, arm and bucket turning about the
+    house's y axis (either sign) with random proportions (boom 1.5-10 m, arm 0.5-0.7 and
+    the tip 0.25-0.45 of it), random pitch of each link frame, links that leave their
+    joints at random angles in their own frames, a `[bucket_angle]` direction off the tip's
+    by up to 20 deg and of any length, and joint limits around a random working pose of the
+    elbow-down kind (the arm hanging forward of the boom). The tip is named `bucket_tip`."""
+    deg = np.radians
+    boom = float(np.exp(rng.uniform(np.log(1.5), np.log(10.0))))
+    lengths = boom * np.array([1.0, rng.uniform(0.5, 0.7), rng.uniform(0.25, 0.45)])
+    house = boom * rng.uniform(0.2, 0.35)
+    pin = boom * np.array([rng.uniform(0.05, 0.35), rng.uniform(0.05, 0.25)])
+    leave = deg(rng.uniform(-20.0, 20.0, 3))  # each link's end seen from its joint, in its own frame
+    pose = deg(np.array([35.0, -70.0, 5.0]) + rng.uniform(-10.0, 10.0, 3))  # working pose: each end's direction
+    middle = deg(rng.uniform(-40.0, 40.0, 3))  # joint values of that pose
+    sign = rng.choice([-1.0, 1.0], 3)  # +1: a positive joint value turns the link up (axis -y)
+    frame = pose - leave  # upward angle of each link frame in that pose
+    pitch = np.diff(frame, prepend=0.0) - sign * middle  # of each link frame at joint value 0
+    half = np.array([70.0, 95.0, 130.0])
+    words = rng.permutation(_WORDS)
+    names = [f"{words[k]}_{k}" for k in range(5)]
+    links = [{"name": names[0]}, {"name": names[1], "parent": names[0], "joint": {
+        "name": f"q{int(rng.integers(0, 10))}", "type": "revolute", "axis": [0.0, 0.0, float(rng.choice([-1.0, 1.0]))],
+        "origin": [0.0, 0.0, round(house, 4)], "rpy_deg": [0.0, 0.0, 0.0], "limits": [-180.0, 180.0]}}]
+    origins = [np.array([pin[0], 0.0, pin[1]])]
+    ends = [lengths[k] * np.array([np.cos(leave[k]), 0.0, np.sin(leave[k])]) for k in range(3)]
+    origins += ends[:2]
+    for k in range(3):
+        q = np.degrees(middle[k])
+        links.append({"name": names[k + 2], "parent": names[k + 1], "joint": {
+            "name": f"q{10 * (k + 2) + int(rng.integers(0, 10))}", "type": "revolute",
+            "axis": [0.0, float(-sign[k]), 0.0], "origin": origins[k].round(4).tolist(),
+            "rpy_deg": [0.0, round(float(-np.degrees(pitch[k])), 4), 0.0],  # Ry(pitch) turns x downward
+            "limits": [round(q - half[k], 3), round(q + half[k], 3)]}})
+    markers = [{"name": f"B{k + 1}", "link": names[0], "position": p.tolist()}
+               for k, p in enumerate(_base_markers(rng, boom * np.array([0.35, 0.25, 0.12])))]
+    for k in range(3):
+        for m in range(2):
+            at = ends[k] * rng.uniform(0.3, 0.9) + np.array([0.0, rng.choice([-1.0, 1.0]) * 0.05 * boom, 0.0])
+            markers.append({"name": f"M{k + 1}{m + 1}", "link": names[k + 2], "position": at.round(4).tolist()})
+    tilt = deg(rng.uniform(-20.0, 20.0))
+    c, s = np.cos(leave[2] + tilt), np.sin(leave[2] + tilt)
+    return {
+        "name": f"Random digger {int(rng.integers(0, 10**6)):06d}",
+        "source": "mocap.synthetic.machines.random_digger_document",
+        "links": links,
+        "markers": markers,
+        "points": [{"name": "bucket_tip", "link": names[4], "position": ends[2].round(4).tolist()}],
+        "bucket_angle": {"link": names[4],
+                         "direction": (np.array([c, 0.0, s]) * rng.uniform(0.3, 3.0)).round(6).tolist()},
+    }
+
+
+def random_digger(rng: np.random.Generator) -> Machine:
+    """A random machine with a digging linkage (`random_digger_document`), through the
+    model file's own validation."""
+    return machine_from_dict(random_digger_document(rng), "<random digger>")
+
+
 def _base_markers(rng: np.random.Generator, half: np.ndarray) -> np.ndarray:
     """4-8 points on the faces of the base's box (half sizes `half`), spread in depth."""
     n = int(rng.integers(4, 9))

@@ -1,8 +1,9 @@
 """Dig cycles of a shovel or excavator, planned in the bucket's space and turned into joints.
 
 A session holds still for `hold` seconds (the calibration frame), then runs dig cycles:
-lower to the face, dig (one of the three classes of PAPER.md, with reactive noise, an
-operator's redirection and proportional or non-proportional scaling), lift, swing to the
+lower to the face, dig (one of the three classes of PAPER.md or a backhoe's drag, with
+reactive noise, an operator's redirection and proportional or non-proportional scaling;
+within the linkage's reach and joint limits, see `fit_in_reach`), lift, swing to the
 truck, dump, swing back. The tip (x forward from the swing axis, z above the ground) and
 bucket angle are planned in the house's vertical plane, the swing separately; joint values
 come from the linkage's closed-form inverse kinematics at any requested times, so every
@@ -13,14 +14,22 @@ Shapes: T times, J joints.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mocap.errors import InputError
 from mocap.geometry import rpy_to_matrix
 from mocap.ik import PlanarChain
 from mocap.machine import Machine
-from mocap.synthetic.paths import CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk
+from mocap.synthetic.paths import (BACKHOE, CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk,
+                                   nominal_shape, stretch)
+
+ADVANCE_CYCLES = 10  # the face advances by 0.8 % of the reach a dig for this many digs, then the machine
+# steps forward (its frame is the world's, so the face is back where it began)
+SHRINK = np.linspace(1.0, 0.8, 11)  # factors tried on a dig's size, then
+SHIFT = np.linspace(0.0, 0.2, 11)  # moves of its start towards the machine, as shares of the reach
+REACH_MARGIN = 0.005  # of the boom-arm reach kept in hand: a fully stretched linkage turns its joints fast
 
 
 @dataclass(frozen=True)
@@ -47,7 +56,10 @@ class Truck:
 
 @dataclass(frozen=True)
 class Cycle:
-    """One dig cycle's truth; times in seconds on the reference clock."""
+    """One dig cycle's truth; times in seconds on the reference clock. `scale` (sx, sz) the
+    operator's scaling of this dig's own shape; `stretch` (sx, sz) the dig's size against its
+    class's general shape (`paths.stretch`: the scaling and the dig's own push and rise),
+    what an analysis can measure and truth/cycles.csv's scale_x, scale_z."""
 
     index: int
     label: str
@@ -58,6 +70,7 @@ class Cycle:
     dig_start: float
     dig_end: float
     end: float
+    stretch: tuple[float, float] = (1.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -159,7 +172,8 @@ def plan_session(
     hold: float = 2.0,
 ) -> DigMotion:
     """Plan `n_cycles` dig cycles of `machine`; the classes cycle through `classes` in a
-    random order; `reactive` and `bounce` scale the reactive noise and the base's bouncing
+    random order (`paths.BACKHOE` plans a backhoe's digs, whose truth class is ``other``);
+    `reactive` and `bounce` scale the reactive noise and the base's bouncing
     (0 turns them off)."""
     chain = PlanarChain.from_machine(machine)
     reach = float(np.linalg.norm(chain.offsets, axis=1).sum())
@@ -179,7 +193,7 @@ def plan_session(
     t, state = hold, carry
     segments.append(_Segment(0.0, hold, carry, carry))
     for i, label in enumerate(labels):
-        toe = pile.toe + 0.008 * reach * i
+        toe = pile.toe + 0.008 * reach * (i % ADVANCE_CYCLES)  # the face advances; the machine steps after
         dig = dig_shape(label, toe, pile.slope, reach, rng)
         proportional = bool(rng.random() < 0.5)
         if proportional:
@@ -187,7 +201,7 @@ def plan_session(
         else:
             sx = rng.uniform(0.88, 1.05)
             scale = (sx, sx * rng.choice([0.85, 1.15]) * rng.uniform(0.97, 1.03))
-        dig = DigShape(dig.label, dig.start, dig.push, dig.radius, dig.climb, dig.rise, dig.angle0, dig.angle1, scale)
+        dig = replace(dig, scale=scale)
         redirection = None
         if rng.random() < redirect_probability:
             redirection = Redirection(
@@ -202,6 +216,9 @@ def plan_session(
         t_swing, t_dump = rng.uniform(4.5, 5.5) * pace, 5.0 * pace
         start = t
         dig_start = start + t_return + 0.5 * pace
+        dig = fit_in_reach(chain, machine.joint_limits, dig, redirection, noise, (dig_start, dig_start + t_dig),
+                           state, carry, reach, label=f"dig {i + 1} ({label})", machine_name=machine.name)
+        scale = dig.scale
         begin = np.concatenate([dig.start, [dig.angle0]])
         segments.append(_Segment(start, dig_start, state, begin))
         swing_t += [start, start + t_return]
@@ -219,10 +236,11 @@ def plan_session(
         segments.append(_Segment(at_truck, tipped, carry, dump))
         end = tipped + 0.5 * t_dump
         segments.append(_Segment(tipped, end, dump, carry))
-        cycles.append(Cycle(i, label, "proportional" if proportional else "non-proportional",
+        cycles.append(Cycle(i, "other" if label == BACKHOE else label,
+                            "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
-                            start, dig_start, dig_end, end))
+                            start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach))))
         t, state = end, carry
     segments.append(_Segment(t, t + 4.0 * pace, state, carry))
     swing_t += [t, t + 4.0 * pace]
@@ -238,6 +256,45 @@ def plan_session(
         bounce_noise = SmoothNoise.random(rng, sd, (1.0, 4.0))
     return DigMotion(chain, tuple(segments), np.array(swing_t), np.array(swing_v), bounce_noise, hold, duration,
                      tuple(cycles), pile, truck)
+
+
+
+
+def fit_in_reach(chain: PlanarChain, limits: np.ndarray, dig: DigShape, redirection: Redirection | None,
+                 noise: SmoothNoise | None, span: tuple[float, float], before: np.ndarray, after: np.ndarray,
+                 reach: float, *, label: str = "dig", machine_name: str = "machine", samples: int = 200) -> DigShape:
+    """`dig` itself when the linkage reaches all of it — the lowering from the state
+    `before` (x, z, beta), the dig over the times `span` (s) with its noise and redirection,
+    the lift to `after` — inside the joint `limits` (J, 2); else the dig made smaller about
+    its start (`SHRINK`, the truth's scale shrinks with it) and then, if need be, started
+    nearer the machine (`SHIFT` × `reach` m; a backhoe's drag farther out) too: the first
+    that fits. A pile that has advanced beyond the reach over many cycles is dug where the
+    machine reaches it.
+
+    Raises InputError when no such dig fits the machine.
+    """
+    tau = np.linspace(0.0, 1.0, samples)
+    blend = min_jerk(tau)[:, None]
+    for shift in SHIFT:
+        for f in SHRINK:
+            trial = dig if shift == 0 and f == 1 else replace(
+                dig, start=dig.start - np.array([dig.forward * shift * reach, 0.0]),
+                scale=(dig.scale[0] * f, dig.scale[1] * f))
+            begin = np.concatenate([trial.start, [trial.angle0]])
+            end = dig_state(trial, np.ones(1), None, redirection)[0]
+            states = np.concatenate([
+                before + (begin - before) * blend,
+                dig_state(trial, tau, noise, redirection, span[0] + tau * (span[1] - span[0])),
+                end + (after - end) * blend,
+            ])
+            tip = np.stack([states[:, 0], states[:, 1] - chain.house_height], axis=-1)
+            if chain.reachable(tip, states[:, 2], limits, REACH_MARGIN).all():
+                return trial
+    raise InputError(
+        f"{label} does not fit the linkage even {1 - SHRINK[-1]:.0%} smaller and {SHIFT[-1]:.0%} of the reach "
+        "moved; its joint limits or proportions do not suit these digs",
+        path=machine_name,
+    )
 
 
 def check_limits(machine: Machine, joints: np.ndarray) -> None:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 CLASSES = ("Type 1", "Type 2", "Type 3")
+BACKHOE = "backhoe"  # a backhoe's dig: out at the floor, dragged towards the machine and curled up
 
 
 def min_jerk(tau: np.ndarray) -> np.ndarray:
@@ -60,7 +61,8 @@ class DigShape:
     """A dig path: a horizontal push of length `push`, an arc of radius `radius` turning
     up to the direction `climb` (rad above horizontal), a straight rise of length `rise`;
     from `start` (x, z). Bucket angle from `angle0` to `angle1` (rad) with the class's
-    profile. `scale` (sx, sz) stretches the path about its start."""
+    profile. `scale` (sx, sz) stretches the path about its start; `forward` -1 runs it
+    towards the machine (a backhoe's drag)."""
 
     label: str
     start: np.ndarray
@@ -71,6 +73,7 @@ class DigShape:
     angle0: float
     angle1: float
     scale: tuple[float, float] = (1.0, 1.0)
+    forward: float = 1.0
 
     @property
     def length(self) -> float:
@@ -86,17 +89,17 @@ class DigShape:
         beyond = np.maximum(s - self.push - arc, 0.0)
         x = x + beyond * np.cos(self.climb)
         z = z + beyond * np.sin(self.climb)
-        return self.start + np.stack([x, z], axis=-1) * np.asarray(self.scale)
+        return self.start + np.stack([self.forward * x, z], axis=-1) * np.asarray(self.scale)
 
     def angle(self, u: np.ndarray) -> np.ndarray:
         """Bucket angle (T,) rad: Type 1 rises linearly; Type 2 stays then rises sharply near
         the end; Type 3 rises about linearly, more steeply near the end."""
         u = np.clip(np.asarray(u, dtype=float), 0, 1)
-        profile = {"Type 1": u, "Type 2": u**4, "Type 3": 0.6 * u + 0.4 * u**3}[self.label]
+        profile = {"Type 1": u, "Type 2": u**4, "Type 3": 0.6 * u + 0.4 * u**3, BACKHOE: u}[self.label]
         return self.angle0 + (self.angle1 - self.angle0) * profile
 
 
-def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random.Generator) -> DigShape:
+def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random.Generator | _Middle) -> DigShape:
     """A dig of class `label` into a pile whose toe is `toe` m from the swing axis with a
     face at `slope` rad, sized by the machine's `reach` (m, boom + arm + bucket)."""
     deg = np.radians
@@ -113,7 +116,47 @@ def dig_shape(label: str, toe: float, slope: float, reach: float, rng: np.random
         start = np.array([toe + height / np.tan(slope) + 0.02 * reach, height])
         return DigShape(label, start, 0.0, 0.0, slope, rng.uniform(0.24, 0.28) * reach,
                         deg(rng.uniform(-4, 4)), deg(rng.uniform(35, 45)))
-    raise ValueError(f"unknown dig class {label!r}; one of {CLASSES}")
+    if label == BACKHOE:  # out beyond the toe, at or a little below the floor, teeth down
+        start = np.array([toe + rng.uniform(0.06, 0.12) * reach, -rng.uniform(0.0, 0.04) * reach])
+        return DigShape(label, start, rng.uniform(0.1, 0.13) * reach, 0.06 * reach, np.radians(60.0),
+                        rng.uniform(0.05, 0.08) * reach, deg(rng.uniform(-75, -60)), deg(rng.uniform(-15, 0)),
+                        forward=-1.0)
+    raise ValueError(f"unknown dig class {label!r}; one of {CLASSES + (BACKHOE,)}")
+
+
+class _Middle:
+    """Stands in for a random generator: every uniform draw is its range's middle."""
+
+    @staticmethod
+    def uniform(low: float, high: float) -> float:
+        return 0.5 * (low + high)
+
+
+def nominal_shape(label: str, toe: float, slope: float, reach: float) -> DigShape:
+    """The class's general shape: `dig_shape` with every drawn size at its range's middle."""
+    return dig_shape(label, toe, slope, reach, _Middle())
+
+
+def _even(xz: np.ndarray, n: int) -> np.ndarray:
+    """A path (T, 2) resampled at `n` points of even arc length."""
+    step = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xz, axis=0).T))])
+    u, keep = np.unique(step / max(step[-1], 1e-12), return_index=True)
+    even = np.linspace(0.0, 1.0, n)
+    return np.column_stack([np.interp(even, u, xz[keep, d]) for d in range(2)])
+
+
+def stretch(dig: DigShape, reference: DigShape, n: int = 128, iterations: int = 6) -> tuple[float, float]:
+    """The stretch (sx, sz) of `reference`'s path about its start that best matches `dig`'s
+    (scale included), point by point at even arc length (least squares): how much larger
+    than its class's general shape a dig is along and across."""
+    fine = np.linspace(0.0, 1.0, 4 * n)
+    path = _even(dig.tip(fine) - dig.start, n)
+    shape = reference.tip(fine) - reference.start
+    scale = np.ones(2)
+    for _ in range(iterations):
+        q = _even(shape * scale, n) / scale
+        scale = (path * q).sum(axis=0) / np.maximum((q * q).sum(axis=0), 1e-12)
+    return float(scale[0]), float(scale[1])
 
 
 @dataclass(frozen=True)

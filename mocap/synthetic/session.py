@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
@@ -157,7 +158,11 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                         redirect_probability=options.redirect_probability, reactive=options.reactive,
                         bounce=options.bounce, hold=options.hold)
     coarse = np.arange(0.0, plan.duration, 0.5)
-    check_limits(machine, plan.joints(coarse))
+    try:
+        check_limits(machine, plan.joints(coarse))
+    except ValueError as exc:  # a model whose linkage cannot carry the bucket to the truck
+        raise InputError(f"the planned session does not suit this machine: {exc}",
+                         path=machine_ref or machine.name) from None
     boxes = link_boxes(machine)
     poses = machine.link_poses(plan.joints(coarse), plan.world_from_base(coarse))
     corners = np.array([box_corners(box) for box in boxes])  # (L, 8, 3)
@@ -246,13 +251,14 @@ def summary(session: SyntheticSession) -> str:
 
 
 def save_session_cycles(session: SyntheticSession, path: Path) -> None:
-    """truth/cycles.csv: one row per dig cycle; frames are the reference camera's."""
+    """truth/cycles.csv: one row per dig cycle; frames are the reference camera's; scale_x,
+    scale_z the dig's stretch against its class's general shape (`Cycle.stretch`)."""
     fps = session.cameras[0].fps
     rows = []
     for c in session.plan.cycles:
         times = (c.start, c.end, c.dig_start, c.dig_end)
         frames = [int(round(t * fps)) for t in times]
-        rows.append((c.index, c.label, c.scaling, f"{c.scale[0]:.4f}", f"{c.scale[1]:.4f}", c.redirection,
+        rows.append((c.index, c.label, c.scaling, f"{c.stretch[0]:.4f}", f"{c.stretch[1]:.4f}", c.redirection,
                      *frames, *(f"{t:.4f}" for t in times)))
     save_cycles(rows, path)
 
