@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 _BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
 _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
 _CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
+_SAME_PX2 = 0.1  # a restart this close (px^2, by the normal matrix) to a known solution has found it
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class FitOptions:
     projected into each camera (the pixel noise taken as noise_px, or 0.5 px, for that).
     """
 
-    iterations: int = 12
+    iterations: int = 30
     loss: str = "huber"
     scale_px: float = 2.0
     noise_px: float | None = None
@@ -184,7 +185,10 @@ def fit_joints(
         suspect = problem.misfit(pixels, state, noise, 1e-4, 0.2) if not sweep else problem.misfit(pixels, state, noise)
         if not suspect.any():
             break
-        problem.multistart(pixels, state, np.nonzero(suspect)[0], sweep)
+        if sweep:
+            problem.multistart(pixels, state, np.nonzero(suspect)[0])
+        else:
+            problem.propagate(pixels, state, np.nonzero(suspect)[0])
         for _ in range(n_frames):  # mended frames hand their solution on along a wrong stretch
             if not problem.repair(pixels, state):
                 break
@@ -274,10 +278,15 @@ class _Problem(KinematicModel):
             translation = start_base[:, 3:].copy()
         return self.levenberg_marquardt(pixels, FrameState(joints, rotation, translation, np.zeros(len(joints))))
 
-    def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState) -> FrameState:
-        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged."""
-        residual, jac = self.evaluate(pixels, state)
-        weight, cost = self.robust(residual)
+    def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState, known: FrameState | None = None) -> FrameState:
+        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged.
+
+        `known` (a solved FrameState over the same frames): a frame also leaves once it is
+        within `_SAME_PX2` (its model pixels moved by less than that, squared and summed, by
+        the known solution's normal matrix) of the known solution, with cost +inf: it would
+        only converge to it (a restart that finds the frame's own minimum again stops early
+        and is never preferred to it)."""
+        residual, weight, cost, hessian, gradient = self.normal_equations(pixels, state)
         base = state.rotation is not None
         joints = state.joints.copy()
         rotation = state.rotation.copy() if base else None
@@ -287,31 +296,45 @@ class _Problem(KinematicModel):
         active = np.arange(len(cost))
         for _ in range(self.options.iterations):
             a = active
-            jw = jac[a] * weight[a][..., None]
-            hessian = np.swapaxes(jw, 1, 2) @ jac[a]
-            gradient = (residual[a][:, None, :] @ jw)[:, 0]
-            diag = np.diagonal(hessian, axis1=1, axis2=2)
-            lhs = hessian + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
-            delta = np.linalg.solve(lhs, gradient[..., None])[..., 0]
+            diag = np.diagonal(hessian[a], axis1=1, axis2=2)
+            lhs = hessian[a] + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
+            delta = np.linalg.solve(lhs, gradient[a][..., None])[..., 0]
             current = FrameState(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
             trial = self.step(current, delta)
-            trial_residual, trial_jac = self.evaluate(pixels[a], trial)
-            trial_weight, trial_cost = self.robust(trial_residual)
-            better = trial_cost <= cost[a]
-            change = np.abs(cost[a] - trial_cost) / np.maximum(cost[a], 1e-12)
+            t_residual, t_weight, t_cost, t_hessian, t_gradient = self.normal_equations(pixels[a], trial)
+            better = t_cost <= cost[a]
+            change = np.abs(cost[a] - t_cost) / np.maximum(cost[a], 1e-12)
             kept = a[better]
             joints[kept] = trial.joints[better]
             if base:
                 rotation[kept] = trial.rotation[better]
                 translation[kept] = trial.translation[better]
-            residual[kept], jac[kept], weight[kept] = trial_residual[better], trial_jac[better], trial_weight[better]
-            cost[kept] = trial_cost[better]
+            residual[kept], weight[kept], cost[kept] = t_residual[better], t_weight[better], t_cost[better]
+            hessian[kept], gradient[kept] = t_hessian[better], t_gradient[better]
             damping[a] = np.clip(np.where(better, damping[a] * 0.3, damping[a] * 10.0), 1e-9, 1e9)
-            active = a[change >= _CONVERGED]
+            going = change >= _CONVERGED
+            if known is not None:
+                settled = self._distance(joints[a], rotation[a] if base else None,
+                                         translation[a] if base else None, known, a) < _SAME_PX2
+                cost[a[settled]] = np.inf
+                going &= ~settled
+            active = a[going]
             if not len(active):
                 break
-        hessian = np.swapaxes(jac * weight[..., None], 1, 2) @ jac
         return FrameState(joints, rotation, translation, cost, hessian, residual, weight)
+
+    def _distance(self, joints, rotation, translation, known: FrameState, index: np.ndarray) -> np.ndarray:
+        """(len(index),) squared pixel distance dᵀHd of parameters from the known solution
+        of those frames (full-circle joints compared modulo their span)."""
+        diff = joints - known.joints[index]
+        span = self.upper - self.lower
+        wrapped = np.mod(diff + 0.5 * span, np.where(self.wrap, span, np.inf)) - 0.5 * span
+        parts = [np.where(self.wrap, wrapped, diff)]
+        if rotation is not None:
+            parts += [matrix_to_rotvec(rotation @ np.swapaxes(known.rotation[index], 1, 2)),
+                      translation - known.translation[index]]
+        d = np.concatenate(parts, axis=1)
+        return np.einsum("fp,fpq,fq->f", d, known.hessian[index], d)
 
     def grid_start(self, pixels: np.ndarray) -> np.ndarray:
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
@@ -426,6 +449,27 @@ class _Problem(KinematicModel):
                 starts.append(FrameState(joints, own.rotation, own.translation, own.cost))
         self._keep_best(pixels, state, frames, starts)
 
+    def propagate(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> None:
+        """Fit `frames` again from each neighbour's solution (the frames before and after)
+        and keep any improvement; the neighbours of a frame that improved are fitted again
+        from it in turn, until nothing improves: a wrong stretch is mended from its ends
+        inward, however long, at two restarts per frame and pass."""
+        n_frames = pixels.shape[1]
+        todo = np.unique(frames)
+        for _ in range(n_frames):
+            if not len(todo):
+                break
+            improved = []
+            for shift in (1, -1):
+                source = np.clip(todo + shift, 0, n_frames - 1)
+                own = state.take(todo)
+                fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, todo], 1, 0), state.take(source), own)
+                better = fitted.cost < own.cost
+                state.put(todo, fitted, better)
+                improved.append(todo[better])
+            improved = np.concatenate(improved)
+            todo = np.unique(np.clip(np.r_[improved - 1, improved + 1], 0, n_frames - 1))
+
     def _keep_best(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, starts: list[FrameState]) -> None:
         """LM on `frames` from every start (each a FrameState over the frames); the best kept
         where it beats the frame's own solution."""
@@ -433,7 +477,8 @@ class _Problem(KinematicModel):
             FrameState(s.joints, s.rotation, s.translation, s.cost) for s in starts
         ])
         repeated = np.tile(frames, len(starts))
-        fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, repeated], 1, 0), tries)
+        own = state.take(repeated)
+        fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, repeated], 1, 0), tries, own)
         best = np.argmin(fitted.cost.reshape(len(starts), len(frames)), axis=0)
         chosen = fitted.take(best * len(frames) + np.arange(len(frames)))
         state.put(frames, chosen, chosen.cost < state.cost[frames])
