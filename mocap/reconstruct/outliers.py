@@ -20,6 +20,8 @@ from scipy.special import chdtri
 RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of unit SD per axis
 
 
+_CHUNK_FRAMES = 20_000  # frames judged together (memory)
+_REACH = 3  # the predictors' farthest neighbour
 # Predictions of a pixel from its neighbours, exact for a steady motion: {frame offset:
 # weight}. Midpoints of f-k and f+k, then one-sided extrapolations for the ends of a track.
 _PREDICTORS = (
@@ -54,9 +56,23 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     return flagged
 
 
-def _deviations(pixels: np.ndarray):
+def _deviations(pixels: np.ndarray, chunk: int = _CHUNK_FRAMES):
     """Per pixel (F, M): whether two or more predictions exist, and the deviation from the
-    nearest one divided by its noise gain, and in pixels."""
+    nearest one divided by its noise gain, and in pixels; computed `chunk` frames at a time
+    (each with its 3 neighbours either side), so that memory does not grow with the
+    session."""
+    n_frames, n_markers = pixels.shape[:2]
+    judged, scaled, raw = np.empty((n_frames, n_markers), bool), np.empty((n_frames, n_markers)), np.empty((n_frames, n_markers))
+    for start in range(0, n_frames, chunk):
+        end = min(n_frames, start + chunk)
+        low, high = max(0, start - _REACH), min(n_frames, end + _REACH)
+        part = _chunk_deviations(pixels[low:high])
+        for out, values in zip((judged, scaled, raw), part):
+            out[start:end] = values[start - low : end - low]
+    return judged, scaled, raw
+
+
+def _chunk_deviations(pixels: np.ndarray):
     n_frames = pixels.shape[0]
     padded = np.pad(pixels, ((3, 3), (0, 0), (0, 0)), constant_values=np.nan)
     raw, scaled = [], []
