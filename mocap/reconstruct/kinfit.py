@@ -87,7 +87,7 @@ class JointFit:
     the pixel noise; information (F, P, P) its inverse without regularisation (singular
     where a joint is unobserved); residuals (C, F, M, 2) observed minus predicted px, NaN
     where not observed (divided by the tolerance's weight, if any); weights (C, F, M) final
-    robust weights; rms_px (F,) RMS residual
+    robust weights (both float32: a two-hour session's are large); rms_px (F,) RMS residual
     of the inlier-weighted observations; n_observations (F,) 2-D observations used; noise_px
     the pixel SD behind the covariance (given, or estimated robustly from the residuals);
     valid (F,) frames with enough observations; explained (F,) False for a valid frame
@@ -177,9 +177,7 @@ def fit_joints(
         problem.restart_from_grid(pixels, state, start_base)
     else:
         state = problem.solve_all(pixels, start, start_base)
-    for _ in range(options.repair_passes):
-        if not problem.repair(pixels, state):
-            break
+    problem.repair(pixels, state, options.repair_passes)
     for sweep in (False, True):  # neighbours' solutions first; the grid and joint sweeps for what is left
         noise = options.noise_px or problem.noise(pixels, state)
         suspect = problem.misfit(pixels, state, noise, 1e-4, 0.2) if not sweep else problem.misfit(pixels, state, noise)
@@ -189,9 +187,7 @@ def fit_joints(
             problem.multistart(pixels, state, np.nonzero(suspect)[0])
         else:
             problem.propagate(pixels, state, np.nonzero(suspect)[0])
-        for _ in range(n_frames):  # mended frames hand their solution on along a wrong stretch
-            if not problem.repair(pixels, state):
-                break
+        problem.repair(pixels, state, n_frames)  # mended frames hand their solution on along a wrong stretch
     noise = options.noise_px or problem.noise(pixels, state)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
@@ -244,9 +240,7 @@ class _Problem(KinematicModel):
         # wrong start everywhere looks like large noise), and what they find is handed on
         probes = np.unique(np.linspace(0, len(keys) - 1, min(64, len(keys))).round().astype(int))
         self.multistart(key_pixels, state, probes)
-        for _ in range(len(keys)):
-            if not self.repair(key_pixels, state):
-                break
+        self.repair(key_pixels, state, len(keys))
         n_obs = np.isfinite(key_pixels[..., 0]).sum((0, 2))
         good = 2 * n_obs >= self.n_params
         if good.sum() < 2:
@@ -370,24 +364,39 @@ class _Problem(KinematicModel):
                 axes.append(lower[j] + span[j] * (np.arange(levels[j]) + 0.5) / levels[j])
         return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, n_joints)
 
-    def repair(self, pixels: np.ndarray, state: FrameState) -> bool:
+    def repair(self, pixels: np.ndarray, state: FrameState, passes: int) -> bool:
         """Restart frames whose cost is far above a neighbour's from that neighbour's
-        solution; keep the better. Returns whether any frame improved."""
-        n_obs = np.isfinite(pixels).all(-1).sum((0, 2))
-        per_obs = state.cost / np.maximum(n_obs, 1)
-        improved = False
-        for shift in (1, -1):
-            neighbour = np.clip(np.arange(len(per_obs)) - shift, 0, len(per_obs) - 1)
-            bad = np.nonzero((per_obs > 4.0 * per_obs[neighbour] + self.options.scale_px**2) & (n_obs > 0))[0]
-            if not len(bad):
-                continue
-            restart = state.take(neighbour[bad])
-            fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, bad], 1, 0), restart)
-            better = fitted.cost < state.cost[bad]
-            state.put(bad, fitted, better)
-            per_obs[bad[better]] = fitted.cost[better] / np.maximum(n_obs[bad[better]], 1)
-            improved |= bool(better.any())
+        solution and keep the better, up to `passes` times; after the first pass only the
+        frames next to one that improved are looked at again. Returns whether any frame
+        improved."""
+        n_frames = pixels.shape[1]
+        frames, improved = np.arange(n_frames), False
+        for _ in range(passes):
+            mended = self._repair_pass(pixels, state, frames)
+            if not len(mended):
+                break
+            improved = True
+            frames = np.unique(np.clip(np.r_[mended - 1, mended, mended + 1], 0, n_frames - 1))
         return improved
+
+    def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> np.ndarray:
+        """One pass of `repair` over `frames` (sorted); the frames that improved."""
+        n_frames, improved = pixels.shape[1], []
+        for shift in (1, -1):
+            neighbour = np.clip(frames - shift, 0, n_frames - 1)
+            n_obs = np.isfinite(pixels[:, frames]).all(-1).sum((0, 2))
+            n_neighbour = np.isfinite(pixels[:, neighbour]).all(-1).sum((0, 2))
+            per_obs = state.cost[frames] / np.maximum(n_obs, 1)
+            neighbour_per_obs = state.cost[neighbour] / np.maximum(n_neighbour, 1)
+            bad = (per_obs > 4.0 * neighbour_per_obs + self.options.scale_px**2) & (n_obs > 0)
+            if not bad.any():
+                continue
+            index = frames[bad]
+            fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, index], 1, 0), state.take(neighbour[bad]))
+            better = fitted.cost < state.cost[index]
+            state.put(index, fitted, better)
+            improved.append(index[better])
+        return np.unique(np.concatenate(improved)) if improved else np.zeros(0, int)
 
     # --- frames nothing explains -------------------------------------------------------
     def noise(self, pixels: np.ndarray, state: FrameState) -> float:
@@ -491,8 +500,8 @@ class _Problem(KinematicModel):
         seen_rows = np.repeat(np.moveaxis(seen, 1, 0).reshape(n_frames, -1), 2, axis=1)
         n_obs = seen.sum((0, 2))
         valid = 2 * n_obs >= self.n_params
-        weighted = (weight * residual**2).sum(1)
-        inlier_weight = (weight * seen_rows).sum(1)
+        weighted = (weight * residual**2).sum(1, dtype=float)
+        inlier_weight = (weight * seen_rows).sum(1, dtype=float)
         rms = np.sqrt(weighted / np.maximum(inlier_weight, 1e-12))
         log.info("pixel noise: %.3f px", noise)
         eye = np.eye(self.n_params)
