@@ -3,16 +3,18 @@
     python benchmarks/bench_scale.py [--frames 9000] [--long-frames 216000] [--skip-long]
 
 A synthetic session of the EX3500 (`mocap synth --no-video`, truth tracks of 3 cameras and
-18 markers) is repeated end to end up to --frames frames and given 0.5 px of pixel noise.
-Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive numpy/scipy
-reference run through its own small command line (the csv module, one
+18 markers) is repeated end to end up to --frames reference frames (each camera repeats a
+block of the same duration, so that the cameras' clocks stay as calibrated) and given 0.5 px
+of pixel noise. Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive
+numpy/scipy reference run through its own small command line (the csv module, one
 `scipy.optimize.least_squares` per point and per frame, the previous frame's joints as the
 start), and the ratio; (2) tracks CSV parsing in rows/s, the columnar reader beside the
 csv module's checked reader; (3) start time of `mocap --help` and of a command's --help;
-(4) a --long-frames session (216,000 frames: two hours at 30 fps) from tracks through `fit`
-and `analyze`: wall time and the peak resident memory of the commands. Wall times, so other
-work on the machine lengthens them. The naive reference ignores the cameras' time offsets
-(it pairs equal frame numbers); that makes it faster, not slower.
+(4) a --long-frames session (216,000 frames: two hours at 30 fps, Parquet tracks) from
+tracks to analysis as `mocap run` goes after tracking (sync, triangulate, fit, analyze):
+each command's wall time and its own peak resident memory. Wall times, so other work on
+the machine lengthens them. The naive reference ignores the cameras' time offsets (it
+pairs equal frame numbers); that makes it faster, not slower.
 """
 
 from __future__ import annotations
@@ -269,179 +271,6 @@ def main() -> None:
             print(f"{name:<12} {result[name][0]:8.1f} {result[name][1]:9.2f}")
         total, peak = sum(result[n][0] for n in LONG_STAGES), max(result[n][1] for n in LONG_STAGES)
         print(f"{'total':<12} {total:8.1f} {peak:9.2f}   targets 120 s, 4 GiB")
-
-
-if __name__ == "__main__":
-    {"triangulate": triangulate, "fit": fit}[sys.argv[1]](*sys.argv[2:])
-'''
-
-
-def run(argv: list[str], cwd: Path) -> float:
-    """Wall seconds of a child process; its failure stops the benchmark."""
-    start = time.perf_counter()
-    done = subprocess.run(argv, cwd=cwd, capture_output=True, text=True)
-    if done.returncode:
-        sys.exit(f"{' '.join(map(str, argv))} failed:\n{done.stderr[-2000:]}")
-    return time.perf_counter() - start
-
-
-def mocap(*args) -> list[str]:
-    return [sys.executable, "-m", "mocap.cli", *map(str, args)]
-
-
-def make_session(work: Path, root: Path, seed: int) -> Path:
-    base = work / "base"
-    if not (base / "truth" / "tracks.csv").exists():
-        run(mocap("synth", "--machine", MACHINE, "--no-video", "--seed", seed, "--out", base), root)
-    return base / "truth"
-
-
-def write_long_tracks(truth: Path, n_frames: int, path: Path, rng) -> int:
-    """The truth tracks repeated end to end over `n_frames` reference frames, with pixel
-    noise; rows. Each camera repeats a block of the same duration (a whole number of frames
-    at every camera's rate: 3,003 frames at 30 fps are 3,000 at 29.97), so that the cameras'
-    clocks stay as the calibration states them however long the session."""
-    tracks = load_tracks(truth / "tracks.csv")
-    calibration = load_calibration(truth / "cameras.toml")
-    fps = calibration.fps()
-    spans = [int(tracks.frame[tracks.camera == c].max()) + 1 for c in calibration.names]
-    available = min(int(span * fps[0] / rate) for span, rate in zip(spans, fps))
-    block = next((n for n in range(available, 0, -1)
-                  if np.all(np.abs(n * fps / fps[0] - np.round(n * fps / fps[0])) < 1e-6)), available)
-    columns = {name: [] for name in ("camera", "frame", "marker", "x", "y")}
-    for name, rate in zip(calibration.names, fps):
-        own = tracks.of_camera(name)
-        own_block = int(round(block * rate / fps[0]))
-        keep = own.frame < own_block
-        frame0, xy0 = own.frame[keep], own.xy[keep]
-        repeats = -(-int(n_frames * rate / fps[0]) // own_block)
-        frame = (frame0[None] + own_block * np.arange(repeats)[:, None]).ravel()
-        inside = frame < n_frames * rate / fps[0]
-        xy = np.tile(xy0, (repeats, 1))[inside]
-        xy += rng.normal(0, NOISE_PX, xy.shape)
-        columns["camera"].append(np.full(int(inside.sum()), name))
-        columns["frame"].append(frame[inside])
-        columns["marker"].append(np.tile(own.marker[keep].astype(str), repeats)[inside])
-        columns["x"].append(np.round(xy[:, 0], 4))
-        columns["y"].append(np.round(xy[:, 1], 4))
-    table = pa.table({k: np.concatenate(v) for k, v in columns.items()})
-    if path.suffix == ".parquet":
-        pq.write_table(table, path)
-        return table.num_rows
-    with open(path, "wb") as fh:
-        fh.write(b"camera,frame,marker,x,y\n")
-        pacsv.write_csv(table, fh, pacsv.WriteOptions(include_header=False, quoting_style="none"))
-    return table.num_rows
-
-
-def speed_table(work: Path, truth: Path, root: Path, tracks: Path) -> None:
-    naive = work / "naive.py"
-    naive.write_text(NAIVE)
-    cal = truth / "cameras.toml"
-    print("\n(1) through the command line: mocap vs the naive numpy/scipy reference")
-    print(f"{'command':<12} {'mocap s':>9} {'naive s':>9} {'ratio':>7} {'target':>7}")
-    for name, ours, theirs in [
-        ("triangulate", mocap("triangulate", cal, tracks, "--out", work / "points.csv"),
-         [sys.executable, naive, "triangulate", cal, tracks, work / "naive_points.csv"]),
-        ("fit", mocap("fit", MACHINE, cal, tracks, "--out", work / "motion.csv"),
-         [sys.executable, naive, "fit", MACHINE, cal, tracks, work / "naive_motion.csv"]),
-    ]:
-        a, b = run(ours, root), run(theirs, root)
-        print(f"{name:<12} {a:9.2f} {b:9.2f} {b / a:6.1f}x {TARGETS[name]:6.0f}x")
-
-
-def parse_table(tracks: Path) -> None:
-    def best(fn) -> tuple[float, int]:
-        times, n = [], 0
-        for _ in range(3):
-            start = time.perf_counter()
-            n = fn()
-            times.append(time.perf_counter() - start)
-        return min(times), n
-
-    def checked() -> int:
-        header, columns, lines = _parse(read_text(tracks, ""), tracks)
-        return len(_validate(header, columns, lines, tracks))
-
-    columnar, n = best(lambda: len(load_tracks(tracks)))
-    csv_module, _ = best(checked)
-    print(f"\n(2) tracks CSV parsing, {n:,} rows (best of 3)")
-    print(f"{'reader':<28} {'s':>7} {'M rows/s':>9}")
-    print(f"{'pyarrow (load_tracks)':<28} {columnar:7.3f} {n / columnar / 1e6:9.2f}   target 5")
-    print(f"{'csv module (checked)':<28} {csv_module:7.3f} {n / csv_module / 1e6:9.2f}   ratio {csv_module / columnar:.1f}x")
-
-
-def start_table(root: Path) -> None:
-    print("\n(3) start time, wall s (best of 5; target 0.3)")
-    for args in [("--help",), ("triangulate", "--help"), ("fit", "--help"), ("analyze", "--help")]:
-        best = min(run(mocap(*args), root) for _ in range(5))
-        print(f"  mocap {' '.join(args):<20} {best:6.2f}")
-
-
-LONG_STAGES = ("sync", "triangulate", "fit", "analyze")
-
-
-def long_child(work: Path, truth: Path, root: Path, tracks: Path) -> None:
-    """The long session from tracks to analysis as `mocap run` runs it after tracking (sync,
-    triangulate, fit, analyze); print each command's wall time and peak resident memory."""
-    out = work / "long"
-    out.mkdir(exist_ok=True)
-    cameras = out / "cameras.toml"
-    commands = {
-        "sync": mocap("sync", truth / "cameras.toml", tracks, "--machine", MACHINE, "--out", cameras),
-        "triangulate": mocap("triangulate", cameras, tracks, "--out", out / "points.parquet"),
-        "fit": mocap("fit", MACHINE, cameras, tracks, "--out", out / "motion.parquet"),
-        "analyze": mocap("analyze", MACHINE, out / "motion.parquet", "--out", out / "analysis"),
-    }
-    result = {}
-    for name in LONG_STAGES:
-        start = time.perf_counter()
-        child = subprocess.Popen(commands[name], cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        stderr = child.stderr.read()
-        _, status, usage = os.wait4(child.pid, 0)  # this command's own peak memory
-        if status:
-            sys.exit(f"{name} failed:\n{stderr.decode()[-2000:]}")
-        result[name] = [time.perf_counter() - start, usage.ru_maxrss / 2**20]  # KiB -> GiB
-    print(json.dumps(result))
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=9000)
-    parser.add_argument("--long-frames", type=int, default=216_000)
-    parser.add_argument("--skip-long", action="store_true")
-    parser.add_argument("--seed", type=int, default=7)
-    parser.add_argument("--work", type=Path, help="folder to keep the files in (default: a temporary one)")
-    parser.add_argument("--long-child", nargs=2, metavar=("WORK", "TRACKS"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    root = Path(__file__).resolve().parents[1]
-    if args.long_child:
-        work = Path(args.long_child[0])
-        return long_child(work, work / "base" / "truth", root, Path(args.long_child[1]))
-    with tempfile.TemporaryDirectory() as tmp:
-        work = args.work or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
-        rng = np.random.default_rng(args.seed)
-        truth = make_session(work, root, args.seed)
-        tracks = work / "tracks.csv"
-        rows = write_long_tracks(truth, args.frames, tracks, rng)
-        print(f"session: {args.frames:,} frames x 3 cameras x 18 markers, {rows:,} track rows, {NOISE_PX} px noise")
-        speed_table(work, truth, root, tracks)
-        parse_table(tracks)
-        start_table(root)
-        if args.skip_long:
-            return
-        long_tracks = work / "long_tracks.parquet"
-        rows = write_long_tracks(truth, args.long_frames, long_tracks, rng)
-        done = subprocess.run([sys.executable, __file__, "--long-child", str(work), str(long_tracks)],
-                              cwd=root, capture_output=True, text=True)
-        if done.returncode:
-            sys.exit(done.stdout[-2000:] + done.stderr[-2000:])
-        result = json.loads(done.stdout.strip().splitlines()[-1])
-        print(f"\n(4) {args.long_frames:,} frames ({rows:,} track rows), tracks -> fit -> analyze")
-        print(f"  fit {result['fit']:.1f} s, analyze {result['analyze']:.1f} s, "
-              f"total {result['fit'] + result['analyze']:.1f} s (target 120), "
-              f"peak memory {result['peak_gib']:.2f} GiB (target 4)")
 
 
 if __name__ == "__main__":
