@@ -371,30 +371,30 @@ class _Problem(KinematicModel):
         improved."""
         n_frames = pixels.shape[1]
         frames, improved = np.arange(n_frames), False
+        n_obs = (np.isfinite(pixels[..., 0]) & np.isfinite(pixels[..., 1])).sum((0, 2))
         for _ in range(passes):
-            mended = self._repair_pass(pixels, state, frames)
+            mended = self._repair_pass(pixels, state, frames, n_obs)
             if not len(mended):
                 break
             improved = True
             frames = np.unique(np.clip(np.r_[mended - 1, mended, mended + 1], 0, n_frames - 1))
         return improved
 
-    def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> np.ndarray:
-        """One pass of `repair` over `frames` (sorted); the frames that improved."""
+    def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, n_obs: np.ndarray) -> np.ndarray:
+        """One pass of `repair` over `frames` (sorted), n_obs (F,) observations per frame;
+        the frames that improved."""
         n_frames, improved = pixels.shape[1], []
+        per_obs = state.cost / np.maximum(n_obs, 1)
         for shift in (1, -1):
             neighbour = np.clip(frames - shift, 0, n_frames - 1)
-            n_obs = np.isfinite(pixels[:, frames]).all(-1).sum((0, 2))
-            n_neighbour = np.isfinite(pixels[:, neighbour]).all(-1).sum((0, 2))
-            per_obs = state.cost[frames] / np.maximum(n_obs, 1)
-            neighbour_per_obs = state.cost[neighbour] / np.maximum(n_neighbour, 1)
-            bad = (per_obs > 4.0 * neighbour_per_obs + self.options.scale_px**2) & (n_obs > 0)
+            bad = (per_obs[frames] > 4.0 * per_obs[neighbour] + self.options.scale_px**2) & (n_obs[frames] > 0)
             if not bad.any():
                 continue
             index = frames[bad]
             fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, index], 1, 0), state.take(neighbour[bad]))
             better = fitted.cost < state.cost[index]
             state.put(index, fitted, better)
+            per_obs[index[better]] = fitted.cost[better] / np.maximum(n_obs[index[better]], 1)
             improved.append(index[better])
         return np.unique(np.concatenate(improved)) if improved else np.zeros(0, int)
 
