@@ -44,7 +44,7 @@ class JointCurves:
         if np.ndim(self.joints) != 2 or len(self.joints) != len(self.frames):
             raise ValueError(f"JointCurves: joints must be (F={len(self.frames)}, J), got {np.shape(self.joints)}")
 
-_COARSE_SAMPLES = 5_000  # samples compared at each offset of the coarse grid
+_COARSE_SAMPLES = 2_000  # samples compared at each offset of the coarse grid
 
 
 @dataclass(frozen=True)
