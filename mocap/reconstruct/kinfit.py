@@ -1,9 +1,9 @@
 """The batched kinematic fit: per frame, the joint values that best explain every camera's
 marker pixels (the paper's multi-frame fit).
 
-All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model for
-every frame, builds each frame's small normal equations (block-diagonal over frames) and
-solves them together with numpy. Residuals are robustified by iteratively reweighted
+All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model and
+builds each frame's small normal equations for every frame in one compiled pass
+(mocap.reconstruct.kinkernel) and solves them together with numpy. Residuals are robustified by iteratively reweighted
 least squares (Huber or Cauchy, scale in pixels); frames that have converged leave the
 batch. Without starting values, every few frames (key frames) start from the best of a
 coarse grid of joint values inside the limits (evaluated for all key frames by one
