@@ -3,23 +3,25 @@
     python benchmarks/bench_scale.py [--frames 9000] [--long-frames 216000] [--skip-long]
 
 A synthetic session of the EX3500 (`mocap synth --no-video`, truth tracks of 3 cameras and
-18 markers) is repeated end to end up to --frames frames and given 0.5 px of pixel noise.
-Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive numpy/scipy
-reference run through its own small command line (the csv module, one
+18 markers) is repeated end to end up to --frames reference frames (each camera repeats a
+block of the same duration, so that the cameras' clocks stay as calibrated) and given 0.5 px
+of pixel noise. Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive
+numpy/scipy reference run through its own small command line (the csv module, one
 `scipy.optimize.least_squares` per point and per frame, the previous frame's joints as the
 start), and the ratio; (2) tracks CSV parsing in rows/s, the columnar reader beside the
 csv module's checked reader; (3) start time of `mocap --help` and of a command's --help;
-(4) a --long-frames session (216,000 frames: two hours at 30 fps) from tracks through `fit`
-and `analyze`: wall time and the peak resident memory of the commands. Wall times, so other
-work on the machine lengthens them. The naive reference ignores the cameras' time offsets
-(it pairs equal frame numbers); that makes it faster, not slower.
+(4) a --long-frames session (216,000 frames: two hours at 30 fps, Parquet tracks) from
+tracks to analysis as `mocap run` goes after tracking (sync, triangulate, fit, analyze):
+each command's wall time, CPU time (user + system) and its own peak resident memory. Wall
+times, so other work on the machine lengthens them (the CPU times much less). The naive reference ignores the cameras' time offsets (it
+pairs equal frame numbers); that makes it faster, not slower.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import resource
+import os
 import subprocess
 import sys
 import tempfile
@@ -29,7 +31,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
 
+from mocap.io.cameras_toml import load_calibration
 from mocap.io.text import read_text
 from mocap.io.tracks_csv import _parse, _validate, load_tracks
 
@@ -119,16 +123,37 @@ def make_session(work: Path, root: Path, seed: int) -> Path:
 
 
 def write_long_tracks(truth: Path, n_frames: int, path: Path, rng) -> int:
-    """The truth tracks repeated end to end over `n_frames` frames, with pixel noise; rows."""
+    """The truth tracks repeated end to end over `n_frames` reference frames, with pixel
+    noise; rows. Each camera repeats a block of the same duration (a whole number of frames
+    at every camera's rate: 3,003 frames at 30 fps are 3,000 at 29.97), so that the cameras'
+    clocks stay as the calibration states them however long the session."""
     tracks = load_tracks(truth / "tracks.csv")
-    block = int(tracks.frame.max()) + 1
-    repeats = -(-n_frames // block)
-    frame = (tracks.frame[None] + block * np.arange(repeats)[:, None]).ravel()
-    keep = frame < n_frames
-    xy = np.tile(tracks.xy, (repeats, 1))[keep] + rng.normal(0, NOISE_PX, (int(keep.sum()), 2))
-    table = pa.table({"camera": np.tile(tracks.camera.astype(str), repeats)[keep], "frame": frame[keep],
-                      "marker": np.tile(tracks.marker.astype(str), repeats)[keep],
-                      "x": np.round(xy[:, 0], 4), "y": np.round(xy[:, 1], 4)})
+    calibration = load_calibration(truth / "cameras.toml")
+    fps = calibration.fps()
+    spans = [int(tracks.frame[tracks.camera == c].max()) + 1 for c in calibration.names]
+    available = min(int(span * fps[0] / rate) for span, rate in zip(spans, fps))
+    block = next((n for n in range(available, 0, -1)
+                  if np.all(np.abs(n * fps / fps[0] - np.round(n * fps / fps[0])) < 1e-6)), available)
+    columns = {name: [] for name in ("camera", "frame", "marker", "x", "y")}
+    for name, rate in zip(calibration.names, fps):
+        own = tracks.of_camera(name)
+        own_block = int(round(block * rate / fps[0]))
+        keep = own.frame < own_block
+        frame0, xy0 = own.frame[keep], own.xy[keep]
+        repeats = -(-int(n_frames * rate / fps[0]) // own_block)
+        frame = (frame0[None] + own_block * np.arange(repeats)[:, None]).ravel()
+        inside = frame < n_frames * rate / fps[0]
+        xy = np.tile(xy0, (repeats, 1))[inside]
+        xy += rng.normal(0, NOISE_PX, xy.shape)
+        columns["camera"].append(np.full(int(inside.sum()), name))
+        columns["frame"].append(frame[inside])
+        columns["marker"].append(np.tile(own.marker[keep].astype(str), repeats)[inside])
+        columns["x"].append(np.round(xy[:, 0], 4))
+        columns["y"].append(np.round(xy[:, 1], 4))
+    table = pa.table({k: np.concatenate(v) for k, v in columns.items()})
+    if path.suffix == ".parquet":
+        pq.write_table(table, path)
+        return table.num_rows
     with open(path, "wb") as fh:
         fh.write(b"camera,frame,marker,x,y\n")
         pacsv.write_csv(table, fh, pacsv.WriteOptions(include_header=False, quoting_style="none"))
@@ -179,12 +204,32 @@ def start_table(root: Path) -> None:
         print(f"  mocap {' '.join(args):<20} {best:6.2f}")
 
 
+LONG_STAGES = ("sync", "triangulate", "fit", "analyze")
+
+
 def long_child(work: Path, truth: Path, root: Path, tracks: Path) -> None:
-    """Run fit and analyze on the long session; print their wall times and peak RSS."""
-    fit = run(mocap("fit", MACHINE, truth / "cameras.toml", tracks, "--out", work / "long_motion.csv"), root)
-    analyze = run(mocap("analyze", MACHINE, work / "long_motion.csv", "--out", work / "long_analysis"), root)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20  # KiB -> GiB
-    print(json.dumps({"fit": fit, "analyze": analyze, "peak_gib": peak}))
+    """The long session from tracks to analysis as `mocap run` runs it after tracking (sync,
+    triangulate, fit, analyze); print each command's wall time and peak resident memory."""
+    out = work / "long"
+    out.mkdir(exist_ok=True)
+    cameras = out / "cameras.toml"
+    commands = {
+        "sync": mocap("sync", truth / "cameras.toml", tracks, "--machine", MACHINE, "--out", cameras),
+        "triangulate": mocap("triangulate", cameras, tracks, "--out", out / "points.parquet"),
+        "fit": mocap("fit", MACHINE, cameras, tracks, "--out", out / "motion.parquet"),
+        "analyze": mocap("analyze", MACHINE, out / "motion.parquet", "--out", out / "analysis"),
+    }
+    result = {}
+    for name in LONG_STAGES:
+        start = time.perf_counter()
+        child = subprocess.Popen(commands[name], cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        stderr = child.stderr.read()
+        _, status, usage = os.wait4(child.pid, 0)  # this command's own peak memory
+        if status:
+            sys.exit(f"{name} failed:\n{stderr.decode()[-2000:]}")
+        result[name] = [time.perf_counter() - start, usage.ru_maxrss / 2**20,  # KiB -> GiB
+                        usage.ru_utime + usage.ru_stime]
+    print(json.dumps(result))
 
 
 def main() -> None:
@@ -213,17 +258,21 @@ def main() -> None:
         start_table(root)
         if args.skip_long:
             return
-        long_tracks = work / "long_tracks.csv"
+        long_tracks = work / "long_tracks.parquet"
         rows = write_long_tracks(truth, args.long_frames, long_tracks, rng)
         done = subprocess.run([sys.executable, __file__, "--long-child", str(work), str(long_tracks)],
                               cwd=root, capture_output=True, text=True)
         if done.returncode:
             sys.exit(done.stdout[-2000:] + done.stderr[-2000:])
         result = json.loads(done.stdout.strip().splitlines()[-1])
-        print(f"\n(4) {args.long_frames:,} frames ({rows:,} track rows), tracks -> fit -> analyze")
-        print(f"  fit {result['fit']:.1f} s, analyze {result['analyze']:.1f} s, "
-              f"total {result['fit'] + result['analyze']:.1f} s (target 120), "
-              f"peak memory {result['peak_gib']:.2f} GiB (target 4)")
+        print(f"\n(4) {args.long_frames:,} frames ({rows:,} track rows, Parquet), tracks -> sync -> triangulate -> "
+              "fit -> analyze (as mocap run after tracking)")
+        print(f"{'command':<12} {'wall s':>8} {'CPU s':>8} {'peak GiB':>9}")
+        for name in LONG_STAGES:
+            print(f"{name:<12} {result[name][0]:8.1f} {result[name][2]:8.1f} {result[name][1]:9.2f}")
+        total, cpu = sum(result[n][0] for n in LONG_STAGES), sum(result[n][2] for n in LONG_STAGES)
+        peak = max(result[n][1] for n in LONG_STAGES)
+        print(f"{'total':<12} {total:8.1f} {cpu:8.1f} {peak:9.2f}   targets 120 s, 4 GiB")
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mocap.geometry import Rigid
 
@@ -99,6 +98,8 @@ class Camera:
 
     def to_paper(self) -> PaperCamera:
         """The paper's view: exact when fx == fy, no skew and no distortion (M = mean focal)."""
+        from scipy.spatial.transform import Rotation  # here: scipy.spatial takes a while to import
+
         world_from_paper = self.cam_from_world.rotation.T @ CV_FROM_PAPER
         azimuth, elevation, tilt = Rotation.from_matrix(world_from_paper).as_euler("ZYX")
         return PaperCamera(azimuth, elevation, tilt, self.center, self.focal)
@@ -115,6 +116,8 @@ class Camera:
         """OpenCV camera from the paper's parameters; principal point defaults to the image centre."""
         if principal_point is None:
             principal_point = default_principal_point(size)
+        from scipy.spatial.transform import Rotation
+
         world_from_paper = Rotation.from_euler(
             "ZYX", [paper.azimuth, paper.elevation, paper.tilt]
         ).as_matrix()

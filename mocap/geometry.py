@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def rot_x(angle: np.ndarray | float) -> np.ndarray:
@@ -44,17 +43,23 @@ def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
 
 def matrix_to_rpy(matrix: np.ndarray) -> np.ndarray:
     """Inverse of `rpy_to_matrix`: (*, 3, 3) -> (*, 3) (roll, pitch, yaw) in rad."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial takes a while to import
+
     zyx = Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_euler("ZYX")
     return zyx[..., ::-1]
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues vectors (*, 3) -> rotation matrices (*, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix()
 
 
 def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
     """Rotation matrices (*, 3, 3) -> Rodrigues vectors (*, 3)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_rotvec()
 
 

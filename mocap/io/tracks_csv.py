@@ -87,13 +87,22 @@ class Tracks:
         mark_index = {name: i for i, name in enumerate(markers)}
         frames = np.asarray(frames)
         out = np.full((len(cameras), len(frames), len(markers), 2), np.nan)
-        c = np.array([cam_index.get(name, -1) for name in self.camera], dtype=int)
-        m = np.array([mark_index.get(name, -1) for name in self.marker], dtype=int)
+        c, m = _indices(self.camera, cam_index), _indices(self.marker, mark_index)
         f = np.searchsorted(frames, self.frame)
         f_ok = (f < len(frames)) & (frames[np.minimum(f, len(frames) - 1)] == self.frame)
         ok = (c >= 0) & (m >= 0) & f_ok
         out[c[ok], f[ok], m[ok]] = self.xy[ok]
         return out
+
+
+def _indices(names: np.ndarray, index: dict) -> np.ndarray:
+    """(R,) the `index` of each name, -1 for a name it lacks: looked up once per distinct
+    name (the column dictionary-encoded), not once per row."""
+    if not len(names):
+        return np.zeros(0, int)
+    encoded = pa.array(names, pa.string()).dictionary_encode()
+    lookup = np.array([index.get(name, -1) for name in encoded.dictionary.to_pylist()], dtype=int)
+    return lookup[encoded.indices.to_numpy(zero_copy_only=False)]
 
 
 def concatenate(parts: list[Tracks]) -> Tracks:

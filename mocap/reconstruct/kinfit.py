@@ -1,9 +1,9 @@
 """The batched kinematic fit: per frame, the joint values that best explain every camera's
 marker pixels (the paper's multi-frame fit).
 
-All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model for
-every frame, builds each frame's small normal equations (block-diagonal over frames) and
-solves them together with numpy. Residuals are robustified by iteratively reweighted
+All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model and
+builds each frame's small normal equations for every frame in one compiled pass
+(mocap.reconstruct.kinkernel) and solves them together with numpy. Residuals are robustified by iteratively reweighted
 least squares (Huber or Cauchy, scale in pixels); frames that have converged leave the
 batch. Without starting values, every few frames (key frames) start from the best of a
 coarse grid of joint values inside the limits (evaluated for all key frames by one
@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 _BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
 _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
 _CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
+_SAME_PX2 = 0.1  # a restart this close (px^2, by the normal matrix) to a known solution has found it
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class FitOptions:
     projected into each camera (the pixel noise taken as noise_px, or 0.5 px, for that).
     """
 
-    iterations: int = 12
+    iterations: int = 30
     loss: str = "huber"
     scale_px: float = 2.0
     noise_px: float | None = None
@@ -86,7 +87,7 @@ class JointFit:
     the pixel noise; information (F, P, P) its inverse without regularisation (singular
     where a joint is unobserved); residuals (C, F, M, 2) observed minus predicted px, NaN
     where not observed (divided by the tolerance's weight, if any); weights (C, F, M) final
-    robust weights; rms_px (F,) RMS residual
+    robust weights (both float32: a two-hour session's are large); rms_px (F,) RMS residual
     of the inlier-weighted observations; n_observations (F,) 2-D observations used; noise_px
     the pixel SD behind the covariance (given, or estimated robustly from the residuals);
     valid (F,) frames with enough observations; explained (F,) False for a valid frame
@@ -176,18 +177,17 @@ def fit_joints(
         problem.restart_from_grid(pixels, state, start_base)
     else:
         state = problem.solve_all(pixels, start, start_base)
-    for _ in range(options.repair_passes):
-        if not problem.repair(pixels, state):
-            break
+    problem.repair(pixels, state, options.repair_passes)
     for sweep in (False, True):  # neighbours' solutions first; the grid and joint sweeps for what is left
         noise = options.noise_px or problem.noise(pixels, state)
         suspect = problem.misfit(pixels, state, noise, 1e-4, 0.2) if not sweep else problem.misfit(pixels, state, noise)
         if not suspect.any():
             break
-        problem.multistart(pixels, state, np.nonzero(suspect)[0], sweep)
-        for _ in range(n_frames):  # mended frames hand their solution on along a wrong stretch
-            if not problem.repair(pixels, state):
-                break
+        if sweep:
+            problem.multistart(pixels, state, np.nonzero(suspect)[0])
+        else:
+            problem.propagate(pixels, state, np.nonzero(suspect)[0])
+        problem.repair(pixels, state, n_frames)  # mended frames hand their solution on along a wrong stretch
     noise = options.noise_px or problem.noise(pixels, state)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
@@ -240,9 +240,7 @@ class _Problem(KinematicModel):
         # wrong start everywhere looks like large noise), and what they find is handed on
         probes = np.unique(np.linspace(0, len(keys) - 1, min(64, len(keys))).round().astype(int))
         self.multistart(key_pixels, state, probes)
-        for _ in range(len(keys)):
-            if not self.repair(key_pixels, state):
-                break
+        self.repair(key_pixels, state, len(keys))
         n_obs = np.isfinite(key_pixels[..., 0]).sum((0, 2))
         good = 2 * n_obs >= self.n_params
         if good.sum() < 2:
@@ -274,10 +272,15 @@ class _Problem(KinematicModel):
             translation = start_base[:, 3:].copy()
         return self.levenberg_marquardt(pixels, FrameState(joints, rotation, translation, np.zeros(len(joints))))
 
-    def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState) -> FrameState:
-        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged."""
-        residual, jac = self.evaluate(pixels, state)
-        weight, cost = self.robust(residual)
+    def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState, known: FrameState | None = None) -> FrameState:
+        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged.
+
+        `known` (a solved FrameState over the same frames): a frame also leaves once it is
+        within `_SAME_PX2` (its model pixels moved by less than that, squared and summed, by
+        the known solution's normal matrix) of the known solution, with cost +inf: it would
+        only converge to it (a restart that finds the frame's own minimum again stops early
+        and is never preferred to it)."""
+        residual, weight, cost, hessian, gradient = self.normal_equations(pixels, state)
         base = state.rotation is not None
         joints = state.joints.copy()
         rotation = state.rotation.copy() if base else None
@@ -287,31 +290,45 @@ class _Problem(KinematicModel):
         active = np.arange(len(cost))
         for _ in range(self.options.iterations):
             a = active
-            jw = jac[a] * weight[a][..., None]
-            hessian = np.swapaxes(jw, 1, 2) @ jac[a]
-            gradient = (residual[a][:, None, :] @ jw)[:, 0]
-            diag = np.diagonal(hessian, axis1=1, axis2=2)
-            lhs = hessian + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
-            delta = np.linalg.solve(lhs, gradient[..., None])[..., 0]
+            diag = np.diagonal(hessian[a], axis1=1, axis2=2)
+            lhs = hessian[a] + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
+            delta = np.linalg.solve(lhs, gradient[a][..., None])[..., 0]
             current = FrameState(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
             trial = self.step(current, delta)
-            trial_residual, trial_jac = self.evaluate(pixels[a], trial)
-            trial_weight, trial_cost = self.robust(trial_residual)
-            better = trial_cost <= cost[a]
-            change = np.abs(cost[a] - trial_cost) / np.maximum(cost[a], 1e-12)
+            t_residual, t_weight, t_cost, t_hessian, t_gradient = self.normal_equations(pixels[a], trial)
+            better = t_cost <= cost[a]
+            change = np.abs(cost[a] - t_cost) / np.maximum(cost[a], 1e-12)
             kept = a[better]
             joints[kept] = trial.joints[better]
             if base:
                 rotation[kept] = trial.rotation[better]
                 translation[kept] = trial.translation[better]
-            residual[kept], jac[kept], weight[kept] = trial_residual[better], trial_jac[better], trial_weight[better]
-            cost[kept] = trial_cost[better]
+            residual[kept], weight[kept], cost[kept] = t_residual[better], t_weight[better], t_cost[better]
+            hessian[kept], gradient[kept] = t_hessian[better], t_gradient[better]
             damping[a] = np.clip(np.where(better, damping[a] * 0.3, damping[a] * 10.0), 1e-9, 1e9)
-            active = a[change >= _CONVERGED]
+            going = change >= _CONVERGED
+            if known is not None:
+                settled = self._distance(joints[a], rotation[a] if base else None,
+                                         translation[a] if base else None, known, a) < _SAME_PX2
+                cost[a[settled]] = np.inf
+                going &= ~settled
+            active = a[going]
             if not len(active):
                 break
-        hessian = np.swapaxes(jac * weight[..., None], 1, 2) @ jac
         return FrameState(joints, rotation, translation, cost, hessian, residual, weight)
+
+    def _distance(self, joints, rotation, translation, known: FrameState, index: np.ndarray) -> np.ndarray:
+        """(len(index),) squared pixel distance dᵀHd of parameters from the known solution
+        of those frames (full-circle joints compared modulo their span)."""
+        diff = joints - known.joints[index]
+        span = self.upper - self.lower
+        wrapped = np.mod(diff + 0.5 * span, np.where(self.wrap, span, np.inf)) - 0.5 * span
+        parts = [np.where(self.wrap, wrapped, diff)]
+        if rotation is not None:
+            parts += [matrix_to_rotvec(rotation @ np.swapaxes(known.rotation[index], 1, 2)),
+                      translation - known.translation[index]]
+        d = np.concatenate(parts, axis=1)
+        return np.einsum("fp,fpq,fq->f", d, known.hessian[index], d)
 
     def grid_start(self, pixels: np.ndarray) -> np.ndarray:
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
@@ -347,24 +364,39 @@ class _Problem(KinematicModel):
                 axes.append(lower[j] + span[j] * (np.arange(levels[j]) + 0.5) / levels[j])
         return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, n_joints)
 
-    def repair(self, pixels: np.ndarray, state: FrameState) -> bool:
+    def repair(self, pixels: np.ndarray, state: FrameState, passes: int) -> bool:
         """Restart frames whose cost is far above a neighbour's from that neighbour's
-        solution; keep the better. Returns whether any frame improved."""
-        n_obs = np.isfinite(pixels).all(-1).sum((0, 2))
-        per_obs = state.cost / np.maximum(n_obs, 1)
-        improved = False
-        for shift in (1, -1):
-            neighbour = np.clip(np.arange(len(per_obs)) - shift, 0, len(per_obs) - 1)
-            bad = np.nonzero((per_obs > 4.0 * per_obs[neighbour] + self.options.scale_px**2) & (n_obs > 0))[0]
-            if not len(bad):
-                continue
-            restart = state.take(neighbour[bad])
-            fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, bad], 1, 0), restart)
-            better = fitted.cost < state.cost[bad]
-            state.put(bad, fitted, better)
-            per_obs[bad[better]] = fitted.cost[better] / np.maximum(n_obs[bad[better]], 1)
-            improved |= bool(better.any())
+        solution and keep the better, up to `passes` times; after the first pass only the
+        frames next to one that improved are looked at again. Returns whether any frame
+        improved."""
+        n_frames = pixels.shape[1]
+        frames, improved = np.arange(n_frames), False
+        n_obs = (np.isfinite(pixels[..., 0]) & np.isfinite(pixels[..., 1])).sum((0, 2))
+        for _ in range(passes):
+            mended = self._repair_pass(pixels, state, frames, n_obs)
+            if not len(mended):
+                break
+            improved = True
+            frames = np.unique(np.clip(np.r_[mended - 1, mended, mended + 1], 0, n_frames - 1))
         return improved
+
+    def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, n_obs: np.ndarray) -> np.ndarray:
+        """One pass of `repair` over `frames` (sorted), n_obs (F,) observations per frame;
+        the frames that improved."""
+        n_frames, improved = pixels.shape[1], []
+        per_obs = state.cost / np.maximum(n_obs, 1)
+        for shift in (1, -1):
+            neighbour = np.clip(frames - shift, 0, n_frames - 1)
+            bad = (per_obs[frames] > 4.0 * per_obs[neighbour] + self.options.scale_px**2) & (n_obs[frames] > 0)
+            if not bad.any():
+                continue
+            index = frames[bad]
+            fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, index], 1, 0), state.take(neighbour[bad]))
+            better = fitted.cost < state.cost[index]
+            state.put(index, fitted, better)
+            per_obs[index[better]] = fitted.cost[better] / np.maximum(n_obs[index[better]], 1)
+            improved.append(index[better])
+        return np.unique(np.concatenate(improved)) if improved else np.zeros(0, int)
 
     # --- frames nothing explains -------------------------------------------------------
     def noise(self, pixels: np.ndarray, state: FrameState) -> float:
@@ -426,6 +458,27 @@ class _Problem(KinematicModel):
                 starts.append(FrameState(joints, own.rotation, own.translation, own.cost))
         self._keep_best(pixels, state, frames, starts)
 
+    def propagate(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> None:
+        """Fit `frames` again from each neighbour's solution (the frames before and after)
+        and keep any improvement; the neighbours of a frame that improved are fitted again
+        from it in turn, until nothing improves: a wrong stretch is mended from its ends
+        inward, however long, at two restarts per frame and pass."""
+        n_frames = pixels.shape[1]
+        todo = np.unique(frames)
+        for _ in range(n_frames):
+            if not len(todo):
+                break
+            improved = []
+            for shift in (1, -1):
+                source = np.clip(todo + shift, 0, n_frames - 1)
+                own = state.take(todo)
+                fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, todo], 1, 0), state.take(source), own)
+                better = fitted.cost < own.cost
+                state.put(todo, fitted, better)
+                improved.append(todo[better])
+            improved = np.concatenate(improved)
+            todo = np.unique(np.clip(np.r_[improved - 1, improved + 1], 0, n_frames - 1))
+
     def _keep_best(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, starts: list[FrameState]) -> None:
         """LM on `frames` from every start (each a FrameState over the frames); the best kept
         where it beats the frame's own solution."""
@@ -433,7 +486,8 @@ class _Problem(KinematicModel):
             FrameState(s.joints, s.rotation, s.translation, s.cost) for s in starts
         ])
         repeated = np.tile(frames, len(starts))
-        fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, repeated], 1, 0), tries)
+        own = state.take(repeated)
+        fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, repeated], 1, 0), tries, own)
         best = np.argmin(fitted.cost.reshape(len(starts), len(frames)), axis=0)
         chosen = fitted.take(best * len(frames) + np.arange(len(frames)))
         state.put(frames, chosen, chosen.cost < state.cost[frames])
@@ -446,8 +500,8 @@ class _Problem(KinematicModel):
         seen_rows = np.repeat(np.moveaxis(seen, 1, 0).reshape(n_frames, -1), 2, axis=1)
         n_obs = seen.sum((0, 2))
         valid = 2 * n_obs >= self.n_params
-        weighted = (weight * residual**2).sum(1)
-        inlier_weight = (weight * seen_rows).sum(1)
+        weighted = (weight * residual**2).sum(1, dtype=float)
+        inlier_weight = (weight * seen_rows).sum(1, dtype=float)
         rms = np.sqrt(weighted / np.maximum(inlier_weight, 1e-12))
         log.info("pixel noise: %.3f px", noise)
         eye = np.eye(self.n_params)

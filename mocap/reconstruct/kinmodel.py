@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocap.camera import Camera, project_cam
-from mocap.geometry import cross, rotvec_to_matrix
-from mocap.machine import REVOLUTE, Machine
+from mocap.geometry import rotvec_to_matrix
+from mocap.machine import Machine
 
 LOSSES = ("huber", "cauchy", "linear")
 
@@ -83,10 +83,22 @@ class KinematicModel:
         self.lower, self.upper = limits[:, 0], limits[:, 1]
         self.n_params = machine.n_joints + (6 if base_motion else 0)
         self.moves = machine.moves[:, machine.marker_links]  # (J, M)
-        self.link_groups = [
-            (link, np.nonzero(machine.marker_links == link)[0], machine.marker_positions[machine.marker_links == link])
-            for link in np.unique(machine.marker_links)
-        ]
+        self._camera_arrays = (
+            np.array([c.cam_from_world.rotation for c in cameras], dtype=float).reshape(-1, 3, 3),
+            np.array([c.cam_from_world.translation for c in cameras], dtype=float).reshape(-1, 3),
+            np.array([[c.matrix[0, 0], c.matrix[0, 1], c.matrix[0, 2], c.matrix[1, 1], c.matrix[1, 2]]
+                      for c in cameras], dtype=float).reshape(-1, 5),
+            np.array([np.broadcast_to(c.distortion, 5) for c in cameras], dtype=float).reshape(-1, 5),
+        )
+        first, second = machine._motion_terms
+        revolute, parents, at_zero, axes = machine._chain
+        self._chain_arrays = (
+            first, second, np.asarray(revolute, dtype=bool), np.asarray(parents, dtype=np.int64), np.ascontiguousarray(at_zero, dtype=float),
+            np.asarray(machine.joint_links, dtype=np.int64).reshape(-1), np.ascontiguousarray(axes),
+            np.asarray(machine.marker_links, dtype=np.int64).reshape(-1),
+            np.ascontiguousarray(machine.marker_positions, dtype=float).reshape(-1, 3),
+            np.ascontiguousarray(self.moves, dtype=bool).reshape(machine.n_joints, len(machine.marker_names)), len(machine.links),
+        )
 
     def world_markers(self, state: FrameState):
         """Markers in the world (F, M, 3) and their derivatives by the parameters (F, M, 3, P).
@@ -95,34 +107,19 @@ class KinematicModel:
         axis and o_j its origin in the world; prismatic: a_j. Base rotation increment w
         (on the left): d p / d w = -[p - t]x; base translation: the identity.
         """
-        machine = self.machine
-        poses = machine.link_poses(state.joints)
-        n_frames = len(poses)
-        if state.rotation is not None:
-            world_from_base = np.tile(np.eye(4), (n_frames, 1, 1))
-            world_from_base[:, :3, :3] = state.rotation
-            world_from_base[:, :3, 3] = state.translation
-            poses = world_from_base[:, None] @ poses
+        from mocap.reconstruct.kinkernel import world_markers
+
+        machine, joints = self.machine, np.ascontiguousarray(state.joints, dtype=float)
+        n_frames = len(joints)
         markers = np.empty((n_frames, len(machine.marker_names), 3))
-        for link, index, local in self.link_groups:
-            markers[:, index] = local @ np.swapaxes(poses[:, link, :3, :3], 1, 2) + poses[:, link, None, :3, 3]
-        d_world = np.zeros(markers.shape + (self.n_params,))
-        for j, (link, joint) in enumerate(zip(machine.joint_links, machine.joints)):
-            axis = (poses[:, link, :3, :3] @ joint.axis)[:, None, :]  # (F, 1, 3)
-            moved = self.moves[j]
-            if joint.type == REVOLUTE:
-                lever = markers[:, moved] - poses[:, link, None, :3, 3]
-                d_world[..., j][:, moved] = cross(axis, lever)
-            else:
-                d_world[..., j][:, moved] = axis
-        if state.rotation is not None:
-            n_joints = machine.n_joints
-            lever = markers - state.translation[:, None]
-            for i in range(3):
-                unit = np.zeros(3)
-                unit[i] = 1.0
-                d_world[..., n_joints + i] = cross(unit, lever)
-                d_world[..., i, n_joints + 3 + i] = 1.0
+        d_world = np.empty(markers.shape + (self.n_params,))
+        if state.rotation is None:
+            rotation, translation = np.empty((0, 3, 3)), np.empty((0, 3))
+        else:
+            rotation = np.ascontiguousarray(state.rotation, dtype=float)
+            translation = np.ascontiguousarray(state.translation, dtype=float)
+        world_markers(joints.reshape(n_frames, machine.n_joints), rotation, translation, *self._chain_arrays,
+                      markers, d_world)
         return markers, d_world
 
     def evaluate(self, pixels: np.ndarray, state: FrameState):
@@ -145,6 +142,23 @@ class KinematicModel:
             d_uv_world = (d_uv.reshape(-1, 3) @ rot).reshape(d_uv.shape) * weight[..., None, None]
             np.matmul(d_uv_world, d_world, out=jac[:, c])
         return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
+
+    def normal_equations(self, pixels: np.ndarray, state: FrameState):
+        """For pixels (F, C, M, 2): robustly weighted residuals (F, N) as `evaluate`'s,
+        their weights (F, N) (both float32: kept for a whole session, not computed with),
+        the robust cost (F,), JᵀWJ (F, P, P) and JᵀWr (F, P), by the compiled kernel
+        (mocap.reconstruct.kinkernel)."""
+        from mocap.reconstruct.kinkernel import LOSS_CODES, normal_equations
+
+        markers, d_world = self.world_markers(state)
+        n_frames, n_rows, n_params = len(markers), 2 * len(self.cameras) * markers.shape[1], self.n_params
+        out = (np.empty((n_frames, n_rows), np.float32), np.empty((n_frames, n_rows), np.float32), np.empty(n_frames),
+               np.empty((n_frames, n_params, n_params)), np.empty((n_frames, n_params)))
+        sd = np.empty(0) if self.marker_sd is None else self.marker_sd
+        normal_equations(markers, np.ascontiguousarray(d_world), np.ascontiguousarray(pixels, dtype=float),
+                         *self._camera_arrays, sd, float(self.noise_px), LOSS_CODES[self.loss],
+                         float(self.scale_px), *out)
+        return out
 
     def robust(self, residual: np.ndarray):
         """Per-observation weights and per-frame cost for residuals (F, N)."""

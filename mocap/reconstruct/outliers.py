@@ -56,19 +56,21 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
 
 def _deviations(pixels: np.ndarray):
     """Per pixel (F, M): whether two or more predictions exist, and the deviation from the
-    nearest one divided by its noise gain, and in pixels."""
-    n_frames = pixels.shape[0]
-    padded = np.pad(pixels, ((3, 3), (0, 0), (0, 0)), constant_values=np.nan)
-    raw, scaled = [], []
-    for weights in _PREDICTORS:
-        predicted = sum(w * padded[3 + k : 3 + k + n_frames] for k, w in weights.items())
-        gain = np.sqrt(1.0 + sum(w * w for w in weights.values()))  # noise of pixel minus prediction
-        raw.append(np.linalg.norm(pixels - predicted, axis=-1))
-        scaled.append(raw[-1] / gain)
-    raw, scaled = np.stack(raw), np.stack(scaled)  # (K, F, M), NaN where not available
-    judged = np.isfinite(scaled).sum(0) >= 2
-    best = np.argmin(np.where(np.isfinite(scaled), scaled, np.inf), axis=0)[None]
-    return judged, np.take_along_axis(scaled, best, 0)[0], np.take_along_axis(raw, best, 0)[0]
+    nearest one divided by its noise gain, and in pixels (compiled:
+    mocap.reconstruct.outliers_kernel)."""
+    from mocap.reconstruct.outliers_kernel import deviations
+
+    n_terms = max(len(w) for w in _PREDICTORS)
+    offsets = np.zeros((len(_PREDICTORS), n_terms), np.int64)
+    weights = np.zeros((len(_PREDICTORS), n_terms))
+    for k, predictor in enumerate(_PREDICTORS):
+        offsets[k, : len(predictor)] = list(predictor)
+        weights[k, : len(predictor)] = list(predictor.values())
+    gains = np.sqrt(1.0 + (weights**2).sum(1))  # noise of pixel minus prediction
+    shape = pixels.shape[:2]
+    out = np.empty(shape, bool), np.empty(shape), np.empty(shape)
+    deviations(np.ascontiguousarray(pixels, dtype=float), offsets, weights, gains, *out)
+    return out
 
 
 def noise_from_fits(sum_squares: np.ndarray, dof: np.ndarray) -> float:

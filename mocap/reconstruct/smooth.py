@@ -18,7 +18,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincinv
 
 log = logging.getLogger(__name__)
 
@@ -155,52 +154,20 @@ def _long_gaps(time: np.ndarray, valid: np.ndarray, max_gap_s: float) -> np.ndar
 
 
 def _rts(time, values, information, valid, q, options):
-    """Forward information-form Kalman filter and RTS backward pass -> mean (F, 2P),
-    covariance (F, 2P, 2P), rejected (F,)."""
-    n, p = values.shape
-    eye_p, eye_s = np.eye(p), np.eye(2 * p)
+    """Forward information-form Kalman filter and RTS backward pass (compiled:
+    mocap.reconstruct.rts_kernel) -> mean (F, 2P), covariance (F, 2P, 2P), rejected (F,)."""
+    from mocap.reconstruct.rts_kernel import rts
+
+    gate = np.inf
+    if options.gate_probability < 1:
+        from scipy.special import gammaincinv
+
+        gate = 2 * gammaincinv(values.shape[1] / 2, options.gate_probability)  # chi2.ppf
+    steps = np.round(np.r_[0.0, np.diff(time)], 9)
     first = int(np.argmax(valid))
-    x = np.r_[values[first], np.zeros(p)]
-    cov = _PRIOR_SD**2 * eye_s
-    gate = 2 * gammaincinv(p / 2, options.gate_probability)  # chi2.ppf, without scipy.stats' if options.gate_probability < 1 else np.inf
-    pred_mean = np.empty((n, 2 * p))
-    pred_cov = np.empty((n, 2 * p, 2 * p))
-    post_mean = np.empty((n, 2 * p))
-    post_cov = np.empty((n, 2 * p, 2 * p))
-    transitions = np.empty((n, 2 * p, 2 * p))
-    rejected = np.zeros(n, bool)
-    steps = np.round(np.r_[0.0, np.diff(time)], 9)  # to the nanosecond, so equal steps share a model
-    models = {}  # dt -> (transition, process noise): frames are mostly evenly spaced
-    for k in range(n):
-        dt = steps[k]
-        if dt not in models:
-            transition = eye_s.copy()
-            transition[:p, p:] = dt * eye_p
-            qd = np.diag(q)
-            models[dt] = (transition, np.block([[dt**3 / 3 * qd, dt**2 / 2 * qd], [dt**2 / 2 * qd, dt * qd]]))
-        transition, noise = models[dt]
-        x = transition @ x
-        cov = transition @ cov @ transition.T + noise
-        transitions[k], pred_mean[k], pred_cov[k] = transition, x, cov
-        if valid[k]:
-            info = information[k]
-            innovation = values[k] - x[:p]
-            s_info = info @ np.linalg.inv(eye_p + cov[:p, :p] @ info)  # (H P H^T + R)^-1
-            distance = innovation @ s_info @ innovation
-            if distance > gate:
-                rejected[k] = True
-            else:
-                gain = cov[:, :p] @ s_info
-                x = x + gain @ innovation
-                cov = cov - gain @ cov[:p, :]
-                cov = 0.5 * (cov + cov.T)
-        post_mean[k], post_cov[k] = x, cov
-    mean = post_mean.copy()
-    smoothed_cov = post_cov.copy()
-    for k in range(n - 2, -1, -1):
-        gain = post_cov[k] @ transitions[k + 1].T @ np.linalg.inv(pred_cov[k + 1])
-        mean[k] = post_mean[k] + gain @ (mean[k + 1] - pred_mean[k + 1])
-        smoothed_cov[k] = post_cov[k] + gain @ (smoothed_cov[k + 1] - pred_cov[k + 1]) @ gain.T
+    mean, cov, rejected = rts(steps, np.ascontiguousarray(values), np.ascontiguousarray(information, dtype=float),
+                              np.ascontiguousarray(valid), np.ascontiguousarray(q, dtype=float), float(gate),
+                              np.ascontiguousarray(values[first]), _PRIOR_SD**2)
     if rejected.any():
         log.info("smoother rejected %d measurement(s) as failed fits", int(rejected.sum()))
-    return mean, smoothed_cov, rejected
+    return mean, cov, rejected

@@ -78,6 +78,24 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     shape = pixels.shape[1:-1]
     flat = pixels.reshape(len(cameras), -1, 2)
     seen = np.isfinite(flat).all(-1)
+    solvable = np.nonzero(seen.sum(0) >= 2)[0]  # the others are left untouched: no point
+    xyz = np.full((flat.shape[1], 3), np.nan)
+    error_px = np.full(flat.shape[1], np.nan)
+    used = seen.copy()
+    if len(solvable):
+        xyz[solvable], error_px[solvable], used[:, solvable] = _triangulate_points(cameras, flat[:, solvable], options)
+    return Triangulation(
+        xyz.reshape(shape + (3,)),
+        error_px.reshape(shape),
+        used.sum(0).reshape(shape),
+        used.reshape((len(cameras),) + shape),
+    )
+
+
+def _triangulate_points(cameras: list[Camera], flat: np.ndarray, options: TriangulateOptions):
+    """Points (N,) each seen by two or more cameras, pixels (C, N, 2) -> xyz (N, 3) (NaN
+    with fewer than `min_views` views left), error_px (N,), used (C, N)."""
+    seen = np.isfinite(flat).all(-1)
     normalised = undistort(cameras, flat)
     used = seen.copy()
     xyz, residual, jac = _solve(cameras, flat, normalised, used, options.iterations)
@@ -104,13 +122,7 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     views = used.sum(0)
     enough = views >= options.min_views
     error_px = np.where(enough, np.sqrt(squared / np.maximum(views, 1)), np.nan)
-    xyz = np.where(enough[:, None], xyz, np.nan)
-    return Triangulation(
-        xyz.reshape(shape + (3,)),
-        error_px.reshape(shape),
-        views.reshape(shape),
-        used.reshape((len(cameras),) + shape),
-    )
+    return np.where(enough[:, None], xyz, np.nan), error_px, used
 
 
 def _noise(residual: np.ndarray, used: np.ndarray) -> float:

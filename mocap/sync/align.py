@@ -44,6 +44,8 @@ class JointCurves:
         if np.ndim(self.joints) != 2 or len(self.joints) != len(self.frames):
             raise ValueError(f"JointCurves: joints must be (F={len(self.frames)}, J), got {np.shape(self.joints)}")
 
+_COARSE_SAMPLES = 2_000  # samples compared at each offset of the coarse grid
+
 
 @dataclass(frozen=True)
 class SyncResult:
@@ -130,7 +132,9 @@ def synchronise(
         need = max(4, int(min_overlap * ok.sum()))
         step = 0.5 / fps[0]
         grid = np.arange(-max_offset, max_offset + step / 2, step)
-        costs = np.array([reference.cost(time + o, values, need, linear=True)[0] for o in grid])
+        stride = max(1, len(time) // _COARSE_SAMPLES)  # the coarse search on a long session's every stride-th sample
+        costs = np.array([reference.cost(time[::stride] + o, values[::stride], max(4, need // stride), linear=True)[0]
+                          for o in grid])
         if not np.any(np.isfinite(costs)):
             offsets[k], residual[k], reasons[k] = np.nan, np.nan, "the recordings do not overlap within the search range"
             continue

@@ -1,0 +1,48 @@
+"""The track-outlier deviations, compiled (numba): for every pixel of one camera's tracks,
+its distance from the nearest of the predictions its neighbouring frames make
+(mocap.reconstruct.outliers). Shapes: F frames, M markers, K predictors, T terms."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def deviations(pixels, offsets, weights, gains, judged, scaled, raw):
+    """Fill judged (F, M) (two or more predictions), scaled (F, M) (the nearest
+    prediction's distance over its noise gain) and raw (F, M) (that distance in px) for
+    pixels (F, M, 2), NaN where not seen. Predictor k is sum_t weights[k, t] *
+    pixels[f + offsets[k, t]] (terms with weight 0 unused), its noise gain gains[k]."""
+    n_frames, n_markers = pixels.shape[0], pixels.shape[1]
+    n_predictors, n_terms = offsets.shape
+    for f in range(n_frames):
+        for m in range(n_markers):
+            count, best_scaled, best_raw = 0, np.inf, np.nan
+            first_scaled, first_raw = np.nan, np.nan
+            for k in range(n_predictors):
+                px, py, ok = 0.0, 0.0, True
+                for t in range(n_terms):
+                    if weights[k, t] == 0.0:
+                        continue
+                    g = f + offsets[k, t]
+                    if g < 0 or g >= n_frames:
+                        ok = False
+                        break
+                    px = px + weights[k, t] * pixels[g, m, 0]
+                    py = py + weights[k, t] * pixels[g, m, 1]
+                r = np.nan
+                if ok:
+                    r = np.sqrt((pixels[f, m, 0] - px) ** 2 + (pixels[f, m, 1] - py) ** 2)
+                s = r / gains[k]
+                if k == 0:
+                    first_scaled, first_raw = s, r
+                if np.isfinite(s):
+                    count += 1
+                    if s < best_scaled:
+                        best_scaled, best_raw = s, r
+            judged[f, m] = count >= 2
+            if count:
+                scaled[f, m], raw[f, m] = best_scaled, best_raw
+            else:
+                scaled[f, m], raw[f, m] = first_scaled, first_raw
