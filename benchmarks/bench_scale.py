@@ -33,6 +33,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from mocap.cli import COMMANDS
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.text import read_text
 from mocap.io.tracks_csv import _parse, _validate, load_tracks
@@ -199,7 +200,7 @@ def parse_table(tracks: Path) -> None:
 
 def start_table(root: Path) -> None:
     print("\n(3) start time, wall s (best of 5; target 0.3)")
-    for args in [("--help",), ("triangulate", "--help"), ("fit", "--help"), ("analyze", "--help")]:
+    for args in [("--help",), *((command, "--help") for command in COMMANDS)]:
         best = min(run(mocap(*args), root) for _ in range(5))
         print(f"  mocap {' '.join(args):<20} {best:6.2f}")
 
