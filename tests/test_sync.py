@@ -13,7 +13,7 @@ from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
 from mocap.synthetic.scenes import observe, ring_of_cameras
-from mocap.sync.align import JointCurves, joint_curves, synchronise
+from mocap.sync.align import JointCurves, joint_curves, synchronise, window_frames
 
 FPS = np.array([30.0, 29.97, 25.0])
 OFFSETS = np.array([0.0, 0.437, -1.213])
@@ -56,6 +56,27 @@ def test_offsets_to_a_fraction_of_a_frame(scene):
     # 0.3 px noise on ~25 markers over 600-750 frames: the offset to ~0.01 frame
     assert np.max(np.abs(result.offsets - OFFSETS) * FPS[0]) < 0.05
     assert np.all(result.residual < 0.05) and np.all(result.overlap > 400)
+
+
+def test_a_long_session_is_synchronised_on_windows_of_it(scene):
+    machine, cameras, tracks = scene
+    spans = [(int(rows.frame.min()), int(rows.frame.max())) for rows in tracks]
+    assert [len(f) for f in window_frames(spans, FPS, 2.0, windows=4, window_s=4.0)] == [b - a + 1 for a, b in spans]
+    chosen = window_frames(spans, FPS, 2.0, windows=3, window_s=4.0)  # 25 s > 3 x (4 + 2 x 2) s: windows (not 4)
+    for k, frames in enumerate(chosen):
+        assert len(frames) == pytest.approx(3 * (4.0 + (4.0 if k == 0 else 0.0)) * FPS[k], abs=4)
+        # every other camera's window, moved by any offset in the search range, lies inside the reference's
+        if k:
+            for shift in (-2.0, 2.0):
+                time = frames / FPS[k] + shift
+                assert np.all(np.any(np.abs(time[:, None] - chosen[0] / FPS[0]) <= 1 / FPS[0], axis=1))
+    curves = [
+        joint_curves(machine, camera, frames, rows.dense([camera.name], machine.marker_names, frames)[0], START)
+        for camera, rows, frames in zip(cameras, tracks, chosen)
+    ]
+    result = synchronise(curves, FPS, max_offset=2.0)
+    assert result.reasons == ("", "", "")
+    assert np.max(np.abs(result.offsets - OFFSETS) * FPS[0]) < 0.1  # a third of the frames: still a tenth of a frame
 
 
 def test_a_still_machine_cannot_be_synchronised():

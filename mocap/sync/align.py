@@ -64,6 +64,33 @@ class SyncResult:
             raise ValueError("SyncResult: one residual, overlap and reason per camera")
 
 
+def window_frames(
+    spans: list[tuple[int, int]], fps: np.ndarray, max_offset: float, windows: int = 8, window_s: float = 60.0,
+) -> list[np.ndarray]:
+    """The frames of each camera that sync fits: (first, last) frame `spans` (C,) at `fps` (C,).
+
+    A session no longer than `windows` windows of `window_s` s (each widened by `max_offset`
+    on both sides) is fitted whole. A longer one in `windows` windows spread evenly over the
+    reference camera's (camera 0's) recording: the other cameras' windows span `window_s` of
+    their own clock, the reference's are widened by `max_offset` on both sides, so that every
+    other camera's window stays inside the reference's at any offset in the search range. An
+    offset is a constant, so a few minutes of motion fix it as well as two hours do.
+    """
+    fps = np.asarray(fps, dtype=float)
+    everything = [np.arange(first, last + 1) for first, last in spans]
+    first, last = spans[0][0] / fps[0], spans[0][1] / fps[0]
+    if last - first <= windows * (window_s + 2 * max_offset):
+        return everything
+    starts = first + np.linspace(max_offset, last - first - window_s - max_offset, windows)  # s
+    chosen = []
+    for k, frames in enumerate(everything):
+        margin = max_offset if k == 0 else 0.0
+        time = frames / fps[k]
+        inside = np.any((time[:, None] >= starts - margin) & (time[:, None] <= starts + window_s + margin), axis=1)
+        chosen.append(frames[inside])
+    return chosen
+
+
 def joint_curves(
     machine: Machine, camera: Camera, frames: np.ndarray, pixels: np.ndarray, start: np.ndarray | None = None,
     max_rms_px: float = 5.0, max_sd: float = 0.02,

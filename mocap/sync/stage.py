@@ -11,7 +11,7 @@ from mocap.errors import InputError
 from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.sync.align import joint_curves, pose_curves, synchronise
+from mocap.sync.align import joint_curves, pose_curves, synchronise, window_frames
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
@@ -34,10 +34,13 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")
     fps = frame_rates(calibration, tracks, parse_fps(fps_values, calibration.names))
+    spans = []
+    for camera in calibration.cameras:
+        frame = tracks.of_camera(camera.name).frame
+        spans.append((int(frame.min()), int(frame.max())))
     curves = []
-    for k, camera in enumerate(calibration.cameras):
+    for k, (camera, frames) in enumerate(zip(calibration.cameras, window_frames(spans, fps, max_offset))):
         rows = tracks.of_camera(camera.name)
-        frames = np.arange(rows.frame.min(), rows.frame.max() + 1)
         pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
         if machine.n_joints:
             curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
