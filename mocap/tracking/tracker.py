@@ -22,7 +22,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept, unique
+from mocap.detect import (DetectOptions, Detections, concatenate, find_candidates, refine, refine_and_accept,
+                          unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,11 @@ class TrackOptions:
     outlier_px: least residual at which the fit disowns a detection; regain_px_per_frame,
     regain_max_px: how far the search for a marker not seen for a while reaches, growing
     with the frames it was missed; min_markers: markers needed to fit the joints;
-    lost_frames: frames without a fit before the whole frame is searched again; occlusion:
+    lost_frames: frames without a fit before the whole frame is searched again;
+    near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
+    needs (a full-frame search holds to `detect`); near_ring_spread: the factor on
+    `detect.max_ring_spread` a disk refined from a small window there may reach, if it
+    stays put (`Tracker._refine_small`); occlusion:
     predict markers hidden by the machine's links (boxes); perspective: move each labelled
     centre from its image ellipse's centre to the image of the disk's centre, by the
     fitted model (`CameraModel.centre_offsets`).
@@ -53,6 +58,8 @@ class TrackOptions:
     regain_max_px: float = 60.0
     min_markers: int = 5
     lost_frames: int = 15
+    near_contrast: float = 0.5
+    near_ring_spread: float = 1.25
     occlusion: bool = True
     perspective: bool = True
     detect: DetectOptions = field(default_factory=DetectOptions)
@@ -290,6 +297,23 @@ class Tracker:
         state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
+    def _refine_small(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions) -> Detections:
+        """Disks refined from small windows at `xy` (K, 2) with `shape` (K, 2, 2). Where a
+        disk's square is narrower than its ring, the ring reaches the paint around it and
+        its darkest part is darker than a clean ring's: such a disk, refused by the ring
+        test, is taken with `near_ring_spread` times the test's bound if it stays put when
+        refined again from where it arrived (a window that straddles a disk's edge, whose
+        ring the disk itself darkens, moves on)."""
+        strict = refine_and_accept(gray, xy, shape, detect)
+        loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
+        loose = refine_and_accept(gray, xy, shape, loose_options)
+        loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
+        if len(loose) == 0:
+            return strict
+        again, _ = refine(gray, loose.xy, 0.25 * loose.shape)
+        stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
+        return concatenate([strict, loose.select(stays)])
+
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
                 expected: np.ndarray, recent: np.ndarray) -> Detections:
         """Disks near the predicted markers: refined from each prediction (with the marker's
@@ -297,13 +321,24 @@ class Tracker:
         markers not found so (those missed for long only every 4th frame), searched in a
         window (gate) around the prediction. Duplicates merged."""
         missed = self.state.missed
+        # where the model puts a marker, a fainter disk (worn paint at a grazing angle) is
+        # taken than a full-frame search would take: the gates and the fit vouch for it
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         seeds = np.flatnonzero(visible)
         circles = expected[seeds, None, None] ** 2 * np.eye(2)
         shapes = np.where((missed[seeds] <= 2)[:, None, None], self.state.shape[seeds], circles)
-        found = refine_and_accept(gray, uv[seeds], shapes, self.options.detect)
-        near = np.linalg.norm(found.xy[None] - uv[seeds, None], axis=-1) if len(found) else np.zeros((len(seeds), 0))
-        close = 0.5 * np.maximum(expected[seeds], 2.0)
-        missing = seeds[~np.any(near < close[:, None] + self.options.tight_px, axis=1)]
+        found = refine_and_accept(gray, uv[seeds], shapes, detect)
+        close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
+        missing = ~_near_any(uv[seeds], found.xy, close)
+        if np.any(missing):
+            # a small disk on a narrow square beside dark paint: a window started at a full
+            # radius from a prediction a pixel or two off takes in the paint and slides onto
+            # it; started at half the radius it stays on the disk, and grows to it
+            again = self._refine_small(gray, uv[seeds[missing]], 0.25 * shapes[missing], detect)
+            found = unique(concatenate([found, again]))
+            missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
+        missing = seeds[missing]
         missing = missing[(missed[missing] <= 3) | (missed[missing] % 4 == 0)]
         if len(missing) == 0:
             return found
@@ -317,8 +352,8 @@ class Tracker:
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
             block = int(2 * np.ceil(3.0 * r) + 1)
-            options = replace(self.options.detect, block=max(block, 7))
-            xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+            window = replace(detect, block=max(block, 7))
+            xy, shape = find_candidates(gray[y0:y1, x0:x1], window, (x0, y0))
             size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
             near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
@@ -327,7 +362,7 @@ class Tracker:
             return found
         xy, shape = np.concatenate(xys), np.concatenate(shapes)
         _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
-        extra = refine_and_accept(gray, xy[first], shape[first], self.options.detect)
+        extra = refine_and_accept(gray, xy[first], shape[first], detect)
         return unique(concatenate([found, extra]))
 
 
@@ -361,3 +396,10 @@ def assign(
     r, c = linear_sum_assignment(sub)
     ok = sub[r, c] < _INFEASIBLE
     return rows[r[ok]], cols[c[ok]]
+
+
+def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(K,) whether each of `points` (K, 2) has one of `xy` (N, 2) within its `radius` (K,)."""
+    if len(xy) == 0:
+        return np.zeros(len(points), dtype=bool)
+    return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
