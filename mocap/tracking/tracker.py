@@ -97,6 +97,7 @@ class TrackState:
     unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
     disk_m: float  # the disks' radius (m), estimated from the labelled ellipses
     lost: int = 0  # frames since the last fit
+    shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
 
     @property
     def radius(self) -> np.ndarray:
@@ -138,17 +139,23 @@ class Tracker:
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
-        found = self._search(gray, uv, reach, visible, expected, recent)
+        seen = self._search(gray, uv + state.shift, reach, visible, expected, recent)
+        # the camera's shake: the image's shift from the model, the median over the markers
+        # followed, taken out of the detections before the joints are fitted to them
+        markers, index = assign(uv + state.shift, seen.xy, gate, visible & recent, seen.radius, expected)
+        if len(markers) >= options.min_markers:
+            state.shift = state.shift + np.median(seen.xy[index] - (uv + state.shift)[markers], axis=0)
+        found = replace(seen, xy=seen.xy - state.shift)
         # the markers followed until now fix the joints they observe
         markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
+            return self._coast(predicted, uv, visible, seen, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
         joints, residual, fitted_uv = model.fit(observed[None], predicted, iterations=1)
         keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
+            return self._coast(predicted, uv, visible, seen, expected)
         joints, fitted_uv = joints[0], fitted_uv[0]
         if not np.all(keep):
             observed[markers[~keep]] = np.nan
@@ -170,7 +177,7 @@ class Tracker:
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
+            return self._coast(predicted, uv, visible, seen, expected)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -189,7 +196,7 @@ class Tracker:
         state.missed += 1
         state.missed[markers] = 0
         self._update_disk(view.scale[0], markers, found.radius[index])
-        labelled = found.select(index)
+        labelled = seen.select(index)
         if options.perspective and np.isfinite(state.disk_m):
             offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
             # the shift is a small share of a disk's radius; a larger one comes from joints not yet
@@ -215,6 +222,7 @@ class Tracker:
         state.previous = start.joints.copy()
         state.uv = self.model.pixels(start.joints[None])[0]
         state.lost = 0
+        state.shift = np.zeros(2)
         state.missed[start.markers] = 0
         state.unseen[self.model.observed_joints(start.markers)] = 0
         state.shape[start.markers] = start.detections.shape
@@ -286,10 +294,11 @@ class Tracker:
 
     def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,
                expected: np.ndarray) -> FrameResult:
-        """Too few markers to fit: the joints carry on as predicted; detections within the
-        tight gate of a predicted marker are still labelled."""
+        """Too few markers to fit: the joints carry on as predicted; detections `found`
+        (image pixels) within the tight gate of a predicted marker are still labelled."""
         state = self.state
-        markers, index = assign(uv, found.xy, np.full(len(uv), self.options.tight_px), visible, found.radius, expected)
+        markers, index = assign(uv + state.shift, found.xy, np.full(len(uv), self.options.tight_px), visible,
+                                found.radius, expected)
         state.previous, state.joints, state.uv = state.joints, predicted, uv
         state.lost += 1
         state.missed += 1
@@ -351,9 +360,11 @@ class Tracker:
             x1, y1 = int(min(uv[m, 0] + half + 1, width)), int(min(uv[m, 1] + half + 1, height))
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
-            block = int(2 * np.ceil(3.0 * r) + 1)
-            window = replace(detect, block=max(block, 7))
-            xy, shape = find_candidates(gray[y0:y1, x0:x1], window, (x0, y0))
+            # a neighbourhood of three radii, and one of 1.5 (a small disk's square beside dark
+            # paint: the larger one's mean takes in the paint and the disk is not below it)
+            parts = [find_candidates(gray[y0:y1, x0:x1], replace(detect, block=max(int(2 * np.ceil(k * r) + 1), 7)),
+                                     (x0, y0)) for k in (3.0, 1.5)]
+            xy, shape = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
             size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
             near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
