@@ -386,7 +386,8 @@ def assign(
     expected_radius: np.ndarray | None = None,
     size_ratio: float = 1.33,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal one-to-one assignment of detections to predicted markers.
+    """Optimal one-to-one assignment of detections to predicted markers: the least sum of
+    squared distances, a marker left unassigned counting as a pair at its gate.
 
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
     and (M,), pairs whose radii differ by more than `size_ratio` are not allowed.
@@ -404,7 +405,14 @@ def assign(
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     sub = np.where(allowed[np.ix_(rows, cols)], cost[np.ix_(rows, cols)], _INFEASIBLE)
-    r, c = linear_sum_assignment(sub)
+    # a marker may stay unassigned at the cost of a pair at its gate: without that choice
+    # every marker takes some detection, and one not detected takes another's and passes
+    # it on, which drags a fit from even the right joints
+    miss = np.full((len(rows), len(rows)), _INFEASIBLE)
+    np.fill_diagonal(miss, gate[rows] ** 2)
+    r, c = linear_sum_assignment(np.hstack([sub, miss]))
+    pair = c < len(cols)
+    r, c = r[pair], c[pair]
     ok = sub[r, c] < _INFEASIBLE
     return rows[r[ok]], cols[c[ok]]
 
