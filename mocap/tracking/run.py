@@ -131,8 +131,12 @@ def track_frames(
             if first is None:
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks")
             tracker = Tracker(model, first, options)
-            result = first
-            log.info("frame %d: %d markers labelled, residual %.2f px", index, len(first.markers), first.rms_px)
+            # the first frame tracked again from its own labels: the tracker takes the disks
+            # where the model puts markers that the full-frame detection refused
+            result = tracker.step(gray)
+            if not result.fitted or len(result.markers) < len(first.markers):
+                tracker, result = Tracker(model, first, options), first
+            log.info("frame %d: %d markers labelled, residual %.2f px", index, len(result.markers), result.rms_px)
         else:
             result = tracker.step(gray)
             searched += 1

@@ -44,7 +44,7 @@ class TrackOptions:
     near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
     needs (a full-frame search holds to `detect`); near_ring_spread: the factor on
     `detect.max_ring_spread` a disk refined from a small window there may reach, if it
-    stays put (`Tracker._refine_small`); occlusion:
+    stays put (`Tracker._refine_again`); occlusion:
     predict markers hidden by the machine's links (boxes); perspective: move each labelled
     centre from its image ellipse's centre to the image of the disk's centre, by the
     fitted model (`CameraModel.centre_offsets`).
@@ -306,20 +306,23 @@ class Tracker:
         state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
-    def _refine_small(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions) -> Detections:
-        """Disks refined from small windows at `xy` (K, 2) with `shape` (K, 2, 2). Where a
-        disk's square is narrower than its ring, the ring reaches the paint around it and
-        its darkest part is darker than a clean ring's: such a disk, refused by the ring
-        test, is taken with `near_ring_spread` times the test's bound if it stays put when
-        refined again from where it arrived (a window that straddles a disk's edge, whose
-        ring the disk itself darkens, moves on)."""
-        strict = refine_and_accept(gray, xy, shape, detect)
+    def _refine_again(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions) -> Detections:
+        """Disks missed by a refinement from `xy` (K, 2) with `shape` (K, 2, 2), looked for
+        again. A small disk on a narrow square beside dark paint: a window started at a full
+        radius from a prediction a pixel or two off takes in the paint and slides onto it;
+        started at half the radius it stays on the disk, and grows to it. A disk whose
+        square is narrower than its ring: the ring reaches the paint around it and its
+        darkest part is darker than a clean ring's; such a disk, refused by the ring test,
+        is taken with `near_ring_spread` times the test's bound if it stays put when refined
+        again from a smaller window where it arrived (a window that straddles a disk's edge,
+        whose ring the disk itself darkens, moves on)."""
+        strict = refine_and_accept(gray, xy, 0.25 * shape, detect)
         loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
-        loose = refine_and_accept(gray, xy, shape, loose_options)
+        loose = unique(concatenate([refine_and_accept(gray, xy, s, loose_options) for s in (shape, 0.25 * shape)]))
         loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
         if len(loose) == 0:
             return strict
-        again, _ = refine(gray, loose.xy, 0.25 * loose.shape)
+        again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
         stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
 
@@ -341,10 +344,7 @@ class Tracker:
         close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
         missing = ~_near_any(uv[seeds], found.xy, close)
         if np.any(missing):
-            # a small disk on a narrow square beside dark paint: a window started at a full
-            # radius from a prediction a pixel or two off takes in the paint and slides onto
-            # it; started at half the radius it stays on the disk, and grows to it
-            again = self._refine_small(gray, uv[seeds[missing]], 0.25 * shapes[missing], detect)
+            again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect)
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
         missing = seeds[missing]
