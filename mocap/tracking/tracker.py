@@ -140,27 +140,27 @@ class Tracker:
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
         seen = self._search(gray, uv + state.shift, reach, visible, expected, recent)
-        # the camera's shake: the image's shift from the model, the median over the markers
-        # followed, taken out of the detections before the joints are fitted to them
-        markers, index = assign(uv + state.shift, seen.xy, gate, visible & recent, seen.radius, expected)
-        if len(markers) >= options.min_markers:
-            state.shift = state.shift + np.median(seen.xy[index] - (uv + state.shift)[markers], axis=0)
-        found = replace(seen, xy=seen.xy - state.shift)
+        found = replace(seen, xy=seen.xy - state.shift)  # in the model's pixels: the last frame's shake out
         # the markers followed until now fix the joints they observe
         markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, expected)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual, fitted_uv = model.fit(observed[None], predicted, iterations=1)
-        keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
+        fit = model.fit(observed[None], predicted, iterations=1)
+        joints, fitted_uv = fit.joints[0], fit.uv[0]
+        # the camera's shake: what the joints leave, the median over the markers followed,
+        # is the image's shift from the model; taken out before the joints are fitted again
+        state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
+        found = replace(seen, xy=seen.xy - state.shift)
+        observed[markers] = found.xy[index]
+        residual = np.linalg.norm(observed[markers] - fitted_uv[markers], axis=-1)
+        keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
-        joints, fitted_uv = joints[0], fitted_uv[0]
-        if not np.all(keep):
-            observed[markers[~keep]] = np.nan
-            refit = model.fit(observed[None], joints, iterations=1)
-            joints, fitted_uv = refit.joints[0], refit.uv[0]
+        observed[markers[~keep]] = np.nan
+        refit = model.fit(observed[None], joints, iterations=1)
+        joints, fitted_uv = refit.joints[0], refit.uv[0]
         held, held_index = markers[keep], index[keep]
         # markers coming back (after an occlusion, or a link the camera did not see, or
         # where the single camera fixes the joints poorly): found by gates narrowing from
