@@ -22,8 +22,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import (DetectOptions, Detections, accept, concatenate, find_candidates, refine,
-                          refine_and_accept, unique)
+from mocap.detect import (DetectOptions, Detections, concatenate, find_candidates, refine, refine_and_accept,
+                          unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -316,10 +316,9 @@ class Tracker:
         is taken with `near_ring_spread` times the test's bound if it stays put when refined
         again from a smaller window where it arrived (a window that straddles a disk's edge,
         whose ring the disk itself darkens, moves on)."""
-        strict = _refine_small(gray, xy, 0.25 * shape, detect)
+        strict = refine_and_accept(gray, xy, 0.25 * shape, detect)
         loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
-        loose = unique(concatenate([refine_and_accept(gray, xy, shape, loose_options),
-                                    _refine_small(gray, xy, 0.25 * shape, loose_options)]))
+        loose = unique(concatenate([refine_and_accept(gray, xy, s, loose_options) for s in (shape, 0.25 * shape)]))
         loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
         if len(loose) == 0:
             return strict
@@ -416,20 +415,6 @@ def assign(
     r, c = r[pair], c[pair]
     ok = sub[r, c] < _INFEASIBLE
     return rows[r[ok]], cols[c[ok]]
-
-
-def _refine_small(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, options: DetectOptions) -> Detections:
-    """`refine_and_accept` from small windows `shape` (K, 2, 2) at `xy` (K, 2), a candidate
-    that moved more than a quarter of its radius refined once more from where it arrived
-    with its small starting window again (not with the ellipse it arrived at, which beside
-    dark paint takes the paint in)."""
-    found, ring = refine(gray, xy, shape)
-    far = np.linalg.norm(found.xy - xy, axis=1) > 0.25 * np.maximum(found.radius, 1.0)
-    if np.any(far):
-        again, again_ring = refine(gray, found.xy[far], shape[far])
-        found = concatenate([found.select(~far), again])
-        ring = np.concatenate([ring[~far], again_ring])
-    return unique(found.select(accept(found, ring, options)))
 
 
 def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
