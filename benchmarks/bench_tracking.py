@@ -12,10 +12,15 @@ as visible when all of its painted square is in view (the true tracks' score is 
 With `--looks N`: N sessions, each in its own random look (`mocap.synthetic.looks`:
 machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake),
 the first `--frames` frames of each camera rendered, encoded at the look's quality and
-tracked from the true calibration; labelled share, wrong labels and centre errors per look
-and camera and overall, and the worst look printed with its settings.
+tracked from the true calibration without a labels file; in every camera the picture is
+wholly covered (a flat grey board before the lens) for `--hide` frames from a third of the
+way in, and "found again" is the frames from the cover's end to the first frame in which
+at least half of the wholly visible markers are labelled right. Labelled share (the
+covered frames not counted as visible; a label in them is wrong), wrong labels, centre
+errors and found again per look and camera and overall, and the worst look printed with
+its settings.
 
-    python benchmarks/bench_tracking.py --looks 20 [--frames 150] [--size 960x540] [--seed 1]
+    python benchmarks/bench_tracking.py --looks 20 [--frames 120] [--hide 30] [--size 960x540] [--seed 1]
 """
 
 from __future__ import annotations
@@ -75,12 +80,31 @@ def score(truth, tracks):
     return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
 
 
+def found_again(truth, tracks, end: int) -> int | None:
+    """Frames from `end` to the first frame at or after it in which at least half of the
+    wholly visible markers are labelled within 2 px of their true centres (None: never)."""
+    true_xy = {(int(f), m): xy for f, m, xy, s in zip(truth.frame, truth.marker, truth.xy, truth.score) if s >= 1.0}
+    right = np.zeros(int(truth.frame.max()) + 1 if len(truth) else 0, dtype=int)
+    for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy):
+        own = true_xy.get((int(f), m))
+        if own is not None and f < len(right) and np.linalg.norm(xy - own) < 2.0:
+            right[int(f)] += 1
+    whole = np.bincount(truth.frame[truth.score >= 1.0].astype(int), minlength=len(right))
+    found = np.flatnonzero((right >= 0.5 * whole) & (whole > 0) & (np.arange(len(right)) >= end))
+    return int(found[0] - end) if len(found) else None
+
+
+def covered(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The picture of a flat grey board held before the lens (sensor noise only)."""
+    return np.clip(110.0 + rng.normal(0.0, 2.5, image.shape), 0, 255).astype(np.uint8)
+
+
 def track_looks(args) -> int:
     """Tracking over `args.looks` random looks; see the module's docstring."""
     machine = load_machine(args.machine)
     width, height = (int(v) for v in args.size.lower().split("x"))
     header = (f"{'look':>4} {'camera':>6} {'size':>9} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} "
-              f"{'p95 px':>7}  look")
+              f"{'p95 px':>7} {'found again':>11}  look")
     print(header)
     print("-" * (len(header) + 40))
     results = []
@@ -95,11 +119,12 @@ def track_looks(args) -> int:
             look_rows = []
             for c, field in enumerate(session.cameras):
                 frames = np.arange(min(args.frames, field.frames))
+                hide = (len(frames) // 3, min(len(frames) // 3 + args.hide, len(frames)))
                 path = Path(tmp) / f"look{k}_{field.name}.mp4"
                 renderer = CameraRenderer(session, c, options, rng)
                 with video_writer(path, size, field.fps, "h264", 0, look.crf) as write:
-                    for _, image in renderer.frames(frames):
-                        write(image)
+                    for f, image in renderer.frames(frames):
+                        write(covered(image, rng) if hide[0] <= f < hide[1] else image)
                 model = CameraModel(machine, field.camera)
                 try:
                     tracks, _ = track_frames(model, Video(path).frames(prefetch=4), session.calibration.joints(machine),
@@ -108,16 +133,18 @@ def track_looks(args) -> int:
                     print(f"{k:>4} {field.name:>6}: {exc}")
                     tracks = None
                 truth = session.tracks.of_camera(field.name)
-                truth = truth.select(truth.frame < len(frames))
+                truth = truth.select((truth.frame < len(frames)) & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
                 whole = int(np.sum(truth.score >= 1.0))
                 if tracks is None:
-                    labelled, wrong, errors = 0.0, 0.0, np.zeros(0)
+                    labelled, wrong, errors, again = 0.0, 0.0, np.zeros(0), None
                 else:
                     labelled, wrong, errors = score(truth, tracks)
-                look_rows.append((whole, labelled, wrong, errors))
+                    again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
+                look_rows.append((whole, labelled, wrong, errors, again))
                 print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wrong:>7.3%} "
                       f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
-                      f"{np.percentile(errors, 95) if len(errors) else np.nan:>7.3f}  {look.name if c == 0 else ''}")
+                      f"{np.percentile(errors, 95) if len(errors) else np.nan:>7.3f} "
+                      f"{'never' if again is None else again:>11}  {look.name if c == 0 else ''}")
                 path.unlink()
             results.append((look, look_rows))
     share = [sum(r[1] * r[0] for r in rows) / max(sum(r[0] for r in rows), 1) for _, rows in results]
@@ -130,6 +157,10 @@ def track_looks(args) -> int:
           f"{wrong:.3%} wrong (mean over cameras), centre error median {np.median(errors):.3f} px, "
           f"95th percentile {np.percentile(errors, 95):.3f} px")
     worst = int(np.argmin(share))
+    again = [r[4] for _, rows in results for r in rows]
+    known = [a for a in again if a is not None]
+    print(f"found again after {args.hide} covered frames: median {np.median(known) if known else np.nan:.0f}, "
+          f"most {max(known) if known else np.nan} frames; never in {len(again) - len(known)} of {len(again)} cameras")
     print(f"worst: look {worst}, {share[worst]:.2%} labelled; its settings:")
     for key, value in results[worst][0].table().items():
         print(f"    {key} = {value}")
@@ -146,7 +177,8 @@ def main() -> int:
     parser.add_argument("--session", help="use this rendered session folder instead of rendering one")
     parser.add_argument("--repeat", type=int, default=2, help="timed runs per camera (the least counts)")
     parser.add_argument("--looks", type=int, default=0, help="track over this many random looks instead")
-    parser.add_argument("--frames", type=int, default=150, help="with --looks: frames per camera")
+    parser.add_argument("--frames", type=int, default=120, help="with --looks: frames per camera")
+    parser.add_argument("--hide", type=int, default=30, help="with --looks: frames the picture is covered")
     args = parser.parse_args()
     if args.looks:
         if args.size == "1920x1080":

@@ -338,22 +338,22 @@ class TagFinder:
     """ArUco / AprilTag markers in the frames of one video, black on white or printed
     inverted (white on black), down to about 12 px across.
 
-    OpenCV's `cv2.aruco.ArucoDetector` (its own settings, but for tags down to 1 % of the
-    image's larger side in perimeter) runs in up to four passes: on the image, as OpenCV
-    would; on the image inverted (white-on-black prints: OpenCV's `detectInvertedMarker`
-    loses some blurred tags that the plain pass finds); and on both enlarged twice
-    (bicubic), where small tags, whose cells are 2-3 px, are found more often and their
-    corners placed better (their centres are kept where several passes find a tag).
-    Corners are refined on the tag's outer contour, which holds on small and slanted tags
-    better than a corner window. The plain pass runs on every frame, so a tag OpenCV finds
-    is found; the others on every `recheck`-th frame, and on the frames between only while
-    they have found a tag the plain pass missed within the last `recheck` frames (a video
-    of large black-on-white tags costs one pass a frame). An id found twice in one pass
-    names no tag and is dropped.
+    The first pass is OpenCV's own `cv2.aruco.ArucoDetector` on the image with its default
+    settings but for the corners, refined on the tag's outer contour
+    (`CORNER_REFINE_CONTOUR`, OpenCV's most accurate method on small and slanted tags): a
+    tag OpenCV finds is found, with OpenCV's corners. Up to three more passes find what it
+    misses: on the image inverted (white-on-black prints; OpenCV's `detectInvertedMarker`
+    loses some blurred ones) and on both enlarged twice (bicubic), where small tags, whose
+    cells are 2-3 px, are found more often. A tag keeps the corners of the first pass that
+    finds it. The first pass runs on every frame, the others on every `recheck`-th frame,
+    and on the frames between only while they have found a tag the earlier passes missed
+    within the last `recheck` frames (a video of large black-on-white tags costs one pass a
+    frame). An id found twice in one pass names no tag and is dropped. The centre is the
+    diagonals' crossing (`TagDetections.xy`).
     """
 
     def __init__(self, dictionary: str = "DICT_4X4_50", recheck: int = 30):
-        self.detector = _tag_detector(dictionary)
+        self.detectors = {1: _tag_detector(dictionary, False), 2: _tag_detector(dictionary, True)}
         self.recheck = recheck
         self.frames = 0
         self.last_useful = {p: -recheck - 1 for p in _TAG_PASSES[1:]}
@@ -362,14 +362,13 @@ class TagFinder:
         gray = as_gray(image)
         everything = self.frames % self.recheck == 0 if self.recheck > 0 else True
         found = self._pass(gray, *_TAG_PASSES[0])
-        plain = set(found)
         for key in _TAG_PASSES[1:]:
             if not (everything or self.frames - self.last_useful[key] <= self.recheck):
                 continue
             more = self._pass(gray, *key)
-            if set(more) - plain:
+            if set(more) - set(found):
                 self.last_useful[key] = self.frames
-            found.update(more)  # the later passes place corners better
+            found = more | found  # a tag keeps the earliest pass's corners
         self.frames += 1
         if not found:
             return TagDetections(np.zeros(0, dtype=int), np.zeros((0, 4, 2)))
@@ -379,7 +378,7 @@ class TagFinder:
         picture = 255 - gray if inverted else gray
         if scale > 1:
             picture = cv2.resize(picture, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-        corners, ids, _ = self.detector.detectMarkers(picture)
+        corners, ids, _ = self.detectors[scale].detectMarkers(picture)
         if ids is None or len(ids) == 0:
             return {}
         ids = ids.reshape(-1)
@@ -390,8 +389,11 @@ class TagFinder:
 
 
 @lru_cache(maxsize=8)
-def _tag_detector(dictionary: str):
+def _tag_detector(dictionary: str, small: bool):
+    """OpenCV's defaults, corners refined on the contour; `small`: tags down to 1 % of the
+    image's larger side in perimeter (OpenCV's default: 3 %)."""
     parameters = cv2.aruco.DetectorParameters()
     parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
-    parameters.minMarkerPerimeterRate = min(parameters.minMarkerPerimeterRate, 0.01)
+    if small:
+        parameters.minMarkerPerimeterRate = min(parameters.minMarkerPerimeterRate, 0.01)
     return cv2.aruco.ArucoDetector(tag_dictionary(dictionary), parameters)

@@ -78,6 +78,26 @@ def test_tags_found_at_least_as_opencv_finds_them(name, tmp_path):
         assert np.median(ours_err) <= np.median(theirs_err) + 0.02
 
 
+@pytest.mark.parametrize("name", ["small", "inverted"])
+def test_tag_centres_are_opencvs_own(name, tmp_path):
+    """Where OpenCV's ArucoDetector (corners refined on the contour, the picture given black
+    on white) finds a tag, ours has the same centre: the crossing of OpenCV's diagonals."""
+    look = LOOKS[name]
+    board = render_board(look, 3, np.random.default_rng(5), supersample=2, exposure_steps=3)
+    parameters = cv2.aruco.DetectorParameters()
+    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_CONTOUR
+    detector = cv2.aruco.ArucoDetector(tag_dictionary(look.dictionary), parameters)
+    differences = []
+    for gray in encode(tmp_path / "board.mp4", board.frames):
+        corners, ids, _ = detector.detectMarkers(255 - gray if look.inverted else gray)
+        ours = detect_tags(gray, look.dictionary)
+        assert ids is not None and set(ids.reshape(-1).tolist()) <= set(ours.ids.tolist())
+        theirs = dict(zip(ids.reshape(-1).tolist(), diagonal_intersection(np.concatenate(corners).reshape(-1, 4, 2))))
+        differences += [np.linalg.norm(xy - theirs[t]) for t, xy in zip(ours.ids.tolist(), ours.xy) if t in theirs]
+    assert len(differences) >= 10
+    assert np.median(differences) <= 0.1
+
+
 def test_opencv_misses_inverted_prints_that_are_found():
     """The inverted print is the case a plain ArucoDetector misses entirely."""
     board = render_board(LOOKS["inverted"], 1, np.random.default_rng(2), supersample=2)

@@ -4,8 +4,9 @@ machine model to the frame's detections.
 The proposal searches joint values starting from the calibration's (and a few swings and
 boom/arm moves around them): each start alternates an optimal gated assignment of the
 detections to the projected markers with a robust fit of the joint values, the gate
-shrinking from coarse to tight; the start that labels the most detections within the tight
-gate (then the lowest residual) wins.
+shrinking from coarse to tight (from 15 px down, with the image's shift from the model, the
+median of what the fit leaves: a camera shaken or a little off its calibrated pose); the
+start that labels the most detections within the tight gate (then the lowest residual) wins.
 
 Shapes: M markers, N detections, J joints.
 """
@@ -23,6 +24,7 @@ from mocap.tracking.tracker import FrameResult, assign
 log = logging.getLogger(__name__)
 
 _GATES_PX = (120.0, 60.0, 30.0, 15.0, 8.0, 4.0)
+_SHIFT_GATE_PX = 15.0  # from this gate down, the image's shift from the model is fitted too
 
 
 def starts_around(model: CameraModel, joints: np.ndarray, n_swing: int = 7, spread_deg: float = 25.0) -> np.ndarray:
@@ -54,20 +56,27 @@ def propose_labels(
     joints = np.array(np.atleast_2d(starts), dtype=float)
     n_starts, n_markers = len(joints), len(model.machine.marker_names)
     alive = np.ones(n_starts, dtype=bool)
+    shift = np.zeros((n_starts, 2))  # the image's from the model (the camera off its calibrated pose)
     for gate in _GATES_PX + (tight_px,):
         view = model.view(joints)
         observed = np.full((n_starts, n_markers, 2), np.nan)
         for k in np.flatnonzero(alive):
-            markers, index = assign(view.uv[k], detections.xy, np.full(n_markers, gate), view.visible[k])
+            markers, index = assign(view.uv[k] + shift[k], detections.xy, np.full(n_markers, gate), view.visible[k])
             alive[k] = len(markers) >= 3
             observed[k, markers] = detections.xy[index]
         if not np.any(alive):
             return None
-        joints[alive] = model.fit(observed[alive], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0)).joints
+        fit = model.fit(observed[alive] - shift[alive, None], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0))
+        joints[alive] = fit.joints
+        if gate <= _SHIFT_GATE_PX:  # what the joints leave, common to all the markers
+            left = observed[alive] - shift[alive, None] - fit.uv
+            seen = np.isfinite(left[..., 0])
+            median = np.nanmedian(np.where(seen[..., None], left, np.nan), axis=1) if np.any(seen) else 0.0
+            shift[alive] += np.where(np.sum(seen, axis=1)[:, None] >= 5, np.nan_to_num(median), 0.0)
     view = model.view(joints)
     best, best_key = None, None
     for k in np.flatnonzero(alive):
-        uv = view.uv[k]
+        uv = view.uv[k] + shift[k]
         markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), view.visible[k])
         if len(markers) == 0:
             continue

@@ -131,23 +131,33 @@ def track_frames(
             if first is None:
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks")
             tracker = Tracker(model, first, options)
-            result = first
-            log.info("frame %d: %d markers labelled, residual %.2f px", index, len(first.markers), first.rms_px)
+            # the first frame tracked again from its own labels: the tracker takes the disks
+            # where the model puts markers that the full-frame detection refused
+            result = tracker.step(gray)
+            if not result.fitted or len(result.markers) < len(first.markers):
+                tracker, result = Tracker(model, first, options), first
+            log.info("frame %d: %d markers labelled, residual %.2f px", index, len(result.markers), result.rms_px)
         else:
+            was_lost = tracker.lost >= options.lost_frames
             result = tracker.step(gray)
             searched += 1
             lost = tracker.lost >= options.lost_frames
             if lost:
                 interval = min(interval, _MAX_LOST_INTERVAL * options.lost_frames)
-            if (lost or tracker.needs_search()) and searched >= interval:
+            # the machine picked up again by the tracker after a loss (it may have moved meanwhile
+            # and left a link's markers on others' disks): the whole frame searched at once too
+            found_again = was_lost and not lost
+            if (lost or tracker.needs_search()) and searched >= interval or found_again:
                 searched = 0
                 again = propose_labels(
                     model, detect_disks(gray, options.detect), starts_around(model, result.joints),
                     min_markers=options.min_markers,
                 )
-                if again is not None and not lost:
+                if again is not None and not (lost or found_again):
                     again = _supported(model, again, result.markers)
-                if again is not None and (lost or len(again.markers) > len(result.markers)):
+                if again is not None and (lost or len(again.markers) > len(result.markers)
+                                          or found_again and len(again.markers) == len(result.markers)
+                                          and again.rms_px < result.rms_px):
                     tracker.restart(again)
                     result = again
                     restarts += 1

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import DetectOptions, Detections, concatenate, find_candidates, refine_and_accept, unique
+from mocap.detect import (DetectOptions, Detections, concatenate, find_candidates, refine, refine_and_accept,
+                          unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,11 @@ class TrackOptions:
     outlier_px: least residual at which the fit disowns a detection; regain_px_per_frame,
     regain_max_px: how far the search for a marker not seen for a while reaches, growing
     with the frames it was missed; min_markers: markers needed to fit the joints;
-    lost_frames: frames without a fit before the whole frame is searched again; occlusion:
+    lost_frames: frames without a fit before the whole frame is searched again;
+    near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
+    needs (a full-frame search holds to `detect`); near_ring_spread: the factor on
+    `detect.max_ring_spread` a disk refined from a small window there may reach, if it
+    stays put (`Tracker._refine_again`); occlusion:
     predict markers hidden by the machine's links (boxes); perspective: move each labelled
     centre from its image ellipse's centre to the image of the disk's centre, by the
     fitted model (`CameraModel.centre_offsets`).
@@ -53,6 +58,8 @@ class TrackOptions:
     regain_max_px: float = 60.0
     min_markers: int = 5
     lost_frames: int = 15
+    near_contrast: float = 0.5
+    near_ring_spread: float = 1.25
     occlusion: bool = True
     perspective: bool = True
     detect: DetectOptions = field(default_factory=DetectOptions)
@@ -90,6 +97,7 @@ class TrackState:
     unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
     disk_m: float  # the disks' radius (m), estimated from the labelled ellipses
     lost: int = 0  # frames since the last fit
+    shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
 
     @property
     def radius(self) -> np.ndarray:
@@ -131,22 +139,28 @@ class Tracker:
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
-        found = self._search(gray, uv, reach, visible, expected, recent)
+        seen = self._search(gray, uv + state.shift, reach, visible, expected, recent)
+        found = replace(seen, xy=seen.xy - state.shift)  # in the model's pixels: the last frame's shake out
         # the markers followed until now fix the joints they observe
         markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
+            return self._coast(predicted, uv, visible, seen, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
-        joints, residual, fitted_uv = model.fit(observed[None], predicted, iterations=1)
-        keep = residual[0, markers] <= np.maximum(options.outlier_px, 0.5 * expected[markers])
+        fit = model.fit(observed[None], predicted, iterations=1)
+        joints, fitted_uv = fit.joints[0], fit.uv[0]
+        # the camera's shake: what the joints leave, the median over the markers followed,
+        # is the image's shift from the model; taken out before the joints are fitted again
+        state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
+        found = replace(seen, xy=seen.xy - state.shift)
+        observed[markers] = found.xy[index]
+        residual = np.linalg.norm(observed[markers] - fitted_uv[markers], axis=-1)
+        keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
-        joints, fitted_uv = joints[0], fitted_uv[0]
-        if not np.all(keep):
-            observed[markers[~keep]] = np.nan
-            refit = model.fit(observed[None], joints, iterations=1)
-            joints, fitted_uv = refit.joints[0], refit.uv[0]
+            return self._coast(predicted, uv, visible, seen, expected)
+        observed[markers[~keep]] = np.nan
+        refit = model.fit(observed[None], joints, iterations=1)
+        joints, fitted_uv = refit.joints[0], refit.uv[0]
         held, held_index = markers[keep], index[keep]
         # markers coming back (after an occlusion, or a link the camera did not see, or
         # where the single camera fixes the joints poorly): found by gates narrowing from
@@ -163,7 +177,7 @@ class Tracker:
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
-            return self._coast(predicted, uv, visible, found, expected)
+            return self._coast(predicted, uv, visible, seen, expected)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -182,7 +196,7 @@ class Tracker:
         state.missed += 1
         state.missed[markers] = 0
         self._update_disk(view.scale[0], markers, found.radius[index])
-        labelled = found.select(index)
+        labelled = seen.select(index)
         if options.perspective and np.isfinite(state.disk_m):
             offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
             # the shift is a small share of a disk's radius; a larger one comes from joints not yet
@@ -208,6 +222,7 @@ class Tracker:
         state.previous = start.joints.copy()
         state.uv = self.model.pixels(start.joints[None])[0]
         state.lost = 0
+        state.shift = np.zeros(2)
         state.missed[start.markers] = 0
         state.unseen[self.model.observed_joints(start.markers)] = 0
         state.shape[start.markers] = start.detections.shape
@@ -279,16 +294,37 @@ class Tracker:
 
     def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,
                expected: np.ndarray) -> FrameResult:
-        """Too few markers to fit: the joints carry on as predicted; detections within the
-        tight gate of a predicted marker are still labelled."""
+        """Too few markers to fit: the joints carry on as predicted; detections `found`
+        (image pixels) within the tight gate of a predicted marker are still labelled."""
         state = self.state
-        markers, index = assign(uv, found.xy, np.full(len(uv), self.options.tight_px), visible, found.radius, expected)
+        markers, index = assign(uv + state.shift, found.xy, np.full(len(uv), self.options.tight_px), visible,
+                                found.radius, expected)
         state.previous, state.joints, state.uv = state.joints, predicted, uv
         state.lost += 1
         state.missed += 1
         state.missed[markers] = 0
         state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
+
+    def _refine_again(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions) -> Detections:
+        """Disks missed by a refinement from `xy` (K, 2) with `shape` (K, 2, 2), looked for
+        again. A small disk on a narrow square beside dark paint: a window started at a full
+        radius from a prediction a pixel or two off takes in the paint and slides onto it;
+        started at half the radius it stays on the disk, and grows to it. A disk whose
+        square is narrower than its ring: the ring reaches the paint around it and its
+        darkest part is darker than a clean ring's; such a disk, refused by the ring test,
+        is taken with `near_ring_spread` times the test's bound if it stays put when refined
+        again from a smaller window where it arrived (a window that straddles a disk's edge,
+        whose ring the disk itself darkens, moves on)."""
+        strict = refine_and_accept(gray, xy, 0.25 * shape, detect)
+        loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
+        loose = unique(concatenate([refine_and_accept(gray, xy, s, loose_options) for s in (shape, 0.25 * shape)]))
+        loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
+        if len(loose) == 0:
+            return strict
+        again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
+        stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
+        return concatenate([strict, loose.select(stays)])
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
                 expected: np.ndarray, recent: np.ndarray) -> Detections:
@@ -297,13 +333,21 @@ class Tracker:
         markers not found so (those missed for long only every 4th frame), searched in a
         window (gate) around the prediction. Duplicates merged."""
         missed = self.state.missed
+        # where the model puts a marker, a fainter disk (worn paint at a grazing angle) is
+        # taken than a full-frame search would take: the gates and the fit vouch for it
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         seeds = np.flatnonzero(visible)
         circles = expected[seeds, None, None] ** 2 * np.eye(2)
         shapes = np.where((missed[seeds] <= 2)[:, None, None], self.state.shape[seeds], circles)
-        found = refine_and_accept(gray, uv[seeds], shapes, self.options.detect)
-        near = np.linalg.norm(found.xy[None] - uv[seeds, None], axis=-1) if len(found) else np.zeros((len(seeds), 0))
-        close = 0.5 * np.maximum(expected[seeds], 2.0)
-        missing = seeds[~np.any(near < close[:, None] + self.options.tight_px, axis=1)]
+        found = refine_and_accept(gray, uv[seeds], shapes, detect)
+        close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
+        missing = ~_near_any(uv[seeds], found.xy, close)
+        if np.any(missing):
+            again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect)
+            found = unique(concatenate([found, again]))
+            missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
+        missing = seeds[missing]
         missing = missing[(missed[missing] <= 3) | (missed[missing] % 4 == 0)]
         if len(missing) == 0:
             return found
@@ -316,9 +360,11 @@ class Tracker:
             x1, y1 = int(min(uv[m, 0] + half + 1, width)), int(min(uv[m, 1] + half + 1, height))
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
-            block = int(2 * np.ceil(3.0 * r) + 1)
-            options = replace(self.options.detect, block=max(block, 7))
-            xy, shape = find_candidates(gray[y0:y1, x0:x1], options, (x0, y0))
+            # a neighbourhood of three radii, and one of 1.5 (a small disk's square beside dark
+            # paint: the larger one's mean takes in the paint and the disk is not below it)
+            parts = [find_candidates(gray[y0:y1, x0:x1], replace(detect, block=max(int(2 * np.ceil(k * r) + 1), 7)),
+                                     (x0, y0)) for k in (3.0, 1.5)]
+            xy, shape = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
             size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
             near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
@@ -327,7 +373,7 @@ class Tracker:
             return found
         xy, shape = np.concatenate(xys), np.concatenate(shapes)
         _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
-        extra = refine_and_accept(gray, xy[first], shape[first], self.options.detect)
+        extra = refine_and_accept(gray, xy[first], shape[first], detect)
         return unique(concatenate([found, extra]))
 
 
@@ -340,7 +386,8 @@ def assign(
     expected_radius: np.ndarray | None = None,
     size_ratio: float = 1.33,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Optimal one-to-one assignment of detections to predicted markers.
+    """Optimal one-to-one assignment of detections to predicted markers: the least sum of
+    squared distances, a marker left unassigned counting as a pair at its gate.
 
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
     and (M,), pairs whose radii differ by more than `size_ratio` are not allowed.
@@ -358,6 +405,20 @@ def assign(
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     sub = np.where(allowed[np.ix_(rows, cols)], cost[np.ix_(rows, cols)], _INFEASIBLE)
-    r, c = linear_sum_assignment(sub)
+    # a marker may stay unassigned at the cost of a pair at its gate: without that choice
+    # every marker takes some detection, and one not detected takes another's and passes
+    # it on, which drags a fit from even the right joints
+    miss = np.full((len(rows), len(rows)), _INFEASIBLE)
+    np.fill_diagonal(miss, gate[rows] ** 2)
+    r, c = linear_sum_assignment(np.hstack([sub, miss]))
+    pair = c < len(cols)
+    r, c = r[pair], c[pair]
     ok = sub[r, c] < _INFEASIBLE
     return rows[r[ok]], cols[c[ok]]
+
+
+def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(K,) whether each of `points` (K, 2) has one of `xy` (N, 2) within its `radius` (K,)."""
+    if len(xy) == 0:
+        return np.zeros(len(points), dtype=bool)
+    return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
