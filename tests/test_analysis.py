@@ -317,3 +317,43 @@ def test_vertical_scale_and_kept_lift_are_fitted_together():
     np.testing.assert_allclose(lifts, lift, atol=1e-9)
     alone, _ = fit_scales(paths, template)  # without the event the lift reads as a taller dig
     assert abs(alone[0, 1] - 0.9) > 0.02
+
+
+def test_redirection_window_left_out_of_scales_and_template():
+    # five digs of one class, stretched, one lifted for a while (a temporary redirection):
+    # with its window left out, every scale is the true one within 0.5 % (the lift still
+    # lengthens its arc) and the template is the class's shape; a kept lift is fitted as
+    # a constant after its window
+    rng = np.random.default_rng(7)
+    s = np.linspace(0, 1, 64)
+    shape = np.column_stack([4 * s - 1.5 * s**3, 3 * s**2 + 0.5 * s])
+    scale = np.column_stack([rng.uniform(0.85, 1.15, 5), rng.uniform(0.85, 1.15, 5)])
+    paths = np.zeros((5, 64, 3))
+    paths[:, :, :2] = shape[None] * scale[:, None, :]
+    inside = np.abs(s - 0.5) < 0.15
+    paths[1, inside, 1] += 0.4 * np.sin(np.pi * (s[inside] - 0.35) / 0.3)
+    window = np.zeros((5, 64))
+    window[1, inside] = 1.0
+    even = paths.copy()  # the paths as the analysis takes them: at even arc length
+    for k in range(5):
+        u = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(paths[k, :, :2], axis=0).T))])
+        u /= u[-1]
+        even[k, :, 0], even[k, :, 1] = np.interp(s, u, paths[k, :, 0]), np.interp(s, u, paths[k, :, 1])
+        window[k] = np.interp(s, u, window[k])
+    labels = np.array(["Type 1"] * 5, dtype=object)
+    templates, fitted, lifts = build_templates(DigPaths(s, even), labels, np.zeros((5, 3)), None, window)
+    expected = scale / np.exp(np.log(scale).mean(axis=0))
+    np.testing.assert_allclose(fitted, expected, rtol=0.005)
+    size = np.exp(np.log(scale).mean(axis=0))
+    sized = shape * size
+    u = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(sized, axis=0).T))])
+    sized = np.column_stack([np.interp(s, u / u[-1], sized[:, d]) for d in range(2)])
+    np.testing.assert_allclose(templates["Type 1"].path[:, :2], sized, atol=0.005 * 3.5)
+    assert np.all(lifts == 0)
+    # a kept lift: the samples within the event left out, a constant height after it
+    after = (s >= 0.65).astype(float)[None]
+    lifted = shape[None] * scale[:1, None, :]
+    lifted[0, :, 1] += 0.4 * np.clip((s - 0.35) / 0.3, 0, 1)
+    got, lift = fit_scales(lifted, shape, after, 1.0 - inside[None])
+    np.testing.assert_allclose(got, scale[:1], rtol=1e-9)
+    np.testing.assert_allclose(lift, [0.4], rtol=1e-9)

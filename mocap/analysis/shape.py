@@ -6,7 +6,11 @@ displacement ``dx`` (m, away from the machine), vertical ``dz`` (m, up) and buck
 resampled at N points of normalised arc length ``s`` in [0, 1]. A class's template is the
 median of its digs divided by their scales; a dig's scale (sx, sz) is the least-squares
 stretch of the template onto it, normalised so that each class's scales have a geometric
-mean of 1 (the template's size is the class's typical size). Deviations:
+mean of 1 (the template's size is the class's typical size). Both are taken from the path
+low-passed at `PATH_CUTOFF_HZ` (`general_paths`), without the samples within an operator's
+redirection (nor, for the template, after it), and with a constant height after a
+redirection fitted beside the vertical stretch where it explains the height (a kept lift).
+Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
 - **operator redirection**: a sudden change the general shape cannot explain, found by
