@@ -35,7 +35,7 @@ from mocap.analysis.series import TipSeries
 
 N_SAMPLES = 64
 MIN_EVENT_FRAMES = 30
-PATH_CUTOFF_HZ = 0.3  # low-pass of the path a dig's general shape and scale are taken from
+PATH_CUTOFF_HZ = 0.5  # low-pass of the path a dig's general shape and scale are taken from
 KEPT_GAIN = 2.0  # a constant height after a redirection must halve the height residual to be fitted
 
 
