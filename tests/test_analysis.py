@@ -38,8 +38,8 @@ def truth_session(name: str, seed: int, n: int = 6):
 
 
 @lru_cache(maxsize=None)
-def analysed(name: str, seed: int):
-    machine, motion, truth = truth_session(name, seed)
+def analysed(name: str, seed: int, n: int = 6):
+    machine, motion, truth = truth_session(name, seed, n)
     return analyze(tip_series(motion)), truth
 
 
@@ -62,10 +62,12 @@ def test_every_cycle_found_with_its_dig_bounds_and_class(name, seed):
 
 
 def test_redirections_and_scales_over_sessions():
+    # 12 cycles, four digs a class: with two, one dig's error is its classmate's too, the
+    # scales being relative to the class's size
     tp = fp = fn = 0
     errors, redirected = [], []
     for name, seed in SESSIONS:
-        a, truth = analysed(name, seed)
+        a, truth = analysed(name, seed, 12)
         score = score_analysis(a.table, truth)
         tp, fp, fn = tp + score.redirect_tp, fp + score.redirect_fp, fn + score.redirect_fn
         errors.append(score.scale_errors)
@@ -78,10 +80,11 @@ def test_redirections_and_scales_over_sessions():
     assert tp / (tp + fp) >= 0.8 and tp / (tp + fn) >= 0.8, (tp, fp, fn)
     # the truth's scale is each dig's stretch against its class's general shape; what a
     # stretch cannot express of a dig's own push and rise is a few per cent; an operator's
-    # kept lift is confounded with a vertical stretch as far as its fit is off
+    # kept lift is confounded with a vertical stretch as far as its fit is off, and a
+    # missed or misjudged one moves its classmates' scales through the class's size
     errors, redirected = np.abs(np.concatenate(errors)), np.concatenate(redirected)
-    assert np.median(errors) < 0.02 and np.mean(errors <= 0.05) >= 0.9
-    assert np.all(errors[~redirected] <= 0.05)
+    assert np.median(errors) < 0.015 and np.mean(errors <= 0.05) >= 0.9
+    assert np.mean(errors[~redirected] <= 0.05) >= 0.95 and np.all(errors[~redirected] <= 0.1)
 
 
 def test_scale_fit_recovers_exact_stretches():
@@ -99,7 +102,7 @@ def test_scale_fit_recovers_exact_stretches():
         u = step / step[-1]
         paths[k] = np.column_stack([np.interp(s, u, dense[:, d]) for d in range(3)])
     labels = np.array(["Type 1"] * 4, dtype=object)
-    _, fitted = build_templates(DigPaths(s, paths), labels, np.zeros((4, 3)))
+    _, fitted, _ = build_templates(DigPaths(s, paths), labels, np.zeros((4, 3)))
     expected = scales / np.exp(np.log(scales).mean(axis=0))
     np.testing.assert_allclose(fitted, expected, rtol=0.01)
 
@@ -314,3 +317,43 @@ def test_vertical_scale_and_kept_lift_are_fitted_together():
     np.testing.assert_allclose(lifts, lift, atol=1e-9)
     alone, _ = fit_scales(paths, template)  # without the event the lift reads as a taller dig
     assert abs(alone[0, 1] - 0.9) > 0.02
+
+
+def test_redirection_window_left_out_of_scales_and_template():
+    # five digs of one class, stretched, one lifted for a while (a temporary redirection):
+    # with its window left out, every scale is the true one within 0.5 % (the lift still
+    # lengthens its arc) and the template is the class's shape; a kept lift is fitted as
+    # a constant after its window
+    rng = np.random.default_rng(7)
+    s = np.linspace(0, 1, 64)
+    shape = np.column_stack([4 * s - 1.5 * s**3, 3 * s**2 + 0.5 * s])
+    scale = np.column_stack([rng.uniform(0.85, 1.15, 5), rng.uniform(0.85, 1.15, 5)])
+    paths = np.zeros((5, 64, 3))
+    paths[:, :, :2] = shape[None] * scale[:, None, :]
+    inside = np.abs(s - 0.5) < 0.15
+    paths[1, inside, 1] += 0.4 * np.sin(np.pi * (s[inside] - 0.35) / 0.3)
+    window = np.zeros((5, 64))
+    window[1, inside] = 1.0
+    even = paths.copy()  # the paths as the analysis takes them: at even arc length
+    for k in range(5):
+        u = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(paths[k, :, :2], axis=0).T))])
+        u /= u[-1]
+        even[k, :, 0], even[k, :, 1] = np.interp(s, u, paths[k, :, 0]), np.interp(s, u, paths[k, :, 1])
+        window[k] = np.interp(s, u, window[k])
+    labels = np.array(["Type 1"] * 5, dtype=object)
+    templates, fitted, lifts = build_templates(DigPaths(s, even), labels, np.zeros((5, 3)), None, window)
+    expected = scale / np.exp(np.log(scale).mean(axis=0))
+    np.testing.assert_allclose(fitted, expected, rtol=0.005)
+    size = np.exp(np.log(scale).mean(axis=0))
+    sized = shape * size
+    u = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(sized, axis=0).T))])
+    sized = np.column_stack([np.interp(s, u / u[-1], sized[:, d]) for d in range(2)])
+    np.testing.assert_allclose(templates["Type 1"].path[:, :2], sized, atol=0.005 * 3.5)
+    assert np.all(lifts == 0)
+    # a kept lift: the samples within the event left out, a constant height after it
+    after = (s >= 0.65).astype(float)[None]
+    lifted = shape[None] * scale[:1, None, :]
+    lifted[0, :, 1] += 0.4 * np.clip((s - 0.35) / 0.3, 0, 1)
+    got, lift = fit_scales(lifted, shape, after, 1.0 - inside[None])
+    np.testing.assert_allclose(got, scale[:1], rtol=1e-9)
+    np.testing.assert_allclose(lift, [0.4], rtol=1e-9)

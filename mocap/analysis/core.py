@@ -13,12 +13,13 @@ import numpy as np
 from mocap.analysis.features import ClassRules, cycle_parameters
 from mocap.analysis.segment import SegmentOptions, Segments, segment
 from mocap.analysis.series import TipSeries
-from mocap.analysis.shape import (DigPaths, Deviations, Template, build_templates, deviations, resample_digs,
-                                  redirection_shapes)
+from mocap.analysis.shape import (DigPaths, Deviations, Template, build_templates, deviations, general_paths,
+                                  resample_digs)
 from mocap.analysis.similarity import Grouping, Relation, correlations, direction_relation, dtw_matrix, group_digs
 
 FIRST = ("cycle", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame", "class")
 CHANGES = ("start_height_m", "start_reach_m", "start_angle_deg", "dig_length_m", "dig_s", "scale_x", "scale_z")
+LIFT_ROUNDS = 2
 RELATED = ("dig_s", "dig_length_m", "dig_rise_m", "dig_advance_m", "start_height_m", "start_angle_deg",
            "end_angle_deg", "dig_speed_mean_m_s", "scale_x", "scale_z", "cycle_time_s")
 
@@ -62,8 +63,11 @@ def analyze(series: TipSeries, rules: ClassRules = ClassRules(), options: Segmen
     paths = resample_digs(series, seg.dig_start, seg.dig_end)
     starts = np.column_stack([table["start_reach_m"], table["start_height_m"], np.radians(table["start_angle_deg"])])
     dev = deviations(series, seg.dig_start, seg.dig_end, np.ones((len(labels), 2)))
-    events = redirection_shapes(series, seg.dig_start, seg.dig_end, dev)
-    templates, scales = build_templates(paths, labels, starts, events)
+    lift = np.zeros(len(labels))
+    for _ in range(LIFT_ROUNDS):  # a kept lift taken out of the path, its arc length taken again
+        general, after, window = general_paths(series, seg.dig_start, seg.dig_end, dev, lift)
+        templates, scales, more = build_templates(general, labels, starts, after, window)
+        lift = lift + more
     dev = replace(dev, scale_x=scales[:, 0], scale_z=scales[:, 1])
     distance = dtw_matrix(paths.path)
     grouping = group_digs(distance)

@@ -6,7 +6,11 @@ displacement ``dx`` (m, away from the machine), vertical ``dz`` (m, up) and buck
 resampled at N points of normalised arc length ``s`` in [0, 1]. A class's template is the
 median of its digs divided by their scales; a dig's scale (sx, sz) is the least-squares
 stretch of the template onto it, normalised so that each class's scales have a geometric
-mean of 1 (the template's size is the class's typical size). Deviations:
+mean of 1 (the template's size is the class's typical size). Both are taken from the path
+low-passed at `PATH_CUTOFF_HZ` (`general_paths`), without the samples within an operator's
+redirection (nor, for the template, after it), and with a constant height after a
+redirection fitted beside the vertical stretch where it explains the height (a kept lift).
+Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
 - **operator redirection**: a sudden change the general shape cannot explain, found by
@@ -31,6 +35,8 @@ from mocap.analysis.series import TipSeries
 
 N_SAMPLES = 64
 MIN_EVENT_FRAMES = 30
+PATH_CUTOFF_HZ = 0.5  # low-pass of the path a dig's general shape and scale are taken from
+KEPT_GAIN = 2.0  # a constant height after a redirection must halve the height residual to be fitted
 
 
 @dataclass(frozen=True)
@@ -92,25 +98,27 @@ def resample_digs(series: TipSeries, starts: np.ndarray, ends: np.ndarray, n: in
     return DigPaths(s, out)
 
 
-def fit_scales(path: np.ndarray, template: np.ndarray,
-               events: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2), and the
-    lift (K,) m of each dig's redirection: with `events` (K, N), the unit shape of each
-    dig's redirection at its samples (zero without), the height is fitted as stretch x
-    template + lift x event together, so that a kept lift is not taken for a taller dig."""
-    num = np.einsum("knd,nd->kd", path, template)
-    tt = np.maximum((template**2).sum(axis=0), 1e-12)
+def fit_scales(path: np.ndarray, template: np.ndarray, events: np.ndarray | None = None,
+               weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2),
+    and the lift (K,) m of each dig's redirection: with `events` (K, N), the unit shape of
+    each dig's redirection at its samples (zero without), the height is fitted as stretch x
+    template + lift x event together, so that a kept lift is not taken for a taller dig.
+    `weights` (K, N) in [0, 1], default 1 (0 leaves a sample out: the redirection's window)."""
+    w = np.ones(path.shape[:2]) if weights is None else weights
+    num = np.einsum("kn,knd,nd->kd", w, path, template)
+    tt = np.maximum(w @ template**2, 1e-12)
     scale = num / tt
     lift = np.zeros(len(path))
     if events is None:
         return scale, lift
-    ee = np.einsum("kn,kn->k", events, events)
-    te = events @ template[:, 1]
-    ze = np.einsum("kn,kn->k", events, path[:, :, 1])
-    det = tt[1] * ee - te**2
-    ok = (ee > 1e-9) & (det > 1e-6 * tt[1] * np.maximum(ee, 1e-12))
+    ee = np.einsum("kn,kn,kn->k", w, events, events)
+    te = (w * events) @ template[:, 1]
+    ze = np.einsum("kn,kn,kn->k", w, events, path[:, :, 1])
+    det = tt[:, 1] * ee - te**2
+    ok = (ee > 1e-9) & (det > 1e-6 * tt[:, 1] * np.maximum(ee, 1e-12))
     scale[ok, 1] = (num[ok, 1] * ee[ok] - te[ok] * ze[ok]) / det[ok]
-    lift[ok] = (tt[1] * ze[ok] - te[ok] * num[ok, 1]) / det[ok]
+    lift[ok] = (tt[ok, 1] * ze[ok] - te[ok] * num[ok, 1]) / det[ok]
     return scale, lift
 
 
@@ -130,34 +138,64 @@ def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return out
 
 
-def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, events: np.ndarray | None = None,
-                    iterations: int = 4) -> tuple[dict[str, Template], np.ndarray]:
-    """Per-label templates and every dig's scale (K, 2) against its label's template.
+def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, after: np.ndarray | None = None,
+                    window: np.ndarray | None = None, iterations: int = 4,
+                    kept_gain: float = KEPT_GAIN) -> tuple[dict[str, Template], np.ndarray, np.ndarray]:
+    """Per-label templates, every dig's scale (K, 2) against its label's template and the
+    height (K,) m a redirection left the rest of its dig at (0 where none did).
 
-    `starts` (K, 3) start reach, height, angle of each dig; `events` (K, N) the unit shape
-    of each dig's redirection at its samples (`redirection_shapes`), fitted beside the scale.
+    `starts` (K, 3) start reach, height, angle of each dig. `window` (K, N) in [0, 1], the
+    samples within a redirection (1): they are left out of the scale fit and of the
+    template (each sample the median of the digs outside a window there), so that a
+    temporary lift or lower neither stretches its dig nor bends its class's shape. `after`
+    (K, N) 1 at the samples after a redirection: a constant height there is fitted beside
+    the vertical stretch when it leaves at most 1 / `kept_gain` of the squared height
+    residual without it (a kept lift is not a taller dig; the event's kind as the event
+    fit reads it is not trusted for this, a pulse and a step being alike over a short window).
     """
-    scales = np.ones((len(labels), 2))
-    events = np.zeros(paths.path.shape[:2]) if events is None else events
+    scales, lifts = np.ones((len(labels), 2)), np.zeros(len(labels))
+    after = np.zeros(paths.path.shape[:2]) if after is None else after
+    window = np.zeros(paths.path.shape[:2]) if window is None else window
     templates: dict[str, Template] = {}
     for label in dict.fromkeys(labels):
         pick = labels == label
-        xy = np.concatenate([paths.path[pick, :, :2], events[pick, :, None]], axis=-1)
-        template = np.median(xy[..., :2], axis=0)
+        xy = np.concatenate([paths.path[pick, :, :2], after[pick, :, None], window[pick, :, None]], axis=-1)
+        template = _template(xy[..., :2], xy[..., 3] + xy[..., 2])
         sc = np.ones((len(xy), 2))
         for _ in range(iterations):
             even = _descaled(xy, sc)
-            sc, lift = fit_scales(even[..., :2], template, even[..., 2])
-            sc = np.clip(sc, 0.05, 20.0)
-            sc /= np.exp(np.log(sc).mean(axis=0))
+            sc, _ = fit_scales(even[..., :2], template, None, 1.0 - np.clip(even[..., 3], 0, 1))
+            sc = _normalised(sc)
             general = _descaled(xy, sc)
-            general[..., 1] -= lift[:, None] * general[..., 2]
-            template = np.median(general[..., :2] / sc[:, None, :], axis=0)
-        scales[pick] = sc
+            template = _template(general[..., :2] / sc[:, None, :], general[..., 3] + general[..., 2])
+        even = _descaled(xy, sc)
+        weight = 1.0 - np.clip(even[..., 3], 0, 1)
+        step = (even[..., 2] > 0.5).astype(float)
+        with_step, lift = fit_scales(even[..., :2], template, step, weight)
+        unexplained = ((even[..., 1] - sc[:, 1:] * template[:, 1]) ** 2 * weight).sum(axis=1)
+        left = ((even[..., 1] - with_step[:, 1:] * template[:, 1] - lift[:, None] * step) ** 2 * weight).sum(axis=1)
+        kept = step.any(axis=1) & (unexplained > kept_gain * left)
+        scales[pick] = _normalised(np.where(kept[:, None], with_step, sc))
+        lifts[pick] = np.where(kept, lift, 0.0)
         angle = np.median(paths.path[pick, :, 2], axis=0)
         templates[label] = Template(label, int(pick.sum()), paths.s, np.column_stack([template, angle]),
                                     np.median(starts[pick], axis=0))
-    return templates, scales
+    return templates, scales, lifts
+
+
+def _normalised(scale: np.ndarray) -> np.ndarray:
+    """Scales (K, 2) clipped to a sane range and divided by their geometric mean."""
+    scale = np.clip(scale, 0.05, 20.0)
+    return scale / np.exp(np.log(scale).mean(axis=0))
+
+
+def _template(xy: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """The median path (N, 2) of digs (K, N, 2), each sample over the digs outside a
+    redirection's `window` (K, N) there (all of them where none is)."""
+    out = np.where(window[..., None] > 0.5, np.nan, xy)
+    none = np.all(np.isnan(out[..., 0]), axis=0)
+    out[:, none] = xy[:, none]
+    return np.nanmedian(out, axis=0)
 
 
 def event_shape(tau: np.ndarray, centre: np.ndarray, width: np.ndarray, kept: np.ndarray) -> np.ndarray:
@@ -180,20 +218,43 @@ def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return event_shape(tau, c, w, kept), kept, c, w
 
 
-def redirection_shapes(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations,
-                       n: int = N_SAMPLES) -> np.ndarray:
-    """(K, N) each found redirection's unit shape (`event_shape`) at the dig's `n` samples of
-    normalised arc length (as `resample_digs` takes them); zero for digs without one."""
-    out = np.zeros((len(starts), n))
+def general_paths(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
+                  lift: np.ndarray | None = None, n: int = N_SAMPLES, cutoff_hz: float = PATH_CUTOFF_HZ,
+                  margin_s: float = 0.5) -> tuple[DigPaths, np.ndarray, np.ndarray]:
+    """Each dig [start, end] (indices) as its general shape and scale are taken from,
+    resampled at `n` points of normalised arc length: the tip's raw path low-passed at
+    `cutoff_hz` (the reactive variations' wiggles would lengthen the arc and shift every
+    sample along it), less each found redirection's kept `lift` (K,) m as a smooth step
+    (same low-pass), so that the arc is that of the dig without it.
+
+    Also, for the digs with a redirection in `dev`, (K, N) `after`: 1 at the samples after
+    it, and (K, N) `window`: 1 within it, widened by `margin_s` either side (the low-pass
+    spreads it), both zero elsewhere and for the other digs.
+    """
     s = np.linspace(0.0, 1.0, n)
-    for i in np.flatnonzero(dev.redirection != "none"):
-        a, b = starts[i], ends[i]
-        tau = np.linspace(0.0, 1.0, b - a + 1)
-        shape = event_shape(tau, dev.redirection_centre[i:i + 1], dev.redirection_width[i:i + 1],
-                            np.array([dev.redirection[i] == "kept"]))[0]
-        u, keep = np.unique(_arc(series.reach[a:b + 1], series.height[a:b + 1]), return_index=True)
-        out[i] = np.interp(s, u, shape[keep])
-    return out
+    sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
+    reach, height = (sosfiltfilt(sos, v) for v in (series.raw_reach, series.raw_height))
+    lift = np.zeros(len(starts)) if lift is None else lift
+    pad = int(round(3.0 * series.rate))
+    out = np.empty((len(starts), n, 3))
+    after, window = np.zeros((len(starts), n)), np.zeros((len(starts), n))
+    for k, (a, b) in enumerate(zip(starts, ends)):
+        r, z, angle = reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1]
+        late, inside = np.zeros(b - a + 1), np.zeros(b - a + 1)
+        if dev is not None and dev.redirection[k] != "none":
+            tau = np.arange(-pad, b - a + 1 + pad) / max(b - a, 1)
+            centre = dev.redirection_centre[k]
+            width = dev.redirection_width[k] + margin_s / max(series.time[b] - series.time[a], 1e-9)
+            if lift[k]:
+                step = event_shape(tau, np.array([centre]), np.array([width]), np.array([True]))[0]
+                z = z - lift[k] * sosfiltfilt(sos, np.where(tau < 0, 0.0, step))[pad:pad + b - a + 1]
+            tau = tau[pad:pad + b - a + 1]
+            late, inside = (tau >= centre + width).astype(float), (np.abs(tau - centre) < width).astype(float)
+        u, keep = np.unique(_arc(r, z), return_index=True)
+        for d, v in enumerate((r - r[0], z - z[0], angle)):
+            out[k, :, d] = np.interp(s, u, v[keep])
+        after[k], window[k] = np.interp(s, u, late[keep]), np.interp(s, u, inside[keep])
+    return DigPaths(s, out), after, window
 
 
 def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
