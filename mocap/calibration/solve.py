@@ -9,7 +9,7 @@ returns the parameters with their standard deviations.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -101,6 +101,7 @@ class CalibrationResult:
     marker_views: np.ndarray  # (M,) number of cameras that saw each marker (inliers)
     marker_offsets: np.ndarray | None = None  # (M, 3) m, link frames: fitted within the tolerance
     marker_offsets_sd: np.ndarray | None = None  # (M, 3)
+    warnings: tuple[str, ...] = ()  # what the data leave doubtful, one sentence each
 
     @property
     def std(self) -> np.ndarray:
@@ -160,7 +161,23 @@ def calibrate(
             joints = q
     x0 = layout.pack(cameras, joints)
     marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
-    return _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    doubtful = _doubtful_cameras(result)
+    if doubtful:
+        # many of a camera's pixels named outliers: most likely a wrong minimum for that
+        # camera; it is placed again on all its markers at the fitted pose and the fit repeated
+        log.info("camera(s) %s lost many observations as outliers: fitted again from a new start",
+                 ", ".join(names[c] for c in doubtful))
+        start = _replaced_cameras(result, observations, templates, doubtful)
+        try:
+            again = _fit(machine, observations, layout, templates, layout.pack(start, result.joints), options,
+                         marker_sd)
+        except InputError as exc:
+            log.info("the new start did not converge: %s", exc)
+        else:
+            if _robust_cost(again, options) < _robust_cost(result, options):
+                result = again
+    return replace(result, warnings=_warnings(result))
 
 
 def _start(machine, obs: Observations, templates, group, guess: Guess | None):
@@ -199,6 +216,60 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None):
             cameras[c], rms = initial.place_camera(world, obs.xy[rows], templates[c])
             log.info("camera %s placed from all its markers, rms %.2f px", templates[c].name, rms)
     return cameras, joints
+
+
+def _doubtful_cameras(result: CalibrationResult) -> list[int]:
+    """Cameras that lost more than a fifth (and at least two) of their observations as
+    outliers: more than wrong detections explain."""
+    out = []
+    for c, camera in enumerate(result.cameras):
+        mine = [r.outlier for r in result.residuals if r.camera == camera.name]
+        if sum(mine) >= 2 and sum(mine) > 0.2 * len(mine):
+            out.append(c)
+    return out
+
+
+def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful) -> list[Camera]:
+    """The result's cameras, those in `doubtful` placed again by PnP of all their markers at
+    the fitted joint values."""
+    cameras = list(result.cameras)
+    for c in doubtful:
+        joints = result.joints[c] if result.per_camera else result.joints
+        rows = observations.camera == c
+        world = result.machine.markers(np.asarray(joints)[None])[0][observations.marker[rows]]
+        placed, rms = initial.place_camera(world, observations.xy[rows], templates[c])
+        if np.isfinite(rms):
+            cameras[c] = placed
+    return cameras
+
+
+def _robust_cost(result: CalibrationResult, options: CalibrationOptions) -> float:
+    """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale."""
+    e = np.array([np.linalg.norm(r.residual) for r in result.residuals]) / options.f_scale_px
+    return float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0)))
+
+
+def _warnings(result: CalibrationResult) -> tuple[str, ...]:
+    """One sentence per thing the data leave doubtful: a camera whose position they hardly
+    fix (its standard deviation beyond a tenth of its distance: focal length and distance
+    barely told apart), a camera many of whose observations disagree with the fit."""
+    out = []
+    target = np.mean(result.markers_world, axis=0)
+    for c, camera in enumerate(result.cameras):
+        distance = float(np.linalg.norm(camera.center - target))
+        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
+        if not sd <= 0.1 * distance:
+            out.append(f"camera {camera.name}: its position is hardly fixed by these markers (± {sd:.2f} m at "
+                       f"{distance:.1f} m; focal length and distance barely told apart): use a frame where the "
+                       "machine shows more depth or more markers, another camera, or known intrinsics")
+    for c in _doubtful_cameras(result):
+        name = result.cameras[c].name
+        mine = [r.outlier for r in result.residuals if r.camera == name]
+        out.append(f"camera {name}: {sum(mine)} of its {len(mine)} observations disagree with the fit: check "
+                   "its marker labels; its solution is doubtful")
+    for line in out:
+        log.warning("%s", line)
+    return tuple(out)
 
 
 def _neutral_joints(machine: Machine) -> np.ndarray:
@@ -266,7 +337,7 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
     sigma2 = float(final.fun @ final.fun) / dof
-    covariance = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
+    covariance = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
     fitted = problem.machine_at(final.x)
     offsets, offsets_sd = None, None
     core = slice(0, layout.size - 3 * layout.n_markers)  # cameras and joints
