@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -37,6 +38,8 @@ class CalibrationOptions:
     model's marker positions may be off (None: the model's own statement, if any); each
     residual is then weighted by the pixel noise plus the tolerance projected into the
     image, so that model error is not taken for outliers and far markers count less.
+    fixed_intrinsics: names of cameras whose intrinsics (focal length, principal point,
+    distortion) are known: their templates' values are used and kept, not fitted.
     """
 
     per_camera: bool = False
@@ -46,6 +49,7 @@ class CalibrationOptions:
     outlier_px: float | None = None
     max_rms_px: float | None = None
     tolerance: Tolerance | None = None
+    fixed_intrinsics: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -138,7 +142,7 @@ def calibrate(
     tolerance = machine.tolerance if options.tolerance is None else options.tolerance
     layout = Layout(
         len(templates), machine.n_joints, options.per_camera, options.fit_principal_point, options.distortion,
-        n_markers=len(machine.marker_names) if tolerance else 0,
+        n_markers=len(machine.marker_names) if tolerance else 0, fixed_intrinsics=options.fixed_intrinsics,
     )
     identify.check_counts(
         machine, names, observations.camera, observations.marker, options.per_camera, layout.camera_size
@@ -152,9 +156,11 @@ def calibrate(
     joints = np.zeros((len(templates), machine.n_joints)) if options.per_camera else None
     for group in groups:
         mask = np.isin(observations.camera, group)
-        placed, q = _start(machine, observations.select(mask), templates, group, guess)
+        placed, q = _start(machine, observations.select(mask), templates, group, guess, options.fixed_intrinsics)
         for c in group:
             cameras[c] = placed[c]
+            if templates[c].name in options.fixed_intrinsics:  # a guess's focal length gives way to the known one
+                cameras[c] = replace(templates[c], cam_from_world=placed[c].cam_from_world)
         if options.per_camera:
             joints[group[0]] = q
         else:
@@ -168,7 +174,7 @@ def calibrate(
         # camera; it is placed again on all its markers at the fitted pose and the fit repeated
         log.info("camera(s) %s lost many observations as outliers: fitted again from a new start",
                  ", ".join(names[c] for c in doubtful))
-        start = _replaced_cameras(result, observations, templates, doubtful)
+        start = _replaced_cameras(result, observations, templates, doubtful, options.fixed_intrinsics)
         try:
             again = _fit(machine, observations, layout, templates, layout.pack(start, result.joints), options,
                          marker_sd)
@@ -180,9 +186,9 @@ def calibrate(
     return replace(result, warnings=_warnings(result))
 
 
-def _start(machine, obs: Observations, templates, group, guess: Guess | None):
+def _start(machine, obs: Observations, templates, group, guess: Guess | None, known=frozenset()):
     """Starting cameras (a list by camera index, None outside `group`) and joint values for
-    the cameras in `group`."""
+    the cameras in `group`; the cameras named in `known` keep their templates' intrinsics."""
     cameras: list[Camera | None] = [None] * len(templates)
     base = machine.marker_links[obs.marker] == 0
     if guess is not None and guess.cameras:
@@ -200,9 +206,8 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None):
         for c in group:
             rows = (obs.camera == c) & base
             if np.sum(rows) >= 4:
-                cameras[c], rms = initial.place_camera(
-                    machine.marker_positions[obs.marker[rows]], obs.xy[rows], templates[c]
-                )
+                cameras[c], rms = _placed(machine.marker_positions[obs.marker[rows]], obs.xy[rows], templates[c],
+                                          known)
                 log.info("camera %s placed from the base link, rms %.2f px", templates[c].name, rms)
     start = _neutral_joints(machine)
     if guess is not None and guess.joints is not None:
@@ -213,7 +218,7 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None):
         if cameras[c] is None:
             rows = obs.camera == c
             world = machine.markers(joints[None])[0][obs.marker[rows]]
-            cameras[c], rms = initial.place_camera(world, obs.xy[rows], templates[c])
+            cameras[c], rms = _placed(world, obs.xy[rows], templates[c], known)
             log.info("camera %s placed from all its markers, rms %.2f px", templates[c].name, rms)
     return cameras, joints
 
@@ -229,7 +234,8 @@ def _doubtful_cameras(result: CalibrationResult) -> list[int]:
     return out
 
 
-def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful) -> list[Camera]:
+def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful,
+                      known=frozenset()) -> list[Camera]:
     """The result's cameras, those in `doubtful` placed again by PnP of all their markers at
     the fitted joint values."""
     cameras = list(result.cameras)
@@ -237,7 +243,7 @@ def _replaced_cameras(result: CalibrationResult, observations: Observations, tem
         joints = result.joints[c] if result.per_camera else result.joints
         rows = observations.camera == c
         world = result.machine.markers(np.asarray(joints)[None])[0][observations.marker[rows]]
-        placed, rms = initial.place_camera(world, observations.xy[rows], templates[c])
+        placed, rms = _placed(world, observations.xy[rows], templates[c], known)
         if np.isfinite(rms):
             cameras[c] = placed
     return cameras
@@ -272,6 +278,26 @@ def _warnings(result: CalibrationResult) -> tuple[str, ...]:
     return tuple(out)
 
 
+def _placed(points: np.ndarray, pixels: np.ndarray, template: Camera, known=frozenset()) -> tuple[Camera, float]:
+    """A camera placed by PnP on known points; one with known intrinsics (named in `known`)
+    keeps its template's focal length and distortion (the pixels undistorted for the PnP)."""
+    if template.name not in known:
+        return initial.place_camera(points, pixels, template)
+    undistorted = cv2.undistortPoints(np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2),
+                                      template.matrix, template.distortion, P=template.matrix).reshape(-1, 2)
+    placed, rms = initial.place_camera(points, undistorted, template, focal=template.focal)
+    return Camera(template.name, template.size, template.matrix, template.distortion, placed.cam_from_world), rms
+
+
+def _free(layout: Layout, templates) -> np.ndarray:
+    """(P,) bool: the parameters solved for; a known camera's intrinsics are held."""
+    free = np.ones(layout.size, dtype=bool)
+    for c, template in enumerate(templates):
+        if template.name in layout.fixed_intrinsics:
+            free[layout.camera_slice(c).start + 6 : layout.camera_slice(c).stop] = False
+    return free
+
+
 def _neutral_joints(machine: Machine) -> np.ndarray:
     """Zero where the limits allow it, else the middle of the limits."""
     limits = machine.joint_limits
@@ -299,6 +325,10 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     is weighed at the pixel noise estimated from a first fit."""
     names = [t.name for t in templates]
     bounds, x0 = _bounds(layout, machine, x0)
+    free = _free(layout, templates)
+
+    def _least_squares(problem, x_start, bounds, **robust):
+        return _solve(problem, x_start, bounds, free, **robust)
 
     def problem_of(obs, prior_px=1.0):
         return Problem(machine, obs, layout, templates, marker_sd, prior_px)
@@ -330,14 +360,17 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
             "(expected about the pixel noise); check the marker labels, or give a --guess "
             "(or a larger --max-rms)"
         )
-    jacobian = final.jac
+    jacobian = final.jac  # of the free parameters
     all_names = layout.names(names, machine.joint_names, machine.marker_names)
+    kinds = layout.kinds(names, machine.joint_names, machine.marker_names)
     rank, condition = identify.check_jacobian(
-        jacobian, all_names, layout.kinds(names, machine.joint_names, machine.marker_names)
+        jacobian, [n for n, f in zip(all_names, free) if f], [k for k, f in zip(kinds, free) if f]
     )
+    rank += int(np.sum(~free))  # the held parameters are known
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
     sigma2 = float(final.fun @ final.fun) / dof
-    covariance = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
+    covariance = np.zeros((layout.size, layout.size))  # the held parameters' variance is zero
+    covariance[np.ix_(free, free)] = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
     fitted = problem.machine_at(final.x)
     offsets, offsets_sd = None, None
     core = slice(0, layout.size - 3 * layout.n_markers)  # cameras and joints
@@ -379,17 +412,27 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
 
 
-def _least_squares(problem: Problem, x0, bounds, loss: str = "linear", f_scale: float = 1.0):
-    return least_squares(
-        problem.residuals,
-        x0,
-        jac=problem.jacobian,
-        bounds=bounds,
+def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss: str = "linear", f_scale: float = 1.0):
+    """Least squares over the parameters `free` (P,) bool, the others held at x0's values;
+    the solution's x is the whole vector, its jac the free parameters' columns."""
+
+    def whole(z):
+        x = x0.copy()
+        x[free] = z
+        return x
+
+    solution = least_squares(
+        lambda z: problem.residuals(whole(z)),
+        x0[free],
+        jac=lambda z: problem.jacobian(whole(z))[:, free],
+        bounds=(bounds[0][free], bounds[1][free]),
         loss=loss,
         f_scale=f_scale,
         x_scale="jac",
         method="trf",
     )
+    solution.x = whole(solution.x)
+    return solution
 
 
 def _pixel_errors(fun: np.ndarray, problem: Problem) -> np.ndarray:

@@ -10,10 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mocap.camera import Camera
 from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
-from mocap.io.intrinsics import load_intrinsics
+from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
@@ -216,24 +215,3 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
         moved = np.linalg.norm(result.machine.marker_positions - machine.marker_positions, axis=1)
         report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
     return report
-
-
-
-def with_known_intrinsics(cameras: list[Camera], known: dict, path) -> list[Camera]:
-    """The cameras with the intrinsics (matrix, distortion) that `known` names, which must
-    match their image size."""
-    out = []
-    for camera in cameras:
-        given = known.get(camera.name)
-        if given is None:
-            out.append(camera)
-            continue
-        if tuple(given.size) != tuple(camera.size):
-            raise InputError(f"camera {camera.name}'s known intrinsics are for {given.size[0]}x{given.size[1]} images, "
-                             f"the calibration's for {camera.size[0]}x{camera.size[1]}; give the intrinsics of "
-                             "the same video size", path=path)
-        out.append(replace(camera, matrix=given.matrix, distortion=given.distortion))
-    if not any(c.name in known for c in cameras):
-        raise InputError(f"the intrinsics file names camera(s) {sorted(known)[:5]}, none of the calibration's "
-                         f"{[c.name for c in cameras]}; name them alike", path=path)
-    return out
