@@ -167,7 +167,28 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
                    "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
     if result.smoothed is not None:
         report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
-    return report + _dropped(clock)
+    return report + _ambiguity(machine, list(calibration.cameras), clock.pixels, fit, fit_options) + _dropped(clock)
+
+
+def _ambiguity(machine: Machine, cameras, pixels, fit, fit_options: FitOptions) -> str:
+    """A sentence for the report when sampled frames have a second solution that explains
+    their pixels as well as the fit's, far from it (empty otherwise)."""
+    from mocap.reconstruct.ambiguity import second_solutions
+
+    found = second_solutions(machine, cameras, pixels, fit, fit_options)
+    if not found.ambiguous.any():
+        return ""
+    frames = np.nonzero(found.ambiguous)[0]
+    if machine.point_names:
+        apart = np.linalg.norm(machine.points(found.alternative[frames]) - machine.points(fit.joints[frames]), axis=-1)
+        gap = f"{machine.point_names[int(np.argmax(apart.max(0)))]} up to {apart.max():.2f} m apart"
+    else:
+        gap = "markers moved"
+    line = (f"; {len(frames)} of {int(found.checked.sum())} frames checked have a second solution that explains the "
+            f"pixels as well ({gap}, e.g. frame {frames[0]}): the cameras see too little of the moving links to "
+            "tell them apart; add a camera or markers on those links")
+    log.warning("%s", line[2:])
+    return line
 
 
 def _worst(names: np.ndarray, errors: np.ndarray, count: int = 3) -> str:

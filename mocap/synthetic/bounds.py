@@ -62,7 +62,8 @@ def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, se
     """(F, P) bound on each named point's error (m, root of the trace) of a per-frame fit
     of the joint values at the true joints (F, J) from the observations `seen` (C, F, M);
     with marker_sd (M, 3) the model's marker coordinates are uncertain too (marginalised
-    frame by frame, as in `calibration_centre_sd`)."""
+    frame by frame, as in `calibration_centre_sd`). Infinite where a joint that moves the
+    point moves no marker seen in that frame."""
     state = FrameState(joints, None, None, np.zeros(len(joints)))
     truth = np.stack([c.project(machine.markers(joints)) for c in cameras], 1)  # (F, C, M, 2)
     pixels = np.where(np.moveaxis(seen, 0, 1)[..., None], truth, np.nan)
@@ -83,7 +84,11 @@ def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, se
         markers_information = np.swapaxes(d_marker, 1, 2) @ d_marker + np.diag(1.0 / sd**2)
         information = information - cross_term @ np.linalg.solve(markers_information, np.swapaxes(cross_term, 1, 2))
     covariance = inverse_information(information)
-    return point_quantities(machine, joints, covariance).points_sd
+    sd = point_quantities(machine, joints, covariance).points_sd
+    diagonal = np.diagonal(information, axis1=1, axis2=2)
+    unobserved = diagonal <= 1e-12 * np.max(diagonal, axis=1, keepdims=True)  # (F, J) no marker it moves seen
+    blind = (unobserved[:, :, None] & machine.moves[:, machine.point_links][None]).any(axis=1)
+    return np.where(blind, np.inf, sd)  # no estimator knows a point whose joint nothing shows
 
 
 def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray, noise_px: float) -> np.ndarray:
