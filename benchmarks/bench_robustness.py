@@ -17,7 +17,9 @@ Rows: `calibration` the median over a scene's cameras of centre error / bound, t
 inverted after scaling (a plain pseudo-inverse drops a far camera's distance);
 `calibration_at_bound` what an estimator exactly at the bound would score on the same
 scenes (one draw from the bound's covariance: a single camera's error lies along its line
-of sight, |N(0, 1)|, 2.58 at 99 %); `calibration_worst_camera` the worst camera's ratio.
+of sight, |N(0, 1)|, 2.58 at 99 %); `calibration_worst_camera` the worst camera's ratio;
+`calibration_unflagged` the scenes whose calibration carries no warning (a camera its
+markers hardly fix, or one that lost a fifth of its pixels as outliers).
 `fit` the tip's RMS error / RMS bound over the frames whose markers show the tip's joints;
 `fit_unambiguous` the same over the scenes where the fit finds no second solution that
 explains the pixels as well (`mocap.reconstruct.ambiguity`; the others are reported by the
@@ -51,7 +53,7 @@ from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, 
 from mocap.synthetic.machines import SceneOptions, random_scene
 
 FIELD = SceneOptions.field()
-CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera"]
+CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera", "calibration_unflagged"]
 CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation"]
 FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "triangulation"]
 FRAMES = 40
@@ -122,6 +124,8 @@ def one_scene(seed: int, field: bool) -> dict:
         out["calibration_worst_camera"] = float(np.max(ratio))
         out["calibration_at_bound"] = at_bound(covariance, np.random.default_rng(seed + 7))
         out["flagged"] = len(result.warnings)
+        if not result.warnings:
+            out["calibration_unflagged"] = out["calibration"]
         out["dropped_good"] = int(sum(r.outlier and not w for r, w in zip(result.residuals, scene.outlier[scene.tracks.frame == 0])))
         if field:
             out["naive_calibration"] = float(np.median(naive_calibration(scene, rng) / bound))
