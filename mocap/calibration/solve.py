@@ -151,6 +151,52 @@ def calibrate(
         missing = [n for n in names if n not in guess.cameras]
         if missing:
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
+    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
+    x0 = _starting_point(machine, observations, templates, options, guess, layout)
+    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    if result.outliers:
+        # pixels named outliers may be a wrong minimum's doing: the start is found again
+        # without them, and the cameras that lost many are placed again on all their markers
+        # at the fitted pose; the fit from each is kept if it explains the pixels better
+        kept = np.array([not r.outlier for r in result.residuals])
+        starts = [lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout)]
+        doubtful = _doubtful_cameras(result)
+        if doubtful:
+            starts.append(lambda: layout.pack(_replaced_cameras(result, observations, templates, doubtful,
+                                                                options.fixed_intrinsics), result.joints))
+        if not result.per_camera:
+            starts += _swept_joints(machine, layout, result, observations.marker[~kept])
+        for start in starts:
+            try:
+                again = _fit(machine, observations, layout, templates, start(), options, marker_sd)
+            except InputError as exc:
+                log.info("a new start did not converge: %s", exc)
+                continue
+            if _robust_cost(again, options) < _robust_cost(result, options):
+                log.info("a new start explains the pixels better: kept")
+                result = again
+    return replace(result, warnings=_warnings(result))
+
+
+def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
+    """Starts (callables of no argument) with the joint of each dropped marker's link set
+    across its range, the rest as fitted: that joint's mirror solutions."""
+    cameras = list(result.cameras)
+    limits = machine.joint_limits
+    lower = np.where(np.isfinite(limits[:, 0]), limits[:, 0], -1.0)
+    upper = np.where(np.isfinite(limits[:, 1]), limits[:, 1], 1.0)
+    out = []
+    own_joint = {int(link): j for j, link in enumerate(machine.joint_links)}  # the joint that moves each link
+    for j in sorted({own_joint[int(link)] for link in machine.marker_links[dropped] if int(link) in own_joint}):
+        for level in (np.arange(6) + 0.5) / 6:
+            joints = np.array(result.joints, dtype=float)
+            joints[j] = lower[j] + level * (upper[j] - lower[j])
+            out.append(lambda joints=joints: layout.pack(cameras, joints))
+    return out
+
+
+def _starting_point(machine, observations, templates, options: CalibrationOptions, guess, layout: Layout):
+    """The parameter vector (P,) to start the fit from, found from `observations` alone."""
     groups = [[c] for c in range(len(templates))] if options.per_camera else [list(range(len(templates)))]
     cameras: list[Camera | None] = [None] * len(templates)
     joints = np.zeros((len(templates), machine.n_joints)) if options.per_camera else None
@@ -165,25 +211,7 @@ def calibrate(
             joints[group[0]] = q
         else:
             joints = q
-    x0 = layout.pack(cameras, joints)
-    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
-    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
-    doubtful = _doubtful_cameras(result)
-    if doubtful:
-        # many of a camera's pixels named outliers: most likely a wrong minimum for that
-        # camera; it is placed again on all its markers at the fitted pose and the fit repeated
-        log.info("camera(s) %s lost many observations as outliers: fitted again from a new start",
-                 ", ".join(names[c] for c in doubtful))
-        start = _replaced_cameras(result, observations, templates, doubtful, options.fixed_intrinsics)
-        try:
-            again = _fit(machine, observations, layout, templates, layout.pack(start, result.joints), options,
-                         marker_sd)
-        except InputError as exc:
-            log.info("the new start did not converge: %s", exc)
-        else:
-            if _robust_cost(again, options) < _robust_cost(result, options):
-                result = again
-    return replace(result, warnings=_warnings(result))
+    return layout.pack(cameras, joints)
 
 
 def _start(machine, obs: Observations, templates, group, guess: Guess | None, known=frozenset()):
@@ -298,6 +326,29 @@ def _free(layout: Layout, templates) -> np.ndarray:
     return free
 
 
+def _offsets(layout: Layout) -> np.ndarray:
+    """(P,) bool: the markers' offsets in the parameter vector."""
+    mask = np.zeros(layout.size, dtype=bool)
+    mask[layout.offset_slice] = True
+    return mask
+
+
+def _tolerance_factor(layout: Layout, templates, machine: Machine, obs: Observations, x: np.ndarray,
+                      marker_sd: np.ndarray, noise_px: float) -> np.ndarray:
+    """(N,) sqrt(1 + (tolerance in px / noise)^2) per observation: its marker's tolerance
+    `marker_sd` (M,) m seen from its camera (focal length over depth) against the noise."""
+    cameras, joints = layout.unpack(x, templates)
+    factor = np.ones(len(obs))
+    for c, camera in enumerate(cameras):
+        rows = obs.camera == c
+        q = joints[c] if layout.per_camera else joints
+        world = machine.markers(np.asarray(q)[None])[0][obs.marker[rows]]
+        depth = np.abs(world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2])
+        model_px = marker_sd[obs.marker[rows]] * camera.focal / np.maximum(depth, 1e-9)
+        factor[rows] = np.sqrt(1.0 + (model_px / noise_px) ** 2)
+    return factor
+
+
 def _neutral_joints(machine: Machine) -> np.ndarray:
     """Zero where the limits allow it, else the middle of the limits."""
     limits = machine.joint_limits
@@ -340,11 +391,28 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
         problem = problem_of(observations, prior_px)
         final = _least_squares(problem, final.x, bounds)
     inlier = np.ones(len(observations), dtype=bool)
-    if options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem), options).any():
-        robust = _least_squares(problem, x0 if marker_sd is None else final.x, bounds, loss="soft_l1",
-                                f_scale=options.f_scale_px)
-        errors = _pixel_errors(robust.fun, problem)
-        inlier = _drop_while_identifiable(machine, names, observations, layout, _suspects(errors, options), errors)
+    if marker_sd is not None or options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem),
+                                                                             options).any():
+        if marker_sd is None:
+            robust = _least_squares(problem, x0, bounds, loss="soft_l1", f_scale=options.f_scale_px)
+            errors = _pixel_errors(robust.fun, problem)
+        else:
+            # outliers judged with the markers where the model puts them, each residual against
+            # the noise plus its marker's tolerance seen from its camera: free offsets would
+            # absorb a wild pixel on a marker that one camera sees
+            # (and, as the offsets fitted too would leave them, against the pixel noise)
+            held = final.x.copy()
+            held[layout.offset_slice] = 0.0
+            standard = _solve(problem, held, bounds, free & ~_offsets(layout), loss="soft_l1",
+                              f_scale=options.f_scale_px)
+            errors = _pixel_errors(standard.fun, problem) / _tolerance_factor(
+                layout, templates, machine, observations, standard.x, marker_sd, problem.prior_px)
+            robust = _least_squares(problem, final.x, bounds, loss="soft_l1", f_scale=options.f_scale_px)
+            free_errors = _pixel_errors(robust.fun, problem)
+            suspect = _suspects(errors, options) | _suspects(free_errors, options)
+            errors = np.maximum(errors, free_errors)
+        inlier = _drop_while_identifiable(machine, names, observations, layout,
+                                          suspect if marker_sd is not None else _suspects(errors, options), errors)
         if np.all(inlier):
             final = _least_squares(problem, robust.x, bounds)
         else:

@@ -13,6 +13,7 @@ Shapes: C cameras, F frames, M markers, J joints.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -64,7 +65,7 @@ def second_solutions(machine: Machine, cameras: list[Camera], pixels: np.ndarray
         for level in (np.arange(LEVELS) + 0.5) / LEVELS:
             start = fit.joints[frames].copy()
             start[:, j] = lower[j] + level * (upper[j] - lower[j])
-            other = fit_joints(machine, cameras, pixels[:, frames], start, again)
+            other = _quietly(fit_joints, machine, cameras, pixels[:, frames], start, again)
             gap = other.joints - fit.joints[frames]
             distance = np.einsum("fp,fpq,fq->f", gap, fit.information[frames], gap)
             same = (_chi2(other, fit.noise_px) < own_chi2 + CHI2_SAME) & (distance > FAR_SDS**2)
@@ -73,6 +74,17 @@ def second_solutions(machine: Machine, cameras: list[Camera], pixels: np.ndarray
             alternative[frames[closer]] = other.joints[closer]
     ambiguous[frames] = np.isfinite(best)
     return Ambiguity(checked, ambiguous, alternative)
+
+
+def _quietly(function, *args):
+    """function(*args) with the fit's own warnings (frames a wrong start leaves unexplained) held back."""
+    logger = logging.getLogger(fit_joints.__module__)
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        return function(*args)
+    finally:
+        logger.setLevel(level)
 
 
 def _chi2(fit: JointFit, noise_px: float) -> np.ndarray:
