@@ -82,7 +82,8 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
         commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
     if options.refine:
         final = str(session.refined_calibration_path)
-        commands.append(("refine", ["refine", machine, calibration, *tracks, "--out", final]))
+        # the lens model chosen by the data over the whole session (one frame cannot fix it)
+        commands.append(("refine", ["refine", machine, calibration, *tracks, "--distortion", "auto", "--out", final]))
     if len(cameras) > 1:
         commands.append(("triangulate", ["triangulate", final, *tracks, "--out", str(session.points_path)]))
     commands.append(("fit", ["fit", machine, final, *tracks, "--out", str(session.motion_path)]))

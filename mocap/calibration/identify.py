@@ -105,6 +105,19 @@ def check_jacobian(jacobian: np.ndarray, names: list[str], kinds: list[tuple]) -
     return rank, condition
 
 
+def inverse_information(information: np.ndarray) -> np.ndarray:
+    """(..., P, P) the covariance from an information matrix (..., P, P), inverted after
+    scaling its diagonal to one: parameters of unlike units (radians, metres, a focal length
+    of 10^5 px) make the raw matrix's condition pass 1e15, where a plain pseudo-inverse
+    drops the weak directions (a camera's distance along its line of sight) and states a
+    standard deviation a hundred times too small. Directions of no information at all
+    (gauge) stay zero."""
+    diagonal = np.diagonal(information, axis1=-2, axis2=-1)
+    scale = np.where(diagonal > 0, 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0)), 0.0)
+    scaled = information * scale[..., :, None] * scale[..., None, :]
+    return np.linalg.pinv(scaled, rcond=1e-12, hermitian=True) * scale[..., :, None] * scale[..., None, :]
+
+
 def _cause(names: list[str], kinds: list[tuple], condition: float | None = None) -> str:
     """A sentence naming what cannot be determined, from the parameters involved."""
     how = "" if condition is None else f" (condition number {condition:.1e})"

@@ -52,6 +52,7 @@ class Layout:
     fit_principal_point: bool = False
     distortion: str = "none"
     n_markers: int = 0  # M markers whose offsets from their measured positions are unknowns too
+    fixed_intrinsics: frozenset[str] = frozenset()  # cameras whose K and distortion are their templates'
 
     @property
     def distortion_terms(self) -> tuple[int, ...]:
@@ -135,7 +136,10 @@ class Layout:
 
     def intrinsics(self, block: np.ndarray, template: Camera) -> tuple[np.ndarray, np.ndarray]:
         """K (3, 3) and distortion (5,) of a camera's parameter block; the values not fitted
-        come from `template`."""
+        come from `template` (all of them for a camera in `fixed_intrinsics`, whose block's
+        intrinsics are placeholders held at their start)."""
+        if template.name in self.fixed_intrinsics:
+            return template.matrix.copy(), template.distortion.copy()
         matrix = template.matrix.copy()
         matrix[0, 0] = matrix[1, 1] = block[6]
         matrix[0, 1] = 0.0

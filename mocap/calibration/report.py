@@ -74,6 +74,8 @@ def to_calibration(result: CalibrationResult, frame: int) -> Calibration:
         "condition": result.condition,
         "outliers": [f"{r.camera}:{r.marker}" for r in result.outliers],
     }
+    if result.warnings:
+        metadata["warnings"] = list(result.warnings)
     if not result.per_camera:
         metadata["joints"] = joints_to_table(result.joints, machine)
         metadata["joints_sd"] = _joint_sd_table(result.joints_sd, machine)
@@ -170,6 +172,7 @@ def format_report(result: CalibrationResult, frame: int) -> str:
         f"identifiability: rank {result.rank} of {len(result.parameters)} parameters, "
         f"condition number {result.condition:.2e}"
     )
+    lines.extend(f"warning: {w}" for w in result.warnings)
     return "\n".join(lines)
 
 

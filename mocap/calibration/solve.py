@@ -9,8 +9,9 @@ returns the parameters with their standard deviations.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -37,6 +38,8 @@ class CalibrationOptions:
     model's marker positions may be off (None: the model's own statement, if any); each
     residual is then weighted by the pixel noise plus the tolerance projected into the
     image, so that model error is not taken for outliers and far markers count less.
+    fixed_intrinsics: names of cameras whose intrinsics (focal length, principal point,
+    distortion) are known: their templates' values are used and kept, not fitted.
     """
 
     per_camera: bool = False
@@ -46,6 +49,7 @@ class CalibrationOptions:
     outlier_px: float | None = None
     max_rms_px: float | None = None
     tolerance: Tolerance | None = None
+    fixed_intrinsics: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -101,6 +105,7 @@ class CalibrationResult:
     marker_views: np.ndarray  # (M,) number of cameras that saw each marker (inliers)
     marker_offsets: np.ndarray | None = None  # (M, 3) m, link frames: fitted within the tolerance
     marker_offsets_sd: np.ndarray | None = None  # (M, 3)
+    warnings: tuple[str, ...] = ()  # what the data leave doubtful, one sentence each
 
     @property
     def std(self) -> np.ndarray:
@@ -137,7 +142,7 @@ def calibrate(
     tolerance = machine.tolerance if options.tolerance is None else options.tolerance
     layout = Layout(
         len(templates), machine.n_joints, options.per_camera, options.fit_principal_point, options.distortion,
-        n_markers=len(machine.marker_names) if tolerance else 0,
+        n_markers=len(machine.marker_names) if tolerance else 0, fixed_intrinsics=options.fixed_intrinsics,
     )
     identify.check_counts(
         machine, names, observations.camera, observations.marker, options.per_camera, layout.camera_size
@@ -146,26 +151,72 @@ def calibrate(
         missing = [n for n in names if n not in guess.cameras]
         if missing:
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
+    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
+    x0 = _starting_point(machine, observations, templates, options, guess, layout)
+    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    if result.outliers:
+        # pixels named outliers may be a wrong minimum's doing: the start is found again
+        # without them, and the cameras that lost many are placed again on all their markers
+        # at the fitted pose; the fit from each is kept if it explains the pixels better
+        kept = np.array([not r.outlier for r in result.residuals])
+        starts = [lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout)]
+        doubtful = _doubtful_cameras(result)
+        if doubtful:
+            starts.append(lambda: layout.pack(_replaced_cameras(result, observations, templates, doubtful,
+                                                                options.fixed_intrinsics), result.joints))
+        if not result.per_camera:
+            starts += _swept_joints(machine, layout, result, observations.marker[~kept])
+        for start in starts:
+            try:
+                again = _fit(machine, observations, layout, templates, start(), options, marker_sd)
+            except InputError as exc:
+                log.info("a new start did not converge: %s", exc)
+                continue
+            if _robust_cost(again, options) < _robust_cost(result, options):
+                log.info("a new start explains the pixels better: kept")
+                result = again
+    return replace(result, warnings=_warnings(result))
+
+
+def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
+    """Starts (callables of no argument) with the joint of each dropped marker's link set
+    across its range, the rest as fitted: that joint's mirror solutions."""
+    cameras = list(result.cameras)
+    limits = machine.joint_limits
+    lower = np.where(np.isfinite(limits[:, 0]), limits[:, 0], -1.0)
+    upper = np.where(np.isfinite(limits[:, 1]), limits[:, 1], 1.0)
+    out = []
+    own_joint = {int(link): j for j, link in enumerate(machine.joint_links)}  # the joint that moves each link
+    for j in sorted({own_joint[int(link)] for link in machine.marker_links[dropped] if int(link) in own_joint}):
+        for level in (np.arange(6) + 0.5) / 6:
+            joints = np.array(result.joints, dtype=float)
+            joints[j] = lower[j] + level * (upper[j] - lower[j])
+            out.append(lambda joints=joints: layout.pack(cameras, joints))
+    return out
+
+
+def _starting_point(machine, observations, templates, options: CalibrationOptions, guess, layout: Layout):
+    """The parameter vector (P,) to start the fit from, found from `observations` alone."""
     groups = [[c] for c in range(len(templates))] if options.per_camera else [list(range(len(templates)))]
     cameras: list[Camera | None] = [None] * len(templates)
     joints = np.zeros((len(templates), machine.n_joints)) if options.per_camera else None
     for group in groups:
         mask = np.isin(observations.camera, group)
-        placed, q = _start(machine, observations.select(mask), templates, group, guess)
+        placed, q = _start(machine, observations.select(mask), templates, group, guess, options.fixed_intrinsics)
         for c in group:
             cameras[c] = placed[c]
+            if templates[c].name in options.fixed_intrinsics:  # a guess's focal length gives way to the known one
+                cameras[c] = replace(templates[c], cam_from_world=placed[c].cam_from_world)
         if options.per_camera:
             joints[group[0]] = q
         else:
             joints = q
-    x0 = layout.pack(cameras, joints)
-    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
-    return _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    return layout.pack(cameras, joints)
 
 
-def _start(machine, obs: Observations, templates, group, guess: Guess | None):
+def _start(machine, obs: Observations, templates, group, guess: Guess | None, known=frozenset()):
     """Starting cameras (a list by camera index, None outside `group`) and joint values for
-    the cameras in `group`."""
+    the cameras in `group`; the cameras named in `known` keep their templates' intrinsics."""
     cameras: list[Camera | None] = [None] * len(templates)
     base = machine.marker_links[obs.marker] == 0
     if guess is not None and guess.cameras:
@@ -183,9 +234,8 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None):
         for c in group:
             rows = (obs.camera == c) & base
             if np.sum(rows) >= 4:
-                cameras[c], rms = initial.place_camera(
-                    machine.marker_positions[obs.marker[rows]], obs.xy[rows], templates[c]
-                )
+                cameras[c], rms = _placed(machine.marker_positions[obs.marker[rows]], obs.xy[rows], templates[c],
+                                          known)
                 log.info("camera %s placed from the base link, rms %.2f px", templates[c].name, rms)
     start = _neutral_joints(machine)
     if guess is not None and guess.joints is not None:
@@ -196,9 +246,107 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None):
         if cameras[c] is None:
             rows = obs.camera == c
             world = machine.markers(joints[None])[0][obs.marker[rows]]
-            cameras[c], rms = initial.place_camera(world, obs.xy[rows], templates[c])
+            cameras[c], rms = _placed(world, obs.xy[rows], templates[c], known)
             log.info("camera %s placed from all its markers, rms %.2f px", templates[c].name, rms)
     return cameras, joints
+
+
+def _doubtful_cameras(result: CalibrationResult) -> list[int]:
+    """Cameras that lost more than a fifth (and at least two) of their observations as
+    outliers: more than wrong detections explain."""
+    out = []
+    for c, camera in enumerate(result.cameras):
+        mine = [r.outlier for r in result.residuals if r.camera == camera.name]
+        if sum(mine) >= 2 and sum(mine) > 0.2 * len(mine):
+            out.append(c)
+    return out
+
+
+def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful,
+                      known=frozenset()) -> list[Camera]:
+    """The result's cameras, those in `doubtful` placed again by PnP of all their markers at
+    the fitted joint values."""
+    cameras = list(result.cameras)
+    for c in doubtful:
+        joints = result.joints[c] if result.per_camera else result.joints
+        rows = observations.camera == c
+        world = result.machine.markers(np.asarray(joints)[None])[0][observations.marker[rows]]
+        placed, rms = _placed(world, observations.xy[rows], templates[c], known)
+        if np.isfinite(rms):
+            cameras[c] = placed
+    return cameras
+
+
+def _robust_cost(result: CalibrationResult, options: CalibrationOptions) -> float:
+    """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale."""
+    e = np.array([np.linalg.norm(r.residual) for r in result.residuals]) / options.f_scale_px
+    return float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0)))
+
+
+def _warnings(result: CalibrationResult) -> tuple[str, ...]:
+    """One sentence per thing the data leave doubtful: a camera whose position they hardly
+    fix (its standard deviation beyond a tenth of its distance: focal length and distance
+    barely told apart), a camera many of whose observations disagree with the fit."""
+    out = []
+    target = np.mean(result.markers_world, axis=0)
+    for c, camera in enumerate(result.cameras):
+        distance = float(np.linalg.norm(camera.center - target))
+        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
+        if not sd <= 0.1 * distance:
+            out.append(f"camera {camera.name}: its position is hardly fixed by these markers (± {sd:.2f} m at "
+                       f"{distance:.1f} m; focal length and distance barely told apart): use a frame where the "
+                       "machine shows more depth or more markers, another camera, or known intrinsics")
+    for c in _doubtful_cameras(result):
+        name = result.cameras[c].name
+        mine = [r.outlier for r in result.residuals if r.camera == name]
+        out.append(f"camera {name}: {sum(mine)} of its {len(mine)} observations disagree with the fit: check "
+                   "its marker labels; its solution is doubtful")
+    for line in out:
+        log.warning("%s", line)
+    return tuple(out)
+
+
+def _placed(points: np.ndarray, pixels: np.ndarray, template: Camera, known=frozenset()) -> tuple[Camera, float]:
+    """A camera placed by PnP on known points; one with known intrinsics (named in `known`)
+    keeps its template's focal length and distortion (the pixels undistorted for the PnP)."""
+    if template.name not in known:
+        return initial.place_camera(points, pixels, template)
+    undistorted = cv2.undistortPoints(np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2),
+                                      template.matrix, template.distortion, P=template.matrix).reshape(-1, 2)
+    placed, rms = initial.place_camera(points, undistorted, template, focal=template.focal)
+    return Camera(template.name, template.size, template.matrix, template.distortion, placed.cam_from_world), rms
+
+
+def _free(layout: Layout, templates) -> np.ndarray:
+    """(P,) bool: the parameters solved for; a known camera's intrinsics are held."""
+    free = np.ones(layout.size, dtype=bool)
+    for c, template in enumerate(templates):
+        if template.name in layout.fixed_intrinsics:
+            free[layout.camera_slice(c).start + 6 : layout.camera_slice(c).stop] = False
+    return free
+
+
+def _offsets(layout: Layout) -> np.ndarray:
+    """(P,) bool: the markers' offsets in the parameter vector."""
+    mask = np.zeros(layout.size, dtype=bool)
+    mask[layout.offset_slice] = True
+    return mask
+
+
+def _tolerance_factor(layout: Layout, templates, machine: Machine, obs: Observations, x: np.ndarray,
+                      marker_sd: np.ndarray, noise_px: float) -> np.ndarray:
+    """(N,) sqrt(1 + (tolerance in px / noise)^2) per observation: its marker's tolerance
+    `marker_sd` (M,) m seen from its camera (focal length over depth) against the noise."""
+    cameras, joints = layout.unpack(x, templates)
+    factor = np.ones(len(obs))
+    for c, camera in enumerate(cameras):
+        rows = obs.camera == c
+        q = joints[c] if layout.per_camera else joints
+        world = machine.markers(np.asarray(q)[None])[0][obs.marker[rows]]
+        depth = np.abs(world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2])
+        model_px = marker_sd[obs.marker[rows]] * camera.focal / np.maximum(depth, 1e-9)
+        factor[rows] = np.sqrt(1.0 + (model_px / noise_px) ** 2)
+    return factor
 
 
 def _neutral_joints(machine: Machine) -> np.ndarray:
@@ -228,6 +376,10 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     is weighed at the pixel noise estimated from a first fit."""
     names = [t.name for t in templates]
     bounds, x0 = _bounds(layout, machine, x0)
+    free = _free(layout, templates)
+
+    def _least_squares(problem, x_start, bounds, **robust):
+        return _solve(problem, x_start, bounds, free, **robust)
 
     def problem_of(obs, prior_px=1.0):
         return Problem(machine, obs, layout, templates, marker_sd, prior_px)
@@ -239,11 +391,28 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
         problem = problem_of(observations, prior_px)
         final = _least_squares(problem, final.x, bounds)
     inlier = np.ones(len(observations), dtype=bool)
-    if options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem), options).any():
-        robust = _least_squares(problem, x0 if marker_sd is None else final.x, bounds, loss="soft_l1",
-                                f_scale=options.f_scale_px)
-        errors = _pixel_errors(robust.fun, problem)
-        inlier = _drop_while_identifiable(machine, names, observations, layout, _suspects(errors, options), errors)
+    if marker_sd is not None or options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem),
+                                                                             options).any():
+        if marker_sd is None:
+            robust = _least_squares(problem, x0, bounds, loss="soft_l1", f_scale=options.f_scale_px)
+            errors = _pixel_errors(robust.fun, problem)
+        else:
+            # outliers judged with the markers where the model puts them, each residual against
+            # the noise plus its marker's tolerance seen from its camera: free offsets would
+            # absorb a wild pixel on a marker that one camera sees
+            # (and, as the offsets fitted too would leave them, against the pixel noise)
+            held = final.x.copy()
+            held[layout.offset_slice] = 0.0
+            standard = _solve(problem, held, bounds, free & ~_offsets(layout), loss="soft_l1",
+                              f_scale=options.f_scale_px)
+            errors = _pixel_errors(standard.fun, problem) / _tolerance_factor(
+                layout, templates, machine, observations, standard.x, marker_sd, problem.prior_px)
+            robust = _least_squares(problem, final.x, bounds, loss="soft_l1", f_scale=options.f_scale_px)
+            free_errors = _pixel_errors(robust.fun, problem)
+            suspect = _suspects(errors, options) | _suspects(free_errors, options)
+            errors = np.maximum(errors, free_errors)
+        inlier = _drop_while_identifiable(machine, names, observations, layout,
+                                          suspect if marker_sd is not None else _suspects(errors, options), errors)
         if np.all(inlier):
             final = _least_squares(problem, robust.x, bounds)
         else:
@@ -259,14 +428,17 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
             "(expected about the pixel noise); check the marker labels, or give a --guess "
             "(or a larger --max-rms)"
         )
-    jacobian = final.jac
+    jacobian = final.jac  # of the free parameters
     all_names = layout.names(names, machine.joint_names, machine.marker_names)
+    kinds = layout.kinds(names, machine.joint_names, machine.marker_names)
     rank, condition = identify.check_jacobian(
-        jacobian, all_names, layout.kinds(names, machine.joint_names, machine.marker_names)
+        jacobian, [n for n, f in zip(all_names, free) if f], [k for k, f in zip(kinds, free) if f]
     )
+    rank += int(np.sum(~free))  # the held parameters are known
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
     sigma2 = float(final.fun @ final.fun) / dof
-    covariance = sigma2 * np.linalg.pinv(jacobian.T @ jacobian)
+    covariance = np.zeros((layout.size, layout.size))  # the held parameters' variance is zero
+    covariance[np.ix_(free, free)] = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
     fitted = problem.machine_at(final.x)
     offsets, offsets_sd = None, None
     core = slice(0, layout.size - 3 * layout.n_markers)  # cameras and joints
@@ -308,17 +480,27 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
 
 
-def _least_squares(problem: Problem, x0, bounds, loss: str = "linear", f_scale: float = 1.0):
-    return least_squares(
-        problem.residuals,
-        x0,
-        jac=problem.jacobian,
-        bounds=bounds,
+def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss: str = "linear", f_scale: float = 1.0):
+    """Least squares over the parameters `free` (P,) bool, the others held at x0's values;
+    the solution's x is the whole vector, its jac the free parameters' columns."""
+
+    def whole(z):
+        x = x0.copy()
+        x[free] = z
+        return x
+
+    solution = least_squares(
+        lambda z: problem.residuals(whole(z)),
+        x0[free],
+        jac=lambda z: problem.jacobian(whole(z))[:, free],
+        bounds=(bounds[0][free], bounds[1][free]),
         loss=loss,
         f_scale=f_scale,
         x_scale="jac",
         method="trf",
     )
+    solution.x = whole(solution.x)
+    return solution
 
 
 def _pixel_errors(fun: np.ndarray, problem: Problem) -> np.ndarray:

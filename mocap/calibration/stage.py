@@ -3,7 +3,7 @@ write the calibration file and the reference points, return the report."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +16,7 @@ from mocap.calibration.solve import CalibrationOptions, calibrate, template_came
 from mocap.errors import InputError
 from mocap.io.cameras_toml import save_calibration
 from mocap.io.guess_toml import load_guess
+from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points, save_points
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
@@ -34,6 +35,7 @@ class CalibrateRequest:
     reference: str | None = None
     points_out: str | None = None
     choose_lens: bool = False  # the distortion model chosen by the data (options.distortion ignored)
+    intrinsics: str | None = None  # a file of known intrinsics, used and kept
 
 
 def run_calibrate(request: CalibrateRequest) -> str:
@@ -46,6 +48,13 @@ def run_calibrate(request: CalibrateRequest) -> str:
         raise InputError(f"--size names camera(s) {strange} that the tracks lack (they have "
                          f"{list(tracks.cameras)}); check the NAME in --size NAME=WxH")
     templates = [template_camera(n, _size(request.sizes, n)) for n in names]
+    options, choose_lens = request.options, request.choose_lens
+    if request.intrinsics is not None:
+        given = load_intrinsics(request.intrinsics)
+        templates = with_known_intrinsics(templates, given, request.intrinsics)
+        known = frozenset(names) & frozenset(given)
+        options = replace(options, fixed_intrinsics=known)
+        choose_lens = choose_lens and len(known) < len(templates)  # a lens model only for the unknown ones
     check_in_images(rows, {t.name: t.size for t in templates}, ", ".join(request.tracks), "--size")
     if request.method == "dlt":
         return _run_dlt(machine, rows, templates, frame, request)
@@ -62,13 +71,15 @@ def run_calibrate(request: CalibrateRequest) -> str:
     )
     guess = load_guess(request.guess, machine) if request.guess else None
     chosen = ""
-    if request.choose_lens:
-        result, criterion = calibrate_choosing_lens(machine, observations, templates, request.options, guess)
+    if choose_lens:
+        result, criterion = calibrate_choosing_lens(machine, observations, templates, options, guess)
         model = next(m for m, v in criterion.items() if v == min(criterion.values()))
         tried = ", ".join(f"{m} {v:.0f}" for m, v in criterion.items())
         chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}; --distortion overrides)"
     else:
-        result = calibrate(machine, observations, templates, request.options, guess)
+        result = calibrate(machine, observations, templates, options, guess)
+    if options.fixed_intrinsics:
+        chosen += f"\nintrinsics of {', '.join(sorted(options.fixed_intrinsics))} kept as given in {request.intrinsics}"
     save_calibration(report.to_calibration(result, frame), request.out)
     points_out = request.points_out or str(Path(request.out).with_name("reference_points.csv"))
     save_points(report.reference_points(result, frame), points_out)

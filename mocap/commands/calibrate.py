@@ -48,6 +48,9 @@ def add_parser(sub) -> None:
                    "dropped (default max(4 px, 5 sigma))")
     p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; the markers are then "
                    "fitted within it (default: the model file's tolerance, else exact)")
+    p.add_argument("--intrinsics", metavar="FILE", help="known intrinsics, used and kept (focal length, "
+                   "principal point, distortion): a calibration TOML (ours or anipose's), an OpenCV YAML/XML or "
+                   "a COLMAP cameras.txt / model folder; cameras it does not name are fitted")
     p.add_argument("--max-rms", type=float, metavar="PX", help="residual RMS beyond which the fit "
                    "counts as not converged (default 1 %% of the image diagonal)")
     p.set_defaults(run=run)
@@ -75,10 +78,13 @@ def run(args) -> int:
                           ("--max-rms", args.max_rms)):
         if value is not None and not 0 < value < float("inf"):
             raise InputError(f"{option} {value}: must be a positive number of pixels")
+    if args.intrinsics and args.method == "dlt":
+        raise InputError("--intrinsics keeps known intrinsics in the model-based calibration; the DLT fits "
+                         "its own: leave out --method dlt or --intrinsics")
     points = args.points or str(Path(args.out).with_name("reference_points.csv"))
     check_outputs({"--out": args.out, "--points": None if args.method == "dlt" else points},
                   {"machine model": args.machine, "tracks": args.tracks, "--guess": args.guess,
-                   "--reference": args.reference})
+                   "--reference": args.reference, "--intrinsics": args.intrinsics})
     options = CalibrationOptions(
         per_camera=args.per_camera,
         fit_principal_point=args.fit_principal_point,
@@ -92,6 +98,7 @@ def run(args) -> int:
         machine=args.machine, tracks=tuple(args.tracks), sizes=parse_sizes(args.size), out=args.out,
         frame=args.frame, method=args.method, options=options, guess=args.guess,
         reference=args.reference, points_out=args.points, choose_lens=args.distortion == "auto",
+        intrinsics=args.intrinsics,
     )
     print(run_calibrate(request))
     return 0

@@ -14,11 +14,12 @@ OpenCV coefficients k1, k2, p1, p2, k3.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from mocap.camera import Camera
 from mocap.errors import InputError
 
 _OPENCV_SUFFIXES = (".yaml", ".yml", ".xml")
@@ -117,3 +118,23 @@ def _from_opencv(path: Path) -> Intrinsics:
     if not (np.all(np.isfinite(matrix)) and np.all(np.isfinite(distortion)) and width > 0 and height > 0):
         raise InputError("image size, camera_matrix and distortion_coefficients must be finite, size > 0", path=path)
     return Intrinsics((int(width), int(height)), matrix.astype(float), distortion)
+
+
+def with_known_intrinsics(cameras: list[Camera], known: dict, path) -> list[Camera]:
+    """The cameras with the intrinsics (matrix, distortion) that `known` names, which must
+    match their image size."""
+    out = []
+    for camera in cameras:
+        given = known.get(camera.name)
+        if given is None:
+            out.append(camera)
+            continue
+        if tuple(given.size) != tuple(camera.size):
+            raise InputError(f"camera {camera.name}'s known intrinsics are for {given.size[0]}x{given.size[1]} images, "
+                             f"the calibration's for {camera.size[0]}x{camera.size[1]}; give the intrinsics of "
+                             "the same video size", path=path)
+        out.append(replace(camera, matrix=given.matrix, distortion=given.distortion))
+    if not any(c.name in known for c in cameras):
+        raise InputError(f"the intrinsics file names camera(s) {sorted(known)[:5]}, none of the calibration's "
+                         f"{[c.name for c in cameras]}; name them alike", path=path)
+    return out

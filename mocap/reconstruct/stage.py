@@ -10,10 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mocap.camera import Camera
 from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
-from mocap.io.intrinsics import load_intrinsics
+from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
@@ -168,7 +167,28 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
                    "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
     if result.smoothed is not None:
         report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
-    return report + _dropped(clock)
+    return report + _ambiguity(machine, list(calibration.cameras), clock.pixels, fit, fit_options) + _dropped(clock)
+
+
+def _ambiguity(machine: Machine, cameras, pixels, fit, fit_options: FitOptions) -> str:
+    """A sentence for the report when sampled frames have a second solution that explains
+    their pixels as well as the fit's, far from it (empty otherwise)."""
+    from mocap.reconstruct.ambiguity import second_solutions
+
+    found = second_solutions(machine, cameras, pixels, fit, fit_options)
+    if not found.ambiguous.any():
+        return ""
+    frames = np.nonzero(found.ambiguous)[0]
+    if machine.point_names:
+        apart = np.linalg.norm(machine.points(found.alternative[frames]) - machine.points(fit.joints[frames]), axis=-1)
+        gap = f"{machine.point_names[int(np.argmax(apart.max(0)))]} up to {apart.max():.2f} m apart"
+    else:
+        gap = "markers moved"
+    line = (f"; {len(frames)} of {int(found.checked.sum())} frames checked have a second solution that explains the "
+            f"pixels as well ({gap}, e.g. frame {frames[0]}): the cameras see too little of the moving links to "
+            "tell them apart; add a camera or markers on those links")
+    log.warning("%s", line[2:])
+    return line
 
 
 def _worst(names: np.ndarray, errors: np.ndarray, count: int = 3) -> str:
@@ -216,24 +236,3 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
         moved = np.linalg.norm(result.machine.marker_positions - machine.marker_positions, axis=1)
         report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
     return report
-
-
-
-def with_known_intrinsics(cameras: list[Camera], known: dict, path) -> list[Camera]:
-    """The cameras with the intrinsics (matrix, distortion) that `known` names, which must
-    match their image size."""
-    out = []
-    for camera in cameras:
-        given = known.get(camera.name)
-        if given is None:
-            out.append(camera)
-            continue
-        if tuple(given.size) != tuple(camera.size):
-            raise InputError(f"camera {camera.name}'s known intrinsics are for {given.size[0]}x{given.size[1]} images, "
-                             f"the calibration's for {camera.size[0]}x{camera.size[1]}; give the intrinsics of "
-                             "the same video size", path=path)
-        out.append(replace(camera, matrix=given.matrix, distortion=given.distortion))
-    if not any(c.name in known for c in cameras):
-        raise InputError(f"the intrinsics file names camera(s) {sorted(known)[:5]}, none of the calibration's "
-                         f"{[c.name for c in cameras]}; name them alike", path=path)
-    return out

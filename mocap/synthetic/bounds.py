@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from mocap.calibration.identify import inverse_information
 from mocap.calibration.problem import Layout, Observations, Problem
 from mocap.camera import Camera, project_cam
 from mocap.geometry import rotvec_to_matrix
@@ -28,6 +29,13 @@ def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.nd
     model is only measured: the markers' offsets are then unknowns with that prior (a
     Bayesian bound), so the bound holds what the model's error costs as well.
     """
+    covariance = calibration_centre_covariance(machine, cameras, joints, obs, noise_px, marker_sd)
+    return np.sqrt(np.trace(covariance, axis1=1, axis2=2))
+
+
+def calibration_centre_covariance(machine: Machine, cameras: list[Camera], joints: np.ndarray, obs: Observations,
+                                  noise_px: float, marker_sd: np.ndarray | None = None) -> np.ndarray:
+    """(C, 3, 3) the bound's covariance of each camera centre (m^2); see `calibration_centre_sd`."""
     layout = Layout(len(cameras), machine.n_joints)
     x = layout.pack(cameras, joints)
     problem = Problem(machine, obs, layout, list(cameras))
@@ -40,12 +48,12 @@ def calibration_centre_sd(machine: Machine, cameras: list[Camera], joints: np.nd
         markers_information = d_marker.T @ d_marker + np.diag(1.0 / sd**2)
         # the offsets marginalised out: the Schur complement of their block
         information = information - cross_term @ np.linalg.solve(markers_information, cross_term.T)
-    covariance = np.linalg.pinv(information)
-    out = np.empty(len(cameras))
+    covariance = inverse_information(information)
+    out = np.empty((len(cameras), 3, 3))
     for c in range(len(cameras)):
         s = layout.camera_slice(c)
         gradient = numeric_jacobian(_centre, x[s])
-        out[c] = np.sqrt(np.trace(gradient @ covariance[s, s] @ gradient.T))
+        out[c] = gradient @ covariance[s, s] @ gradient.T
     return out
 
 
@@ -54,7 +62,8 @@ def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, se
     """(F, P) bound on each named point's error (m, root of the trace) of a per-frame fit
     of the joint values at the true joints (F, J) from the observations `seen` (C, F, M);
     with marker_sd (M, 3) the model's marker coordinates are uncertain too (marginalised
-    frame by frame, as in `calibration_centre_sd`)."""
+    frame by frame, as in `calibration_centre_sd`). Infinite where a joint that moves the
+    point moves no marker seen in that frame."""
     state = FrameState(joints, None, None, np.zeros(len(joints)))
     truth = np.stack([c.project(machine.markers(joints)) for c in cameras], 1)  # (F, C, M, 2)
     pixels = np.where(np.moveaxis(seen, 0, 1)[..., None], truth, np.nan)
@@ -74,8 +83,12 @@ def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, se
         cross_term = np.swapaxes(jac, 1, 2) @ d_marker
         markers_information = np.swapaxes(d_marker, 1, 2) @ d_marker + np.diag(1.0 / sd**2)
         information = information - cross_term @ np.linalg.solve(markers_information, np.swapaxes(cross_term, 1, 2))
-    covariance = np.linalg.pinv(information)
-    return point_quantities(machine, joints, covariance).points_sd
+    covariance = inverse_information(information)
+    sd = point_quantities(machine, joints, covariance).points_sd
+    diagonal = np.diagonal(information, axis1=1, axis2=2)
+    unobserved = diagonal <= 1e-12 * np.max(diagonal, axis=1, keepdims=True)  # (F, J) no marker it moves seen
+    blind = (unobserved[:, :, None] & machine.moves[:, machine.point_links][None]).any(axis=1)
+    return np.where(blind, np.inf, sd)  # no estimator knows a point whose joint nothing shows
 
 
 def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray, noise_px: float) -> np.ndarray:
@@ -89,7 +102,7 @@ def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray
         d_uv_world = d_uv @ rotation  # (N, 2, 3)
         information += np.where(mine[:, None, None], np.swapaxes(d_uv_world, 1, 2) @ d_uv_world, 0.0)
     enough = seen.sum(0) >= 2
-    covariance = np.linalg.pinv(information / noise_px**2)
+    covariance = inverse_information(information / noise_px**2)
     return np.where(enough, np.sqrt(np.trace(covariance, axis1=1, axis2=2)), np.nan)
 
 
