@@ -43,12 +43,15 @@ class Ambiguity:
 
 
 def second_solutions(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit,
-                     options: FitOptions | None = None, stride: int = 8) -> Ambiguity:
-    """Every `stride`-th valid frame of `fit` (from pixels (C, F, M, 2)) fitted again from
-    each joint set to `LEVELS` values across its range, the others kept."""
+                     options: FitOptions | None = None, stride: int = 8, most: int = 256) -> Ambiguity:
+    """Every `stride`-th valid frame of `fit` (from pixels (C, F, M, 2)), at most `most` of
+    them spread over the session, fitted again from each joint set to `LEVELS` values across
+    its range, the others kept. (Whether a second solution exists depends on what the
+    cameras see of the links, not on the hour: a long session needs no more frames checked.)"""
     options = options or FitOptions()
     n_frames, n_joints = fit.joints.shape
-    frames = np.nonzero(fit.valid)[0][::stride]
+    valid = np.nonzero(fit.valid)[0]
+    frames = valid[:: max(stride, -(-len(valid) // most))]
     checked = np.zeros(n_frames, dtype=bool)
     checked[frames] = True
     ambiguous = np.zeros(n_frames, dtype=bool)
