@@ -26,7 +26,7 @@ from mocap.camera import project_cam
 from mocap.progress import progress
 from mocap.shapes import BOX_FACES, box_corners
 from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
-from mocap.synthetic.effects import CameraEffects, EffectOptions
+from mocap.synthetic.effects import CameraEffects, EffectOptions, Weather
 from mocap.synthetic.encode import CODECS, video_writer
 from mocap.synthetic.looks import Look
 from mocap.synthetic.session import SyntheticSession, marker_sizes
@@ -73,7 +73,8 @@ class CameraRenderer:
         elevation, azimuth = np.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * np.pi)
         self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
                              np.sin(elevation)]) if look.sun() is None else look.sun()
-        self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
+        self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng,
+                                        look.people, look.trucks, look.other_machine)
         self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
         self.colours = look.palette[np.arange(len(session.boxes)) % len(look.palette)]
         self.squares, self.disks = session.marker_outlines()
@@ -86,6 +87,7 @@ class CameraRenderer:
             grey = self.colours[session.machine.marker_links] @ np.array([0.114, 0.587, 0.299])  # BGR luma
             self.square_grey = np.where(grey < 110, WHITE[0], np.nan)
         self.effects = CameraEffects(camera.size, options.effects, rng)
+        self.weather = Weather(camera.size, look.rain, look.glare, rng)
         self.dust_radius = 0.2 * reach
 
     def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -124,7 +126,7 @@ class CameraRenderer:
                     instants = self._view(frame + offsets)
                     self._draw_smear(image, [[v[i] for v in instants] for i in range(samples[k])])
                 if not clean:
-                    image = self.look.finish(image)
+                    image = self.weather.apply(self.look.finish(image), int(frame))
                     radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
                     image = self.effects.apply(image, float(times[k]), uv_tip[k], radius, float(density[k]))
                 yield int(frame), image
