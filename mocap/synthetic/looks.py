@@ -12,7 +12,7 @@ behind the machine. The look is written into truth/scene.toml.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -131,7 +131,7 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         disk_grey = rng.uniform(60, 85)
     elif marker == "no square":
         square_grey = None
-    return Look(
+    look = Look(
         name=f"{name} ({paint}, {'overcast' if overcast == 1 else 'sun'}, {marker} markers)",
         paint=PAINTS[paint],
         dark=tuple(float(v) for v in rng.uniform(45, 90) * np.array([1.0, 1.03, 1.08])),
@@ -157,3 +157,6 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         trucks=int(rng.integers(1, 3)) if rng.random() < 0.5 else 0,
         other_machine=bool(rng.random() < 0.4),
     )
+    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (f"{look.people} people", look.people),
+                                    (f"{look.trucks} trucks", look.trucks), ("another machine", look.other_machine)) if on]
+    return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")
