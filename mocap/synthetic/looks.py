@@ -157,6 +157,6 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         trucks=int(rng.integers(1, 3)) if rng.random() < 0.5 else 0,
         other_machine=bool(rng.random() < 0.4),
     )
-    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (f"{look.people} people", look.people),
-                                    (f"{look.trucks} trucks", look.trucks), ("another machine", look.other_machine)) if on]
+    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (f"{look.people} {'person' if look.people == 1 else 'people'}", look.people),
+                                    (f"{look.trucks} truck{'s' if look.trucks > 1 else ''}", look.trucks), ("another machine", look.other_machine)) if on]
     return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")
