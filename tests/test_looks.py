@@ -111,9 +111,10 @@ def test_tracking_holds_on_random_looks(seed):
 
 @pytest.mark.parametrize("element, seed", [
     (dict(rain=0.45), 3), (dict(glare=0.4), 12), (dict(people=5, trucks=2, other_machine=True), 3),
-    (dict(people=5, trucks=2, other_machine=True, square_grey=None), 5)])
+    (dict(people=5, trucks=2, other_machine=True, square_grey=None), 5), (dict(shadows=True, overcast=0.0), 3)])
 def test_tracking_holds_through_rain_glare_and_clutter(element, seed):
-    """Each new element of a look at its strongest, over a random look: tracking as above."""
+    """Each new element of a look at its strongest (shadows in full sun), over a random look: tracking
+    as above."""
     check_tracking(replace(random_look(np.random.default_rng(seed)), **element), seed)
 
 
@@ -193,3 +194,29 @@ def test_clutter_stands_behind_the_machine(scene):
         assert not changed[yy - 3 : yy + 4, xx - 3 : xx + 4].any()
     dark = (busy.mean(axis=-1) < 40) & changed
     assert dark.sum() > 50  # tyres, the sign's disk, heads
+
+
+def test_links_cast_hard_shadows_on_each_other(scene):
+    """With the sun low beside the camera, shadows darken parts of the machine (never the
+    backdrop) to the shaded level, and only where a sunlit face was; overcast casts none."""
+    session, truth = scene
+    sun = dict(sun_elevation_deg=30.0, sun_azimuth_deg=140.0)
+    plain, shadowed = picture(session, Look(**sun)), picture(session, Look(shadows=True, **sun))
+    assert np.array_equal(shadowed, picture(session, Look(shadows=True, **sun)))
+    ratio = shadowed / np.maximum(plain, 1.0)
+    dark = ratio < 0.9
+    assert dark.mean() > 0.002 and ratio.max() < 1.02  # shadows only darken
+    # inside a shadow (away from its anti-aliased edge), the level is shade(-1) / shade(facing): at
+    # least the ambient 0.45 of full sun, at most what a face at the sun's grazing angle keeps
+    core = cv2_erode(dark)
+    assert core.sum() > 100 and np.all((ratio[core] > 0.45 - 0.02) & (ratio[core] < 0.9))
+    plain_rows = np.flatnonzero(dark.any(axis=1))
+    assert plain_rows.min() > 0.1 * dark.shape[0]  # on the machine, not the sky
+    overcast = dict(overcast=1.0, **sun)
+    assert np.array_equal(picture(session, Look(**overcast)), picture(session, Look(shadows=True, **overcast)))
+
+
+def cv2_erode(mask: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)

@@ -6,8 +6,8 @@ white, orange or mud-covered machines; high or low sun from any side, or overcas
 of 45-75 % of their square, worn (greyer white, lighter black), dark grey instead of black,
 or painted straight on the machine without a white square; haze; slight defocus; heavy or
 light compression; more or less sensor noise, exposure drift and dust; lens distortion and
-camera shake; rain streaks; a low sun's glare; haul trucks, another machine and people
-behind the machine. The look is written into truth/scene.toml.
+camera shake; rain streaks; a low sun's glare; the links' hard shadows on each other; haul
+trucks, another machine and people behind the machine. The look is written into truth/scene.toml.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ class Look:
     rain: the rain streaks' opacity, glare: a low sun's veiling glare
     (`mocap.synthetic.effects.Weather`); people, trucks, other_machine: clutter behind the
     machine: people in high-visibility vests, haul trucks with their tyres, another machine
-    with a sign on it (`mocap.synthetic.backdrop`).
+    with a sign on it (`mocap.synthetic.backdrop`); shadows: the links' hard shadows on each
+    other's sunlit faces and markers (`mocap.synthetic.render`).
     """
 
     name: str = "default"
@@ -70,6 +71,7 @@ class Look:
     people: int = 0
     trucks: int = 0
     other_machine: bool = False
+    shadows: bool = False
 
     def __post_init__(self) -> None:
         if not 0.2 <= self.disk_ratio <= 0.9:
@@ -156,7 +158,10 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         people=int(rng.integers(1, 6)) if rng.random() < 0.5 else 0,
         trucks=int(rng.integers(1, 3)) if rng.random() < 0.5 else 0,
         other_machine=bool(rng.random() < 0.4),
+        shadows=bool(rng.random() < 0.6),
     )
     extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (f"{look.people} {'person' if look.people == 1 else 'people'}", look.people),
-                                    (f"{look.trucks} truck{'s' if look.trucks > 1 else ''}", look.trucks), ("another machine", look.other_machine)) if on]
+                                    (f"{look.trucks} truck{'s' if look.trucks > 1 else ''}", look.trucks),
+                                    ("another machine", look.other_machine), ("shadows", look.shadows and overcast < 1))
+              if on]
     return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")
