@@ -117,7 +117,8 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
     _draw_truck(image, camera, truck, reach, sun)
     _draw_clutter(image, camera, reach, rng)
     if people or trucks or other_machine:
-        _draw_behind(image, camera, reach, sun, rng, people, trucks, other_machine)
+        # from a child stream: the camera's other draws stay as they are without the clutter
+        _draw_behind(image, camera, reach, sun, rng.spawn(1)[0], people, trucks, other_machine)
     return image
 
 

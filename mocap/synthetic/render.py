@@ -88,7 +88,7 @@ class CameraRenderer:
             grey = self.colours[session.machine.marker_links] @ np.array([0.114, 0.587, 0.299])  # BGR luma
             self.square_grey = np.where(grey < 110, WHITE[0], np.nan)
         self.effects = CameraEffects(camera.size, options.effects, rng)
-        self.weather = Weather(camera.size, look.rain, look.glare, rng)
+        self.weather = Weather(camera.size, look.rain, look.glare, rng.spawn(1)[0])  # leaves `rng` as it is
         self.dust_radius = 0.2 * reach
 
     def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
