@@ -242,14 +242,16 @@ def _draw_behind(image: np.ndarray, camera: Camera, reach: float, sun: np.ndarra
         centre = place(rng.uniform(1.3, 2.5) * reach, rng.uniform(-1.2, 1.2) * reach)
         heading = rng.uniform(0, 2 * np.pi)
         length, width, tyre = 0.7 * reach, 0.4 * reach, 0.09 * reach
-        rotation = boxes(centre, heading, [
-            ((-0.5 * length, -0.5 * width, 1.6 * tyre), (0.3 * length, 0.5 * width, 0.35 * reach), (40.0, 170.0, 230.0)),
-            ((0.32 * length, -0.5 * width, 1.6 * tyre), (0.5 * length, 0.5 * width, 0.3 * reach), (50.0, 180.0, 235.0)),
-            ((-0.45 * length, -0.4 * width, tyre), (0.45 * length, 0.4 * width, 1.6 * tyre), (35.0, 35.0, 35.0))])
+        size = np.array([length, width, 1.0])
+        rotation = boxes(centre, heading, [  # bed, cab, chassis (x, y as shares of length, width; z in m)
+            (size * (-0.5, -0.5, 1.6 * tyre), size * (0.3, 0.5, 0.35 * reach), (40.0, 170.0, 230.0)),
+            (size * (0.32, -0.5, 1.6 * tyre), size * (0.5, 0.5, 0.3 * reach), (50.0, 180.0, 235.0)),
+            (size * (-0.45, -0.4, tyre), size * (0.45, 0.4, 1.6 * tyre), (35.0, 35.0, 35.0))])
         for a in (-0.33, 0.33):
             for b in (-0.5, 0.5):
                 hub = centre + rotation @ np.array([a * length, b * width, tyre])
-                disks += [(hub, rotation[:, 1] * np.sign(b), tyre, 28.0), (hub, rotation[:, 1] * np.sign(b), 0.35 * tyre, 150.0)]
+                out = rotation[:, 1] * np.sign(b)
+                disks += [(hub, out, tyre, 28.0), (hub, out, 0.35 * tyre, 150.0)]  # tyre, hub
     if other_machine:
         centre = place(rng.uniform(1.5, 2.5) * reach, rng.uniform(-1.0, 1.0) * reach)
         heading = rng.uniform(0, 2 * np.pi)

@@ -160,8 +160,9 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         other_machine=bool(rng.random() < 0.4),
         shadows=bool(rng.random() < 0.6),
     )
-    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (f"{look.people} {'person' if look.people == 1 else 'people'}", look.people),
-                                    (f"{look.trucks} truck{'s' if look.trucks > 1 else ''}", look.trucks),
-                                    ("another machine", look.other_machine), ("shadows", look.shadows and overcast < 1))
-              if on]
+    people = f"{look.people} {'person' if look.people == 1 else 'people'}"
+    trucks = f"{look.trucks} truck{'s' if look.trucks > 1 else ''}"
+    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (people, look.people),
+                                    (trucks, look.trucks), ("another machine", look.other_machine),
+                                    ("shadows", look.shadows and overcast < 1)) if on]
     return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")
