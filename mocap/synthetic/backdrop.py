@@ -50,8 +50,10 @@ def _sample(texture: np.ndarray, x: np.ndarray, y: np.ndarray, period: float) ->
 
 
 def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun: np.ndarray,
-                    rng: np.random.Generator) -> np.ndarray:
-    """The camera's still view (H, W, 3) uint8 BGR."""
+                    rng: np.random.Generator, people: int = 0, trucks: int = 0,
+                    other_machine: bool = False) -> np.ndarray:
+    """The camera's still view (H, W, 3) uint8 BGR; `people`, `trucks` (beyond the plan's
+    `truck`) and `other_machine`: clutter standing behind the machine (`_draw_behind`)."""
     w, h = camera.size
     step = 4
     u, v = np.meshgrid(np.arange(0.5 * step - 0.5, w, step), np.arange(0.5 * step - 0.5, h, step))
@@ -114,6 +116,9 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
     image = image.astype(np.uint8)
     _draw_truck(image, camera, truck, reach, sun)
     _draw_clutter(image, camera, reach, rng)
+    if people or trucks or other_machine:
+        # from a child stream: the camera's other draws stay as they are without the clutter
+        _draw_behind(image, camera, reach, sun, rng.spawn(1)[0], people, trucks, other_machine)
     return image
 
 
@@ -207,3 +212,81 @@ def _fill(image, camera, pose, outline, colour) -> None:
     uv = project_cam(outline @ pose[:3, :3].T + pose[:3, 3], camera.matrix, camera.distortion)
     if np.all(np.isfinite(uv)) and np.abs(uv).max() < 1e5:
         cv2.fillPoly(image, [np.round(uv * 16).astype(np.int32)], colour, lineType=cv2.LINE_AA, shift=4)
+
+
+def _draw_behind(image: np.ndarray, camera: Camera, reach: float, sun: np.ndarray, rng: np.random.Generator,
+                 people: int, trucks: int, other_machine: bool) -> None:
+    """Haul trucks (yellow body, black tyres with grey hubs: dark round blobs), another
+    machine (white house with a black disk on a white sign, like a marker) and people
+    (1.8 m, high-visibility vests with white stripes, dark heads), all standing on the far
+    side of the machine from the camera, so that the machine is drawn over them."""
+    away = -camera.center[:2] / np.linalg.norm(camera.center[:2])
+    side = np.array([-away[1], away[0]])
+    up = np.array([0.0, 0.0, 1.0])
+    corners, normals, colours, disks = [], [], [], []  # disks: (centre, radius m, grey)
+
+    def place(distance: float, offset: float) -> np.ndarray:
+        xy = away * distance + side * offset
+        return np.array([xy[0], xy[1], 0.0])
+
+    def boxes(centre: np.ndarray, heading: float, parts) -> np.ndarray:
+        along = np.array([np.cos(heading), np.sin(heading), 0.0])
+        rotation = np.stack([along, np.cross(up, along), up], axis=1)  # world_from_object
+        for low, high, colour in parts:
+            corners.append(box_corners(np.array([low, high], dtype=float)) @ rotation.T + centre)
+            normals.append(BOX_NORMALS @ rotation.T)
+            colours.append(colour)
+        return rotation
+
+    for _ in range(trucks):
+        centre = place(rng.uniform(1.3, 2.5) * reach, rng.uniform(-1.2, 1.2) * reach)
+        heading = rng.uniform(0, 2 * np.pi)
+        length, width, tyre = 0.7 * reach, 0.4 * reach, 0.09 * reach
+        size = np.array([length, width, 1.0])
+        rotation = boxes(centre, heading, [  # bed, cab, chassis (x, y as shares of length, width; z in m)
+            (size * (-0.5, -0.5, 1.6 * tyre), size * (0.3, 0.5, 0.35 * reach), (40.0, 170.0, 230.0)),
+            (size * (0.32, -0.5, 1.6 * tyre), size * (0.5, 0.5, 0.3 * reach), (50.0, 180.0, 235.0)),
+            (size * (-0.45, -0.4, tyre), size * (0.45, 0.4, 1.6 * tyre), (35.0, 35.0, 35.0))])
+        for a in (-0.33, 0.33):
+            for b in (-0.5, 0.5):
+                hub = centre + rotation @ np.array([a * length, b * width, tyre])
+                out = rotation[:, 1] * np.sign(b)
+                disks += [(hub, out, tyre, 28.0), (hub, out, 0.35 * tyre, 150.0)]  # tyre, hub
+    if other_machine:
+        centre = place(rng.uniform(1.5, 2.5) * reach, rng.uniform(-1.0, 1.0) * reach)
+        heading = rng.uniform(0, 2 * np.pi)
+        r = 0.6 * reach
+        rotation = boxes(centre, heading, [
+            ((-0.3 * r, -0.22 * r, 0.0), (0.3 * r, 0.22 * r, 0.1 * r), (60.0, 62.0, 66.0)),
+            ((-0.22 * r, -0.15 * r, 0.1 * r), (0.2 * r, 0.15 * r, 0.26 * r), (210.0, 212.0, 215.0)),
+            ((0.2 * r, -0.04 * r, 0.15 * r), (0.9 * r, 0.04 * r, 0.22 * r), (30.0, 180.0, 230.0))])
+        for facing in (rotation[:, 1], -rotation[:, 1]):
+            sign = centre + rotation @ np.array([0.0, 0.0, 0.18 * r]) + facing * 0.151 * r
+            disks += [(sign, facing, 0.05 * r, 235.0, "square"), (sign + 0.001 * facing, facing, 0.028 * r, 20.0)]
+    for _ in range(people):
+        centre = place(rng.uniform(0.9, 2.0) * reach, rng.uniform(-1.0, 1.0) * reach)
+        vest = (20.0, 120.0, 250.0) if rng.random() < 0.5 else (40.0, 230.0, 200.0)
+        boxes(centre, rng.uniform(0, 2 * np.pi), [
+            ((-0.12, -0.2, 0.0), (0.12, 0.2, 0.85), (60.0, 50.0, 45.0)),
+            ((-0.13, -0.23, 0.85), (0.13, 0.23, 1.5), vest),
+            ((-0.135, -0.235, 1.1), (0.135, 0.235, 1.16), (245.0, 245.0, 245.0))])
+        disks.append((centre + 1.65 * up, None, 0.13, float(rng.choice([30.0, 235.0]))))
+    if corners:
+        draw_boxes(image, camera.matrix, camera.distortion, camera.cam_from_world.matrix, camera.center,
+                   np.array(corners), np.array(normals), np.array(colours), sun)
+    pose = camera.cam_from_world.matrix
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for centre, facing, radius, grey, *shape in disks:
+        if facing is None:  # a head: a disk facing the camera
+            facing = camera.center - centre
+            facing /= np.linalg.norm(facing)
+        elif facing @ (camera.center - centre) <= 0:
+            continue
+        u = np.cross(facing, up)
+        u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-9 else np.array([1.0, 0.0, 0.0])
+        v = np.cross(facing, u)
+        if shape:
+            outline = centre + radius * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) @ np.stack([u, v])
+        else:
+            outline = centre + radius * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v)
+        _fill(image, camera, pose, outline, (grey,) * 3)

@@ -87,3 +87,50 @@ class CameraEffects:
         colour = np.empty_like(roi)
         colour[:] = DUST.astype(np.uint8)
         image[ya:yb, xa:xb] = cv2.blendLinear(roi, colour, 1.0 - alpha, alpha)
+
+
+class Weather:
+    """Rain streaks and a low sun's glare over a camera's picture, drawn once per camera.
+
+    Rain: a bank of layers of thin slanted light streaks (all falling the same way), one
+    layer a frame, added with one saturating pass; `rain` is a streak's opacity (0: none).
+    Glare: the sun just above the picture's top edge, a veil of light over the whole
+    picture growing towards it and two faint ghost disks on the line from it through the
+    picture's centre, each blended towards white; `glare` scales the veil's share: a quarter
+    of it far from the sun, one and a half times it by the sun (at most 0.9; 0: none)."""
+
+    def __init__(self, size: tuple[int, int], rain: float, glare: float, rng: np.random.Generator):
+        w, h = size
+        self.bank: list[np.ndarray] = []
+        if rain > 0:
+            slant = rng.uniform(-0.35, 0.35)  # dx per dy
+            count = int(rng.uniform(2e-4, 6e-4) * w * h)
+            for _ in range(4):
+                layer = np.zeros((h, w), np.float32)
+                x, y = rng.uniform(-0.2 * w, 1.2 * w, count), rng.uniform(0, h, count)
+                length = rng.uniform(0.02, 0.06, count) * h
+                ends = np.stack([x, y, x + slant * length, y + length], axis=1)
+                for x0, y0, x1, y1 in np.round(ends * 16).astype(np.int32):
+                    cv2.line(layer, (x0, y0), (x1, y1), 1.0, 1, cv2.LINE_AA, shift=4)
+                layer = cv2.GaussianBlur(layer, (0, 0), 0.6) * (255.0 * rain)
+                self.bank.append(np.clip(layer, 0, 255).astype(np.uint8)[..., None].repeat(3, axis=2))
+        self.veil = None
+        if glare > 0:
+            sun = np.array([rng.uniform(0.1, 0.9) * w, -rng.uniform(0.02, 0.15) * h])
+            yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+            r = np.hypot(xx - sun[0], yy - sun[1]) / np.hypot(w, h)
+            veil = 0.25 + 0.75 * np.exp(-((r / 0.25) ** 2)) + 0.5 * np.exp(-((r / 0.06) ** 2))
+            for share, radius, opacity in ((0.6, 0.05, 0.25), (1.4, 0.09, 0.15)):
+                ghost = sun + share * (np.array([w / 2, h / 2]) - sun) * 2
+                g = np.hypot(xx - ghost[0], yy - ghost[1]) / np.hypot(w, h)
+                veil += opacity * np.clip((radius - g) / 0.01, 0, 1)
+            self.veil = np.clip(veil * glare, 0, 0.9).astype(np.float32)
+            self.white = np.full((h, w, 3), 250, np.uint8)
+
+    def apply(self, image: np.ndarray, frame: int) -> np.ndarray:
+        """The picture (H, W, 3) uint8 with the glare's veil and frame `frame`'s rain added."""
+        if self.veil is not None:  # scattered light over the picture: lifts the darks, flattens contrast
+            image = cv2.blendLinear(image, self.white, 1.0 - self.veil, self.veil)
+        if self.bank:
+            image = cv2.add(image, self.bank[frame % len(self.bank)])
+        return image

@@ -6,12 +6,13 @@ white, orange or mud-covered machines; high or low sun from any side, or overcas
 of 45-75 % of their square, worn (greyer white, lighter black), dark grey instead of black,
 or painted straight on the machine without a white square; haze; slight defocus; heavy or
 light compression; more or less sensor noise, exposure drift and dust; lens distortion and
-camera shake. The look is written into truth/scene.toml.
+camera shake; rain streaks; a low sun's glare; the links' hard shadows on each other; haul
+trucks, another machine and people behind the machine. The look is written into truth/scene.toml.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -38,7 +39,12 @@ class Look:
     haze: share of haze over the whole picture;
     defocus: Gaussian blur SD px; noise, exposure, dust, blur: the camera effects
     (`EffectOptions`); crf: H.264 quality (23 default, 35 heavy compression); scale: the
-    image size's factor; distortion, shake_deg: the lens and the camera's wind shake.
+    image size's factor; distortion, shake_deg: the lens and the camera's wind shake;
+    rain: the rain streaks' opacity, glare: a low sun's veiling glare
+    (`mocap.synthetic.effects.Weather`); people, trucks, other_machine: clutter behind the
+    machine: people in high-visibility vests, haul trucks with their tyres, another machine
+    with a sign on it (`mocap.synthetic.backdrop`); shadows: the links' hard shadows on each
+    other's sunlit faces and markers (`mocap.synthetic.render`).
     """
 
     name: str = "default"
@@ -60,12 +66,20 @@ class Look:
     scale: float = 1.0
     distortion: bool = False
     shake_deg: float = 0.0
+    rain: float = 0.0
+    glare: float = 0.0
+    people: int = 0
+    trucks: int = 0
+    other_machine: bool = False
+    shadows: bool = False
 
     def __post_init__(self) -> None:
         if not 0.2 <= self.disk_ratio <= 0.9:
             raise ValueError(f"disk_ratio must be 0.2..0.9, got {self.disk_ratio}")
         if not (0 <= self.overcast <= 1 and 0 <= self.haze <= 0.8 and self.defocus >= 0):
             raise ValueError("overcast must be 0..1, haze 0..0.8, defocus >= 0")
+        if not (0 <= self.rain <= 1 and 0 <= self.glare <= 0.6 and self.people >= 0 and self.trucks >= 0):
+            raise ValueError("rain must be 0..1, glare 0..0.6, people and trucks >= 0")
         if not 0 <= self.crf <= 51:
             raise ValueError(f"crf must be 0..51, got {self.crf}")
 
@@ -119,7 +133,7 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         disk_grey = rng.uniform(60, 85)
     elif marker == "no square":
         square_grey = None
-    return Look(
+    look = Look(
         name=f"{name} ({paint}, {'overcast' if overcast == 1 else 'sun'}, {marker} markers)",
         paint=PAINTS[paint],
         dark=tuple(float(v) for v in rng.uniform(45, 90) * np.array([1.0, 1.03, 1.08])),
@@ -139,4 +153,16 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         scale=float(rng.choice([2 / 3, 1.0, 4 / 3])),
         distortion=bool(rng.random() < 0.5),
         shake_deg=float(rng.choice([0.0, rng.uniform(0.01, 0.05)])),
+        rain=float(rng.uniform(0.15, 0.45)) if rng.random() < 0.3 else 0.0,
+        glare=float(rng.uniform(0.15, 0.4)) if rng.random() < 0.3 else 0.0,
+        people=int(rng.integers(1, 6)) if rng.random() < 0.5 else 0,
+        trucks=int(rng.integers(1, 3)) if rng.random() < 0.5 else 0,
+        other_machine=bool(rng.random() < 0.4),
+        shadows=bool(rng.random() < 0.6),
     )
+    people = f"{look.people} {'person' if look.people == 1 else 'people'}"
+    trucks = f"{look.trucks} truck{'s' if look.trucks > 1 else ''}"
+    extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (people, look.people),
+                                    (trucks, look.trucks), ("another machine", look.other_machine),
+                                    ("shadows", look.shadows and overcast < 1)) if on]
+    return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")

@@ -26,7 +26,7 @@ from mocap.camera import project_cam
 from mocap.progress import progress
 from mocap.shapes import BOX_FACES, box_corners
 from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
-from mocap.synthetic.effects import CameraEffects, EffectOptions
+from mocap.synthetic.effects import CameraEffects, EffectOptions, Weather
 from mocap.synthetic.encode import CODECS, video_writer
 from mocap.synthetic.looks import Look
 from mocap.synthetic.session import SyntheticSession, marker_sizes
@@ -37,6 +37,7 @@ MAX_SMEAR_SAMPLES = 6
 log = logging.getLogger(__name__)
 
 WHITE, BLACK = (235, 235, 235), (18, 18, 18)
+EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])  # of `box_corners`
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,8 @@ class CameraRenderer:
         elevation, azimuth = np.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * np.pi)
         self.sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
                              np.sin(elevation)]) if look.sun() is None else look.sun()
-        self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng)
+        self.backdrop = render_backdrop(camera, session.plan.pile, session.plan.truck, reach, self.sun, rng,
+                                        look.people, look.trucks, look.other_machine)
         self.corners = np.array([box_corners(b) for b in session.boxes])  # (L, 8, 3)
         self.colours = look.palette[np.arange(len(session.boxes)) % len(look.palette)]
         self.squares, self.disks = session.marker_outlines()
@@ -86,6 +88,7 @@ class CameraRenderer:
             grey = self.colours[session.machine.marker_links] @ np.array([0.114, 0.587, 0.299])  # BGR luma
             self.square_grey = np.where(grey < 110, WHITE[0], np.nan)
         self.effects = CameraEffects(camera.size, options.effects, rng)
+        self.weather = Weather(camera.size, look.rain, look.glare, rng.spawn(1)[0])  # leaves `rng` as it is
         self.dust_radius = 0.2 * reach
 
     def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -124,7 +127,7 @@ class CameraRenderer:
                     instants = self._view(frame + offsets)
                     self._draw_smear(image, [[v[i] for v in instants] for i in range(samples[k])])
                 if not clean:
-                    image = self.look.finish(image)
+                    image = self.weather.apply(self.look.finish(image), int(frame))
                     radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
                     image = self.effects.apply(image, float(times[k]), uv_tip[k], radius, float(density[k]))
                 yield int(frame), image
@@ -153,7 +156,8 @@ class CameraRenderer:
         squares = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.squares) + on_link[..., None, :3, 3]
         disks = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.disks) + on_link[..., None, :3, 3]
         uv_corners = self._project(cams, corners)
-        return (centres, corners, normals, uv_corners, self._project(cams, squares), self._project(cams, disks), seen)
+        return (centres, corners, normals, uv_corners, self._project(cams, squares), self._project(cams, disks), seen,
+                cams)
 
     def _draw_smear(self, image: np.ndarray, views: list) -> None:
         """The machine drawn at each instant of the exposure and the pictures averaged, over
@@ -190,7 +194,7 @@ class CameraRenderer:
         w, h = self.field.camera.size
         return cv2.warpPerspective(self.backdrop, homography, (w, h), borderMode=cv2.BORDER_REPLICATE)
 
-    def _draw_machine(self, image, centre, corners, normals, uv_corners, uv_squares, uv_disks, seen) -> None:
+    def _draw_machine(self, image, centre, corners, normals, uv_corners, uv_squares, uv_disks, seen, cam) -> None:
         links = self.session.machine.marker_links
         order = np.argsort(-np.linalg.norm(corners.mean(axis=1) - centre, axis=-1))
         for l in order:
@@ -206,6 +210,71 @@ class CameraRenderer:
             for m in np.flatnonzero(seen & (links == l)):
                 white = None if np.isnan(self.square_grey[m]) else float(self.square_grey[m])
                 draw_marker(image, uv_squares[m], uv_disks[m], self.options.supersample, white, self.look.disk_grey)
+            if self.look.shadows:
+                self._cast_shadows(image, l, centre, corners, normals, cam)
+
+    def _cast_shadows(self, image, l, centre, corners, normals, cam) -> None:
+        """Darken, on link `l`'s sunlit faces that face the camera (paint and markers alike),
+        the shadows of the other links' boxes: each box, clipped to the face's sunny side,
+        projected along the sun onto the face's plane, its hull cut to the face in the picture
+        and the pixels there scaled down to the shaded level."""
+        camera = self.field.camera
+        shadows = []  # (polygons, factor) per face
+        for f, quad in enumerate(BOX_FACES):
+            n, origin = normals[l, f], corners[l, quad[0]]
+            facing_sun = float(n @ self.sun)
+            if facing_sun <= 0.05 or n @ (centre - corners[l, quad].mean(axis=0)) <= 0:
+                continue
+            factor = self.look.shade(-1.0) / self.look.shade(facing_sun)
+            if factor > 0.99:
+                continue
+            face_uv = project_cam(corners[l, quad] @ cam[:3, :3].T + cam[:3, 3], camera.matrix, camera.distortion)
+            if not np.all(np.isfinite(face_uv)) or np.abs(face_uv).max() > 1e5:
+                continue
+            pieces = []
+            for b in range(len(corners)):
+                if b == l:
+                    continue
+                height = (corners[b] - origin) @ n  # (8,) above the face's plane
+                if height.max() <= 1e-6:
+                    continue
+                a, c = corners[b][EDGES[:, 0]], corners[b][EDGES[:, 1]]
+                ha, hc = height[EDGES[:, 0]], height[EDGES[:, 1]]
+                cross = (ha > 0) != (hc > 0)
+                cut = a[cross] + (c[cross] - a[cross]) * (ha[cross] / (ha[cross] - hc[cross]))[:, None]
+                above = corners[b][height > 0]
+                shadow = np.concatenate([above - np.outer(height[height > 0] / facing_sun, self.sun), cut])
+                uv = project_cam(shadow @ cam[:3, :3].T + cam[:3, 3], camera.matrix, camera.distortion)
+                if len(uv) < 3 or not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e5:
+                    continue
+                hull = cv2.convexHull(uv.astype(np.float32))
+                area, piece = cv2.intersectConvexConvex(hull, cv2.convexHull(face_uv.astype(np.float32)))
+                if area > 0.5 and piece is not None:
+                    pieces.append(piece.reshape(-1, 2))
+            if pieces:
+                shadows.append((pieces, factor))
+        if shadows:
+            darken(image, shadows)
+
+
+def darken(image: np.ndarray, shadows: list[tuple[list[np.ndarray], float]]) -> None:
+    """Scale the pixels inside each union of polygons (each (N, 2) px) by its factor, edges
+    anti-aliased; where shadows overlap (or their edges do), the darkest one only."""
+    h, w = image.shape[:2]
+    points = np.concatenate([polygon for polygons, _ in shadows for polygon in polygons])
+    x0, y0 = np.clip(np.floor(points.min(axis=0)).astype(int) - 1, 0, [w, h])
+    x1, y1 = np.clip(np.ceil(points.max(axis=0)).astype(int) + 2, 0, [w, h])
+    if x1 <= x0 or y1 <= y0:
+        return
+    scale = np.ones((y1 - y0, x1 - x0), np.float32)
+    for polygons, factor in shadows:
+        mask = np.zeros_like(scale)
+        for polygon in polygons:  # one at a time: fillPoly of several would cancel where they overlap
+            cv2.fillPoly(mask, [np.round((polygon - [x0, y0]) * 16).astype(np.int32)], 1.0, lineType=cv2.LINE_AA,
+                         shift=4)
+        scale = np.minimum(scale, 1.0 - (1.0 - factor) * mask)
+    scale = scale[..., None]
+    image[y0:y1, x0:x1] = np.clip(image[y0:y1, x0:x1] * scale + 0.5, 0, 255).astype(np.uint8)
 
 
 def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor: int,
