@@ -52,6 +52,18 @@ def test_ik_inverts_forward_kinematics(name):
     np.testing.assert_allclose(back, joints, atol=1e-9)
 
 
+def check_reached(machine, chain, plan, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plan's joints and tip at times t, checked: inside the limits, and forward
+    kinematics puts the tip on the planned path at the planned bucket angle."""
+    joints = plan.joints(t)
+    check_limits(machine, joints)
+    planned = plan.tip_plan(t)
+    tip, angle = house_plane(machine, joints, chain)
+    np.testing.assert_allclose(tip, planned[:, :2], atol=1e-9)
+    np.testing.assert_allclose(angle, planned[:, 2], atol=1e-9)
+    return joints, tip
+
+
 @pytest.mark.parametrize("name, top_speed_deg", [("hitachi_ex3500", 100.0), ("bobcat_225", 150.0)])
 def test_planned_digs_are_reached_within_limits(name, top_speed_deg):
     machine = load_machine(name)
@@ -59,12 +71,7 @@ def test_planned_digs_are_reached_within_limits(name, top_speed_deg):
     for seed in range(4):
         plan = plan_session(machine, 4, np.random.default_rng(seed), bounce=0.0)
         t = np.arange(0.0, plan.duration, 0.05)
-        joints = plan.joints(t)
-        check_limits(machine, joints)
-        planned = plan.tip_plan(t)
-        tip, angle = house_plane(machine, joints, chain)
-        np.testing.assert_allclose(tip, planned[:, :2], atol=1e-9)
-        np.testing.assert_allclose(angle, planned[:, 2], atol=1e-9)
+        joints, _ = check_reached(machine, chain, plan, t)
         np.testing.assert_allclose(joints[:, chain.swing], plan.swing(t), atol=1e-12)
         # smooth: no joint turns faster than a machine of its size does
         assert np.abs(np.diff(joints, axis=0)).max() / 0.05 < np.radians(top_speed_deg)
@@ -321,12 +328,7 @@ def test_long_sessions_of_every_seed_are_reached_and_follow_their_digs(name):
     for seed in range(31):
         plan = plan_session(machine, 12, np.random.default_rng(seed), bounce=0.0)
         t = np.arange(0.0, plan.duration, 0.2)
-        joints = plan.joints(t)
-        check_limits(machine, joints)
-        planned = plan.tip_plan(t)
-        tip, angle = house_plane(machine, joints, chain)
-        np.testing.assert_allclose(tip, planned[:, :2], atol=1e-9)
-        np.testing.assert_allclose(angle, planned[:, 2], atol=1e-9)
+        _, tip = check_reached(machine, chain, plan, t)
         digs = [s for s in plan.segments if s.dig is not None]
         assert len(digs) == len(plan.cycles) == 12
         for cycle, segment in zip(plan.cycles, digs):
