@@ -47,6 +47,19 @@ def scene(machine, n_cameras, seed, noise_px=0.5, distance=(2.5, 4.0), outliers=
     return cameras, q, obs, tracks
 
 
+def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
+    """An OpenCV FileStorage (YAML or XML by the suffix) of one camera's intrinsics, as
+    OpenCV's calibration samples write it: a file the project did not make."""
+    import cv2
+
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    storage.write("image_width", int(size[0]))
+    storage.write("image_height", int(size[1]))
+    storage.write("camera_matrix", np.asarray(matrix, dtype=float))
+    storage.write("distortion_coefficients", np.asarray(distortion, dtype=float).reshape(1, -1))
+    storage.release()
+
+
 def pytest_terminal_summary(terminalreporter):
     """The bad-input corpus (test_bad_input.py, cases named command/case) counted per command."""
     counts: dict[str, list[int]] = {}

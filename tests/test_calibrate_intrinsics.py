@@ -3,9 +3,9 @@
 the cameras the file does not name) are fitted. Held to the truth of a board seen by
 webcams with strong barrel distortion."""
 
-import cv2
 import numpy as np
 import pytest
+from conftest import write_opencv_intrinsics
 
 from mocap.calibration import Observations, calibrate, template_camera
 from mocap.calibration.solve import CalibrationOptions
@@ -65,12 +65,7 @@ def test_calibrate_keeps_the_intrinsics_of_a_toml_file(scene, tmp_path, capsys):
 
 def test_calibrate_keeps_an_opencv_yaml_and_fits_the_other_cameras(scene, tmp_path, capsys):
     true = scene.cameras[0]
-    storage = cv2.FileStorage(str(tmp_path / "cam1.yaml"), cv2.FILE_STORAGE_WRITE)
-    storage.write("image_width", true.size[0])
-    storage.write("image_height", true.size[1])
-    storage.write("camera_matrix", true.matrix)
-    storage.write("distortion_coefficients", true.distortion.reshape(1, 5))
-    storage.release()
+    write_opencv_intrinsics(tmp_path / "cam1.yaml", true.size, true.matrix, true.distortion)
     out = tmp_path / "cameras.toml"
     assert main(["calibrate", *_inputs(tmp_path, scene), "--out", str(out), "--intrinsics",
                  str(tmp_path / "cam1.yaml")]) == 0

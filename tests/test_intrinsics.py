@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from conftest import write_opencv_intrinsics
 
 from mocap.errors import InputError
 from mocap.io.intrinsics import Intrinsics, load_intrinsics
@@ -118,17 +119,11 @@ def test_opencv_yaml_as_the_calibration_sample_writes_it(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".xml", ".yml"])
 def test_opencv_file_storage_round_trip(tmp_path, suffix):
-    cv2 = pytest.importorskip("cv2")
     rng = np.random.default_rng(8)
     matrix = np.array([[rng.uniform(500, 2000), 0, rng.uniform(300, 600)], [0, rng.uniform(500, 2000), 200], [0, 0, 1]])
     coefficients = np.r_[rng.normal(0, 0.1, 4), 0.0, 0.0, 0.0, 0.0].reshape(1, -1)  # 8, k4..k6 zero
     path = tmp_path / f"cam3{suffix}"
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    storage.write("image_width", 1280)
-    storage.write("image_height", 720)
-    storage.write("camera_matrix", matrix)
-    storage.write("distortion_coefficients", coefficients)
-    storage.release()
+    write_opencv_intrinsics(path, (1280, 720), matrix, coefficients)
     check(load_intrinsics(path)["cam3"], (1280, 720), matrix, np.r_[coefficients[0, :4], 0.0])
 
 

@@ -5,6 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import write_opencv_intrinsics
 
 from mocap.calibration import CalibrationOptions, Observations, calibrate
 from mocap.calibration.solve import template_camera
@@ -127,19 +128,12 @@ def write_inputs(folder, scene, cameras):
 
 
 def test_refine_command_chooses_the_lens_and_keeps_known_intrinsics(lens_scene, tmp_path, capsys):
-    import cv2
-
     from mocap.cli import main
     from mocap.io.cameras_toml import load_calibration
 
     args = write_inputs(tmp_path, lens_scene, one_frame_calibration(lens_scene))
     true = lens_scene.cameras[0]
-    storage = cv2.FileStorage(str(tmp_path / "cam1.yaml"), cv2.FILE_STORAGE_WRITE)
-    storage.write("image_width", true.size[0])
-    storage.write("image_height", true.size[1])
-    storage.write("camera_matrix", true.matrix)
-    storage.write("distortion_coefficients", true.distortion.reshape(1, 5))
-    storage.release()
+    write_opencv_intrinsics(tmp_path / "cam1.yaml", true.size, true.matrix, true.distortion)
     out = tmp_path / "refined.toml"
     assert main(["refine", *args, "--out", str(out), "--base-motion", "--fit-principal-point",
                  "--intrinsics", str(tmp_path / "cam1.yaml")]) == 0
