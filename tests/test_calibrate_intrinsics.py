@@ -12,7 +12,7 @@ from mocap.calibration.solve import CalibrationOptions
 from mocap.cli import main
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import save_machine
-from mocap.io.tracks_csv import Tracks, save_tracks
+from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.bounds import calibration_centre_sd
 from mocap.synthetic.lens_scene import board_scene
 
@@ -25,11 +25,7 @@ def scene():
 
 
 def _inputs(folder, scene):
-    c, k, m = np.nonzero(np.isfinite(scene.pixels[..., 0]))
-    names = np.array([camera.name for camera in scene.cameras])
-    n = len(c)
-    save_tracks(Tracks(names[c], k, np.array(scene.board.marker_names)[m], scene.pixels[c, k, m],
-                       np.full(n, np.nan), np.full(n, np.nan)), folder / "tracks.csv")
+    save_tracks(scene.tracks(), folder / "tracks.csv")
     save_machine(scene.board, folder / "board.toml")
     w, h = scene.cameras[0].size
     return [str(folder / "board.toml"), str(folder / "tracks.csv"), "--size", f"{w}x{h}"]

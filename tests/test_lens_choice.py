@@ -10,7 +10,7 @@ from mocap.calibration.lens_choice import calibrate_choosing_lens
 from mocap.calibration.solve import template_camera
 from mocap.cli import main
 from mocap.io.machine_toml import save_machine
-from mocap.io.tracks_csv import Tracks, save_tracks
+from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.lens_scene import board_scene
 
 
@@ -34,10 +34,7 @@ def test_barrel_distortion_is_freed_and_a_pinhole_kept(seed):
 
 def test_calibrate_command_reports_the_choice_and_obeys_the_flag(tmp_path, capsys):
     scene = board_scene(np.random.default_rng(5), n_frames=1, noise_px=0.3)
-    c, k, m = np.nonzero(np.isfinite(scene.pixels[..., 0]))
-    names = np.array([camera.name for camera in scene.cameras])
-    save_tracks(Tracks(names[c], k, np.array(scene.board.marker_names)[m], scene.pixels[c, k, m],
-                       np.full(len(c), np.nan), np.full(len(c), np.nan)), tmp_path / "tracks.csv")
+    save_tracks(scene.tracks(), tmp_path / "tracks.csv")
     save_machine(scene.board, tmp_path / "board.toml")
     args = ["calibrate", str(tmp_path / "board.toml"), str(tmp_path / "tracks.csv"), "--size", "1280x720"]
     assert main([*args, "--out", str(tmp_path / "auto.toml")]) == 0

@@ -115,13 +115,9 @@ def test_unknown_lens_model_is_refused():
 def write_inputs(folder, scene, cameras):
     from mocap.io.cameras_toml import Calibration, save_calibration
     from mocap.io.machine_toml import save_machine
-    from mocap.io.tracks_csv import Tracks, save_tracks
+    from mocap.io.tracks_csv import save_tracks
 
-    c, k, m = np.nonzero(np.isfinite(scene.pixels[..., 0]))
-    names = np.array([camera.name for camera in scene.cameras])
-    n = len(c)
-    save_tracks(Tracks(names[c], k, np.array(scene.board.marker_names)[m], scene.pixels[c, k, m],
-                       np.full(n, np.nan), np.full(n, np.nan)), folder / "tracks.csv")
+    save_tracks(scene.tracks(), folder / "tracks.csv")
     save_machine(scene.board, folder / "board.toml")
     save_calibration(Calibration(tuple(cameras)), folder / "cameras.toml")
     return [str(folder / "board.toml"), str(folder / "cameras.toml"), str(folder / "tracks.csv")]

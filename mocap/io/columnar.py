@@ -19,6 +19,7 @@ import pyarrow.parquet as pq
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
+from mocap.io.text import opening
 
 MAX_BYTES = 2**31  # as mocap.io.text: a larger file is left to the checked reader
 
@@ -65,13 +66,8 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
 def read_parquet(path: Path, hint: str) -> pa.Table:
     """The Parquet file's table; an unreadable one is an InputError."""
     try:
-        return pq.read_table(path)
-    except FileNotFoundError:
-        raise InputError(f"file not found; {hint}", path=path) from None
-    except IsADirectoryError:
-        raise InputError(f"is a folder, not a file; {hint}", path=path) from None
-    except PermissionError:
-        raise InputError(f"not readable (permission denied); {hint}", path=path) from None
+        with opening(path, hint):
+            return pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
         raise InputError(f"not a readable Parquet file ({str(exc).splitlines()[0][:200]}); {hint}",
                          path=path) from None

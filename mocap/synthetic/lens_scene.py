@@ -13,6 +13,7 @@ import numpy as np
 from mocap.camera import Camera
 from mocap.geometry import rotvec_to_matrix
 from mocap.io.machine_toml import machine_from_dict
+from mocap.io.tracks_csv import Tracks
 from mocap.machine import Machine
 from mocap.synthetic.scenes import look_at_camera
 
@@ -39,6 +40,12 @@ class BoardScene:
     world_from_board: np.ndarray
     pixels: np.ndarray
     noise_px: float
+
+    def tracks(self) -> Tracks:
+        """The observed corners as tracks: one row per camera, frame and corner seen."""
+        c, k, m = np.nonzero(np.isfinite(self.pixels[..., 0]))
+        names = np.array([camera.name for camera in self.cameras])
+        return Tracks.from_rows(names[c], k, np.array(self.board.marker_names)[m], self.pixels[c, k, m])
 
     def corners(self) -> np.ndarray:
         """(K, M, 3) the corners in the world."""
