@@ -47,6 +47,15 @@ def test_columnar_reading_equals_the_checked_reader(tmp_path, seed):
     assert_same(load_tracks(path), tracks, atol=5e-5)  # 4 decimals written
 
 
+def test_names_that_need_quotes_are_written_quoted_and_read_back(tmp_path):
+    tracks = random_tracks(np.random.default_rng(7))
+    names = np.where(tracks.marker == tracks.marker[0], 'arm, "left"', tracks.marker)
+    quoted = Tracks(tracks.camera, tracks.frame, names, tracks.xy, tracks.time, tracks.score)
+    save_tracks(quoted, tmp_path / "t.csv")
+    assert '"arm, ""left"""' in (tmp_path / "t.csv").read_text(encoding="utf-8")
+    assert_same(load_tracks(tmp_path / "t.csv"), quoted, atol=5e-5)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_tracks_parquet_round_trip(tmp_path, seed):
     tracks = random_tracks(np.random.default_rng(seed))

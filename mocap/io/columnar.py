@@ -80,12 +80,55 @@ def write_parquet(columns: dict[str, np.ndarray], path: str | Path) -> None:
         pq.write_table(table, tmp)
 
 
+def write_csv(columns: dict[str, np.ndarray], path: str | Path, digits: dict[str, int]) -> None:
+    """Write named (N,) columns as a CSV file, atomically: whole numbers as they are, floats
+    rounded to `digits` decimals of their name (written without trailing zeros), NaN as an
+    empty field, text unquoted (a value that would need quotes goes through the csv module)."""
+    arrays = {}
+    for name, values in columns.items():
+        values = np.asarray(values)
+        if values.dtype.kind == "f":
+            values = np.round(values, digits[name]) if name in digits else values
+            arrays[name] = pa.array(values, from_pandas=True)  # NaN -> null -> empty field
+        elif values.dtype.kind in "iub":
+            arrays[name] = pa.array(values.astype(np.int64))
+        else:
+            arrays[name] = pa.array(values.astype(str))
+    table = pa.table(arrays)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write((",".join(columns) + "\n").encode("utf-8"))
+            try:
+                pacsv.write_csv(table, fh, pacsv.WriteOptions(include_header=False, quoting_style="none"))
+                return
+            except pa.ArrowInvalid:  # a comma or quote in a name: quoted by the csv module
+                pass
+        with open(tmp, "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh, lineterminator="\n")
+            writer.writerow(list(columns))
+            writer.writerows(zip(*(["" if v is None else v for v in table[n].to_pylist()] for n in columns)))
+
+
+NAMES = pa.dictionary(pa.int32(), pa.string())  # a CSV column of few distinct names, read once each
+
+
+def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
+    """A column without nulls as its distinct values (K,) and each row's index (N,) into
+    them: a dictionary column's own (read once per name), else dictionary-encoded."""
+    if not pa.types.is_dictionary(column.type):
+        encoded = column.combine_chunks().dictionary_encode()
+        return encoded.dictionary, encoded.indices.to_numpy()
+    column = column.unify_dictionaries()
+    if not column.num_chunks:
+        return pa.array([], column.type.value_type), np.zeros(0, np.int64)
+    return column.chunk(0).dictionary, np.concatenate([c.indices.to_numpy() for c in column.chunks])
+
+
 def strings(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) object array of Python str from a string column without nulls, one object per
     distinct value, and (N,) int codes of the values (equal where the values are equal)."""
-    encoded = column.combine_chunks().dictionary_encode()
-    codes = encoded.indices.to_numpy()
-    return np.array(encoded.dictionary.to_pylist(), dtype=object)[codes], codes
+    values, codes = _distinct(column)
+    return np.array(values.to_pylist(), dtype=object)[codes], codes
 
 
 def codes(names: np.ndarray) -> np.ndarray:
@@ -96,36 +139,41 @@ def codes(names: np.ndarray) -> np.ndarray:
 def plain_names(column: pa.ChunkedArray, longest: int) -> bool:
     """Whether every value is a non-empty string of at most `longest` characters without
     surrounding white space."""
-    column = column.combine_chunks()
-    if not pa.types.is_string(column.type) and not pa.types.is_large_string(column.type):
+    text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
+    if not pa.types.is_string(text) and not pa.types.is_large_string(text):
         return False
     if column.null_count:
         return False
-    length = pc.utf8_length(column)
-    if len(column) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
+    values, _ = _distinct(column)
+    length = pc.utf8_length(values)
+    if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
         return False
-    return pc.all(pc.equal(pc.utf8_trim_whitespace(column), column)).as_py() is not False
+    return pc.all(pc.equal(pc.utf8_trim_whitespace(values), values)).as_py() is not False
 
 
 def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
     """(N,) int64 of a column of whole numbers 0 ... `largest` (written with at most as
-    many digits as `largest`), or None."""
-    column = column.combine_chunks()
+    many digits as `largest`), or None. Text is checked once per distinct value."""
     if column.null_count:
         return None
-    if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
-        length = pc.binary_length(column)
-        if pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest)):
+    if pa.types.is_dictionary(column.type) or pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+        values, index = _distinct(column)
+        if not pa.types.is_string(values.type) and not pa.types.is_large_string(values.type):
             return None
-        if pc.all(pc.and_(pc.string_is_ascii(column), pc.utf8_is_digit(column))).as_py() is False:
+        length = pc.binary_length(values)
+        if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest))):
             return None
-        column = pc.cast(column, pa.int64())
-    elif not pa.types.is_integer(column.type):
+        if pc.all(pc.and_(pc.string_is_ascii(values), pc.utf8_is_digit(values))).as_py() is False:
+            return None
+        numbers = pc.cast(values, pa.int64()).to_numpy(zero_copy_only=False)[index]
+    elif pa.types.is_integer(column.type):
+        numbers = column.combine_chunks().to_numpy(zero_copy_only=False)
+    else:
         return None
-    values = column.to_numpy(zero_copy_only=False).astype(np.int64)
-    if len(values) and (values.min() < 0 or values.max() > largest):
+    numbers = numbers.astype(np.int64)
+    if len(numbers) and (numbers.min() < 0 or numbers.max() > largest):
         return None
-    return values
+    return numbers
 
 
 def floats(column: pa.ChunkedArray) -> np.ndarray | None:

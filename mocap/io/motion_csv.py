@@ -12,7 +12,6 @@ walking) adds its pose ``world_from_base`` as ``base_x, base_y, base_z`` (m) and
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +19,6 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.atomic import atomic_path
 from mocap.io.columnar import is_parquet
 from mocap.geometry import matrix_to_rpy, rotvec_to_matrix, rpy_to_matrix
 from mocap.io.text import csv_rows, read_text
@@ -145,15 +143,9 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
         columnar.write_parquet({h: np.asarray(c, dtype=float) for h, c in zip(header, columns)}
                                | {"frame": np.asarray(motion.frame, dtype=np.int64)}, path)
         return
-    table = np.column_stack([np.asarray(c, dtype=float) for c in columns]) if len(motion) else None
-    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(header)
-        for row in [] if table is None else table:
-            writer.writerow(
-                [str(int(row[0])), f"{row[1]:.6f}"]
-                + ["" if not np.isfinite(v) else f"{v:.6f}" for v in row[2:]]
-            )
+    values = {h: np.asarray(c, dtype=float) for h, c in zip(header, columns)}
+    columnar.write_csv(values | {"frame": np.asarray(motion.frame, dtype=np.int64)}, path,
+                       dict.fromkeys(header, 6))
 
 
 def _is_number(text: str) -> bool:

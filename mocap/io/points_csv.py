@@ -6,8 +6,6 @@ the point; `views` the number of cameras that saw it.
 
 from __future__ import annotations
 
-import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +13,6 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.atomic import atomic_path
 from mocap.io.columnar import is_parquet
 from mocap.io.text import csv_rows, read_text
 from mocap.io.tracks_csv import ascii_digits
@@ -49,16 +46,10 @@ def save_points(points: Points, path: str | Path) -> None:
                                 "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
                                 "error_px": points.error_px, "views": points.views.astype(np.int64)}, path)
         return
-    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(COLUMNS)
-        x, y, z = (points.xyz[:, k].tolist() for k in range(3))  # Python floats: formatted fast
-        writer.writerows(zip(
-            np.asarray(points.frame, dtype=np.int64).tolist(), points.marker.tolist(),
-            [f"{v:.5f}" for v in x], [f"{v:.5f}" for v in y], [f"{v:.5f}" for v in z],
-            [f"{v:.4f}" if math.isfinite(v) else "" for v in points.error_px.tolist()],
-            np.asarray(points.views, dtype=np.int64).tolist(),
-        ))
+    columnar.write_csv({"frame": points.frame.astype(np.int64), "marker": points.marker.astype(str),
+                        "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
+                        "error_px": points.error_px, "views": points.views.astype(np.int64)}, path,
+                       {"x": 5, "y": 5, "z": 5, "error_px": 4})
 
 
 def load_points(path: str | Path) -> Points:

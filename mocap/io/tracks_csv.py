@@ -17,7 +17,6 @@ import pyarrow as pa
 
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.atomic import atomic_path
 from mocap.io.columnar import is_parquet
 from mocap.io.text import read_text
 
@@ -142,7 +141,7 @@ def load_tracks(paths) -> Tracks:
     return tracks
 
 
-TYPES = {"camera": pa.string(), "frame": pa.string(), "marker": pa.string(), "x": pa.float64(),
+TYPES = {"camera": columnar.NAMES, "frame": columnar.NAMES, "marker": columnar.NAMES, "x": pa.float64(),
          "y": pa.float64(), "time": pa.float64(), "score": pa.float64()}
 
 
@@ -363,27 +362,13 @@ def save_tracks(tracks: Tracks, path: str | Path) -> None:
     has_time = bool(np.any(np.isfinite(tracks.time)))
     has_score = bool(np.any(np.isfinite(tracks.score)))
     header = list(REQUIRED) + (["time"] if has_time else []) + (["score"] if has_score else [])
+    columns = {"camera": tracks.camera.astype(str), "frame": tracks.frame.astype(np.int64),
+               "marker": tracks.marker.astype(str), "x": tracks.xy[:, 0], "y": tracks.xy[:, 1],
+               "time": tracks.time, "score": tracks.score}
     if is_parquet(path):
-        columns = {"camera": tracks.camera.astype(str), "frame": tracks.frame.astype(np.int64),
-                   "marker": tracks.marker.astype(str), "x": tracks.xy[:, 0], "y": tracks.xy[:, 1],
-                   "time": tracks.time, "score": tracks.score}
         columnar.write_parquet({h: columns[h] for h in header}, path)
         return
-    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(header)
-        for k in range(len(tracks)):
-            row = [tracks.camera[k], int(tracks.frame[k]), tracks.marker[k]]
-            row += [f"{tracks.xy[k, 0]:.4f}", f"{tracks.xy[k, 1]:.4f}"]
-            if has_time:
-                row.append(_num(tracks.time[k], 6))
-            if has_score:
-                row.append(_num(tracks.score[k], 4))
-            writer.writerow(row)
-
-
-def _num(value: float, digits: int) -> str:
-    return "" if not np.isfinite(value) else f"{value:.{digits}f}"
+    columnar.write_csv({h: columns[h] for h in header}, path, {"x": 4, "y": 4, "time": 6, "score": 4})
 
 
 IMAGE_MARGIN = 0.25  # share of the image's width / height a pixel may lie beyond its edge
