@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from mocap.calibration import identify, initial
+from mocap.calibration import identify, initial, noise
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
@@ -40,6 +40,9 @@ class CalibrationOptions:
     image, so that model error is not taken for outliers and far markers count less.
     fixed_intrinsics: names of cameras whose intrinsics (focal length, principal point,
     distortion) are known: their templates' values are used and kept, not fitted.
+    noise_px: the pixel noise (per axis) assumed where the residuals cannot tell it (a
+    tolerance's offsets absorb nearly all of one camera's residuals); the residuals' own
+    estimate takes over as their redundancy grows.
     """
 
     per_camera: bool = False
@@ -50,12 +53,15 @@ class CalibrationOptions:
     max_rms_px: float | None = None
     tolerance: Tolerance | None = None
     fixed_intrinsics: frozenset[str] = frozenset()
+    noise_px: float = 1.0
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
             raise InputError(
                 f"distortion model {self.distortion!r} unknown; use one of {', '.join(DISTORTION_MODELS)}"
             )
+        if not self.noise_px > 0:
+            raise InputError(f"noise_px must be positive, got {self.noise_px}")
         if not self.f_scale_px > 0:
             raise InputError(f"f_scale_px must be positive, got {self.f_scale_px}")
 
@@ -344,7 +350,8 @@ def _tolerance_factor(layout: Layout, templates, machine: Machine, obs: Observat
         q = joints[c] if layout.per_camera else joints
         world = machine.markers(np.asarray(q)[None])[0][obs.marker[rows]]
         depth = np.abs(world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2])
-        model_px = marker_sd[obs.marker[rows]] * camera.focal / np.maximum(depth, 1e-9)
+        sd = np.asarray(marker_sd, float).reshape(len(marker_sd), -1)
+        model_px = np.sqrt(np.mean(sd[obs.marker[rows]] ** 2, axis=1)) * camera.focal / np.maximum(depth, 1e-9)
         factor[rows] = np.sqrt(1.0 + (model_px / noise_px) ** 2)
     return factor
 
@@ -387,9 +394,7 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     problem = problem_of(observations)
     final = _least_squares(problem, x0, bounds)
     if marker_sd is not None:
-        prior_px = float(np.clip(_robust_sigma(_pixel_errors(final.fun, problem)), 0.2, 5.0))
-        problem = problem_of(observations, prior_px)
-        final = _least_squares(problem, final.x, bounds)
+        problem, final = _weighed_prior(problem_of, observations, final, options, _least_squares, bounds)
     inlier = np.ones(len(observations), dtype=bool)
     if marker_sd is not None or options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem),
                                                                              options).any():
@@ -419,6 +424,9 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
             log.info("%d outlier(s) dropped", np.sum(~inlier))
             problem = problem_of(observations.select(inlier), problem.prior_px)
             final = _least_squares(problem, robust.x, bounds)
+        if marker_sd is not None:  # the noise again, without the outliers
+            problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options, _least_squares,
+                                            bounds)
     pixel_fun = final.fun[: problem.n_pixel_rows]
     rms = float(np.sqrt(np.mean(pixel_fun**2) * 2))
     diagonal = max(np.hypot(*t.size) for t in templates)
@@ -436,7 +444,9 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
     rank += int(np.sum(~free))  # the held parameters are known
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
-    sigma2 = float(final.fun @ final.fun) / dof
+    # with the offsets fitted the rows are whitened at the noise the residuals show (their
+    # leverage counted); else the noise from the residuals over their degrees of freedom
+    sigma2 = problem.prior_px**2 if marker_sd is not None else float(final.fun @ final.fun) / dof
     covariance = np.zeros((layout.size, layout.size))  # the held parameters' variance is zero
     covariance[np.ix_(free, free)] = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
     fitted = problem.machine_at(final.x)
@@ -478,6 +488,18 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
         marker_offsets=offsets,
         marker_offsets_sd=offsets_sd,
     )
+
+
+def _weighed_prior(problem_of, observations, final, options, least_squares_from, bounds, rounds: int = 2):
+    """The offsets' prior weighed at the pixel noise that the fit `final`'s residuals show
+    (leverage-corrected, `noise.pixel_noise`), the fit repeated; `rounds` times, as the
+    noise and the prior's weight depend on each other. Returns the problem and its fit."""
+    n_pixel_rows = 2 * len(observations)
+    for _ in range(rounds):
+        sigma = noise.pixel_noise(final.fun, final.jac, n_pixel_rows, options.noise_px)
+        problem = problem_of(observations, float(np.clip(sigma, 0.05, 20.0)))
+        final = least_squares_from(problem, final.x, bounds)
+    return problem, final
 
 
 def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss: str = "linear", f_scale: float = 1.0):
