@@ -56,3 +56,23 @@ def pixel_noise(fun: np.ndarray, jacobian: np.ndarray, n_pixel_rows: int, stated
 def robust_sigma(errors: np.ndarray) -> float:
     """Per-axis pixel noise from the median residual length (Rayleigh: median = 1.1774 sigma)."""
     return float(np.median(errors) / RAYLEIGH_MEDIAN)
+
+
+def pixel_robust_loss(n_pixel_rows: int):
+    """A least-squares loss (scipy's callable form) that is soft-L1 on the first
+    `n_pixel_rows` rows (pixels: a wild one counts little) and plain on the rest (the
+    offsets' priors: robust there, an offset would run off to absorb a wild pixel)."""
+
+    def loss(z: np.ndarray) -> np.ndarray:
+        out = np.empty((3, len(z)))
+        pixel = z[:n_pixel_rows]
+        root = np.sqrt(1.0 + pixel)
+        out[0, :n_pixel_rows] = 2.0 * (root - 1.0)
+        out[1, :n_pixel_rows] = 1.0 / root
+        out[2, :n_pixel_rows] = -0.5 / root**3
+        out[0, n_pixel_rows:] = z[n_pixel_rows:]
+        out[1, n_pixel_rows:] = 1.0
+        out[2, n_pixel_rows:] = 0.0
+        return out
+
+    return loss

@@ -159,7 +159,7 @@ def calibrate(
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
     marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
     x0 = _starting_point(machine, observations, templates, options, guess, layout)
-    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    result = _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result.outliers:
         # pixels named outliers may be a wrong minimum's doing: the start is found again
         # without them, and the cameras that lost many are placed again on all their markers
@@ -181,7 +181,54 @@ def calibrate(
             if _robust_cost(again, options) < _robust_cost(result, options):
                 log.info("a new start explains the pixels better: kept")
                 result = again
+    _refuse_unfixed(result)
     return replace(result, warnings=_warnings(result))
+
+
+def _refuse_unfixed(result: CalibrationResult) -> None:
+    """Raises DegenerateError for a camera the data do not fix: its focal length gone to the
+    orthographic limit, or its position's standard deviation beyond its distance."""
+    target = np.mean(result.markers_world, axis=0)
+    for c, camera in enumerate(result.cameras):
+        distance = float(np.linalg.norm(camera.center - target))
+        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
+        if camera.name in _far_cameras(result) or not sd <= distance:
+            raise DegenerateError(
+                f"focal length and distance of camera {camera.name} cannot be told apart (its position "
+                f"± {sd:.3g} m at {distance:.3g} m, focal length {camera.focal:.3g} px): these markers do not "
+                "fix it; use a frame where the machine shows more depth or more markers, another camera, "
+                "or known intrinsics"
+            )
+
+
+def _first_fit(machine, observations, layout, templates, x0, options, marker_sd) -> CalibrationResult:
+    """The fit from the automatic start. With a tolerance it begins robust (a wild pixel can
+    draw a far camera to the orthographic limit, a plateau no later fit leaves); should it
+    fail or leave a camera there, the fit that begins with plain least squares (which a poor
+    start's large residuals mislead less) is tried too, the better kept."""
+    try:
+        result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    except InputError as exc:
+        if marker_sd is None:
+            raise
+        failure, result = exc, None
+    if marker_sd is None or (result is not None and not _far_cameras(result)):
+        return result
+    try:
+        plain = _fit(machine, observations, layout, templates, x0, options, marker_sd, robust_start=False)
+    except InputError:
+        if result is None:
+            raise failure from None
+        return result
+    if result is None or _robust_cost(plain, options) < _robust_cost(result, options):
+        return plain
+    return result
+
+
+def _far_cameras(result: CalibrationResult) -> list[str]:
+    """Cameras whose focal length went beyond the start's search (FOCAL_GRID): towards the
+    orthographic limit, where focal length and distance are no longer told apart."""
+    return [c.name for c in result.cameras if c.focal > initial.FOCAL_GRID[-1] * c.size[0]]
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
@@ -376,7 +423,7 @@ def _bounds(layout: Layout, machine: Machine, x0: np.ndarray):
     return (lower, upper), x0
 
 
-def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) -> CalibrationResult:
+def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, robust_start=True) -> CalibrationResult:
     """Least squares from x0; if some residuals are implausible, a robust fit names the
     outliers and the least-squares fit is repeated without them. With `marker_sd` the
     markers' offsets are fitted too, within their prior (the model's tolerance): the prior
@@ -392,9 +439,17 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
         return Problem(machine, obs, layout, templates, marker_sd, prior_px)
 
     problem = problem_of(observations)
-    final = _least_squares(problem, x0, bounds)
-    if marker_sd is not None:
-        problem, final = _weighed_prior(problem_of, observations, final, options, _least_squares, bounds)
+    if marker_sd is None:
+        final = _least_squares(problem, x0, bounds)
+    else:  # robust from the start: a wild pixel drawn at by plain least squares can push a far
+        # camera towards the orthographic limit, a plateau that no later fit leaves
+        def robust_loss(problem):
+            return dict(loss=noise.pixel_robust_loss(problem.n_pixel_rows), f_scale=options.f_scale_px)
+
+        start_loss = robust_loss if robust_start else lambda p: {}
+        final = _least_squares(problem, x0, bounds, **start_loss(problem))
+        problem, final = _weighed_prior(problem_of, observations, final, options,
+                                        lambda p, x, b: _least_squares(p, x, b, **start_loss(p)), bounds)
     inlier = np.ones(len(observations), dtype=bool)
     if marker_sd is not None or options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem),
                                                                              options).any():
@@ -412,7 +467,7 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
                               f_scale=options.f_scale_px)
             errors = _pixel_errors(standard.fun, problem) / _tolerance_factor(
                 layout, templates, machine, observations, standard.x, marker_sd, problem.prior_px)
-            robust = _least_squares(problem, final.x, bounds, loss="soft_l1", f_scale=options.f_scale_px)
+            robust = _least_squares(problem, final.x, bounds, **robust_loss(problem))
             free_errors = _pixel_errors(robust.fun, problem)
             suspect = _suspects(errors, options) | _suspects(free_errors, options)
             errors = np.maximum(errors, free_errors)
@@ -502,7 +557,7 @@ def _weighed_prior(problem_of, observations, final, options, least_squares_from,
     return problem, final
 
 
-def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss: str = "linear", f_scale: float = 1.0):
+def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss="linear", f_scale: float = 1.0):
     """Least squares over the parameters `free` (P,) bool, the others held at x0's values;
     the solution's x is the whole vector, its jac the free parameters' columns."""
 
