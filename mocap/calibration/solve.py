@@ -181,7 +181,8 @@ def calibrate(
             if _robust_cost(again, options) < _robust_cost(result, options):
                 log.info("a new start explains the pixels better: kept")
                 result = again
-    _refuse_unfixed(result)
+    if tolerance:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
+        _refuse_unfixed(result)
     return replace(result, warnings=_warnings(result))
 
 
@@ -225,10 +226,14 @@ def _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     return result
 
 
+ORTHOGRAPHIC_WIDTHS = 100.0  # a focal length beyond this many image widths (a 0.6° view): the orthographic limit
+
+
 def _far_cameras(result: CalibrationResult) -> list[str]:
-    """Cameras whose focal length went beyond the start's search (FOCAL_GRID): towards the
-    orthographic limit, where focal length and distance are no longer told apart."""
-    return [c.name for c in result.cameras if c.focal > initial.FOCAL_GRID[-1] * c.size[0]]
+    """Cameras whose focal length went beyond ORTHOGRAPHIC_WIDTHS image widths (eight times
+    the start's search): towards the orthographic limit, where focal length and distance
+    are no longer told apart."""
+    return [c.name for c in result.cameras if c.focal > ORTHOGRAPHIC_WIDTHS * c.size[0]]
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
@@ -379,30 +384,6 @@ def _free(layout: Layout, templates) -> np.ndarray:
     return free
 
 
-def _offsets(layout: Layout) -> np.ndarray:
-    """(P,) bool: the markers' offsets in the parameter vector."""
-    mask = np.zeros(layout.size, dtype=bool)
-    mask[layout.offset_slice] = True
-    return mask
-
-
-def _tolerance_factor(layout: Layout, templates, machine: Machine, obs: Observations, x: np.ndarray,
-                      marker_sd: np.ndarray, noise_px: float) -> np.ndarray:
-    """(N,) sqrt(1 + (tolerance in px / noise)^2) per observation: its marker's tolerance
-    `marker_sd` (M,) m seen from its camera (focal length over depth) against the noise."""
-    cameras, joints = layout.unpack(x, templates)
-    factor = np.ones(len(obs))
-    for c, camera in enumerate(cameras):
-        rows = obs.camera == c
-        q = joints[c] if layout.per_camera else joints
-        world = machine.markers(np.asarray(q)[None])[0][obs.marker[rows]]
-        depth = np.abs(world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2])
-        sd = np.asarray(marker_sd, float).reshape(len(marker_sd), -1)
-        model_px = np.sqrt(np.mean(sd[obs.marker[rows]] ** 2, axis=1)) * camera.focal / np.maximum(depth, 1e-9)
-        factor[rows] = np.sqrt(1.0 + (model_px / noise_px) ** 2)
-    return factor
-
-
 def _neutral_joints(machine: Machine) -> np.ndarray:
     """Zero where the limits allow it, else the middle of the limits."""
     limits = machine.joint_limits
@@ -456,23 +437,16 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
         if marker_sd is None:
             robust = _least_squares(problem, x0, bounds, loss="soft_l1", f_scale=options.f_scale_px)
             errors = _pixel_errors(robust.fun, problem)
+            suspect = _suspects(errors, options)
         else:
-            # outliers judged with the markers where the model puts them, each residual against
-            # the noise plus its marker's tolerance seen from its camera: free offsets would
-            # absorb a wild pixel on a marker that one camera sees
-            # (and, as the offsets fitted too would leave them, against the pixel noise)
-            held = final.x.copy()
-            held[layout.offset_slice] = 0.0
-            standard = _solve(problem, held, bounds, free & ~_offsets(layout), loss="soft_l1",
-                              f_scale=options.f_scale_px)
-            errors = _pixel_errors(standard.fun, problem) / _tolerance_factor(
-                layout, templates, machine, observations, standard.x, marker_sd, problem.prior_px)
+            # outliers judged against the noise with the markers' offsets marginalised: each
+            # residual of the robust fit over sqrt(1 - its leverage), the share of its variance
+            # the fit leaves; a wild pixel on a marker that only one camera sees is mostly
+            # absorbed by that marker's offset, but its residual's variance is then small too
             robust = _least_squares(problem, final.x, bounds, **robust_loss(problem))
-            free_errors = _pixel_errors(robust.fun, problem)
-            suspect = _suspects(errors, options) | _suspects(free_errors, options)
-            errors = np.maximum(errors, free_errors)
-        inlier = _drop_while_identifiable(machine, names, observations, layout,
-                                          suspect if marker_sd is not None else _suspects(errors, options), errors)
+            errors, _ = noise.standardised_errors(robust.fun, robust.jac, problem.n_pixel_rows)
+            suspect = _suspects(errors, options)
+        inlier = _drop_while_identifiable(machine, names, observations, layout, suspect, errors)
         if np.all(inlier):
             final = _least_squares(problem, robust.x, bounds)
         else:
@@ -590,7 +564,7 @@ def _suspects(errors: np.ndarray, options: CalibrationOptions) -> np.ndarray:
     else beyond 5 sigma of the noise the residuals show and beyond 4 px."""
     if options.outlier_px is not None:
         return errors > options.outlier_px
-    return errors > max(4.0, 5.0 * _robust_sigma(errors))
+    return errors > max(4.0, 5.0 * noise.robust_sigma(errors))
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
@@ -610,11 +584,6 @@ def _drop_while_identifiable(machine, names, observations, layout, suspect, erro
             log.warning("camera %s, marker %s: residual beyond the noise, kept (the fit needs it)",
                         names[observations.camera[k]], machine.marker_names[observations.marker[k]])
     return inlier
-
-
-def _robust_sigma(err: np.ndarray) -> float:
-    """Per-axis pixel noise from the median residual length (Rayleigh: median = 1.1774 sigma)."""
-    return float(np.median(err) / np.sqrt(2 * np.log(2)))
 
 
 def _paper_sd(layout: Layout, x: np.ndarray, covariance: np.ndarray, templates, c: int) -> np.ndarray:
