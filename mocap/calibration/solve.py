@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from mocap.calibration import identify, initial, noise
+from mocap.calibration import doubts, identify, initial, noise
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
@@ -166,7 +166,7 @@ def calibrate(
         # at the fitted pose; the fit from each is kept if it explains the pixels better
         kept = np.array([not r.outlier for r in result.residuals])
         starts = [lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout)]
-        doubtful = _doubtful_cameras(result)
+        doubtful = doubts.doubtful_cameras(result)
         if doubtful:
             starts.append(lambda: layout.pack(_replaced_cameras(result, observations, templates, doubtful,
                                                                 options.fixed_intrinsics), result.joints))
@@ -182,24 +182,8 @@ def calibrate(
                 log.info("a new start explains the pixels better: kept")
                 result = again
     if tolerance:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
-        _refuse_unfixed(result)
-    return replace(result, warnings=_warnings(result))
-
-
-def _refuse_unfixed(result: CalibrationResult) -> None:
-    """Raises DegenerateError for a camera the data do not fix: its focal length gone to the
-    orthographic limit, or its position's standard deviation beyond its distance."""
-    target = np.mean(result.markers_world, axis=0)
-    for c, camera in enumerate(result.cameras):
-        distance = float(np.linalg.norm(camera.center - target))
-        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
-        if camera.name in _far_cameras(result) or not sd <= distance:
-            raise DegenerateError(
-                f"focal length and distance of camera {camera.name} cannot be told apart (its position "
-                f"± {sd:.3g} m at {distance:.3g} m, focal length {camera.focal:.3g} px): these markers do not "
-                "fix it; use a frame where the machine shows more depth or more markers, another camera, "
-                "or known intrinsics"
-            )
+        doubts.refuse_unfixed(result)
+    return replace(result, warnings=doubts.warnings(result))
 
 
 def _first_fit(machine, observations, layout, templates, x0, options, marker_sd) -> CalibrationResult:
@@ -213,7 +197,7 @@ def _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
         if marker_sd is None:
             raise
         failure, result = exc, None
-    if marker_sd is None or (result is not None and not _far_cameras(result)):
+    if marker_sd is None or (result is not None and not doubts.far_cameras(result)):
         return result
     try:
         plain = _fit(machine, observations, layout, templates, x0, options, marker_sd, robust_start=False)
@@ -224,16 +208,6 @@ def _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result is None or _robust_cost(plain, options) < _robust_cost(result, options):
         return plain
     return result
-
-
-ORTHOGRAPHIC_WIDTHS = 100.0  # a focal length beyond this many image widths (a 0.6° view): the orthographic limit
-
-
-def _far_cameras(result: CalibrationResult) -> list[str]:
-    """Cameras whose focal length went beyond ORTHOGRAPHIC_WIDTHS image widths (eight times
-    the start's search): towards the orthographic limit, where focal length and distance
-    are no longer told apart."""
-    return [c.name for c in result.cameras if c.focal > ORTHOGRAPHIC_WIDTHS * c.size[0]]
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
@@ -309,17 +283,6 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None, kn
     return cameras, joints
 
 
-def _doubtful_cameras(result: CalibrationResult) -> list[int]:
-    """Cameras that lost more than a fifth (and at least two) of their observations as
-    outliers: more than wrong detections explain."""
-    out = []
-    for c, camera in enumerate(result.cameras):
-        mine = [r.outlier for r in result.residuals if r.camera == camera.name]
-        if sum(mine) >= 2 and sum(mine) > 0.2 * len(mine):
-            out.append(c)
-    return out
-
-
 def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful,
                       known=frozenset()) -> list[Camera]:
     """The result's cameras, those in `doubtful` placed again by PnP of all their markers at
@@ -339,29 +302,6 @@ def _robust_cost(result: CalibrationResult, options: CalibrationOptions) -> floa
     """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale."""
     e = np.array([np.linalg.norm(r.residual) for r in result.residuals]) / options.f_scale_px
     return float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0)))
-
-
-def _warnings(result: CalibrationResult) -> tuple[str, ...]:
-    """One sentence per thing the data leave doubtful: a camera whose position they hardly
-    fix (its standard deviation beyond a tenth of its distance: focal length and distance
-    barely told apart), a camera many of whose observations disagree with the fit."""
-    out = []
-    target = np.mean(result.markers_world, axis=0)
-    for c, camera in enumerate(result.cameras):
-        distance = float(np.linalg.norm(camera.center - target))
-        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
-        if not sd <= 0.1 * distance:
-            out.append(f"camera {camera.name}: its position is hardly fixed by these markers (± {sd:.2f} m at "
-                       f"{distance:.1f} m; focal length and distance barely told apart): use a frame where the "
-                       "machine shows more depth or more markers, another camera, or known intrinsics")
-    for c in _doubtful_cameras(result):
-        name = result.cameras[c].name
-        mine = [r.outlier for r in result.residuals if r.camera == name]
-        out.append(f"camera {name}: {sum(mine)} of its {len(mine)} observations disagree with the fit: check "
-                   "its marker labels; its solution is doubtful")
-    for line in out:
-        log.warning("%s", line)
-    return tuple(out)
 
 
 def _placed(points: np.ndarray, pixels: np.ndarray, template: Camera, known=frozenset()) -> tuple[Camera, float]:
