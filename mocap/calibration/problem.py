@@ -168,10 +168,12 @@ class Problem:
         self.layout = layout
         self.templates = templates
         self._rows = [np.nonzero(observations.camera == c)[0] for c in range(layout.n_cameras)]
-        if layout.n_markers and (marker_sd is None or np.shape(marker_sd) != (layout.n_markers,)):
-            raise ValueError(f"marker offsets need marker_sd of shape ({layout.n_markers},)")
+        if layout.n_markers and (marker_sd is None or np.shape(marker_sd) not in ((layout.n_markers,),
+                                                                                   (layout.n_markers, 3))):
+            raise ValueError(f"marker offsets need marker_sd of shape ({layout.n_markers},) or ({layout.n_markers}, 3)")
         self.prior_px = prior_px
-        self._prior = None if not layout.n_markers else prior_px / np.repeat(np.asarray(marker_sd, float), 3)
+        self._prior = None if not layout.n_markers else prior_px / np.broadcast_to(
+            np.asarray(marker_sd, float).reshape(layout.n_markers, -1), (layout.n_markers, 3)).ravel()
 
     @property
     def n_pixel_rows(self) -> int:

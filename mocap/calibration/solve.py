@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from mocap.calibration import identify, initial
+from mocap.calibration import doubts, identify, initial, noise
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
@@ -40,6 +40,9 @@ class CalibrationOptions:
     image, so that model error is not taken for outliers and far markers count less.
     fixed_intrinsics: names of cameras whose intrinsics (focal length, principal point,
     distortion) are known: their templates' values are used and kept, not fitted.
+    noise_px: the pixel noise (per axis) assumed where the residuals cannot tell it (a
+    tolerance's offsets absorb nearly all of one camera's residuals); the residuals' own
+    estimate takes over as their redundancy grows.
     """
 
     per_camera: bool = False
@@ -50,12 +53,15 @@ class CalibrationOptions:
     max_rms_px: float | None = None
     tolerance: Tolerance | None = None
     fixed_intrinsics: frozenset[str] = frozenset()
+    noise_px: float = 1.0
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
             raise InputError(
                 f"distortion model {self.distortion!r} unknown; use one of {', '.join(DISTORTION_MODELS)}"
             )
+        if not self.noise_px > 0:
+            raise InputError(f"noise_px must be positive, got {self.noise_px}")
         if not self.f_scale_px > 0:
             raise InputError(f"f_scale_px must be positive, got {self.f_scale_px}")
 
@@ -153,14 +159,14 @@ def calibrate(
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
     marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
     x0 = _starting_point(machine, observations, templates, options, guess, layout)
-    result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    result = _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result.outliers:
         # pixels named outliers may be a wrong minimum's doing: the start is found again
         # without them, and the cameras that lost many are placed again on all their markers
         # at the fitted pose; the fit from each is kept if it explains the pixels better
         kept = np.array([not r.outlier for r in result.residuals])
         starts = [lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout)]
-        doubtful = _doubtful_cameras(result)
+        doubtful = doubts.doubtful_cameras(result)
         if doubtful:
             starts.append(lambda: layout.pack(_replaced_cameras(result, observations, templates, doubtful,
                                                                 options.fixed_intrinsics), result.joints))
@@ -175,7 +181,33 @@ def calibrate(
             if _robust_cost(again, options) < _robust_cost(result, options):
                 log.info("a new start explains the pixels better: kept")
                 result = again
-    return replace(result, warnings=_warnings(result))
+    if tolerance:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
+        doubts.refuse_unfixed(result)
+    return replace(result, warnings=doubts.warnings(result))
+
+
+def _first_fit(machine, observations, layout, templates, x0, options, marker_sd) -> CalibrationResult:
+    """The fit from the automatic start. With a tolerance it begins robust (a wild pixel can
+    draw a far camera to the orthographic limit, a plateau no later fit leaves); should it
+    fail or leave a camera there, the fit that begins with plain least squares (which a poor
+    start's large residuals mislead less) is tried too, the better kept."""
+    try:
+        result = _fit(machine, observations, layout, templates, x0, options, marker_sd)
+    except InputError as exc:
+        if marker_sd is None:
+            raise
+        failure, result = exc, None
+    if marker_sd is None or (result is not None and not doubts.far_cameras(result)):
+        return result
+    try:
+        plain = _fit(machine, observations, layout, templates, x0, options, marker_sd, robust_start=False)
+    except InputError:
+        if result is None:
+            raise failure from None
+        return result
+    if result is None or _robust_cost(plain, options) < _robust_cost(result, options):
+        return plain
+    return result
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
@@ -251,17 +283,6 @@ def _start(machine, obs: Observations, templates, group, guess: Guess | None, kn
     return cameras, joints
 
 
-def _doubtful_cameras(result: CalibrationResult) -> list[int]:
-    """Cameras that lost more than a fifth (and at least two) of their observations as
-    outliers: more than wrong detections explain."""
-    out = []
-    for c, camera in enumerate(result.cameras):
-        mine = [r.outlier for r in result.residuals if r.camera == camera.name]
-        if sum(mine) >= 2 and sum(mine) > 0.2 * len(mine):
-            out.append(c)
-    return out
-
-
 def _replaced_cameras(result: CalibrationResult, observations: Observations, templates, doubtful,
                       known=frozenset()) -> list[Camera]:
     """The result's cameras, those in `doubtful` placed again by PnP of all their markers at
@@ -281,29 +302,6 @@ def _robust_cost(result: CalibrationResult, options: CalibrationOptions) -> floa
     """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale."""
     e = np.array([np.linalg.norm(r.residual) for r in result.residuals]) / options.f_scale_px
     return float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0)))
-
-
-def _warnings(result: CalibrationResult) -> tuple[str, ...]:
-    """One sentence per thing the data leave doubtful: a camera whose position they hardly
-    fix (its standard deviation beyond a tenth of its distance: focal length and distance
-    barely told apart), a camera many of whose observations disagree with the fit."""
-    out = []
-    target = np.mean(result.markers_world, axis=0)
-    for c, camera in enumerate(result.cameras):
-        distance = float(np.linalg.norm(camera.center - target))
-        sd = float(np.linalg.norm(result.paper_sd[c][3:6]))
-        if not sd <= 0.1 * distance:
-            out.append(f"camera {camera.name}: its position is hardly fixed by these markers (± {sd:.2f} m at "
-                       f"{distance:.1f} m; focal length and distance barely told apart): use a frame where the "
-                       "machine shows more depth or more markers, another camera, or known intrinsics")
-    for c in _doubtful_cameras(result):
-        name = result.cameras[c].name
-        mine = [r.outlier for r in result.residuals if r.camera == name]
-        out.append(f"camera {name}: {sum(mine)} of its {len(mine)} observations disagree with the fit: check "
-                   "its marker labels; its solution is doubtful")
-    for line in out:
-        log.warning("%s", line)
-    return tuple(out)
 
 
 def _placed(points: np.ndarray, pixels: np.ndarray, template: Camera, known=frozenset()) -> tuple[Camera, float]:
@@ -326,29 +324,6 @@ def _free(layout: Layout, templates) -> np.ndarray:
     return free
 
 
-def _offsets(layout: Layout) -> np.ndarray:
-    """(P,) bool: the markers' offsets in the parameter vector."""
-    mask = np.zeros(layout.size, dtype=bool)
-    mask[layout.offset_slice] = True
-    return mask
-
-
-def _tolerance_factor(layout: Layout, templates, machine: Machine, obs: Observations, x: np.ndarray,
-                      marker_sd: np.ndarray, noise_px: float) -> np.ndarray:
-    """(N,) sqrt(1 + (tolerance in px / noise)^2) per observation: its marker's tolerance
-    `marker_sd` (M,) m seen from its camera (focal length over depth) against the noise."""
-    cameras, joints = layout.unpack(x, templates)
-    factor = np.ones(len(obs))
-    for c, camera in enumerate(cameras):
-        rows = obs.camera == c
-        q = joints[c] if layout.per_camera else joints
-        world = machine.markers(np.asarray(q)[None])[0][obs.marker[rows]]
-        depth = np.abs(world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2])
-        model_px = marker_sd[obs.marker[rows]] * camera.focal / np.maximum(depth, 1e-9)
-        factor[rows] = np.sqrt(1.0 + (model_px / noise_px) ** 2)
-    return factor
-
-
 def _neutral_joints(machine: Machine) -> np.ndarray:
     """Zero where the limits allow it, else the middle of the limits."""
     limits = machine.joint_limits
@@ -369,7 +344,7 @@ def _bounds(layout: Layout, machine: Machine, x0: np.ndarray):
     return (lower, upper), x0
 
 
-def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) -> CalibrationResult:
+def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, robust_start=True) -> CalibrationResult:
     """Least squares from x0; if some residuals are implausible, a robust fit names the
     outliers and the least-squares fit is repeated without them. With `marker_sd` the
     markers' offsets are fitted too, within their prior (the model's tolerance): the prior
@@ -385,40 +360,42 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
         return Problem(machine, obs, layout, templates, marker_sd, prior_px)
 
     problem = problem_of(observations)
-    final = _least_squares(problem, x0, bounds)
-    if marker_sd is not None:
-        prior_px = float(np.clip(_robust_sigma(_pixel_errors(final.fun, problem)), 0.2, 5.0))
-        problem = problem_of(observations, prior_px)
-        final = _least_squares(problem, final.x, bounds)
+    if marker_sd is None:
+        final = _least_squares(problem, x0, bounds)
+    else:  # robust from the start: a wild pixel drawn at by plain least squares can push a far
+        # camera towards the orthographic limit, a plateau that no later fit leaves
+        def robust_loss(problem):
+            return dict(loss=noise.pixel_robust_loss(problem.n_pixel_rows), f_scale=options.f_scale_px)
+
+        start_loss = robust_loss if robust_start else lambda p: {}
+        final = _least_squares(problem, x0, bounds, **start_loss(problem))
+        problem, final = _weighed_prior(problem_of, observations, final, options,
+                                        lambda p, x, b: _least_squares(p, x, b, **start_loss(p)), bounds)
     inlier = np.ones(len(observations), dtype=bool)
     if marker_sd is not None or options.outlier_px is not None or _suspects(_pixel_errors(final.fun, problem),
                                                                              options).any():
         if marker_sd is None:
             robust = _least_squares(problem, x0, bounds, loss="soft_l1", f_scale=options.f_scale_px)
             errors = _pixel_errors(robust.fun, problem)
+            suspect = _suspects(errors, options)
         else:
-            # outliers judged with the markers where the model puts them, each residual against
-            # the noise plus its marker's tolerance seen from its camera: free offsets would
-            # absorb a wild pixel on a marker that one camera sees
-            # (and, as the offsets fitted too would leave them, against the pixel noise)
-            held = final.x.copy()
-            held[layout.offset_slice] = 0.0
-            standard = _solve(problem, held, bounds, free & ~_offsets(layout), loss="soft_l1",
-                              f_scale=options.f_scale_px)
-            errors = _pixel_errors(standard.fun, problem) / _tolerance_factor(
-                layout, templates, machine, observations, standard.x, marker_sd, problem.prior_px)
-            robust = _least_squares(problem, final.x, bounds, loss="soft_l1", f_scale=options.f_scale_px)
-            free_errors = _pixel_errors(robust.fun, problem)
-            suspect = _suspects(errors, options) | _suspects(free_errors, options)
-            errors = np.maximum(errors, free_errors)
-        inlier = _drop_while_identifiable(machine, names, observations, layout,
-                                          suspect if marker_sd is not None else _suspects(errors, options), errors)
+            # outliers judged against the noise with the markers' offsets marginalised: each
+            # residual of the robust fit over sqrt(1 - its leverage), the share of its variance
+            # the fit leaves; a wild pixel on a marker that only one camera sees is mostly
+            # absorbed by that marker's offset, but its residual's variance is then small too
+            robust = _least_squares(problem, final.x, bounds, **robust_loss(problem))
+            errors, _ = noise.standardised_errors(robust.fun, robust.jac, problem.n_pixel_rows)
+            suspect = _suspects(errors, options)
+        inlier = _drop_while_identifiable(machine, names, observations, layout, suspect, errors)
         if np.all(inlier):
             final = _least_squares(problem, robust.x, bounds)
         else:
             log.info("%d outlier(s) dropped", np.sum(~inlier))
             problem = problem_of(observations.select(inlier), problem.prior_px)
             final = _least_squares(problem, robust.x, bounds)
+        if marker_sd is not None:  # the noise again, without the outliers
+            problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options, _least_squares,
+                                            bounds)
     pixel_fun = final.fun[: problem.n_pixel_rows]
     rms = float(np.sqrt(np.mean(pixel_fun**2) * 2))
     diagonal = max(np.hypot(*t.size) for t in templates)
@@ -436,7 +413,9 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
     rank += int(np.sum(~free))  # the held parameters are known
     dof = max(jacobian.shape[0] - jacobian.shape[1], 1)
-    sigma2 = float(final.fun @ final.fun) / dof
+    # with the offsets fitted the rows are whitened at the noise the residuals show (their
+    # leverage counted); else the noise from the residuals over their degrees of freedom
+    sigma2 = problem.prior_px**2 if marker_sd is not None else float(final.fun @ final.fun) / dof
     covariance = np.zeros((layout.size, layout.size))  # the held parameters' variance is zero
     covariance[np.ix_(free, free)] = sigma2 * identify.inverse_information(jacobian.T @ jacobian)
     fitted = problem.machine_at(final.x)
@@ -480,7 +459,19 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None) 
     )
 
 
-def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss: str = "linear", f_scale: float = 1.0):
+def _weighed_prior(problem_of, observations, final, options, least_squares_from, bounds, rounds: int = 2):
+    """The offsets' prior weighed at the pixel noise that the fit `final`'s residuals show
+    (leverage-corrected, `noise.pixel_noise`), the fit repeated; `rounds` times, as the
+    noise and the prior's weight depend on each other. Returns the problem and its fit."""
+    n_pixel_rows = 2 * len(observations)
+    for _ in range(rounds):
+        sigma = noise.pixel_noise(final.fun, final.jac, n_pixel_rows, options.noise_px)
+        problem = problem_of(observations, float(np.clip(sigma, 0.05, 20.0)))
+        final = least_squares_from(problem, final.x, bounds)
+    return problem, final
+
+
+def _solve(problem: Problem, x0, bounds, free: np.ndarray, loss="linear", f_scale: float = 1.0):
     """Least squares over the parameters `free` (P,) bool, the others held at x0's values;
     the solution's x is the whole vector, its jac the free parameters' columns."""
 
@@ -513,7 +504,7 @@ def _suspects(errors: np.ndarray, options: CalibrationOptions) -> np.ndarray:
     else beyond 5 sigma of the noise the residuals show and beyond 4 px."""
     if options.outlier_px is not None:
         return errors > options.outlier_px
-    return errors > max(4.0, 5.0 * _robust_sigma(errors))
+    return errors > max(4.0, 5.0 * noise.robust_sigma(errors))
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
@@ -533,11 +524,6 @@ def _drop_while_identifiable(machine, names, observations, layout, suspect, erro
             log.warning("camera %s, marker %s: residual beyond the noise, kept (the fit needs it)",
                         names[observations.camera[k]], machine.marker_names[observations.marker[k]])
     return inlier
-
-
-def _robust_sigma(err: np.ndarray) -> float:
-    """Per-axis pixel noise from the median residual length (Rayleigh: median = 1.1774 sigma)."""
-    return float(np.median(err) / np.sqrt(2 * np.log(2)))
 
 
 def _paper_sd(layout: Layout, x: np.ndarray, covariance: np.ndarray, templates, c: int) -> np.ndarray:

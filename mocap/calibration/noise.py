@@ -1,0 +1,78 @@
+"""The pixel noise a calibration's residuals show, and which residuals are beyond it.
+
+With the markers' offsets fitted within their tolerance, a fit has more unknowns than a
+plain one and its residuals are smaller than the noise: the offsets absorb part of every
+pixel's error (with one camera nearly all of it). The noise is therefore estimated from
+the residuals divided by sqrt(1 - leverage), the share of each residual's variance that the
+fit leaves (the standardised residuals of linear regression), and where the fit leaves
+the data little redundancy the estimate leans on a stated noise. The same standardised
+residuals judge the outliers: a wild pixel on a marker that only one camera sees is mostly
+absorbed by that marker's offset, but its small residual then has a small variance too.
+
+Shapes: N observations, R = 2N pixel rows (+ 3M prior rows), P free parameters.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocap.calibration.identify import inverse_information
+
+RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median of a 2-D residual's length over the per-axis sigma
+PRIOR_ROWS = 4.0  # the stated noise counts as this many residual rows of the data's own
+INFORMATIVE = 0.1  # a residual whose leverage leaves less of its variance tells nothing of the noise
+
+
+def leverages(jacobian: np.ndarray) -> np.ndarray:
+    """(R,) the hat matrix' diagonal of a whitened Jacobian (R, P): how much of each row's
+    residual the fit can absorb (0 none, 1 all)."""
+    covariance = inverse_information(jacobian.T @ jacobian)
+    return np.clip(np.einsum("ij,jk,ik->i", jacobian, covariance, jacobian), 0.0, 1.0)
+
+
+def standardised_errors(fun: np.ndarray, jacobian: np.ndarray, n_pixel_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) each observation's residual length (px) over sqrt(1 - its leverage), and (N,)
+    the share 1 - leverage of its variance that the fit leaves."""
+    left = 1.0 - leverages(jacobian)[:n_pixel_rows].reshape(-1, 2).mean(axis=1)
+    errors = np.linalg.norm(fun[:n_pixel_rows].reshape(-1, 2), axis=1)
+    return errors / np.sqrt(np.maximum(left, 1e-6)), left
+
+
+def pixel_noise(fun: np.ndarray, jacobian: np.ndarray, n_pixel_rows: int, stated_px: float) -> float:
+    """Per-axis pixel noise (px) from a fit's residuals `fun` (R,) and whitened Jacobian:
+    the median standardised residual of the observations the fit leaves free enough
+    (robust to wild pixels), weighed by the rows of redundancy 2N - trace(hat) against
+    `stated_px` counted as PRIOR_ROWS rows."""
+    errors, left = standardised_errors(fun, jacobian, n_pixel_rows)
+    informative = left > INFORMATIVE
+    redundancy = 2.0 * float(np.sum(left))
+    if not informative.any() or redundancy <= 0:
+        return stated_px
+    measured = float(np.median(errors[informative])) / RAYLEIGH_MEDIAN
+    variance = (PRIOR_ROWS * stated_px**2 + redundancy * measured**2) / (PRIOR_ROWS + redundancy)
+    return float(np.sqrt(variance))
+
+
+def robust_sigma(errors: np.ndarray) -> float:
+    """Per-axis pixel noise from the median residual length (Rayleigh: median = 1.1774 sigma)."""
+    return float(np.median(errors) / RAYLEIGH_MEDIAN)
+
+
+def pixel_robust_loss(n_pixel_rows: int):
+    """A least-squares loss (scipy's callable form) that is soft-L1 on the first
+    `n_pixel_rows` rows (pixels: a wild one counts little) and plain on the rest (the
+    offsets' priors: robust there, an offset would run off to absorb a wild pixel)."""
+
+    def loss(z: np.ndarray) -> np.ndarray:
+        out = np.empty((3, len(z)))
+        pixel = z[:n_pixel_rows]
+        root = np.sqrt(1.0 + pixel)
+        out[0, :n_pixel_rows] = 2.0 * (root - 1.0)
+        out[1, :n_pixel_rows] = 1.0 / root
+        out[2, :n_pixel_rows] = -0.5 / root**3
+        out[0, n_pixel_rows:] = z[n_pixel_rows:]
+        out[1, n_pixel_rows:] = 1.0
+        out[2, n_pixel_rows:] = 0.0
+        return out
+
+    return loss
