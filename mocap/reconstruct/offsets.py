@@ -143,15 +143,42 @@ def fit_with_offsets(
         if settled or rounds == ROUNDS:
             break
         offsets = offsets + step
+        moved = replace(machine, marker_positions=machine.marker_positions + offsets)
         start = np.where(np.isfinite(fit.joints), fit.joints, np.nan_to_num(np.nanmedian(fit.joints, axis=0)))
         base = None if fit.base is None else np.nan_to_num(fit.base)
-        fit = fit_joints(replace(machine, marker_positions=machine.marker_positions + offsets), cameras, pixels,
-                         start, exact, base)
+        fit = _better(moved, cameras, exact, fit_joints(moved, cameras, pixels, start, exact, base),
+                      fit_joints(moved, cameras, pixels, initial, exact, initial_base))
     if not settled:
         log.warning("the markers' offsets still moved by %.1f SD after %d rounds", np.sqrt(distance.max()), rounds)
     result = MarkerOffsets(machine.marker_names, offsets, covariance, prior_sd, used, rounds, settled)
     _log(result)
     return OffsetFit(fit, result, shared_covariance(moved, cameras, pixels, fit, full))
+
+
+def _better(machine: Machine, cameras: list[Camera], options: FitOptions, one: JointFit, other: JointFit) -> JointFit:
+    """Per frame, the fit of the two (of the same model, pixels and options) whose robust
+    cost is lower: a frame the last round left on a mirror solution finds its own again
+    from a fresh start, and one that a fresh start would put there keeps its own."""
+    model = KinematicModel(machine, tuple(cameras), loss=options.loss, scale_px=options.scale_px)
+    with np.errstate(divide="ignore", over="ignore"):  # the weights of unseen observations, unused
+        costs = [model.robust(np.nan_to_num(np.moveaxis(f.residuals, 1, 0)).reshape(len(f.valid), -1))[1]
+                 for f in (one, other)]
+    take = costs[1] < costs[0]
+
+    def pick(a, b, axis=0):
+        if a is None:
+            return None
+        shape = [1] * np.ndim(a)
+        shape[axis] = len(take)
+        return np.where(take.reshape(shape), b, a)
+
+    return JointFit(
+        joints=pick(one.joints, other.joints), base=pick(one.base, other.base),
+        covariance=pick(one.covariance, other.covariance), information=pick(one.information, other.information),
+        residuals=pick(one.residuals, other.residuals, 1), weights=pick(one.weights, other.weights, 1),
+        rms_px=pick(one.rms_px, other.rms_px), n_observations=one.n_observations, noise_px=one.noise_px,
+        valid=one.valid, explained=pick(one.explained, other.explained),
+    )
 
 
 def offsets_step(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, offsets: np.ndarray,
