@@ -14,9 +14,12 @@ rounds. The first per-frame fit weighs the residuals by the tolerance, so that o
 judged against what the model can explain. Each round then takes one Gauss-Newton step of
 the offsets with every frame's parameters eliminated (the Schur complement, as in a bundle
 adjustment's reduced camera system: each frame's small normal equations folded into one
-3M x 3M system), moves the markers and fits every frame again, from its last solution,
-with the pixels weighed as they are. Rounds end when no offset moves by more than
-`SETTLED_SD` of its SD. Only inliers feed the offsets: observations in frames the fit
+3M x 3M system), moves the markers and fits every frame again with the pixels weighed as
+they are, from its last solution and afresh (as the first fit: grid, key frames, restarts),
+keeping the better of the two (a frame left on a mirror solution finds its own again once
+the markers are better placed). Rounds end when no offset moves by more than `SETTLED_SD`
+of its SD. No offset goes beyond the tolerance (a step is cut there): the markers are
+stated to be within it. Only inliers feed the offsets: observations in frames the fit
 explains, within `FAR_SDS` of their prediction counting the noise and the offset's
 uncertainty projected. An offset the data do not fix (a marker seen by one camera along
 its line of sight, a link that never turns, a turn of a link's markers about its joint,
@@ -129,6 +132,7 @@ def fit_with_offsets(
     if not tolerance:
         raise ValueError("estimating the markers' offsets needs a stated tolerance (options.tolerance or the model's)")
     prior_sd = tape_sd(tolerance, machine.marker_positions)
+    bound = np.sqrt(3.0) * prior_sd  # uniform within the tolerance: its SD is the bound over sqrt(3)
     offsets = np.zeros(prior_sd.shape)
     covariance = np.eye(3) * prior_sd[:, None, :] ** 2
     fit = fit_joints(machine, cameras, pixels, initial, options, initial_base)
@@ -136,6 +140,7 @@ def fit_with_offsets(
     for rounds in range(1, ROUNDS + 1):
         moved = replace(machine, marker_positions=machine.marker_positions + offsets)
         step, full, used = offsets_step(moved, cameras, pixels, fit, offsets, prior_sd, covariance)
+        step = np.clip(offsets + step, -bound, bound) - offsets  # the tolerance is a bound: no marker beyond it
         covariance = _marginals(full)
         distance = np.einsum("mi,mij,mj->m", step, np.linalg.inv(covariance), step)
         log.debug("offsets round %d: largest step %.2f SD", rounds, np.sqrt(distance.max(initial=0.0)))
