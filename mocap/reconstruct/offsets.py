@@ -59,6 +59,14 @@ def tape_sd(tolerance: Tolerance, positions: np.ndarray) -> np.ndarray:
     return np.hypot(tolerance.fraction * reach, tolerance.metres) / np.sqrt(3.0)
 
 
+def tape_bound(tolerance: Tolerance, positions: np.ndarray) -> np.ndarray:
+    """(M, 3) m, how far each coordinate of markers at positions (M, 3) may be from the
+    truth: the fraction of the true coordinate (the measured one over 1 - fraction, a
+    measurement can be short by that much) plus the metres."""
+    reach = np.maximum(np.abs(np.asarray(positions, dtype=float)), TAPE_FLOOR_M)
+    return tolerance.fraction * reach / (1.0 - tolerance.fraction) + tolerance.metres
+
+
 @dataclass(frozen=True)
 class MarkerOffsets:
     """Each marker's estimated position minus its measured one, in its link's frame.
@@ -132,7 +140,7 @@ def fit_with_offsets(
     if not tolerance:
         raise ValueError("estimating the markers' offsets needs a stated tolerance (options.tolerance or the model's)")
     prior_sd = tape_sd(tolerance, machine.marker_positions)
-    bound = np.sqrt(3.0) * prior_sd  # uniform within the tolerance: its SD is the bound over sqrt(3)
+    bound = tape_bound(tolerance, machine.marker_positions)
     offsets = np.zeros(prior_sd.shape)
     covariance = np.eye(3) * prior_sd[:, None, :] ** 2
     fit = fit_joints(machine, cameras, pixels, initial, options, initial_base)
