@@ -16,7 +16,7 @@ from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.machine import Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
-from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets, tape_sd
+from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets, tape_bound, tape_sd
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.uncertainty import point_quantities
 from mocap.synthetic.bounds import fit_point_sd
@@ -67,6 +67,7 @@ def test_offsets_of_a_field_scene_are_recovered_and_the_tip_reaches_the_bound(se
     assert np.abs(z[offsets.fixed]).max() < 4.5, f"a well-seen marker's offset {np.abs(z).max():.1f} SDs off"
     assert np.sqrt(np.mean(z**2)) < 1.6  # the stated SDs are honest on the whole
     assert np.all(offsets.observations[offsets.fixed] > 0)
+    assert np.all(np.abs(offsets.offsets) <= tape_bound(Tolerance(TOLERANCE), scene.model.marker_positions))
     # the tip: within twice the bound that marginalises the offsets, its stated SDs honest
     coordinate_sd = TOLERANCE * np.abs(scene.model.marker_positions) / np.sqrt(3)  # the scene's error, per coordinate
     bound = fit_point_sd(machine, cameras, scene.joints, _wild_removed(scene), FIELD.noise_px, coordinate_sd)[:, 0]
@@ -119,6 +120,8 @@ def test_the_offsets_need_a_tolerance_and_keep_their_shapes():
         MarkerOffsets(("a", "b"), np.zeros((3, 3)), np.zeros((2, 3, 3)), np.ones((2, 3)), np.zeros(2), 1, True)
     sd = tape_sd(Tolerance(0.05), np.array([[10.0, 0.0, -2.0]]))
     np.testing.assert_allclose(sd, [[0.5, 0.005, 0.1]] / np.sqrt(3))
+    bound = tape_bound(Tolerance(0.05), np.array([[10.0, 0.0, -2.0]]))
+    np.testing.assert_allclose(bound, [[0.5, 0.005, 0.1]] / np.float64(0.95))
 
 
 def test_the_clean_path_is_the_plain_fit():
