@@ -274,7 +274,8 @@ def _normal_blocks(machine: Machine, cameras: list[Camera], pixels: np.ndarray, 
     noise2 = fit.noise_px**2
     for camera, observed in zip(cameras, pixels):
         rot = camera.cam_from_world.rotation
-        uv, d_uv = project_cam(world @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+        points_cam = world @ rot.T + camera.cam_from_world.translation
+        uv, d_uv = project_cam(points_cam, camera.matrix, camera.distortion, True)
         d_pixel = np.nan_to_num(d_uv @ rot)  # d pixel / d world point (F, M, 2, 3)
         jq = d_pixel @ d_world  # (F, M, 2, P)
         jd = d_pixel @ link_rotation  # (F, M, 2, 3)
