@@ -147,7 +147,9 @@ def fit_with_offsets(
     exact = replace(options, tolerance=Tolerance())  # with the offsets estimated, the pixels weighed as they are
     for rounds in range(1, ROUNDS + 1):
         moved = replace(machine, marker_positions=machine.marker_positions + offsets)
-        step, full, used = offsets_step(moved, cameras, pixels, fit, offsets, prior_sd, covariance)
+        # the first fit's residuals are divided by the tolerance: its noise is not the pixels'
+        noise = max(fit.noise_px, options.noise_px or 0.5) if rounds == 1 else fit.noise_px
+        step, full, used = offsets_step(moved, cameras, pixels, fit, offsets, prior_sd, covariance, noise)
         step = np.clip(offsets + step, -bound, bound) - offsets  # the tolerance is a bound: no marker beyond it
         covariance = _marginals(full)
         distance = np.einsum("mi,mij,mj->m", step, np.linalg.inv(covariance), step)
@@ -195,10 +197,11 @@ def _better(machine: Machine, cameras: list[Camera], options: FitOptions, one: J
 
 
 def offsets_step(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, offsets: np.ndarray,
-                 prior_sd: np.ndarray, covariance: np.ndarray):
+                 prior_sd: np.ndarray, covariance: np.ndarray, noise_px: float):
     """One Gauss-Newton step of the offsets with every frame's parameters eliminated, at
     the fit's parameters and the offsets (M, 3) already applied to `machine`; covariance
-    (M, 3, 3) the offsets' present uncertainty (for the outlier test), prior_sd (M, 3).
+    (M, 3, 3) the offsets' present uncertainty (for the outlier test), prior_sd (M, 3),
+    noise_px the pixel noise SD.
 
     Returns the step (M, 3), the offsets' covariance (3M, 3M) m² and the inlier
     observations of each marker (M,).
@@ -207,7 +210,7 @@ def offsets_step(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fi
     reduced = np.zeros((3 * n_markers, 3 * n_markers))
     rhs = -(offsets / prior_sd**2).ravel()
     used = np.zeros(n_markers, int)
-    for _, cross, solved, hdd, gd, n in _eliminated(machine, cameras, pixels, fit, covariance):
+    for _, cross, solved, hdd, gd, n in _eliminated(machine, cameras, pixels, fit, covariance, noise_px):
         reduced -= np.einsum("fpi,fpj->ij", cross, solved[..., :-1])
         rhs += gd.ravel() - np.einsum("fpi,fp->i", cross, solved[..., -1])
         index = np.arange(n_markers)
@@ -223,7 +226,7 @@ def shared_covariance(machine: Machine, cameras: list[Camera], pixels: np.ndarra
     """(F, P, P) what the offsets' uncertainty (full (3M, 3M)) adds to each frame's
     parameter covariance: X Σ Xᵀ, X = H_qq⁻¹ H_qd the frame's response to the offsets."""
     out = np.zeros(fit.covariance.shape)
-    for part, _, solved, _, _, _ in _eliminated(machine, cameras, pixels, fit, _marginals(full)):
+    for part, _, solved, _, _, _ in _eliminated(machine, cameras, pixels, fit, _marginals(full), fit.noise_px):
         response = solved[..., :-1]
         out[part] = response @ full @ np.swapaxes(response, 1, 2)
     return out
@@ -236,13 +239,14 @@ def _marginals(full: np.ndarray) -> np.ndarray:
     return full.reshape(n_markers, 3, n_markers, 3)[index, :, index, :]
 
 
-def _eliminated(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, covariance: np.ndarray):
+def _eliminated(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, covariance: np.ndarray,
+                noise_px: float):
     """Per chunk of frames: the chunk (slice), H_qd (F, P, 3M), H_qq⁻¹ [H_qd | g_q]
     (F, P, 3M + 1), the chunk's H_dd (M, 3, 3), g_d (M, 3) and inliers per marker (M,)."""
     n_params = fit.covariance.shape[1]
     for s in range(0, pixels.shape[1], _CHUNK):
         part = slice(s, s + _CHUNK)
-        hqq, hqd, hdd, gq, gd, used = _normal_blocks(machine, cameras, pixels[:, part], fit, part, covariance)
+        hqq, hqd, hdd, gq, gd, used = _normal_blocks(machine, cameras, pixels[:, part], fit, part, covariance, noise_px)
         hqq = hqq + 1e-9 * np.eye(n_params)  # a frame's joint that nothing shows stays finite
         cross = hqd.reshape(len(hqq), n_params, -1)
         solved = np.linalg.solve(hqq, np.concatenate([cross, gq[..., None]], axis=2))
@@ -250,7 +254,7 @@ def _eliminated(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit
 
 
 def _normal_blocks(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, part: slice,
-                   covariance: np.ndarray):
+                   covariance: np.ndarray, noise_px: float):
     """The normal equations of frames `part` (pixels (C, F, M, 2)) over the pixel noise
     squared: per frame H_qq (F, P, P), H_qd (F, P, M, 3), g_q (F, P); summed over the
     frames H_dd (M, 3, 3) (each residual moves with one marker's offset), g_d (M, 3) and
@@ -271,7 +275,7 @@ def _normal_blocks(machine: Machine, cameras: list[Camera], pixels: np.ndarray, 
     hqd = np.zeros((n_frames, n_params, n_markers, 3))
     hdd, gd = np.zeros((n_markers, 3, 3)), np.zeros((n_markers, 3))
     used = np.zeros(n_markers, int)
-    noise2 = fit.noise_px**2
+    noise2 = noise_px**2
     for camera, observed in zip(cameras, pixels):
         rot = camera.cam_from_world.rotation
         points_cam = world @ rot.T + camera.cam_from_world.translation
