@@ -20,7 +20,10 @@ scenes (one draw from the bound's covariance: a single camera's error lies along
 of sight, |N(0, 1)|, 2.58 at 99 %); `calibration_worst_camera` the worst camera's ratio;
 `calibration_unflagged` the scenes whose calibration carries no warning (a camera its
 markers hardly fix, or one that lost a fifth of its pixels as outliers).
-`fit` the tip's RMS error / RMS bound over the frames whose markers show the tip's joints;
+`fit` the tip's RMS error / RMS bound over the frames whose markers show the tip's joints
+(on field scenes with the markers' offsets estimated over the scene's frames,
+`mocap.reconstruct.offsets`; `fit_weighted_only` the per-frame fit that only weighs the
+tolerance, as before);
 `fit_unambiguous` the same over the scenes where the fit finds no second solution that
 explains the pixels as well (`mocap.reconstruct.ambiguity`; the others are reported by the
 fit itself, not hidden); `fit_sds` the worst frame's tip error in its stated SDs.
@@ -46,6 +49,7 @@ from mocap.errors import InputError
 from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
+from mocap.reconstruct.offsets import fit_with_offsets
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate
 from mocap.reconstruct.uncertainty import point_quantities
@@ -55,7 +59,8 @@ from mocap.synthetic.machines import SceneOptions, random_scene
 FIELD = SceneOptions.field()
 CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera", "calibration_unflagged"]
 CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation"]
-FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "triangulation"]
+FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "fit_sds", "fit_weighted_only",
+              "triangulation"]
 FRAMES = 40
 
 
@@ -132,19 +137,34 @@ def one_scene(seed: int, field: bool) -> dict:
     except InputError as exc:
         out["refused"] = str(exc).split(";")[0][:90]
     if machine.n_joints and machine.point_names:
-        fit_options = FitOptions(tolerance=Tolerance(options.tolerance) if field else None)
-        fit = fit_joints(scene.model, cameras, on_clock(scene) if field else scene.pixels(), options=fit_options)
-        tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance)
-        error = np.linalg.norm(tip.points[:, 0] - machine.points(scene.joints)[:, 0], axis=1)
+        pixels = on_clock(scene) if field else scene.pixels()
         seen = np.isfinite(pixels_without_wild(scene)[..., 0])
         bound = fit_point_sd(machine, cameras, scene.joints, seen, noise, sd)[:, 0]
         shown = np.isfinite(bound)  # frames whose markers show the tip's joints at all
+        truth = machine.points(scene.joints)[:, 0]
+
+        def tip_ratio(fit, shared=0.0) -> tuple[float, float]:
+            tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance + shared)
+            error = np.linalg.norm(tip.points[:, 0] - truth, axis=1)
+            return (float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2))),
+                    float(np.max(error[shown] / tip.points_sd[shown, 0])))
+
+        fit_options = FitOptions(tolerance=Tolerance(options.tolerance) if field else None)
+        fitted_model, ambiguity_options = scene.model, fit_options
+        if field:  # the markers' offsets estimated over the session; beside it the fit that only weighs them
+            weighted = fit_joints(scene.model, cameras, pixels, options=fit_options)
+            result = fit_with_offsets(scene.model, cameras, pixels, options=fit_options)
+            fit, shared = result.fit, result.shared
+            fitted_model = result.offsets.apply(scene.model)
+            ambiguity_options = replace(fit_options, tolerance=Tolerance())
+            if shown.any():
+                out["fit_weighted_only"] = tip_ratio(weighted)[0]
+        else:
+            fit, shared = fit_joints(scene.model, cameras, pixels, options=fit_options), 0.0
         if shown.any():
-            out["fit"] = float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
-            out["fit_sds"] = float(np.max(error[shown] / tip.points_sd[shown, 0]))
+            out["fit"], out["fit_sds"] = tip_ratio(fit, shared)
         out["unexplained"] = int((~fit.explained).sum())
-        ambiguity = second_solutions(scene.model, cameras, on_clock(scene) if field else scene.pixels(), fit,
-                                     fit_options)
+        ambiguity = second_solutions(fitted_model, cameras, pixels, fit, ambiguity_options)
         out["fit_ambiguous"] = bool(ambiguity.ambiguous.any())
         if shown.any() and not ambiguity.ambiguous.any():
             out["fit_unambiguous"] = out["fit"]

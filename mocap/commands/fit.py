@@ -36,8 +36,11 @@ def add_parser(sub) -> None:
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
     p.add_argument("--noise-px", type=float, help="pixel noise SD for the uncertainties "
                    "(default: estimated from the residuals)")
-    p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; each residual is weighted by "
-                   "the pixel noise plus it (default: the model file's tolerance, else exact)")
+    p.add_argument("--tolerance", type=tolerance, help=TOLERANCE_HELP + "; each marker's offset from its "
+                   "measured position is then estimated over the session (default: the model file's tolerance, "
+                   "else exact)")
+    p.add_argument("--out-machine", metavar="TOML", help="with a tolerance: also write the machine model with its "
+                   "markers at their estimated positions")
     p.add_argument("--no-smooth", action="store_true", help="per-frame fit only, no smoothing or gap filling")
     p.add_argument("--max-gap", type=float, default=2.0, metavar="S",
                    help="longest gap the smoother fills, seconds (default 2)")
@@ -56,7 +59,7 @@ def run(args) -> int:
 
     if not args.max_noise_px > 0:
         raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
-    check_outputs({"--out": args.out},
+    check_outputs({"--out": args.out, "--out-machine": args.out_machine},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks})
     try:
         fit_options = FitOptions(loss=args.loss, scale_px=args.loss_scale, noise_px=args.noise_px,
@@ -67,5 +70,5 @@ def run(args) -> int:
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
     print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options,
-                  args.max_noise_px))
+                  args.max_noise_px, args.out_machine))
     return 0

@@ -6,6 +6,10 @@ a frame across a gap or a joint that was not observed), ``<point>_speed`` (m/s) 
 ``<point>_acceleration`` (m/s², magnitude) with smoothing, ``rms_px`` (the fit's residual
 RMS), ``observations`` (2-D observations used) and ``unexplained`` (1 where no solution
 explains the frame's pixels within the noise: the smoother treats the frame as missing).
+
+With a stated tolerance (the fit options' or the model's) the markers' offsets from their
+measured positions are estimated over the session (mocap.reconstruct.offsets) and their
+uncertainty, common to all frames, is added to every frame's after smoothing.
 """
 
 from __future__ import annotations
@@ -19,17 +23,21 @@ from mocap.io.motion_csv import Motion, base_columns
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
+from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets
 from mocap.reconstruct.smooth import Smoothed, SmoothOptions, smooth
 from mocap.reconstruct.uncertainty import point_quantities
 
 
 @dataclass(frozen=True)
 class MotionResult:
-    """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None."""
+    """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None;
+    offsets: the markers' estimated offsets (MarkerOffsets) with a stated tolerance, else
+    None (the fit is then of the model with its markers moved by them)."""
 
     motion: Motion
     fit: JointFit
     smoothed: Smoothed | None
+    offsets: MarkerOffsets | None = None
 
 
 def reconstruct_motion(
@@ -48,7 +56,12 @@ def reconstruct_motion(
     frame (F,) reference frames; time (F,) s; pixels (C, F, M, 2) on the reference clock.
     """
     fit_options = fit_options or FitOptions()
-    fit = fit_joints(machine, cameras, pixels, initial=initial, options=fit_options)
+    offsets, shared = None, 0.0
+    if fit_options.tolerance or (fit_options.tolerance is None and machine.tolerance):
+        result = fit_with_offsets(machine, cameras, pixels, initial=initial, options=fit_options)
+        fit, offsets, shared = result.fit, result.offsets, result.shared
+    else:
+        fit = fit_joints(machine, cameras, pixels, initial=initial, options=fit_options)
     base_motion = fit.base is not None
     values = fit.joints if not base_motion else np.c_[fit.joints, fit.base]
     n_joints = machine.n_joints
@@ -68,6 +81,7 @@ def reconstruct_motion(
         joints = values[:, :n_joints]
         wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(machine.wraps, span, 1.0))
         values = np.c_[np.where(machine.wraps, wrapped, joints), values[:, n_joints:]]
+        covariance = covariance + shared
         quantities = point_quantities(machine, values, covariance, base_motion, smoothed.velocities)
         extra["filled"] = smoothed.filled.astype(float)
         for k, name in enumerate(machine.point_names):
@@ -76,7 +90,7 @@ def reconstruct_motion(
             extra[f"{name}_speed"] = speed
             extra[f"{name}_acceleration"] = np.linalg.norm(acceleration, axis=-1)
     else:
-        covariance = fit.covariance
+        covariance = fit.covariance + shared
         quantities = point_quantities(machine, values, covariance, base_motion)
     if base_motion:
         extra.update(base_columns(base_matrices(values[:, n_joints:]), covariance[:, n_joints:, n_joints:]))
@@ -94,4 +108,4 @@ def reconstruct_motion(
         bucket_angle_sd=quantities.bucket_angle_sd,
         extra=extra,
     )
-    return MotionResult(motion, fit, smoothed)
+    return MotionResult(motion, fit, smoothed, offsets)

@@ -17,7 +17,7 @@ from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import Points, save_points
 from mocap.io.tracks_csv import SPARSE_SPAN, Tracks, check_in_images, load_tracks
-from mocap.machine import Machine
+from mocap.machine import Machine, Tolerance
 from mocap.progress import progress
 from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
@@ -132,10 +132,13 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
 
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
-            smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX) -> str:
+            smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX, out_machine=None) -> str:
     from mocap.reconstruct.motion import reconstruct_motion
 
     machine = load_machine(machine_path)
+    if out_machine is not None and not (fit_options.tolerance or (fit_options.tolerance is None and machine.tolerance)):
+        raise InputError("--out-machine needs the markers' tolerance (--tolerance, or `tolerance` in the model file): "
+                         "without it the markers are taken as exact and not moved", path=machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     if machine.n_joints == 0 and not fit_options.base_motion:
@@ -167,7 +170,23 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
                    "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
     if result.smoothed is not None:
         report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
+    if result.offsets is not None:  # the fit is of the model with its markers moved by them
+        report += _offsets(result.offsets)
+        machine = result.offsets.apply(machine)
+        if out_machine is not None:
+            save_machine(machine, out_machine)
+            report += f"; the model with its markers there written to {out_machine}"
+        fit_options = replace(fit_options, tolerance=Tolerance())
     return report + _ambiguity(machine, list(calibration.cameras), clock.pixels, fit, fit_options) + _dropped(clock)
+
+
+def _offsets(offsets) -> str:
+    """A sentence for the report on the markers' estimated offsets (each is in the log)."""
+    size = np.linalg.norm(offsets.offsets, axis=1)
+    largest = int(np.argmax(size))
+    return (f"; marker offsets estimated over the session ({int(offsets.fixed.sum())} of {len(size)} markers fixed "
+            f"by the data, the others kept near their measured positions): largest {size[largest]:.3f} m "
+            f"({offsets.names[largest]}, SD {np.linalg.norm(offsets.sd[largest]):.3f} m)")
 
 
 def _ambiguity(machine: Machine, cameras, pixels, fit, fit_options: FitOptions) -> str:
