@@ -10,7 +10,8 @@ as visible when all of its painted square is in view (the true tracks' score is 
     python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
 
 With `--looks N`: N sessions, each in its own random look (`mocap.synthetic.looks`:
-machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake),
+machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake,
+rolling shutter: the truth then each marker where it is when its own row is read),
 the first `--frames` frames of each camera rendered, encoded at the look's quality and
 tracked from the true calibration without a labels file; in every camera the picture is
 wholly covered (a flat grey board before the lens) for `--hide` frames from a third of the
@@ -113,7 +114,8 @@ def track_looks(args) -> int:
             look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
             size = (round(width * look.scale / 2) * 2, round(height * look.scale / 2) * 2)
             session = make_session(machine, args.machine, n_cameras=args.cameras, n_cycles=1, seed=args.seed + k,
-                                   size=size, distortion=look.distortion, shake_deg=look.shake_deg)
+                                   size=size, distortion=look.distortion, shake_deg=look.shake_deg,
+                                   readout=look.readout)
             options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
             rng = np.random.default_rng([args.seed, k, 1])
             look_rows = []
