@@ -36,6 +36,7 @@ SMEAR_STEP_PX = 1.5  # the most a marker moves between two instants of an exposu
 MAX_SMEAR_SAMPLES = 6
 MAX_ROLLING_SAMPLES = 12  # instants a rolling shutter's frame is composed of, at most
 STILL_PX = 0.02  # a frame whose markers move less than this over its rows' exposures is drawn once
+BEND_PX = 0.01  # the most a marker's path leaves the straight line between two instants composed by rows
 
 log = logging.getLogger(__name__)
 
@@ -143,19 +144,30 @@ class CameraRenderer:
 
     def _exposure_samples(self, chunk: np.ndarray, exposure: float) -> np.ndarray:
         """(F,) instants to draw each frame at: as many as its fastest marker needs to move
-        no more than SMEAR_STEP_PX between them over the exposure (1: no smear); with a
-        rolling shutter, over all the rows' exposures, and at least two (the first and the
-        last row's) unless no marker moves by more than STILL_PX over them."""
+        no more than SMEAR_STEP_PX between them over the exposure (1: no smear). With a
+        rolling shutter, over all the rows' exposures: also as many as keep the straight
+        line between two instants within BEND_PX of a marker's path (a shaking camera's
+        markers turn within a frame interval), at least two (the first and the last row's)
+        unless no marker moves by more than STILL_PX over them."""
         span = exposure + self.readout
         if span <= 0:
             return np.ones(len(chunk), dtype=int)
-        early = self.session.observe(self.field, chunk - span / 2)[0]
-        late = self.session.observe(self.field, chunk + span / 2)[0]
-        travel = np.nanmax(np.nan_to_num(np.linalg.norm(late - early, axis=-1)), axis=1, initial=0.0)
         if self.readout <= 0:
+            early = self.session.observe(self.field, chunk - span / 2)[0]
+            late = self.session.observe(self.field, chunk + span / 2)[0]
+            travel = np.nanmax(np.nan_to_num(np.linalg.norm(late - early, axis=-1)), axis=1, initial=0.0)
             return np.clip(np.ceil(travel / SMEAR_STEP_PX), 1, MAX_SMEAR_SAMPLES).astype(int)
-        samples = np.clip(np.ceil(travel / SMEAR_STEP_PX) + 1, 2, MAX_ROLLING_SAMPLES).astype(int)
-        return np.where(travel <= STILL_PX, 1, samples)
+        offsets = np.linspace(-span / 2, span / 2, 5)
+        at = np.broadcast_to((chunk[:, None] + offsets).reshape(-1, 1), (len(chunk) * 5, len(self.disks)))
+        uv = self.session.pixels_at(self.field, at).reshape(len(chunk), 5, -1, 2)  # (F, 5, M, 2)
+        path = np.nan_to_num(np.linalg.norm(np.diff(uv, axis=1), axis=-1)).sum(axis=1).max(axis=1)
+        step = offsets[1] - offsets[0]
+        bend = np.nan_to_num(np.linalg.norm(uv[:, 2:] - 2 * uv[:, 1:-1] + uv[:, :-2], axis=-1)).max(axis=(1, 2))
+        reach = np.nan_to_num(np.linalg.norm(uv - uv[:, 2:3], axis=-1)).max(axis=(1, 2))
+        # linear interpolation over h frame intervals misses a path of acceleration a by a h^2 / 8
+        curving = span * np.sqrt(bend / step**2 / (8 * BEND_PX))
+        samples = np.ceil(np.maximum(path / SMEAR_STEP_PX, curving)) + 1
+        return np.where(reach <= STILL_PX, 1, np.clip(samples, 2, MAX_ROLLING_SAMPLES)).astype(int)
 
     def _row_weights(self, exposure: float, count: int) -> np.ndarray:
         key = (exposure, count)

@@ -136,6 +136,10 @@ class SyntheticSession:
         `camera` at its `frames` (F,) (fractional frames allowed)."""
         return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames)
 
+    def pixels_at(self, camera: FieldCamera, at: np.ndarray) -> np.ndarray:
+        """Pixels (F, M, 2) of each marker m of `camera` at its own fractional frame `at` (F, M)."""
+        return marker_pixels_at(self.machine, self.plan, camera, at)
+
     def rolling_pixels(self, camera: FieldCamera, frames: np.ndarray) -> np.ndarray:
         """True marker pixels (F, M, 2) of `camera` at its `frames` (F,), each where the
         marker is when its own row is read (the session's `readout`)."""
