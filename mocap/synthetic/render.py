@@ -8,7 +8,10 @@ the camera and then its markers. A marker is drawn only where the truth calls it
 and the pictures agree. Marker squares and disks are filled on an 8x finer grid over a
 small region and area-averaged back, so their centres are exact to a few hundredths of a
 pixel. Motion blur is the shutter's: a frame whose markers move is the average of the
-machine drawn at instants spread over the exposure.
+machine drawn at instants spread over the exposure. A rolling shutter (the session's
+`readout`) reads the rows one after another: a moving frame is composed by rows from the
+machine drawn at instants spread over all the rows' exposures (`mocap.synthetic.shutter`),
+so that each marker lies where the truth has it, at the instant its own row is read.
 
 Shapes: F frames, L links, M markers, N outline points.
 """
@@ -110,7 +113,10 @@ class CameraRenderer:
         of a frame interval, centred on the frame's time: the machine is drawn at instants
         spread over the exposure (enough that no marker moves more than SMEAR_STEP_PX
         between them) and the pictures averaged, so that a moving marker smears as a camera
-        shows it and its darkness centroid stays where the truth has it at the frame's time."""
+        shows it and its darkness centroid stays where the truth has it at the frame's time.
+        With a rolling shutter, each row's exposure is centred on the instant it is read
+        (`mocap.synthetic.shutter.row_delay`) and the frame composed by rows (`_draw_rows`);
+        the backdrop stays as at the frame's time."""
         frames = np.arange(self.field.frames) if frames is None else np.asarray(frames)
         session = self.session
         exposure = 0.0 if clean else self.options.effects.blur
