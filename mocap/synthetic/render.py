@@ -221,14 +221,15 @@ class CameraRenderer:
             return
         x0, y0, x1, y1 = box
         total = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+        behind = image[y0:y1, x0:x1].copy()  # the machine is drawn inside the box: put back after each instant
         for view, weight in zip(views, weights):
             rows = np.flatnonzero(weight[y0:y1] > 0)
             if not len(rows):
                 continue
             a, b = y0 + rows[0], y0 + rows[-1] + 1
-            picture = image.copy()
-            self._draw_machine(picture, *view, rows=(a, b))
-            total[a - y0 : b - y0] += weight[a:b, None, None] * picture[a:b, x0:x1]
+            self._draw_machine(image, *view, rows=(a, b))
+            total[a - y0 : b - y0] += weight[a:b, None, None] * image[a:b, x0:x1]
+            image[y0:y1, x0:x1] = behind
         image[y0:y1, x0:x1] = np.round(total).astype(np.uint8)
 
     def _bounds(self, uv: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -263,6 +264,8 @@ class CameraRenderer:
             low = np.where(np.isfinite(v), v, np.inf).min(axis=1)  # (L,)
             high = np.where(np.isfinite(v), v, -np.inf).max(axis=1)
             order = [l for l in order if not (high[l] < rows[0] - 3 or low[l] > rows[1] + 2)]
+            v = uv_squares[..., 1]
+            seen = seen & (v.max(axis=1) >= rows[0] - 3) & (v.min(axis=1) <= rows[1] + 2)
         for l in order:
             for f, quad in enumerate(BOX_FACES):
                 if normals[l, f] @ (centre - corners[l, quad].mean(axis=0)) <= 0:
