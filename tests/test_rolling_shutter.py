@@ -121,9 +121,10 @@ def test_rows_are_composed_at_their_own_instants(readout, exposure):
 
 
 def test_random_looks_draw_rolling_and_global_shutters():
-    readouts = np.array([random_look(np.random.default_rng(seed)).readout for seed in range(60)])
+    looks = [random_look(np.random.default_rng(seed)) for seed in range(60)]
+    readouts = np.array([look.readout for look in looks])
     assert 0.15 < np.mean(readouts == 0) < 0.6 and readouts.max() <= 0.9 and readouts[readouts > 0].min() >= 0.2
-    look = next(random_look(np.random.default_rng(s)) for s in range(60) if random_look(np.random.default_rng(s)).readout)
+    look = next(look for look in looks if look.readout)
     assert f"rolling shutter {look.readout:.2f}" in look.name and look.table()["readout"] == look.readout
 
 

@@ -52,7 +52,8 @@ def add_parser(subparsers) -> None:
                    "(default 0: a global shutter; with --look random, the look's); the truth follows it")
     p.add_argument("--look", choices=("default", "random"), default="default",
                    help="random: machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, "
-                   "shake and rolling shutter drawn from the seed (written to truth/scene.toml); default: the usual look")
+                   "shake and rolling shutter drawn from the seed (written to truth/scene.toml); "
+                   "default: the usual look")
     p.add_argument("--no-video", action="store_true", help="write the truth only")
     p.set_defaults(run=run)
 

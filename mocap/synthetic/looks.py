@@ -6,8 +6,9 @@ white, orange or mud-covered machines; high or low sun from any side, or overcas
 of 45-75 % of their square, worn (greyer white, lighter black), dark grey instead of black,
 or painted straight on the machine without a white square; haze; slight defocus; heavy or
 light compression; more or less sensor noise, exposure drift and dust; lens distortion and
-camera shake; a rolling shutter (or a global one); rain streaks; a low sun's glare; the links' hard shadows on each other; haul
-trucks, another machine and people behind the machine. The look is written into truth/scene.toml.
+camera shake; a rolling shutter (or a global one); rain streaks; a low sun's glare; the
+links' hard shadows on each other; haul trucks, another machine and people behind the
+machine. The look is written into truth/scene.toml.
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.errors import InputError
 from mocap.camera import project_cam
+from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
