@@ -10,7 +10,8 @@ as visible when all of its painted square is in view (the true tracks' score is 
     python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
 
 With `--looks N`: N sessions, each in its own random look (`mocap.synthetic.looks`:
-machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake),
+machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake,
+rolling shutter: the truth then each marker where it is when its own row is read),
 the first `--frames` frames of each camera rendered, encoded at the look's quality and
 tracked from the true calibration without a labels file; in every camera the picture is
 wholly covered (a flat grey board before the lens) for `--hide` frames from a third of the
@@ -20,7 +21,12 @@ covered frames not counted as visible; a label in them is wrong), wrong labels, 
 errors and found again per look and camera and overall, and the worst look printed with
 its settings.
 
-    python benchmarks/bench_tracking.py --looks 20 [--frames 120] [--hide 30] [--size 960x540] [--seed 1]
+    python benchmarks/bench_tracking.py --looks 20 [--frames 120] [--hide 30] [--size 960x540] [--seed 1] [--fast]
+
+`--fast` takes, in each camera, the `--frames` frames in which its visible markers move most
+(the swing: where motion blur smears the markers and a rolling shutter moves them most)
+instead of the first ones, tracked from the true joints at the first of them. `--readout
+SHARE` gives every look that rolling shutter (0: a global shutter), to compare the same looks.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -99,6 +106,15 @@ def covered(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(110.0 + rng.normal(0.0, 2.5, image.shape), 0, 255).astype(np.uint8)
 
 
+def fastest_window(session, field, count: int) -> int:
+    """The first of the `count` frames of `field` in which its visible markers move most
+    (the swing, at the bucket's full reach)."""
+    uv, seen, _ = session.observe(field, np.arange(field.frames))
+    step = np.linalg.norm(np.diff(uv, axis=0), axis=-1)
+    fastest = np.nanmax(np.where(seen[1:] & seen[:-1], step, np.nan), axis=1, initial=0.0)
+    return int(np.argmax(np.convolve(np.nan_to_num(fastest), np.ones(count), "valid")))
+
+
 def track_looks(args) -> int:
     """Tracking over `args.looks` random looks; see the module's docstring."""
     machine = load_machine(args.machine)
@@ -111,15 +127,19 @@ def track_looks(args) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.looks):
             look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
+            if args.readout is not None:  # the same look with another shutter
+                look = replace(look, readout=args.readout, name=f"{look.name[:-1]}; readout set to {args.readout:g})")
             size = (round(width * look.scale / 2) * 2, round(height * look.scale / 2) * 2)
             session = make_session(machine, args.machine, n_cameras=args.cameras, n_cycles=1, seed=args.seed + k,
-                                   size=size, distortion=look.distortion, shake_deg=look.shake_deg)
+                                   size=size, distortion=look.distortion, shake_deg=look.shake_deg,
+                                   readout=look.readout)
             options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
             rng = np.random.default_rng([args.seed, k, 1])
             look_rows = []
             for c, field in enumerate(session.cameras):
-                frames = np.arange(min(args.frames, field.frames))
-                hide = (len(frames) // 3, min(len(frames) // 3 + args.hide, len(frames)))
+                first = fastest_window(session, field, args.frames) if args.fast else 0
+                frames = np.arange(first, min(first + args.frames, field.frames))
+                hide = (first + len(frames) // 3, min(first + len(frames) // 3 + args.hide, frames[-1] + 1))
                 path = Path(tmp) / f"look{k}_{field.name}.mp4"
                 renderer = CameraRenderer(session, c, options, rng)
                 with video_writer(path, size, field.fps, "h264", 0, look.crf) as write:
@@ -127,13 +147,15 @@ def track_looks(args) -> int:
                         write(covered(image, rng) if hide[0] <= f < hide[1] else image)
                 model = CameraModel(machine, field.camera)
                 try:
-                    tracks, _ = track_frames(model, Video(path).frames(prefetch=4), session.calibration.joints(machine),
-                                             None, field.fps)
+                    video = ((first + i, grey) for i, grey in Video(path).frames(prefetch=4))
+                    joints = session.plan.joints(field.times(np.array([first])))[0]
+                    tracks, _ = track_frames(model, video, joints, None, field.fps)
                 except ValueError as exc:  # the first frame could not be labelled
                     print(f"{k:>4} {field.name:>6}: {exc}")
                     tracks = None
                 truth = session.tracks.of_camera(field.name)
-                truth = truth.select((truth.frame < len(frames)) & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
+                truth = truth.select((truth.frame >= first) & (truth.frame <= frames[-1])
+                                     & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
                 whole = int(np.sum(truth.score >= 1.0))
                 if tracks is None:
                     labelled, wrong, errors, again = 0.0, 0.0, np.zeros(0), None
@@ -179,6 +201,9 @@ def main() -> int:
     parser.add_argument("--looks", type=int, default=0, help="track over this many random looks instead")
     parser.add_argument("--frames", type=int, default=120, help="with --looks: frames per camera")
     parser.add_argument("--hide", type=int, default=30, help="with --looks: frames the picture is covered")
+    parser.add_argument("--readout", type=float, help="with --looks: every look's rolling shutter (0: global)")
+    parser.add_argument("--fast", action="store_true",
+                        help="with --looks: the frames in which the markers move most instead of the first ones")
     args = parser.parse_args()
     if args.looks:
         if args.size == "1920x1080":

@@ -126,7 +126,7 @@ def check_tracking(look: Look, seed: int) -> None:
     machine = load_machine("hitachi_ex3500")
     size = (round(960 * look.scale / 2) * 2, round(540 * look.scale / 2) * 2)
     session = make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1, seed=seed, size=size,
-                           distortion=look.distortion, shake_deg=look.shake_deg)
+                           distortion=look.distortion, shake_deg=look.shake_deg, readout=look.readout)
     options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
     renderer = CameraRenderer(session, 0, options, np.random.default_rng(seed))
     frames = [(f, image @ np.array([0.114, 0.587, 0.299])) for f, image in renderer.frames(np.arange(60, 90))]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 from mocap.cli import COMMANDS
@@ -46,9 +47,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--exposure", type=float, default=0.08, help="SD of the exposure's slow drift (0: none)")
     p.add_argument("--dust", type=float, default=0.55, help="opacity of the densest dust, 0..0.9 (0: none)")
     p.add_argument("--clean", action="store_true", help="no camera effects at all (noise, blur, exposure, dust)")
+    p.add_argument("--rolling-shutter", type=float, metavar="SHARE",
+                   help="rows read one after another over this share of the frame interval, 0..0.9 "
+                   "(default 0: a global shutter; with --look random, the look's); the truth follows it")
     p.add_argument("--look", choices=("default", "random"), default="default",
-                   help="random: machine paint, light, marker paint, haze, defocus, compression, noise, size, lens "
-                   "and shake drawn from the seed (written to truth/scene.toml); default: the usual look")
+                   help="random: machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, "
+                   "shake and rolling shutter drawn from the seed (written to truth/scene.toml); "
+                   "default: the usual look")
     p.add_argument("--no-video", action="store_true", help="write the truth only")
     p.set_defaults(run=run)
 
@@ -98,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
     width, height = parse_size(args.size)
     look = random_look(np.random.default_rng([args.seed, 2])) if args.look == "random" else Look()
+    if args.rolling_shutter is not None:
+        if not 0.0 <= args.rolling_shutter <= 0.9:
+            raise InputError(f"--rolling-shutter {args.rolling_shutter}: give a share of the frame interval, 0..0.9")
+        look = replace(look, readout=args.rolling_shutter)
     scale = args.scale * look.scale
     size = (max(16, round(width * scale)), max(16, round(height * scale)))
     try:
@@ -114,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
         distortion=args.distortion or look.distortion, shake_deg=args.shake or look.shake_deg, bounce=args.bounce,
         reactive=args.reactive,
         redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
+        readout=look.readout,
     )
     session = make_session(machine, str(args.machine), options)
     args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over

@@ -6,8 +6,9 @@ white, orange or mud-covered machines; high or low sun from any side, or overcas
 of 45-75 % of their square, worn (greyer white, lighter black), dark grey instead of black,
 or painted straight on the machine without a white square; haze; slight defocus; heavy or
 light compression; more or less sensor noise, exposure drift and dust; lens distortion and
-camera shake; rain streaks; a low sun's glare; the links' hard shadows on each other; haul
-trucks, another machine and people behind the machine. The look is written into truth/scene.toml.
+camera shake; a rolling shutter (or a global one); rain streaks; a low sun's glare; the
+links' hard shadows on each other; haul trucks, another machine and people behind the
+machine. The look is written into truth/scene.toml.
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ class Look:
     (`mocap.synthetic.effects.Weather`); people, trucks, other_machine: clutter behind the
     machine: people in high-visibility vests, haul trucks with their tyres, another machine
     with a sign on it (`mocap.synthetic.backdrop`); shadows: the links' hard shadows on each
-    other's sunlit faces and markers (`mocap.synthetic.render`).
+    other's sunlit faces and markers (`mocap.synthetic.render`); readout: the rolling
+    shutter, the rows read one after another over that share of the frame interval (0: a
+    global shutter; the session's truth follows it: `SessionOptions.readout`).
     """
 
     name: str = "default"
@@ -72,6 +75,7 @@ class Look:
     trucks: int = 0
     other_machine: bool = False
     shadows: bool = False
+    readout: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.2 <= self.disk_ratio <= 0.9:
@@ -82,6 +86,8 @@ class Look:
             raise ValueError("rain must be 0..1, glare 0..0.6, people and trucks >= 0")
         if not 0 <= self.crf <= 51:
             raise ValueError(f"crf must be 0..51, got {self.crf}")
+        if not 0 <= self.readout <= 0.9:
+            raise ValueError(f"readout must be 0..0.9 of the frame interval, got {self.readout}")
 
     @property
     def palette(self) -> np.ndarray:
@@ -160,9 +166,11 @@ def random_look(rng: np.random.Generator, name: str = "random") -> Look:
         other_machine=bool(rng.random() < 0.4),
         shadows=bool(rng.random() < 0.6),
     )
+    readout = float(rng.uniform(0.2, 0.9)) if rng.random() < 2 / 3 else 0.0  # drawn last: the rest as before
     people = f"{look.people} {'person' if look.people == 1 else 'people'}"
     trucks = f"{look.trucks} truck{'s' if look.trucks > 1 else ''}"
     extras = [word for word, on in (("rain", look.rain), ("glare", look.glare), (people, look.people),
                                     (trucks, look.trucks), ("another machine", look.other_machine),
-                                    ("shadows", look.shadows and overcast < 1)) if on]
-    return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")")
+                                    ("shadows", look.shadows and overcast < 1),
+                                    (f"rolling shutter {readout:.2f}", readout)) if on]
+    return replace(look, name=look.name[:-1] + "".join(f", {word}" for word in extras) + ")", readout=readout)

@@ -8,7 +8,10 @@ the camera and then its markers. A marker is drawn only where the truth calls it
 and the pictures agree. Marker squares and disks are filled on an 8x finer grid over a
 small region and area-averaged back, so their centres are exact to a few hundredths of a
 pixel. Motion blur is the shutter's: a frame whose markers move is the average of the
-machine drawn at instants spread over the exposure.
+machine drawn at instants spread over the exposure. A rolling shutter (the session's
+`readout`) reads the rows one after another: a moving frame is composed by rows from the
+machine drawn at instants spread over all the rows' exposures (`mocap.synthetic.shutter`),
+so that each marker lies where the truth has it, at the instant its own row is read.
 
 Shapes: F frames, L links, M markers, N outline points.
 """
@@ -30,9 +33,13 @@ from mocap.synthetic.effects import CameraEffects, EffectOptions, Weather
 from mocap.synthetic.encode import CODECS, video_writer
 from mocap.synthetic.looks import Look
 from mocap.synthetic.session import SyntheticSession, marker_sizes
+from mocap.synthetic.shutter import instants, row_weights
 
 SMEAR_STEP_PX = 1.5  # the most a marker moves between two instants of an exposure
 MAX_SMEAR_SAMPLES = 6
+MAX_ROLLING_SAMPLES = 12  # instants a rolling shutter's frame is composed of, at most
+STILL_PX = 0.02  # a frame whose markers move less than this over its rows' exposures is drawn once
+BEND_PX = 0.01  # the most a marker's path leaves the straight line between two instants composed by rows
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +97,8 @@ class CameraRenderer:
         self.effects = CameraEffects(camera.size, options.effects, rng)
         self.weather = Weather(camera.size, look.rain, look.glare, rng.spawn(1)[0])  # leaves `rng` as it is
         self.dust_radius = 0.2 * reach
+        self.readout = session.options.readout
+        self._weights: dict[tuple[float, int], np.ndarray] = {}
 
     def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
         """World points (F, ..., 3) into pixels (F, ..., 2) with per-frame poses (F, 4, 4)."""
@@ -104,7 +113,10 @@ class CameraRenderer:
         of a frame interval, centred on the frame's time: the machine is drawn at instants
         spread over the exposure (enough that no marker moves more than SMEAR_STEP_PX
         between them) and the pictures averaged, so that a moving marker smears as a camera
-        shows it and its darkness centroid stays where the truth has it at the frame's time."""
+        shows it and its darkness centroid stays where the truth has it at the frame's time.
+        With a rolling shutter, each row's exposure is centred on the instant it is read
+        (`mocap.synthetic.shutter.row_delay`) and the frame composed by rows (`_draw_rows`);
+        the backdrop stays as at the frame's time."""
         frames = np.arange(self.field.frames) if frames is None else np.asarray(frames)
         session = self.session
         exposure = 0.0 if clean else self.options.effects.blur
@@ -122,10 +134,14 @@ class CameraRenderer:
                 image = self._backdrop(cams[k])
                 if samples[k] == 1:
                     self._draw_machine(image, *(v[k] for v in view))
+                elif self.readout > 0:  # instants over all the rows' exposures, composed by rows
+                    views = self._view(frame + instants(self.readout, exposure, samples[k]))
+                    self._draw_rows(image, [[v[i] for v in views] for i in range(samples[k])],
+                                    self._row_weights(exposure, int(samples[k])))
                 else:  # the instants of the exposure, spread evenly over it
                     offsets = exposure * ((np.arange(samples[k]) + 0.5) / samples[k] - 0.5)
-                    instants = self._view(frame + offsets)
-                    self._draw_smear(image, [[v[i] for v in instants] for i in range(samples[k])])
+                    views = self._view(frame + offsets)
+                    self._draw_smear(image, [[v[i] for v in views] for i in range(samples[k])])
                 if not clean:
                     image = self.weather.apply(self.look.finish(image), int(frame))
                     radius = self.field.camera.focal * self.dust_radius / max(depth[k], 1e-3)
@@ -134,13 +150,36 @@ class CameraRenderer:
 
     def _exposure_samples(self, chunk: np.ndarray, exposure: float) -> np.ndarray:
         """(F,) instants to draw each frame at: as many as its fastest marker needs to move
-        no more than SMEAR_STEP_PX between them over the exposure (1: no smear)."""
-        if exposure <= 0:
+        no more than SMEAR_STEP_PX between them over the exposure (1: no smear). With a
+        rolling shutter, over all the rows' exposures: also as many as keep the straight
+        line between two instants within BEND_PX of a marker's path (a shaking camera's
+        markers turn within a frame interval), at least two (the first and the last row's)
+        unless no marker moves by more than STILL_PX over them."""
+        span = exposure + self.readout
+        if span <= 0:
             return np.ones(len(chunk), dtype=int)
-        early = self.session.observe(self.field, chunk - exposure / 2)[0]
-        late = self.session.observe(self.field, chunk + exposure / 2)[0]
-        travel = np.nanmax(np.nan_to_num(np.linalg.norm(late - early, axis=-1)), axis=1, initial=0.0)
-        return np.clip(np.ceil(travel / SMEAR_STEP_PX), 1, MAX_SMEAR_SAMPLES).astype(int)
+        if self.readout <= 0:
+            early = self.session.observe(self.field, chunk - span / 2)[0]
+            late = self.session.observe(self.field, chunk + span / 2)[0]
+            travel = np.nanmax(np.nan_to_num(np.linalg.norm(late - early, axis=-1)), axis=1, initial=0.0)
+            return np.clip(np.ceil(travel / SMEAR_STEP_PX), 1, MAX_SMEAR_SAMPLES).astype(int)
+        offsets = np.linspace(-span / 2, span / 2, 5)
+        at = np.broadcast_to((chunk[:, None] + offsets).reshape(-1, 1), (len(chunk) * 5, len(self.disks)))
+        uv = self.session.pixels_at(self.field, at).reshape(len(chunk), 5, -1, 2)  # (F, 5, M, 2)
+        path = np.nan_to_num(np.linalg.norm(np.diff(uv, axis=1), axis=-1)).sum(axis=1).max(axis=1)
+        step = offsets[1] - offsets[0]
+        bend = np.nan_to_num(np.linalg.norm(uv[:, 2:] - 2 * uv[:, 1:-1] + uv[:, :-2], axis=-1)).max(axis=(1, 2))
+        reach = np.nan_to_num(np.linalg.norm(uv - uv[:, 2:3], axis=-1)).max(axis=(1, 2))
+        # linear interpolation over h frame intervals misses a path of acceleration a by a h^2 / 8
+        curving = span * np.sqrt(bend / step**2 / (8 * BEND_PX))
+        samples = np.ceil(np.maximum(path / SMEAR_STEP_PX, curving)) + 1
+        return np.where(reach <= STILL_PX, 1, np.clip(samples, 2, MAX_ROLLING_SAMPLES)).astype(int)
+
+    def _row_weights(self, exposure: float, count: int) -> np.ndarray:
+        key = (exposure, count)
+        if key not in self._weights:
+            self._weights[key] = row_weights(self.field.camera.size[1], self.readout, exposure, count)
+        return self._weights[key]
 
     def _view(self, at: np.ndarray):
         """What `_draw_machine` needs at (fractional) frames `at` (F,): camera centres, box
@@ -173,6 +212,26 @@ class CameraRenderer:
             total += picture[y0:y1, x0:x1]
         image[y0:y1, x0:x1] = np.round(total / len(views)).astype(np.uint8)
 
+    def _draw_rows(self, image: np.ndarray, views: list, weights: np.ndarray) -> None:
+        """The machine drawn at each of the instants (`mocap.synthetic.shutter.instants`)
+        and the pictures composed by rows with `weights` (K, H), over the region the machine
+        covers at any of them; at each instant only the links that reach the rows it makes."""
+        box = self._bounds(np.concatenate([view[3].reshape(-1, 2) for view in views]))
+        if box is None:
+            return
+        x0, y0, x1, y1 = box
+        total = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+        behind = image[y0:y1, x0:x1].copy()  # the machine is drawn inside the box: put back after each instant
+        for view, weight in zip(views, weights):
+            rows = np.flatnonzero(weight[y0:y1] > 0)
+            if not len(rows):
+                continue
+            a, b = y0 + rows[0], y0 + rows[-1] + 1
+            self._draw_machine(image, *view, rows=(a, b))
+            total[a - y0 : b - y0] += weight[a:b, None, None] * image[a:b, x0:x1]
+            image[y0:y1, x0:x1] = behind
+        image[y0:y1, x0:x1] = np.round(total).astype(np.uint8)
+
     def _bounds(self, uv: np.ndarray) -> tuple[int, int, int, int] | None:
         """Pixel bounds (x0, y0, x1, y1) of the machine's projected boxes, clipped to the image."""
         w, h = self.field.camera.size
@@ -194,9 +253,19 @@ class CameraRenderer:
         w, h = self.field.camera.size
         return cv2.warpPerspective(self.backdrop, homography, (w, h), borderMode=cv2.BORDER_REPLICATE)
 
-    def _draw_machine(self, image, centre, corners, normals, uv_corners, uv_squares, uv_disks, seen, cam) -> None:
+    def _draw_machine(self, image, centre, corners, normals, uv_corners, uv_squares, uv_disks, seen, cam,
+                      rows: tuple[int, int] | None = None) -> None:
+        """The machine's links far to near, each its faces, markers and the shadows on it;
+        with `rows` (first, end), only the links whose pictures reach those rows."""
         links = self.session.machine.marker_links
         order = np.argsort(-np.linalg.norm(corners.mean(axis=1) - centre, axis=-1))
+        if rows is not None:
+            v = uv_corners[..., 1]
+            low = np.where(np.isfinite(v), v, np.inf).min(axis=1)  # (L,)
+            high = np.where(np.isfinite(v), v, -np.inf).max(axis=1)
+            order = [l for l in order if not (high[l] < rows[0] - 3 or low[l] > rows[1] + 2)]
+            v = uv_squares[..., 1]
+            seen = seen & (v.max(axis=1) >= rows[0] - 3) & (v.min(axis=1) <= rows[1] + 2)
         for l in order:
             for f, quad in enumerate(BOX_FACES):
                 if normals[l, f] @ (centre - corners[l, quad].mean(axis=0)) <= 0:

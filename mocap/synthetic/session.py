@@ -4,7 +4,8 @@
 marker pixels and visibility at its own frames; `write_truth` writes the session folder
 (DESIGN.md) with ``truth/``: cameras.toml, motion.csv (reference-camera frames),
 tracks.csv (true centres of visible markers, each camera's own frames; score: the share of
-the marker's square in view), markers.csv (3-D
+the marker's square in view; with a rolling shutter, each where it is when its own row is
+read: `mocap.synthetic.shutter`), markers.csv (3-D
 marker positions at reference frames), cycles.csv and scene.toml (pile, truck, options).
 """
 
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.camera import project_cam
 from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
@@ -30,12 +32,15 @@ from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
+from mocap.synthetic.shutter import rolling_pixels
 from mocap.visibility import marker_cover, marker_normals, marker_outlines, square_outline, visible_markers
 
 
 @dataclass(frozen=True)
 class SessionOptions:
-    """What `make_session` varies. Angles in degrees, sizes in pixels."""
+    """What `make_session` varies. Angles in degrees, sizes in pixels; `readout` the cameras'
+    rolling shutter: their rows are read one after another over that share of the frame
+    interval, the middle row at the frame's time (0: a global shutter)."""
 
     n_cameras: int = 3
     n_cycles: int = 4
@@ -48,6 +53,7 @@ class SessionOptions:
     redirect_probability: float = 0.4
     classes: tuple[str, ...] = CLASSES
     hold: float = 2.0
+    readout: float = 0.0
 
     def __post_init__(self) -> None:
         if not 1 <= self.n_cameras <= 8:
@@ -59,6 +65,8 @@ class SessionOptions:
             raise ValueError(f"classes must be some of {CLASSES}, got {list(self.classes)}")
         if self.hold < 0.5:
             raise ValueError(f"hold must be at least 0.5 s, got {self.hold}")
+        if not 0.0 <= self.readout <= 0.9:
+            raise ValueError(f"readout must be 0..0.9 of the frame interval, got {self.readout}")
 
 
 @dataclass(frozen=True)
@@ -128,6 +136,15 @@ class SyntheticSession:
         `camera` at its `frames` (F,) (fractional frames allowed)."""
         return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames)
 
+    def pixels_at(self, camera: FieldCamera, at: np.ndarray) -> np.ndarray:
+        """Pixels (F, M, 2) of each marker m of `camera` at its own fractional frame `at` (F, M)."""
+        return marker_pixels_at(self.machine, self.plan, camera, at)
+
+    def rolling_pixels(self, camera: FieldCamera, frames: np.ndarray) -> np.ndarray:
+        """True marker pixels (F, M, 2) of `camera` at its `frames` (F,), each where the
+        marker is when its own row is read (the session's `readout`)."""
+        return rolling_marker_pixels(self.machine, self.plan, camera, frames, self.options.readout)
+
 
 def marker_sizes(reach: float) -> tuple[float, float]:
     """The painted disk's diameter and its white square's side (m) on a machine of `reach`
@@ -143,6 +160,30 @@ def observe_camera(machine: Machine, plan: DigMotion, boxes: np.ndarray, normals
     uv, seen = visible_markers(machine, boxes, normals, poses, camera.cam_from_world(times),
                                camera.camera.matrix, camera.camera.distortion, camera.camera.size)
     return uv, seen, poses
+
+
+def marker_pixels_at(machine: Machine, plan: DigMotion, camera: FieldCamera, at: np.ndarray) -> np.ndarray:
+    """Pixels (F, M, 2) of each marker m at its own fractional frame `at` (F, M) of `camera`."""
+    n_frames, n_markers = at.shape
+    times = camera.times(at.ravel())
+    poses = machine.link_poses(plan.joints(times), plan.world_from_base(times))  # (F M, L, 4, 4)
+    index = np.tile(np.arange(n_markers), n_frames)
+    on_link = poses[np.arange(len(index)), machine.marker_links[index]]  # (F M, 4, 4)
+    world = np.einsum("nij,nj->ni", on_link[:, :3, :3], machine.marker_positions[index]) + on_link[:, :3, 3]
+    cams = camera.cam_from_world(times)
+    p = np.einsum("nij,nj->ni", cams[:, :3, :3], world) + cams[:, :3, 3]
+    uv = project_cam(p, camera.camera.matrix, camera.camera.distortion)
+    return uv.reshape(n_frames, n_markers, 2)
+
+
+def rolling_marker_pixels(machine: Machine, plan: DigMotion, camera: FieldCamera, frames: np.ndarray,
+                          readout: float) -> np.ndarray:
+    """Marker pixels (F, M, 2) of `camera` at `frames` (F,) under a rolling shutter reading
+    its rows over `readout` of the frame interval (`mocap.synthetic.shutter`)."""
+    frames = np.broadcast_to(np.asarray(frames, dtype=float)[:, None], (len(frames), len(machine.marker_names)))
+    height = camera.camera.size[1]
+    uv, _ = rolling_pixels(lambda at: marker_pixels_at(machine, plan, camera, at), frames, height, readout)
+    return uv
 
 
 def make_session(machine: Machine, machine_ref: str | None = None, options: SessionOptions | None = None,
@@ -193,6 +234,8 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
         uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own)
         cover = marker_cover(machine, boxes, normals, poses, camera.cam_from_world(camera.times(own)),
                              camera.camera.matrix, camera.camera.distortion, camera.camera.size, outline)
+        if options.readout > 0:  # seen as at the frame's time; where: as its row is read
+            uv = rolling_marker_pixels(machine, plan, camera, own, options.readout)
         f, m = np.nonzero(seen)
         parts.append(Tracks.from_rows(np.full(len(f), camera.name, dtype=object), own[f], names[m], uv[f, m],
                                       time=camera.times(own[f]), score=cover[f, m]))

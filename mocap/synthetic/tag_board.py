@@ -6,7 +6,7 @@ Each frame is drawn at `supersample` times the size and reduced by area (anti-al
 every image pixel is taken back through the lens (the distortion inverted once per camera)
 onto the board's plane by the homography of the board's pose at that pixel's row's instant
 (rolling shutter: the rows are read one after another over `readout` of the frame
-interval), and the board's picture sampled there. Motion blur averages `exposure_steps`
+interval, `mocap.synthetic.shutter`), and the board's picture sampled there. Motion blur averages `exposure_steps`
 such pictures over the shutter's opening. The true centre of a tag is its board centre
 projected with the pose at the instant its row was read, the middle of the exposure.
 
@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mocap.detect import tag_dictionary
+from mocap.synthetic.shutter import rolling_pixels, row_delay
 
 _CELL_PX = 8  # texture pixels per tag cell
 
@@ -100,7 +101,8 @@ def render_board(look: BoardLook, n_frames: int, rng: np.random.Generator, super
     s = supersample
     rays = _undistorted_rays(matrix.tobytes(), distortion.tobytes(), width, height, s)  # 2 x (sH, sW)
     texture_from_board3 = np.vstack([texture_from_board, [0.0, 0.0, 1.0]])
-    row_time = look.rolling_shutter * (np.arange(height * s) + 0.5) / (height * s)  # in frame intervals
+    rows = (np.arange(height * s) + 0.5) / s - 0.5  # the supersampled rows' centres, image pixels
+    row_time = row_delay(rows, height, look.rolling_shutter, centred=False)  # in frame intervals
     offsets = np.zeros(1)  # instants of the exposure, in frame intervals from the frame's time
     if look.shutter > 0:
         offsets = look.shutter * ((np.arange(exposure_steps) + 0.5) / exposure_steps - 0.5)
@@ -203,15 +205,14 @@ def _project(points_board: np.ndarray, rotation: np.ndarray, translation: np.nda
 
 def _true_centres(centres, pose, frame, readout, height, matrix, distortion) -> np.ndarray:
     """(N, 2) each tag's centre at the middle of its row's exposure (rolling shutter: the
-    row depends on where the tag is; three fixed-point steps)."""
-    uv = np.zeros((len(centres), 2))
-    t = np.full(len(centres), float(frame))
-    for _ in range(3):
-        rotation, translation = pose(t)
-        uv = np.array([_project(c[None], rotation[k], translation[k], matrix, distortion)[0]
-                       for k, c in enumerate(centres)])
-        t = frame + readout * np.clip(uv[:, 1] + 0.5, 0, height) / height
-    return uv
+    row depends on where the tag is; `mocap.synthetic.shutter.rolling_pixels`)."""
+
+    def pixels_at(at: np.ndarray) -> np.ndarray:
+        rotation, translation = pose(at)
+        return np.array([_project(c[None], rotation[k], translation[k], matrix, distortion)[0]
+                         for k, c in enumerate(centres)])
+
+    return rolling_pixels(pixels_at, np.full(len(centres), float(frame)), height, readout, centred=False)[0]
 
 
 def _inside(corners, pose, n_frames, matrix, distortion, size) -> np.ndarray:

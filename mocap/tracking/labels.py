@@ -5,8 +5,11 @@ The proposal searches joint values starting from the calibration's (and a few sw
 boom/arm moves around them): each start alternates an optimal gated assignment of the
 detections to the projected markers with a robust fit of the joint values, the gate
 shrinking from coarse to tight (from 15 px down, with the image's shift from the model, the
-median of what the fit leaves: a camera shaken or a little off its calibrated pose); the
-start that labels the most detections within the tight gate (then the lowest residual) wins.
+median of what the fit leaves: a camera shaken or a little off its calibrated pose), and
+each start again from the fine gates only (from 8 px: a start near the frame's joints, where
+a coarse gate lets a marker that was not detected take a neighbour's disk and turn its link
+to reach it); the refined start that labels the most detections within the tight gate (then
+the lowest residual) wins.
 
 Shapes: M markers, N detections, J joints.
 """
@@ -25,6 +28,7 @@ log = logging.getLogger(__name__)
 
 _GATES_PX = (120.0, 60.0, 30.0, 15.0, 8.0, 4.0)
 _SHIFT_GATE_PX = 15.0  # from this gate down, the image's shift from the model is fitted too
+_FINE_START_PX = 8.0  # each start is also refined from this gate down only
 
 
 def starts_around(model: CameraModel, joints: np.ndarray, n_swing: int = 7, spread_deg: float = 25.0) -> np.ndarray:
@@ -53,26 +57,15 @@ def propose_labels(
 ) -> FrameResult | None:
     """Label detections by fitting the model from each of `starts` (S, J), all starts
     together; None when no start explains at least `min_markers` detections."""
-    joints = np.array(np.atleast_2d(starts), dtype=float)
-    n_starts, n_markers = len(joints), len(model.machine.marker_names)
-    alive = np.ones(n_starts, dtype=bool)
-    shift = np.zeros((n_starts, 2))  # the image's from the model (the camera off its calibrated pose)
-    for gate in _GATES_PX + (tight_px,):
-        view = model.view(joints)
-        observed = np.full((n_starts, n_markers, 2), np.nan)
-        for k in np.flatnonzero(alive):
-            markers, index = assign(view.uv[k] + shift[k], detections.xy, np.full(n_markers, gate), view.visible[k])
-            alive[k] = len(markers) >= 3
-            observed[k, markers] = detections.xy[index]
-        if not np.any(alive):
-            return None
-        fit = model.fit(observed[alive] - shift[alive, None], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0))
-        joints[alive] = fit.joints
-        if gate <= _SHIFT_GATE_PX:  # what the joints leave, common to all the markers
-            left = observed[alive] - shift[alive, None] - fit.uv
-            seen = np.isfinite(left[..., 0])
-            median = np.nanmedian(np.where(seen[..., None], left, np.nan), axis=1) if np.any(seen) else 0.0
-            shift[alive] += np.where(np.sum(seen, axis=1)[:, None] >= 5, np.nan_to_num(median), 0.0)
+    starts = np.array(np.atleast_2d(starts), dtype=float)
+    n_markers = len(model.machine.marker_names)
+    # from coarse gates down (a start far off), and from the fine ones alone (a start near the
+    # frame's joints, where a coarse gate would let an undetected marker take another's disk)
+    fine = tuple(g for g in _GATES_PX if g <= _FINE_START_PX)
+    searches = [_search(model, detections, starts, gates + (tight_px,)) for gates in (_GATES_PX, fine)]
+    joints, shift, alive = (np.concatenate(parts) for parts in zip(*searches))
+    if not np.any(alive):
+        return None
     view = model.view(joints)
     best, best_key = None, None
     for k in np.flatnonzero(alive):
@@ -88,6 +81,33 @@ def propose_labels(
         return None
     best = _determined(model, _same_size(model, best))
     return best if len(best.markers) >= min_markers else None
+
+
+def _search(model: CameraModel, detections: Detections, starts: np.ndarray, gates: tuple[float, ...]):
+    """Each start (S, J) refined by assigning the detections within each of `gates` in turn
+    and fitting the joints. Returns the joints (S, J), the image's shift from the model
+    (S, 2) and which starts kept at least three markers (S,)."""
+    joints = starts.copy()
+    n_starts, n_markers = len(joints), len(model.machine.marker_names)
+    alive = np.ones(n_starts, dtype=bool)
+    shift = np.zeros((n_starts, 2))  # the image's from the model (the camera off its calibrated pose)
+    for gate in gates:
+        view = model.view(joints)
+        observed = np.full((n_starts, n_markers, 2), np.nan)
+        for k in np.flatnonzero(alive):
+            markers, index = assign(view.uv[k] + shift[k], detections.xy, np.full(n_markers, gate), view.visible[k])
+            alive[k] = len(markers) >= 3
+            observed[k, markers] = detections.xy[index]
+        if not np.any(alive):
+            break
+        fit = model.fit(observed[alive] - shift[alive, None], joints[alive], iterations=8, scale_px=max(gate / 4, 1.0))
+        joints[alive] = fit.joints
+        if gate <= _SHIFT_GATE_PX:  # what the joints leave, common to all the markers
+            left = observed[alive] - shift[alive, None] - fit.uv
+            seen = np.isfinite(left[..., 0])
+            median = np.nanmedian(np.where(seen[..., None], left, np.nan), axis=1) if np.any(seen) else 0.0
+            shift[alive] += np.where(np.sum(seen, axis=1)[:, None] >= 5, np.nan_to_num(median), 0.0)
+    return joints, shift, alive
 
 
 def _determined(model: CameraModel, result: FrameResult) -> FrameResult:
