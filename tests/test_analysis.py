@@ -384,3 +384,17 @@ def test_random_digger_on_the_fitted_motion(seed):
     for errors in (np.abs(score.start_errors), np.abs(score.end_errors)):
         assert np.median(errors) < 0.5 and errors.max() < 1.5
     assert score.class_correct == score.true, (list(a.table["class"]), list(truth["class"]))
+
+
+def test_a_backhoe_dig_lowered_early_is_found_from_its_start():
+    # a random digger's backhoe dig (dig 9 of this plan) whose operator lowers the bucket
+    # for a while about 3 s into the drag: the tip's displacement 3 s after the start
+    # points down as a lowering's does, yet the dig starts where the drag does
+    machine = random_digger(np.random.default_rng(10))
+    plan = plan_session(machine, 12, np.random.default_rng(1010), classes=(BACKHOE,))
+    event = [s.redirection for s in plan.segments if s.dig is not None][8]
+    assert event is not None and event.dz < 0 and not event.kept
+    motion, truth = planned_truth(machine, plan)
+    score = score_analysis(analyze(tip_series(motion)).table, truth)
+    assert score.missed == 0 and score.extra == 0
+    assert np.abs(score.start_errors).max() < 1.5
