@@ -8,8 +8,8 @@ Definitions (the README states them too):
 - The **dig** runs from the bucket's first cutting motion after the return swing has
   stopped at the face (the tip speed's minimum at the end of the lowering, after which the
   tip moves forward, up, or back along the floor as a backhoe's drags — not mostly down,
-  judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as the swing toward the truck begins
-  (the last tip-speed minimum before that swing). When the bucket rests longer than
+  judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as
+  the swing toward the truck begins (the last tip-speed minimum before that swing). When the bucket rests longer than
   `pause_s` at either end, the dig starts when it leaves the rest and ends when it comes to
   rest.
 - A **cycle** runs from the start of one dig to the start of the next (the last ends with
