@@ -9,9 +9,9 @@ Definitions (the README states them too):
   stopped at the face (the tip speed's minimum at the end of the lowering, after which the
   tip moves forward, up, or back along the floor as a backhoe's drags — not mostly down,
   judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as
-  the swing toward the truck begins (the last tip-speed minimum before that swing). When the bucket rests longer than
-  `pause_s` at either end, the dig starts when it leaves the rest and ends when it comes to
-  rest.
+  the swing toward the truck begins (the last tip-speed minimum before that swing). When
+  the bucket rests longer than `pause_s` at either end, the dig starts when it leaves the
+  rest and ends when it comes to rest.
 - A **cycle** runs from the start of one dig to the start of the next (the last ends with
   the data); its phases are dig, swing loaded (lift-out and swing to the truck), dump (the
   dwell at the truck) and swing back (the return swing and lowering to the next dig).
