@@ -4,7 +4,8 @@ Found digs are matched to true ones by the nearest dig start within `tolerance_s
 factors are relative to a class template whose size is the class's typical size, while
 the truth's are relative to the class's general shape at its drawn sizes' middle
 (`mocap.synthetic.paths.stretch`): they are compared after dividing out one factor per
-class (the geometric mean of estimated / true). Scale errors are also given for the digs
+class (the median of estimated / true, in logarithms: one dig far off does not move its
+classmates' errors). Scale errors are also given for the digs
 without an operator's redirection alone: a kept lift and a taller dig look alike in the
 path, and their split is only as good as the event's fit.
 """
@@ -93,7 +94,7 @@ def score_analysis(found: dict, truth: dict, tolerance_s: float = 3.0) -> Analys
             pick = (f_class[fj] == label) & np.isfinite(ratio)
             if pick.sum() >= 2:
                 r = ratio[pick]
-                scale_errors.append(r / np.exp(np.log(r).mean()) - 1.0)
+                scale_errors.append(r / np.exp(np.median(np.log(r))) - 1.0)
                 scale_redirected.append(t_red[ti][pick] != "none")
     return AnalysisScore(
         true=len(t_start), found=len(f_start), missed=len(t_start) - len(pairs), extra=int((~used).sum()),

@@ -7,11 +7,11 @@ Definitions (the README states them too):
   is at the **face**; the dwell after a face dwell is at the **truck**.
 - The **dig** runs from the bucket's first cutting motion after the return swing has
   stopped at the face (the tip speed's minimum at the end of the lowering, after which the
-  tip moves forward, up, or back along the floor as a backhoe's drags — not mostly down —
-  by more than the base's bouncing) to its lift-out as the swing toward the truck begins
-  (the last tip-speed minimum before that swing). When the bucket rests longer than
-  `pause_s` at either end, the dig starts when it leaves the rest and ends when it comes to
-  rest.
+  tip moves forward, up, or back along the floor as a backhoe's drags — not mostly down,
+  judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as
+  the swing toward the truck begins (the last tip-speed minimum before that swing). When
+  the bucket rests longer than `pause_s` at either end, the dig starts when it leaves the
+  rest and ends when it comes to rest.
 - A **cycle** runs from the start of one dig to the start of the next (the last ends with
   the data); its phases are dig, swing loaded (lift-out and swing to the truck), dump (the
   dwell at the truck) and swing back (the return swing and lowering to the next dig).
@@ -146,12 +146,18 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
         e = min(k + horizon, b)
         if e <= k:
             continue
-        dr = series.reach[e] - series.reach[k]
-        dz = series.height[e] - series.height[k]
-        # more than the base's bouncing, and than a hundredth of the tip's distance from the
-        # swing axis (a machine at rest has no speed scale of its own)
-        moved = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * float(np.median(series.reach)))
-        if moved and dz > -0.3 * abs(dr):  # not the lowering: out, up, or in along the floor (a backhoe)
+        dr = series.reach[k:e + 1] - series.reach[k]
+        dz = series.height[k:e + 1] - series.height[k]
+        # moved: more than the base's bouncing, and than a hundredth of the tip's distance
+        # from the swing axis (a machine at rest has no speed scale of its own); not the
+        # lowering: out, up, or in along the floor (a backhoe) at the horizon, or at most
+        # of the frames from the move to the horizon (an operator's lower near the horizon
+        # turns its displacement downwards)
+        far = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * float(np.median(series.reach)))
+        if not far[-1]:
+            continue
+        level = dz[far.argmax():] > -0.3 * np.abs(dr[far.argmax():])
+        if level[-1] or level.mean() > 0.5:
             start = k
             break
     if start is None:

@@ -266,8 +266,7 @@ def random_scene(rng: np.random.Generator, options: SceneOptions = SceneOptions(
     machine = random_machine(rng) if machine is None else machine
     joints = random_motion(machine, n_frames, rng)
     world = machine.markers(joints)  # (F, M, 3)
-    n_cameras = int(rng.integers(options.cameras[0], options.cameras[1] + 1))
-    cameras = tuple(_random_camera(f"cam{k + 1}", world, options.distance_m, rng) for k in range(n_cameras))
+    cameras = random_cameras(world, options, rng)
     for _ in range(100):
         tracks, outlier = _observe(cameras, machine, world, rng, options)
         if _identifiable(machine, cameras, tracks):
@@ -294,6 +293,14 @@ def random_motion(machine: Machine, n_frames: int, rng: np.random.Generator, fps
     rate = fastest * rng.uniform(0.2, 1.0, (2, machine.n_joints))
     wave = 0.6 * np.sin(2 * np.pi * rate[0] * t + phase[0]) + 0.4 * np.sin(2 * np.pi * rate[1] * t + phase[1])
     return centre + half * wave
+
+
+def random_cameras(world: np.ndarray, options: SceneOptions, rng: np.random.Generator) -> tuple[Camera, ...]:
+    """`options.cameras` (least, most) random cameras named cam1, cam2, ... looking at the
+    markers' world positions `world` (F, M, 3) from `options.distance_m`, every marker of
+    every frame in front of them and in view."""
+    n_cameras = int(rng.integers(options.cameras[0], options.cameras[1] + 1))
+    return tuple(_random_camera(f"cam{k + 1}", world, options.distance_m, rng) for k in range(n_cameras))
 
 
 def _random_camera(name: str, world: np.ndarray, distance_m, rng) -> Camera:
