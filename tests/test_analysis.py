@@ -398,3 +398,16 @@ def test_a_backhoe_dig_lowered_early_is_found_from_its_start():
     score = score_analysis(analyze(tip_series(motion)).table, truth)
     assert score.missed == 0 and score.extra == 0
     assert np.abs(score.start_errors).max() < 1.5
+
+
+def test_the_score_line_says_when_scales_cannot_be_scored():
+    from mocap.analysis.score import AnalysisScore, format_analysis_score
+
+    def score(scale_errors):
+        return AnalysisScore(true=2, found=2, missed=0, extra=0, start_errors=np.array([0.1, 0.2]),
+                             end_errors=np.array([0.1, 0.3]), class_correct=2, redirect_tp=1, redirect_fp=0,
+                             redirect_fn=0, redirect_kind_correct=1, scale_errors=np.asarray(scale_errors, float))
+
+    assert "scale error not scored (fewer than two digs of any one class)" in format_analysis_score(score([]))
+    assert "scale error median 3.0%" in format_analysis_score(score([0.02, -0.04]))
+    assert "nan" not in format_analysis_score(score([]))

@@ -118,7 +118,9 @@ def format_analysis_score(score: AnalysisScore) -> str:
     return (f"dig cycles: {r['found']} found of {r['true']} ({r['missed']} missed, {r['extra']} extra); "
             f"dig start error median {r['start_med_s']:.2f} s (95th {r['start_p95_s']:.2f}), end {r['end_med_s']:.2f} s "
             f"(95th {r['end_p95_s']:.2f}); class accuracy {r['class_acc']:.0%}; redirections precision "
-            f"{r['redir_precision']:.0%} recall {r['redir_recall']:.0%}; scale error median {r['scale_med']:.1%}")
+            f"{r['redir_precision']:.0%} recall {r['redir_recall']:.0%}; " + (
+                f"scale error median {r['scale_med']:.1%}" if np.isfinite(r["scale_med"])
+                else "scale error not scored (fewer than two digs of any one class)"))
 
 
 def planned_truth(machine, plan, fps: float = 30.0):
