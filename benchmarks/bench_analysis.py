@@ -147,17 +147,8 @@ def accuracy(root: Path, quick: bool) -> None:
           rows)
     summary = []
     for label, scores in pooled.items():
-        start = np.abs(np.concatenate([s.start_errors for s in scores]))
-        end = np.abs(np.concatenate([s.end_errors for s in scores]))
-        errors = np.abs(np.concatenate([s.scale_errors for s in scores]))
-        redirected = np.concatenate([s.scale_redirected for s in scores])
-        tp, fp, fn = (sum(getattr(s, k) for s in scores) for k in ("redirect_tp", "redirect_fp", "redirect_fn"))
-        true = sum(s.true for s in scores)
-        summary.append([label, true, sum(s.found for s in scores), sum(s.missed for s in scores),
-                        sum(s.extra for s in scores), float(np.median(start)), float(np.percentile(start, 95)),
-                        float(np.median(end)), float(np.percentile(end, 95)),
-                        sum(s.class_correct for s in scores) / true, tp / max(tp + fp, 1), tp / max(tp + fn, 1),
-                        float(np.mean(errors <= 0.05)), float(np.mean(errors[~redirected] <= 0.05))])
+        counts, bounds, class_acc, redirections, scales = pool(scores)
+        summary.append([label, *counts, *bounds, class_acc, *redirections, *scales])
     table("(1b) all sessions of (1) pooled",
           ["motion", "true", "found", "missed", "extra", "start med", "start p95", "end med", "end p95", "class acc",
            "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], summary)
@@ -244,18 +235,27 @@ def other_machines(n: int, root: Path) -> None:
 def machine_row(kind: str, label: str, machines: int, refused: int, fit_refused: int, scores: list,
                 other: list) -> list:
     """One row of table (4): the sessions' scores pooled."""
+    counts, bounds, class_acc, redirections, scales = pool(scores)
+    return [kind, label, machines, refused, fit_refused, *counts, *bounds, class_acc, float(np.mean(other)),
+            *redirections, *scales]
+
+
+def pool(scores: list) -> tuple:
+    """Sessions' scores pooled: (true, found, missed, extra); dig start and end median and
+    95th (s); class accuracy over the true digs; redirection precision and recall; the
+    shares of scale errors within 5 %, of all digs and of those without a redirection."""
     start = np.abs(np.concatenate([s.start_errors for s in scores]))
     end = np.abs(np.concatenate([s.end_errors for s in scores]))
     errors = np.abs(np.concatenate([s.scale_errors for s in scores]))
     redirected = np.concatenate([s.scale_redirected for s in scores])
     tp, fp, fn = (sum(getattr(s, k) for s in scores) for k in ("redirect_tp", "redirect_fp", "redirect_fn"))
     true = sum(s.true for s in scores)
-    return [kind, label, machines, refused, fit_refused, true, sum(s.found for s in scores),
-            sum(s.missed for s in scores), sum(s.extra for s in scores), float(np.median(start)),
-            float(np.percentile(start, 95)), float(np.median(end)), float(np.percentile(end, 95)),
-            sum(s.class_correct for s in scores) / max(true, 1), float(np.mean(other)),
-            tp / max(tp + fp, 1), tp / max(tp + fn, 1), float(np.mean(errors <= 0.05)),
-            float(np.mean(errors[~redirected] <= 0.05))]
+    counts = (true, *(sum(getattr(s, k) for s in scores) for k in ("found", "missed", "extra")))
+    bounds = (float(np.median(start)), float(np.percentile(start, 95)), float(np.median(end)),
+              float(np.percentile(end, 95)))
+    class_acc = sum(s.class_correct for s in scores) / max(true, 1)
+    return (counts, bounds, class_acc, (tp / max(tp + fp, 1), tp / max(tp + fn, 1)),
+            (float(np.mean(errors <= 0.05)), float(np.mean(errors[~redirected] <= 0.05))))
 
 
 def plan_reach(plan) -> float:

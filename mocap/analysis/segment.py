@@ -156,7 +156,8 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
         far = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * float(np.median(series.reach)))
         if not far[-1]:
             continue
-        level = dz[far.argmax():] > -0.3 * np.abs(dr[far.argmax():])
+        moved = far.argmax()  # the first frame beyond the bouncing
+        level = dz[moved:] > -0.3 * np.abs(dr[moved:])
         if level[-1] or level.mean() > 0.5:
             start = k
             break

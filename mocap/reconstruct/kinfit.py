@@ -77,6 +77,10 @@ class FitOptions:
         if min(self.iterations, self.grid, self.chunk, self.key_stride) < 1 or self.repair_passes < 0:
             raise ValueError("iterations, grid, chunk and key_stride must be >= 1, repair_passes >= 0")
 
+    def tolerance_of(self, machine: Machine) -> Tolerance | None:
+        """The markers' tolerance the fit uses: the options', else the model's (falsy: exact)."""
+        return machine.tolerance if self.tolerance is None else self.tolerance
+
 
 @dataclass(frozen=True)
 class JointFit:
@@ -209,7 +213,7 @@ class _Problem(KinematicModel):
     """The model, cameras and options of one fit, and the batched solver."""
 
     def __init__(self, machine: Machine, cameras: tuple[Camera, ...], options: FitOptions):
-        tolerance = machine.tolerance if options.tolerance is None else options.tolerance
+        tolerance = options.tolerance_of(machine)
         marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
         super().__init__(machine, cameras, options.base_motion, options.loss, options.scale_px,
                          marker_sd, options.noise_px or 0.5)

@@ -57,7 +57,7 @@ def reconstruct_motion(
     """
     fit_options = fit_options or FitOptions()
     offsets, shared = None, 0.0
-    if fit_options.tolerance or (fit_options.tolerance is None and machine.tolerance):
+    if fit_options.tolerance_of(machine):
         result = fit_with_offsets(machine, cameras, pixels, initial=initial, options=fit_options)
         fit, offsets, shared = result.fit, result.offsets, result.shared
     else:

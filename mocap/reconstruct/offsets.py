@@ -136,7 +136,7 @@ def fit_with_offsets(
     initial, initial_base as for `fit_joints`.
     """
     options = options or FitOptions()
-    tolerance = machine.tolerance if options.tolerance is None else options.tolerance
+    tolerance = options.tolerance_of(machine)
     if not tolerance:
         raise ValueError("estimating the markers' offsets needs a stated tolerance (options.tolerance or the model's)")
     prior_sd = tape_sd(tolerance, machine.marker_positions)

@@ -136,7 +136,7 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
     from mocap.reconstruct.motion import reconstruct_motion
 
     machine = load_machine(machine_path)
-    if out_machine is not None and not (fit_options.tolerance or (fit_options.tolerance is None and machine.tolerance)):
+    if out_machine is not None and not fit_options.tolerance_of(machine):
         raise InputError("--out-machine needs the markers' tolerance (--tolerance, or `tolerance` in the model file): "
                          "without it the markers are taken as exact and not moved", path=machine_path)
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)

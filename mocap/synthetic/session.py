@@ -140,11 +140,6 @@ class SyntheticSession:
         """Pixels (F, M, 2) of each marker m of `camera` at its own fractional frame `at` (F, M)."""
         return marker_pixels_at(self.machine, self.plan, camera, at)
 
-    def rolling_pixels(self, camera: FieldCamera, frames: np.ndarray) -> np.ndarray:
-        """True marker pixels (F, M, 2) of `camera` at its `frames` (F,), each where the
-        marker is when its own row is read (the session's `readout`)."""
-        return rolling_marker_pixels(self.machine, self.plan, camera, frames, self.options.readout)
-
 
 def marker_sizes(reach: float) -> tuple[float, float]:
     """The painted disk's diameter and its white square's side (m) on a machine of `reach`
