@@ -53,14 +53,14 @@ from mocap.reconstruct.offsets import fit_with_offsets
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate
 from mocap.reconstruct.uncertainty import point_quantities
-from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_sd
+from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_covariance
 from mocap.synthetic.machines import SceneOptions, random_scene
 
 FIELD = SceneOptions.field()
 CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera", "calibration_unflagged"]
-CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation"]
+CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation", "triangulation_at_bound"]
 FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "fit_sds", "fit_weighted_only",
-              "triangulation"]
+              "triangulation", "triangulation_at_bound"]
 FRAMES = 40
 
 
@@ -172,11 +172,16 @@ def one_scene(seed: int, field: bool) -> dict:
         result = triangulate(cameras, on_clock(scene) if field else scene.pixels())
         truth = machine.markers(scene.joints).reshape(-1, 3)
         seen = np.isfinite(pixels_without_wild(scene)[..., 0]).reshape(len(cameras), -1)
-        bound = triangulation_sd(cameras, truth, seen, noise)
+        covariance = triangulation_covariance(cameras, truth, seen, noise)
+        bound = np.sqrt(np.trace(covariance, axis1=1, axis2=2))
         error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth, axis=1)
         ok = np.isfinite(bound) & np.isfinite(error)
         if ok.any():
             out["triangulation"] = float(np.sqrt(np.mean(error[ok] ** 2) / np.mean(bound[ok] ** 2)))
+            values, vectors = np.linalg.eigh(covariance[ok])  # one draw of each point's error at the bound
+            draws = np.einsum("nij,nj->ni", vectors, np.sqrt(np.maximum(values, 0))
+                              * np.random.default_rng(seed + 11).normal(size=values.shape))
+            out["triangulation_at_bound"] = float(np.sqrt(np.mean((draws**2).sum(1)) / np.mean(bound[ok] ** 2)))
             out["lost_points"] = float(1 - ok.sum() / max(np.isfinite(bound).sum(), 1))
     return out
 
