@@ -27,6 +27,13 @@ tolerance, as before);
 `fit_unambiguous` the same over the scenes where the fit finds no second solution that
 explains the pixels as well (`mocap.reconstruct.ambiguity`; the others are reported by the
 fit itself, not hidden); `fit_sds` the worst frame's tip error in its stated SDs.
+`triangulation_at_bound` what an estimator exactly at the triangulation bound would score
+(one draw of every point's error from its bound covariance).
+
+With `--refined N`, N clean scenes of `REFINED_FRAMES` frames go through the chain a user
+runs without surveyed cameras: the one-frame calibration (frame 0), `refine` over the
+scene's frames, then the per-frame fit; the tip's RMS error over the bound with the true
+cameras, beside the same fit with the true cameras.
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets
+from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate
 from mocap.reconstruct.uncertainty import point_quantities
@@ -62,6 +70,7 @@ CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangula
 FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "fit_sds", "fit_weighted_only",
               "triangulation", "triangulation_at_bound"]
 FRAMES = 40
+REFINED_FRAMES = 120  # a session's refinement sees many frames; 40 leave the cameras a few tenths of the bound
 
 
 def centres_error(cameras, truth) -> np.ndarray:
@@ -186,6 +195,41 @@ def one_scene(seed: int, field: bool) -> dict:
     return out
 
 
+def refined_scene(seed: int) -> dict:
+    """A clean scene through calibrate (frame 0), refine (every frame) and fit: the tip's
+    error over the bound with the true cameras, and the same fit with the true cameras."""
+    rng = np.random.default_rng(seed)
+    options = SceneOptions()
+    scene = random_scene(rng, options, n_frames=REFINED_FRAMES)
+    machine, cameras, pixels = scene.machine, list(scene.cameras), scene.pixels()
+    out = dict(seed=seed, joints=machine.n_joints, cameras=len(cameras), markers=len(machine.marker_names))
+    if not (machine.n_joints and machine.point_names):
+        return out
+    bound = fit_point_sd(machine, cameras, scene.joints, np.isfinite(pixels[..., 0]), options.noise_px, None)[:, 0]
+    shown = np.isfinite(bound)
+    truth = machine.points(scene.joints)[:, 0]
+    if not shown.any():
+        return out
+
+    def tip_ratio(cameras_used) -> float:
+        fit = fit_joints(scene.model, cameras_used, pixels)
+        error = np.linalg.norm(machine.points(np.nan_to_num(fit.joints))[:, 0] - truth, axis=1)
+        return float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
+
+    try:
+        templates = [template_camera(c.name, c.size) for c in cameras]
+        calibrated = list(calibrate(scene.model, scene.observations(), templates, CalibrationOptions()).cameras)
+        refined = list(refine(scene.model, calibrated, pixels, RefineOptions(frames=REFINED_FRAMES)).cameras)
+    except InputError as exc:
+        out["refused"] = str(exc).split(";")[0][:90]
+        return out
+    out["fit_known_cameras"] = tip_ratio(cameras)
+    out["fit_calibrated"] = tip_ratio(calibrated)
+    out["fit_refined"] = tip_ratio(refined)
+    out["fit_refined_over_known"] = out["fit_refined"] / out["fit_known_cameras"]
+    return out
+
+
 def distribution(rows: list[dict], key: str) -> list:
     values = np.array([r[key] for r in rows if key in r], dtype=float)
     values = values[~np.isnan(values)]  # a frame whose fit states no SD (nothing seen) has no ratio
@@ -233,10 +277,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first", type=int, default=0, help="the first scene's seed (default 0)")
     parser.add_argument("--jobs", type=int, default=1, help="processes to run scenes in (default 1)")
     parser.add_argument("--rows", help="also write every scene's figures to this file (JSON lines)")
+    parser.add_argument("--refined", type=int, default=0, metavar="N",
+                        help="also N clean scenes through calibrate, refine and fit (default 0)")
     args = parser.parse_args(argv)
     logging.getLogger("mocap").setLevel(logging.ERROR)  # the warnings are counted in the table instead
     kinds = [k for k in ((False, "Clean scenes", CLEAN_KEYS), (True, "Field scenes", FIELD_KEYS))
-             if args.kind in ("both", "field" if k[0] else "clean")]
+             if args.scenes and args.kind in ("both", "field" if k[0] else "clean")]
     everything = []
     for field, name, keys in kinds:
         started = time.perf_counter()
@@ -253,6 +299,21 @@ def main(argv: list[str] | None = None) -> int:
             both = np.isfinite(ours) & np.isfinite(naive)
             print(f"  calibration beside the peer (plain least squares from a perturbed truth), median of "
                   f"the ratio ours / peer: {np.median(ours[both] / naive[both]):.2f}")
+    if args.refined:
+        started = time.perf_counter()
+        with multiprocessing.Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
+            rows = list((pool.map if pool else map)(refined_scene, range(args.first, args.first + args.refined)))
+        everything += rows
+        table(f"One-frame calibration, refined over {REFINED_FRAMES} frames, then fit: {len(rows)} clean scenes, "
+              "tip error / bound with the true cameras", ["stage", "scenes", "median", "90 %", "99 %", "worst"],
+              [distribution(rows, k) for k in ("fit_known_cameras", "fit_calibrated", "fit_refined",
+                                                "fit_refined_over_known")])
+        refused = [r for r in rows if "refused" in r]
+        print(f"  calibration or refinement refused: {len(refused)}")
+        worst = sorted((r for r in rows if "fit_refined" in r), key=lambda r: -r["fit_refined"])[:3]
+        print("  worst refined: " + "; ".join(f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) "
+                                               f"{r['fit_refined']:.2f}" for r in worst))
+        print(f"  wall time {time.perf_counter() - started:.0f} s ({args.jobs} process(es))")
     if args.rows:
         with open(args.rows, "w") as out:
             out.writelines(json.dumps(r) + "\n" for r in everything)

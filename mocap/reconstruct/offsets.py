@@ -147,9 +147,8 @@ def fit_with_offsets(
     exact = replace(options, tolerance=Tolerance())  # with the offsets estimated, the pixels weighed as they are
     for rounds in range(1, ROUNDS + 1):
         moved = replace(machine, marker_positions=machine.marker_positions + offsets)
-        # the first fit's residuals are divided by the tolerance: its noise is not the pixels'
-        noise = max(fit.noise_px, options.noise_px or 0.5) if rounds == 1 else fit.noise_px
-        reduced, rhs, used = offsets_system(moved, cameras, pixels, fit, offsets, prior_sd, covariance, noise)
+        # the first fit's noise is the nominal at least (its residuals are divided by the tolerance)
+        reduced, rhs, used = offsets_system(moved, cameras, pixels, fit, offsets, prior_sd, covariance, fit.noise_px)
         full = np.linalg.inv(reduced)
         step = bounded_step(reduced, rhs, offsets.ravel(), bound.ravel()).reshape(offsets.shape)
         covariance = _marginals(full)
