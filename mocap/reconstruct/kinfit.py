@@ -197,7 +197,7 @@ def fit_joints(
         noise = max(noise, problem.noise_px)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
-        log.warning("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
+        log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
                     unexplained.sum(), noise)
     return problem.result(pixels, state, noise, unexplained)
 
