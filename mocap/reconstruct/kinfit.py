@@ -198,7 +198,7 @@ def fit_joints(
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
         log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
-                    unexplained.sum(), noise)
+                 unexplained.sum(), noise)
     return problem.result(pixels, state, noise, unexplained)
 
 
