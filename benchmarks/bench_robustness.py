@@ -27,6 +27,14 @@ tolerance, as before);
 `fit_unambiguous` the same over the scenes where the fit finds no second solution that
 explains the pixels as well (`mocap.reconstruct.ambiguity`; the others are reported by the
 fit itself, not hidden); `fit_sds` the worst frame's tip error in its stated SDs.
+`triangulation_at_bound` what an estimator exactly at the triangulation bound would score
+(one draw of every point's error from its bound covariance).
+
+With `--refined N`, N clean scenes of `REFINED_FRAMES` frames go through the chain a user
+runs without surveyed cameras: the one-frame calibration (frame 0), `refine` over the
+scene's frames, then the per-frame fit; the tip's RMS error over the bound with the true
+cameras, beside the same fit with the true cameras and with the cameras refined from the truth
+(what the scene's frames can fix of the cameras at best).
 """
 
 from __future__ import annotations
@@ -50,18 +58,20 @@ from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets
+from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate
 from mocap.reconstruct.uncertainty import point_quantities
-from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_sd
+from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_covariance
 from mocap.synthetic.machines import SceneOptions, random_scene
 
 FIELD = SceneOptions.field()
 CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera", "calibration_unflagged"]
-CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation"]
+CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation", "triangulation_at_bound"]
 FIELD_KEYS = [*CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "fit_sds", "fit_weighted_only",
-              "triangulation"]
+              "triangulation", "triangulation_at_bound"]
 FRAMES = 40
+REFINED_FRAMES = 120  # a session's refinement sees many frames; 40 leave the cameras a few tenths of the bound
 
 
 def centres_error(cameras, truth) -> np.ndarray:
@@ -172,12 +182,55 @@ def one_scene(seed: int, field: bool) -> dict:
         result = triangulate(cameras, on_clock(scene) if field else scene.pixels())
         truth = machine.markers(scene.joints).reshape(-1, 3)
         seen = np.isfinite(pixels_without_wild(scene)[..., 0]).reshape(len(cameras), -1)
-        bound = triangulation_sd(cameras, truth, seen, noise)
+        covariance = triangulation_covariance(cameras, truth, seen, noise)
+        bound = np.sqrt(np.trace(covariance, axis1=1, axis2=2))
         error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth, axis=1)
         ok = np.isfinite(bound) & np.isfinite(error)
         if ok.any():
             out["triangulation"] = float(np.sqrt(np.mean(error[ok] ** 2) / np.mean(bound[ok] ** 2)))
+            values, vectors = np.linalg.eigh(covariance[ok])  # one draw of each point's error at the bound
+            draws = np.einsum("nij,nj->ni", vectors, np.sqrt(np.maximum(values, 0))
+                              * np.random.default_rng(seed + 11).normal(size=values.shape))
+            out["triangulation_at_bound"] = float(np.sqrt(np.mean((draws**2).sum(1)) / np.mean(bound[ok] ** 2)))
             out["lost_points"] = float(1 - ok.sum() / max(np.isfinite(bound).sum(), 1))
+    return out
+
+
+def refined_scene(seed: int) -> dict:
+    """A clean scene through calibrate (frame 0), refine (every frame) and fit: the tip's
+    error over the bound with the true cameras, and the same fit with the true cameras."""
+    rng = np.random.default_rng(seed)
+    options = SceneOptions()
+    scene = random_scene(rng, options, n_frames=REFINED_FRAMES)
+    machine, cameras, pixels = scene.machine, list(scene.cameras), scene.pixels()
+    out = dict(seed=seed, joints=machine.n_joints, cameras=len(cameras), markers=len(machine.marker_names))
+    if not (machine.n_joints and machine.point_names):
+        return out
+    bound = fit_point_sd(machine, cameras, scene.joints, np.isfinite(pixels[..., 0]), options.noise_px, None)[:, 0]
+    shown = np.isfinite(bound)
+    truth = machine.points(scene.joints)[:, 0]
+    if not shown.any():
+        return out
+
+    def tip_ratio(cameras_used) -> float:
+        fit = fit_joints(scene.model, cameras_used, pixels)
+        error = np.linalg.norm(machine.points(np.nan_to_num(fit.joints))[:, 0] - truth, axis=1)
+        return float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
+
+    try:
+        templates = [template_camera(c.name, c.size) for c in cameras]
+        calibrated = list(calibrate(scene.model, scene.observations(), templates, CalibrationOptions()).cameras)
+        refined = list(refine(scene.model, calibrated, pixels, RefineOptions(frames=REFINED_FRAMES)).cameras)
+    except InputError as exc:
+        out["refused"] = str(exc).split(";")[0][:90]
+        return out
+    out["fit_known_cameras"] = tip_ratio(cameras)
+    out["fit_calibrated"] = tip_ratio(calibrated)
+    out["fit_refined"] = tip_ratio(refined)
+    out["fit_refined_over_known"] = out["fit_refined"] / out["fit_known_cameras"]
+    # the same refinement started from the true cameras: where it ends as far, the frames do not fix the cameras better
+    out["fit_refined_from_truth"] = tip_ratio(list(refine(scene.model, cameras, pixels,
+                                                          RefineOptions(frames=REFINED_FRAMES)).cameras))
     return out
 
 
@@ -228,10 +281,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first", type=int, default=0, help="the first scene's seed (default 0)")
     parser.add_argument("--jobs", type=int, default=1, help="processes to run scenes in (default 1)")
     parser.add_argument("--rows", help="also write every scene's figures to this file (JSON lines)")
+    parser.add_argument("--refined", type=int, default=0, metavar="N",
+                        help="also N clean scenes through calibrate, refine and fit (default 0)")
     args = parser.parse_args(argv)
     logging.getLogger("mocap").setLevel(logging.ERROR)  # the warnings are counted in the table instead
     kinds = [k for k in ((False, "Clean scenes", CLEAN_KEYS), (True, "Field scenes", FIELD_KEYS))
-             if args.kind in ("both", "field" if k[0] else "clean")]
+             if args.scenes and args.kind in ("both", "field" if k[0] else "clean")]
     everything = []
     for field, name, keys in kinds:
         started = time.perf_counter()
@@ -248,6 +303,21 @@ def main(argv: list[str] | None = None) -> int:
             both = np.isfinite(ours) & np.isfinite(naive)
             print(f"  calibration beside the peer (plain least squares from a perturbed truth), median of "
                   f"the ratio ours / peer: {np.median(ours[both] / naive[both]):.2f}")
+    if args.refined:
+        started = time.perf_counter()
+        with multiprocessing.Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
+            rows = list((pool.map if pool else map)(refined_scene, range(args.first, args.first + args.refined)))
+        everything += rows
+        table(f"One-frame calibration, refined over {REFINED_FRAMES} frames, then fit: {len(rows)} clean scenes, "
+              "tip error / bound with the true cameras", ["stage", "scenes", "median", "90 %", "99 %", "worst"],
+              [distribution(rows, k) for k in ("fit_known_cameras", "fit_calibrated", "fit_refined",
+                                                "fit_refined_over_known", "fit_refined_from_truth")])
+        refused = [r for r in rows if "refused" in r]
+        print(f"  calibration or refinement refused: {len(refused)}")
+        worst = sorted((r for r in rows if "fit_refined" in r), key=lambda r: -r["fit_refined"])[:3]
+        print("  worst refined: " + "; ".join(f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) "
+                                               f"{r['fit_refined']:.2f}" for r in worst))
+        print(f"  wall time {time.perf_counter() - started:.0f} s ({args.jobs} process(es))")
     if args.rows:
         with open(args.rows, "w") as out:
             out.writelines(json.dumps(r) + "\n" for r in everything)

@@ -16,7 +16,7 @@ from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.machine import Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
-from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets, tape_bound, tape_sd
+from mocap.reconstruct.offsets import MarkerOffsets, bounded_step, fit_with_offsets, tape_bound, tape_sd
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.uncertainty import point_quantities
 from mocap.synthetic.bounds import fit_point_sd
@@ -122,6 +122,30 @@ def test_the_offsets_need_a_tolerance_and_keep_their_shapes():
     np.testing.assert_allclose(sd, [[0.5, 0.005, 0.1]] / np.sqrt(3))
     bound = tape_bound(Tolerance(0.05), np.array([[10.0, 0.0, -2.0]]))
     np.testing.assert_allclose(bound, [[0.5, 0.005, 0.1]] / np.float64(0.95))
+
+
+def test_the_offsets_step_is_the_quadratics_minimum_within_the_tolerance():
+    """A step that would take a marker beyond its tolerance is the constrained minimum (the
+    Karush-Kuhn-Tucker conditions hold), not the free step clipped per coordinate: a
+    marker whose coordinates are correlated, clipped in one, would be left off its valley."""
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        half = rng.normal(size=(6, 6))
+        reduced = half @ half.T + 0.1 * np.eye(6)
+        rhs, offsets, bound = 3 * rng.normal(size=6), rng.uniform(-0.5, 0.5, 6), np.ones(6)
+        step = bounded_step(reduced, rhs, offsets, bound)
+        moved = offsets + step
+        assert np.all(np.abs(moved) <= bound + 1e-9)
+        gradient = reduced @ step - rhs
+        high, low = moved >= bound - 1e-9, moved <= -bound + 1e-9
+        inside = ~(high | low)
+        np.testing.assert_allclose(gradient[inside], 0.0, atol=1e-7)
+        assert np.all(gradient[high] <= 1e-7) and np.all(gradient[low] >= -1e-7)
+        clipped = np.clip(offsets + np.linalg.solve(reduced, rhs), -bound, bound) - offsets
+        cost = lambda s: 0.5 * s @ reduced @ s - rhs @ s  # noqa: E731
+        assert cost(step) <= cost(clipped) + 1e-9
+    free = np.linalg.solve(reduced, 1e-3 * rhs)
+    np.testing.assert_allclose(bounded_step(reduced, 1e-3 * rhs, np.zeros(6), bound), free)
 
 
 def test_the_clean_path_is_the_plain_fit():

@@ -1,5 +1,6 @@
 """The smoother, gap filling, uncertainty of named points, and `mocap fit` end to end."""
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -177,6 +178,43 @@ def test_fit_with_base_motion_writes_and_recovers_the_bouncing_base(tmp_path):
         ok = np.isfinite(z)
         assert ok.mean() > 0.9 and np.sqrt(np.mean(z[ok] ** 2)) < 2.0, name
     assert np.ptp(expected.extra["base_pitch_deg"]) > 5 * np.median(fitted.extra["base_pitch_sd_deg"])
+
+
+@pytest.mark.parametrize("bounce", [0.0, 1.0])
+def test_fit_says_when_the_base_moves(tmp_path, capsys, bounce):
+    """`mocap fit` fits the base per frame when a base pose per frame explains the fixed
+    base's residuals (the synthetic base bounces), and says so, naming the noise each
+    leaves: the moving base leaves the tracks' own noise, the fixed one more; the base's
+    pitch comes out as the truth's. A still base stays fixed, as does one `--fixed-base` holds."""
+    root = tmp_path / "s"
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--seed", "7", "--bounce", str(bounce),
+                     "--out", str(root), "--no-video"]) == 0
+    truth = load_tracks([root / "truth" / "tracks.csv"])
+    rng = np.random.default_rng(7)
+    noisy = Tracks.from_rows(truth.camera, truth.frame, truth.marker, truth.xy + rng.normal(0, NOISE, truth.xy.shape), truth.time)
+    save_tracks(noisy, tmp_path / "tracks.csv")
+    capsys.readouterr()
+    assert cli.main(["fit", "hitachi_ex3500", str(root / "truth" / "cameras.toml"), str(tmp_path / "tracks.csv"),
+                     "--out", str(tmp_path / "motion.csv"), "--no-smooth"]) == 0
+    said = re.search(r"the base moves: a base pose per frame leaves ([\d.]+) px of noise where the fixed "
+                     r"base leaves ([\d.]+) px", capsys.readouterr().out)
+    motion = load_motion(tmp_path / "motion.csv", load_machine("hitachi_ex3500"))
+    if not bounce:
+        assert said is None and "base_pitch_deg" not in motion.extra
+        return
+    assert said is not None
+    moving, fixed = map(float, said.groups())
+    assert moving < 1.1 * NOISE and fixed > 1.3 * moving  # resampling to the reference clock averages some noise away
+    truth = load_motion(root / "truth" / "motion.csv", load_machine("hitachi_ex3500"))
+    frames = np.searchsorted(truth.frame, motion.frame)
+    z = (motion.extra["base_pitch_deg"] - truth.extra["base_pitch_deg"][frames]) / motion.extra["base_pitch_sd_deg"]
+    assert np.sqrt(np.nanmean(z**2)) < 2.0  # the base fitted per frame, as the truth's
+    assert np.ptp(truth.extra["base_pitch_deg"]) > 5 * np.nanmedian(motion.extra["base_pitch_sd_deg"])
+    capsys.readouterr()
+    assert cli.main(["fit", "hitachi_ex3500", str(root / "truth" / "cameras.toml"), str(tmp_path / "tracks.csv"),
+                     "--out", str(tmp_path / "motion.csv"), "--no-smooth", "--fixed-base"]) == 0
+    assert "base moves" not in capsys.readouterr().out
+    assert "base_pitch_deg" not in load_motion(tmp_path / "motion.csv", load_machine("hitachi_ex3500")).extra
 
 
 def test_fit_refuses_a_model_the_tracks_contradict(tmp_path, capsys):

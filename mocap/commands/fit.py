@@ -29,8 +29,12 @@ def add_parser(sub) -> None:
     p.add_argument("calibration", help="camera calibration TOML")
     p.add_argument("tracks", nargs="+", help="tracks CSV file(s), one per camera or all in one")
     p.add_argument("--out", required=True, help="motion CSV to write")
-    p.add_argument("--base-motion", action="store_true",
-                   help="also fit the base's 6-DoF pose per frame (bouncing, or moved since calibration)")
+    base = p.add_mutually_exclusive_group()
+    base.add_argument("--base-motion", action="store_true",
+                      help="also fit the base's 6-DoF pose per frame (bouncing, or moved since calibration); "
+                      "default: when a sample of frames shows it moving (the report says so)")
+    base.add_argument("--fixed-base", action="store_true",
+                      help="hold the base where the calibration saw it, even when the frames show it moving")
     p.add_argument("--loss", choices=("huber", "cauchy", "linear"), default="huber",
                    help="robust loss (default huber)")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
@@ -70,5 +74,5 @@ def run(args) -> int:
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
     print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options,
-                  args.max_noise_px, args.out_machine))
+                  args.max_noise_px, args.out_machine, choose_base=not args.fixed_base))
     return 0

@@ -193,10 +193,12 @@ def fit_joints(
             problem.propagate(pixels, state, np.nonzero(suspect)[0])
         problem.repair(pixels, state, n_frames)  # mended frames hand their solution on along a wrong stretch
     noise = options.noise_px or problem.noise(pixels, state)
+    if problem.marker_sd is not None:  # residuals weighed by the tolerance are pixels at the nominal noise, or more
+        noise = max(noise, problem.noise_px)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
-        log.warning("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
-                    unexplained.sum(), noise)
+        log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
+                 unexplained.sum(), noise)
     return problem.result(pixels, state, noise, unexplained)
 
 

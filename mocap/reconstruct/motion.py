@@ -14,13 +14,14 @@ uncertainty, common to all frames, is added to every frame's after smoothing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mocap.camera import Camera
 from mocap.io.motion_csv import Motion, base_columns
 from mocap.machine import Machine
+from mocap.reconstruct.base_check import BaseCheck, check_base_motion
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets
@@ -32,12 +33,14 @@ from mocap.reconstruct.uncertainty import point_quantities
 class MotionResult:
     """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None;
     offsets: the markers' estimated offsets (MarkerOffsets) with a stated tolerance, else
-    None (the fit is then of the model with its markers moved by them)."""
+    None (the fit is then of the model with its markers moved by them); base_check: with
+    `choose_base`, the check of a fixed base against a moving one (BaseCheck), else None."""
 
     motion: Motion
     fit: JointFit
     smoothed: Smoothed | None
     offsets: MarkerOffsets | None = None
+    base_check: BaseCheck | None = None
 
 
 def reconstruct_motion(
@@ -50,18 +53,24 @@ def reconstruct_motion(
     smooth_options: SmoothOptions | None = None,
     smoothing: bool = True,
     initial: np.ndarray | None = None,
+    choose_base: bool = False,
 ) -> MotionResult:
     """Fit, smooth and measure the machine's motion.
 
     frame (F,) reference frames; time (F,) s; pixels (C, F, M, 2) on the reference clock.
+    With `choose_base` and a fixed base in `fit_options`, the base is fitted per frame
+    instead when a sample of frames says it moves (`mocap.reconstruct.base_check`).
     """
     fit_options = fit_options or FitOptions()
-    offsets, shared = None, 0.0
-    if fit_options.tolerance_of(machine):
-        result = fit_with_offsets(machine, cameras, pixels, initial=initial, options=fit_options)
-        fit, offsets, shared = result.fit, result.offsets, result.shared
-    else:
-        fit = fit_joints(machine, cameras, pixels, initial=initial, options=fit_options)
+    fit, offsets, shared = _fit(machine, cameras, pixels, fit_options, initial)
+    check = None
+    if choose_base and not fit_options.base_motion:
+        fitted = machine if offsets is None else offsets.apply(machine)
+        check = check_base_motion(fitted, cameras, pixels, fit, fit_options)
+        if check is not None and check.moves:
+            start = np.where(np.isfinite(fit.joints), fit.joints, np.nan_to_num(np.nanmedian(fit.joints, axis=0)))
+            fit_options = replace(fit_options, base_motion=True)
+            fit, offsets, shared = _fit(machine, cameras, pixels, fit_options, start)
     base_motion = fit.base is not None
     values = fit.joints if not base_motion else np.c_[fit.joints, fit.base]
     n_joints = machine.n_joints
@@ -108,4 +117,14 @@ def reconstruct_motion(
         bucket_angle_sd=quantities.bucket_angle_sd,
         extra=extra,
     )
-    return MotionResult(motion, fit, smoothed, offsets)
+    return MotionResult(motion, fit, smoothed, offsets, check)
+
+
+def _fit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: FitOptions,
+         initial: np.ndarray | None):
+    """The per-frame fit, with the markers' offsets estimated when a tolerance is stated:
+    (JointFit, MarkerOffsets or None, what the offsets add to each frame's covariance)."""
+    if options.tolerance_of(machine):
+        result = fit_with_offsets(machine, cameras, pixels, initial=initial, options=options)
+        return result.fit, result.offsets, result.shared
+    return fit_joints(machine, cameras, pixels, initial=initial, options=options), None, 0.0

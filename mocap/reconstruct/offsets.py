@@ -147,10 +147,10 @@ def fit_with_offsets(
     exact = replace(options, tolerance=Tolerance())  # with the offsets estimated, the pixels weighed as they are
     for rounds in range(1, ROUNDS + 1):
         moved = replace(machine, marker_positions=machine.marker_positions + offsets)
-        # the first fit's residuals are divided by the tolerance: its noise is not the pixels'
-        noise = max(fit.noise_px, options.noise_px or 0.5) if rounds == 1 else fit.noise_px
-        step, full, used = offsets_step(moved, cameras, pixels, fit, offsets, prior_sd, covariance, noise)
-        step = np.clip(offsets + step, -bound, bound) - offsets  # the tolerance is a bound: no marker beyond it
+        # the first fit's noise is the nominal at least (its residuals are divided by the tolerance)
+        reduced, rhs, used = offsets_system(moved, cameras, pixels, fit, offsets, prior_sd, covariance, fit.noise_px)
+        full = np.linalg.inv(reduced)
+        step = bounded_step(reduced, rhs, offsets.ravel(), bound.ravel()).reshape(offsets.shape)
         covariance = _marginals(full)
         distance = np.einsum("mi,mij,mj->m", step, np.linalg.inv(covariance), step)
         log.debug("offsets round %d: largest step %.2f SD", rounds, np.sqrt(distance.max(initial=0.0)))
@@ -196,15 +196,16 @@ def _better(machine: Machine, cameras: list[Camera], options: FitOptions, one: J
     )
 
 
-def offsets_step(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, offsets: np.ndarray,
-                 prior_sd: np.ndarray, covariance: np.ndarray, noise_px: float):
-    """One Gauss-Newton step of the offsets with every frame's parameters eliminated, at
-    the fit's parameters and the offsets (M, 3) already applied to `machine`; covariance
+def offsets_system(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit, offsets: np.ndarray,
+                   prior_sd: np.ndarray, covariance: np.ndarray, noise_px: float):
+    """The Gauss-Newton equations of the offsets with every frame's parameters eliminated,
+    at the fit's parameters and the offsets (M, 3) already applied to `machine`; covariance
     (M, 3, 3) the offsets' present uncertainty (for the outlier test), prior_sd (M, 3),
     noise_px the pixel noise SD.
 
-    Returns the step (M, 3), the offsets' covariance (3M, 3M) m² and the inlier
-    observations of each marker (M,).
+    Returns the reduced system (3M, 3M) m⁻² (its inverse the offsets' covariance), its
+    right-hand side (3M,) (the step solves one with the other) and the inlier observations
+    of each marker (M,).
     """
     n_markers = len(machine.marker_names)
     reduced = np.zeros((3 * n_markers, 3 * n_markers))
@@ -217,8 +218,25 @@ def offsets_step(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fi
         reduced.reshape(n_markers, 3, n_markers, 3)[index, :, index, :] += hdd
         used += n
     reduced += np.diag(1.0 / prior_sd.ravel() ** 2)
-    full = np.linalg.inv(0.5 * (reduced + reduced.T))
-    return (full @ rhs).reshape(n_markers, 3), full, used
+    return 0.5 * (reduced + reduced.T), rhs, used
+
+
+def bounded_step(reduced: np.ndarray, rhs: np.ndarray, offsets: np.ndarray, bound: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton step (N,) of offsets (N,) that stay within ±bound (N,): the
+    quadratic model's minimum over the box (½ sᵀ A s − bᵀ s, A = reduced, b = rhs, as
+    ½‖Lᵀs − L⁻¹b‖² with A = LLᵀ, by bounded-variable least squares). Clipping each
+    coordinate of the free step instead would leave a correlated marker's step off its
+    valley, and the next round would undo it."""
+    from scipy.linalg import solve_triangular
+    from scipy.optimize import lsq_linear
+
+    lower = np.linalg.cholesky(reduced)
+    whitened = solve_triangular(lower, rhs, lower=True)
+    step = solve_triangular(lower.T, whitened, lower=False)
+    if np.all(np.abs(offsets + step) <= bound):
+        return step
+    low, high = np.minimum(-bound - offsets, 0.0), np.maximum(bound - offsets, 0.0)  # a step of 0 is allowed
+    return lsq_linear(lower.T, whitened, bounds=(low, high), method="bvls").x
 
 
 def shared_covariance(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit,

@@ -132,7 +132,10 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
 
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
-            smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX, out_machine=None) -> str:
+            smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX, out_machine=None,
+            choose_base: bool = True) -> str:
+    """Fit the machine to the tracks and write the motion; the report line. With
+    `choose_base` a fixed base (fit_options) is fitted per frame when the data say it moves."""
     from mocap.reconstruct.motion import reconstruct_motion
 
     machine = load_machine(machine_path)
@@ -147,6 +150,7 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
     result = reconstruct_motion(
         machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
         fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,
+        choose_base=choose_base,
     )
     fit = result.fit
     if fit.noise_px > max_noise_px:
@@ -177,6 +181,13 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
             save_machine(machine, out_machine)
             report += f"; the model with its markers there written to {out_machine}"
         fit_options = replace(fit_options, tolerance=Tolerance())
+    check = result.base_check
+    if check is not None and check.moves:
+        fit_options = replace(fit_options, base_motion=True)
+        report += (f"; the base moves: a base pose per frame leaves {check.moving_noise_px:.2f} px of noise where the "
+                   f"fixed base leaves {check.fixed_noise_px:.2f} px ({check.frames} frames tried; the machine "
+                   "bounces, or the cameras moved since the calibration), so it was fitted per frame (columns "
+                   "base_*; --fixed-base keeps it fixed)")
     return report + _ambiguity(machine, list(calibration.cameras), clock.pixels, fit, fit_options) + _dropped(clock)
 
 

@@ -94,6 +94,14 @@ def fit_point_sd(machine: Machine, cameras: list[Camera], joints: np.ndarray, se
 def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray, noise_px: float) -> np.ndarray:
     """(N,) bound on each point's error (m, root of the trace) from the cameras that see
     it: points (N, 3) world, seen (C, N) bool. NaN for a point seen by fewer than two."""
+    covariance = triangulation_covariance(cameras, points, seen, noise_px)
+    return np.sqrt(np.trace(covariance, axis1=1, axis2=2))
+
+
+def triangulation_covariance(cameras: list[Camera], points: np.ndarray, seen: np.ndarray,
+                             noise_px: float) -> np.ndarray:
+    """(N, 3, 3) m², the bound on each point's error covariance from the cameras that see
+    it (as `triangulation_sd`); NaN for a point seen by fewer than two."""
     information = np.zeros((len(points), 3, 3))
     for camera, mine in zip(cameras, seen):
         rotation = camera.cam_from_world.rotation
@@ -103,7 +111,7 @@ def triangulation_sd(cameras: list[Camera], points: np.ndarray, seen: np.ndarray
         information += np.where(mine[:, None, None], np.swapaxes(d_uv_world, 1, 2) @ d_uv_world, 0.0)
     enough = seen.sum(0) >= 2
     covariance = inverse_information(information / noise_px**2)
-    return np.where(enough, np.sqrt(np.trace(covariance, axis1=1, axis2=2)), np.nan)
+    return np.where(enough[:, None, None], covariance, np.nan)
 
 
 def _marker_jacobian(machine: Machine, obs: Observations, layout: Layout, cameras, x: np.ndarray,
