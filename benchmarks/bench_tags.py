@@ -52,7 +52,7 @@ CONDITIONS = {
 
 def opencv_tags(gray: np.ndarray, detector) -> dict[int, np.ndarray]:
     corners, ids, _ = detector.detectMarkers(gray)
-    if ids is None:
+    if ids is None or not len(ids):  # OpenCV 5 gives an empty array, 4 gave None
         return {}
     return dict(zip(ids.reshape(-1).tolist(), diagonal_intersection(np.concatenate(corners).reshape(-1, 4, 2))))
 
