@@ -200,6 +200,16 @@ def fit_joints(
     return problem.result(pixels, state, noise, unexplained)
 
 
+def refit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, starts: np.ndarray, options: FitOptions,
+          known: FrameState | None = None) -> FrameState:
+    """Levenberg-Marquardt alone (no restarts) of every frame of pixels (C, F, M, 2) from
+    starts (F, J) (a fixed base); with `known` (joints (F, J) and normal matrix (F, J, J) in
+    px²) a frame that comes back within `_SAME_PX2` of it stops there with cost +inf."""
+    problem = _Problem(machine, tuple(cameras), options)
+    start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), None, None, np.zeros(len(starts)))
+    return problem.levenberg_marquardt(np.moveaxis(pixels, 1, 0), start, known)
+
+
 def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     if values.shape == (width,):
