@@ -9,17 +9,22 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def deviations(pixels, offsets, weights, gains, judged, scaled, raw):
+def deviations(pixels, values, todo, offsets, weights, gains, judged, scaled, raw):
     """Fill judged (F, M) (two or more predictions), scaled (F, M) (the nearest
     prediction's distance over its noise gain) and raw (F, M) (that distance in px) for
-    pixels (F, M, 2), NaN where not seen. Predictor k is sum_t weights[k, t] *
-    pixels[f + offsets[k, t]] (terms with weight 0 unused), its noise gain gains[k]."""
+    the pixels values (F, M, 2) that todo (F, M) names, predicted from pixels (F, M, 2)
+    (NaN where not seen); the others are left unjudged (NaN). Predictor k is sum_t
+    weights[k, t] * pixels[f + offsets[k, t]] (terms with weight 0 unused), its noise gain
+    gains[k]."""
     n_frames, n_markers = pixels.shape[0], pixels.shape[1]
     n_predictors, n_terms = offsets.shape
     inverse_gain2 = 1.0 / gains**2
     for f in range(n_frames):
         for m in range(n_markers):
-            u, v = pixels[f, m, 0], pixels[f, m, 1]
+            if not todo[f, m]:
+                judged[f, m], scaled[f, m], raw[f, m] = False, np.nan, np.nan
+                continue
+            u, v = values[f, m, 0], values[f, m, 1]
             count, best_scaled2, best_raw2 = 0, np.inf, np.nan
             first_scaled2, first_raw2 = np.nan, np.nan
             for k in range(n_predictors):
