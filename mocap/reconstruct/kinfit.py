@@ -24,12 +24,12 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri
 
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine, Tolerance
 from mocap.progress import progress
+from mocap.reconstruct.chi2 import upper_quantile
 from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices
 
 log = logging.getLogger(__name__)
@@ -421,7 +421,7 @@ class _Problem(KinematicModel):
         inlier_chi2 = np.where(seen & ~far, e2, 0.0).sum(1)
         misfit = n_far > far_share * n_obs
         if tail is not None:
-            limit = chdtri(np.maximum(dof, 1), tail)  # the chi-square upper quantile
+            limit = upper_quantile(np.maximum(dof, 1), tail)
             misfit |= (dof > 0) & (inlier_chi2 > limit)
         return (2 * n_obs > self.n_params) & misfit
 

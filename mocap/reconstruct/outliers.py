@@ -15,7 +15,8 @@ Shapes: F frames, M markers.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtri
+
+from mocap.reconstruct.chi2 import upper_quantile
 
 RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of unit SD per axis
 
@@ -82,5 +83,5 @@ def noise_from_fits(sum_squares: np.ndarray, dof: np.ndarray) -> float:
     if not ok.any():
         return float("nan")
     statistic = np.sqrt(sum_squares[ok] / dof[ok])
-    expected = np.sqrt(chdtri(dof[ok], 0.5) / dof[ok])  # median of sqrt(chi2_k / k)
+    expected = np.sqrt(upper_quantile(dof[ok], 0.5) / dof[ok])  # median of sqrt(chi2_k / k)
     return float(np.median(statistic / expected))
