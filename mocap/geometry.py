@@ -50,10 +50,22 @@ def matrix_to_rpy(matrix: np.ndarray) -> np.ndarray:
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues vectors (*, 3) -> rotation matrices (*, 3, 3)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix()
+    """Rodrigues vectors (*, 3) -> rotation matrices (*, 3, 3): I + a [w]x + b [w]x² with
+    a = sin(t) / t and b = (1 - cos(t)) / t², t = |w| (their series near 0). In numpy: loading
+    a calibration need not import scipy.spatial (0.1-0.3 s of a command's start)."""
+    w = np.asarray(rotvec, dtype=float)
+    if w.shape[-1:] != (3,):
+        raise ValueError(f"rotation vectors must have shape (*, 3), got {w.shape}")
+    t2 = np.sum(w**2, axis=-1)[..., None, None]
+    t = np.sqrt(t2)
+    small = t2 < 1e-8
+    safe = np.where(small, 1.0, t)
+    a = np.where(small, 1.0 - t2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    o = np.zeros_like(x)
+    skew = np.stack([o, -z, y, z, o, -x, -y, x, o], axis=-1).reshape(w.shape[:-1] + (3, 3))
+    return np.eye(3) + a * skew + b * (skew @ skew)
 
 
 def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:

@@ -46,6 +46,31 @@ def test_jacobian_matches_finite_differences(machine):
     np.testing.assert_allclose(jac, numeric, atol=1e-5 * np.abs(jac).max())
 
 
+@pytest.mark.parametrize("base_motion", [False, True])
+def test_compiled_solve_ends_at_a_stationary_point_with_the_models_normal_matrix(machine, base_motion):
+    """The compiled Levenberg-Marquardt (kinkernel) against the numpy model: at its solution
+    the robustly weighted gradient Jᵀ W r vanishes and its normal matrix is Jᵀ W J, with J and
+    r from KinematicModel.evaluate (whose Jacobian the test above checks)."""
+    rng = np.random.default_rng(3)
+    cameras, joints, pixels = scene(machine, 3, 6, seed=3)
+    problem = kinfit._Problem(machine, tuple(cameras), FitOptions(base_motion=base_motion))
+    rotation = rotvec_to_matrix(rng.normal(0, 0.02, (6, 3))) if base_motion else None
+    translation = rng.normal(0, 0.05, (6, 3)) if base_motion else None
+    start = kinmodel.FrameState(joints + rng.normal(0, 0.05, joints.shape), rotation, translation, np.zeros(6))
+    obs = np.moveaxis(pixels, 1, 0)
+    solved = problem.levenberg_marquardt(obs, start)
+    residual, jac = problem.evaluate(obs, solved)
+    weight, cost = problem.robust(residual)
+    np.testing.assert_allclose(solved.cost, cost, rtol=1e-9)
+    np.testing.assert_allclose(solved.residual, residual, atol=1e-4)  # stored as float32
+    normal = np.einsum("fnp,fn,fnq->fpq", jac, weight, jac)
+    np.testing.assert_allclose(solved.hessian, normal, rtol=1e-9, atol=1e-9 * np.abs(normal).max())
+    gradient = np.einsum("fnp,fn,fn->fp", jac, weight, residual)
+    scale = np.sqrt(np.einsum("fpp->fp", normal) * cost[:, None])  # |J_p| |r|: what a gradient could be
+    assert np.abs(gradient / scale).max() < 1e-3
+    assert np.degrees(np.abs(solved.joints - joints)).max() < 1.5
+
+
 def test_recovers_joints_from_the_grid_with_honest_covariance(machine):
     cameras, joints, pixels = scene(machine, 3, 300, seed=2)
     fit = fit_joints(machine, cameras, pixels)

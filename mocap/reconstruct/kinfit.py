@@ -1,16 +1,16 @@
 """The batched kinematic fit: per frame, the joint values that best explain every camera's
 marker pixels (the paper's multi-frame fit).
 
-All frames are solved at once: one Levenberg-Marquardt iteration evaluates the model and
-builds each frame's small normal equations for every frame in one compiled pass
-(mocap.reconstruct.kinkernel) and solves them together with numpy. Residuals are robustified by iteratively reweighted
-least squares (Huber or Cauchy, scale in pixels); frames that have converged leave the
-batch. Without starting values, every few frames (key frames) start from the best of a
-coarse grid of joint values inside the limits (evaluated for all key frames by one
-matrix product) and the frames between from the interpolated key solutions; a frame that
-ends far worse than is typical is fitted again from the grid, and one that ends far worse
-than a neighbour is restarted from that neighbour's solution. Joint limits are kept by
-clipping (full-circle joints wrap). Optionally the base (undercarriage) moves too, by a 6-DoF
+All frames are solved in one compiled call (mocap.reconstruct.kinkernel): each frame's
+Levenberg-Marquardt iterations build its small normal equations from the model's pixels
+and derivatives and solve them until the frame converges. Residuals are robustified by
+iteratively reweighted least squares (Huber or Cauchy, scale in pixels). Without starting
+values, every few frames (key frames) start from the best of a coarse grid of joint values
+inside the limits (evaluated for all key frames by one matrix product) and the frames
+between from the interpolated key solutions; a frame that ends far worse than is typical
+is fitted again from the grid, and one that ends far worse than a neighbour is restarted
+from that neighbour's solution. Joint limits are kept by clipping (full-circle joints
+wrap). Optionally the base (undercarriage) moves too, by a 6-DoF
 ``world_from_base`` per frame (bouncing, or a machine that moved since calibration).
 
 Parameters of a frame (mocap.reconstruct.kinmodel): joint values (J,) rad / m, then with
@@ -24,12 +24,12 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri
 
 from mocap.camera import Camera
 from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine, Tolerance
 from mocap.progress import progress
+from mocap.reconstruct.chi2 import upper_quantile
 from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices
 
 log = logging.getLogger(__name__)
@@ -202,6 +202,16 @@ def fit_joints(
     return problem.result(pixels, state, noise, unexplained)
 
 
+def refit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, starts: np.ndarray, options: FitOptions,
+          known: FrameState | None = None) -> FrameState:
+    """Levenberg-Marquardt alone (no restarts) of every frame of pixels (C, F, M, 2) from
+    starts (F, J) (a fixed base); with `known` (joints (F, J) and normal matrix (F, J, J) in
+    px²) a frame that comes back within `_SAME_PX2` of it stops there with cost +inf."""
+    problem = _Problem(machine, tuple(cameras), options)
+    start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), None, None, np.zeros(len(starts)))
+    return problem.levenberg_marquardt(np.moveaxis(pixels, 1, 0), start, known)
+
+
 def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     if values.shape == (width,):
@@ -279,62 +289,40 @@ class _Problem(KinematicModel):
         return self.levenberg_marquardt(pixels, FrameState(joints, rotation, translation, np.zeros(len(joints))))
 
     def levenberg_marquardt(self, pixels: np.ndarray, state: FrameState, known: FrameState | None = None) -> FrameState:
-        """LM from `state` for pixels (F, C, M, 2); frames leave the batch once converged.
+        """LM from `state` for pixels (F, C, M, 2), every frame on its own until it converges
+        (compiled: mocap.reconstruct.kinkernel.levenberg_marquardt).
 
         `known` (a solved FrameState over the same frames): a frame also leaves once it is
         within `_SAME_PX2` (its model pixels moved by less than that, squared and summed, by
         the known solution's normal matrix) of the known solution, with cost +inf: it would
         only converge to it (a restart that finds the frame's own minimum again stops early
         and is never preferred to it)."""
-        residual, weight, cost, hessian, gradient = self.normal_equations(pixels, state)
-        base = state.rotation is not None
-        joints = state.joints.copy()
-        rotation = state.rotation.copy() if base else None
-        translation = state.translation.copy() if base else None
-        damping = np.full(len(cost), 1e-3)
-        eye = np.eye(self.n_params)
-        active = np.arange(len(cost))
-        for _ in range(self.options.iterations):
-            a = active
-            diag = np.diagonal(hessian[a], axis1=1, axis2=2)
-            lhs = hessian[a] + (damping[a][:, None] * diag + _EPS_INFO)[:, :, None] * eye
-            delta = np.linalg.solve(lhs, gradient[a][..., None])[..., 0]
-            current = FrameState(joints[a], rotation[a] if base else None, translation[a] if base else None, cost[a])
-            trial = self.step(current, delta)
-            t_residual, t_weight, t_cost, t_hessian, t_gradient = self.normal_equations(pixels[a], trial)
-            better = t_cost <= cost[a]
-            change = np.abs(cost[a] - t_cost) / np.maximum(cost[a], 1e-12)
-            kept = a[better]
-            joints[kept] = trial.joints[better]
-            if base:
-                rotation[kept] = trial.rotation[better]
-                translation[kept] = trial.translation[better]
-            residual[kept], weight[kept], cost[kept] = t_residual[better], t_weight[better], t_cost[better]
-            hessian[kept], gradient[kept] = t_hessian[better], t_gradient[better]
-            damping[a] = np.clip(np.where(better, damping[a] * 0.3, damping[a] * 10.0), 1e-9, 1e9)
-            going = change >= _CONVERGED
-            if known is not None:
-                settled = self._distance(joints[a], rotation[a] if base else None,
-                                         translation[a] if base else None, known, a) < _SAME_PX2
-                cost[a[settled]] = np.inf
-                going &= ~settled
-            active = a[going]
-            if not len(active):
-                break
-        return FrameState(joints, rotation, translation, cost, hessian, residual, weight)
+        from mocap.reconstruct.kinkernel import LOSS_CODES, levenberg_marquardt
 
-    def _distance(self, joints, rotation, translation, known: FrameState, index: np.ndarray) -> np.ndarray:
-        """(len(index),) squared pixel distance dᵀHd of parameters from the known solution
-        of those frames (full-circle joints compared modulo their span)."""
-        diff = joints - known.joints[index]
-        span = self.upper - self.lower
-        wrapped = np.mod(diff + 0.5 * span, np.where(self.wrap, span, np.inf)) - 0.5 * span
-        parts = [np.where(self.wrap, wrapped, diff)]
-        if rotation is not None:
-            parts += [matrix_to_rotvec(rotation @ np.swapaxes(known.rotation[index], 1, 2)),
-                      translation - known.translation[index]]
-        d = np.concatenate(parts, axis=1)
-        return np.einsum("fp,fpq,fq->f", d, known.hessian[index], d)
+        n_frames, n_rows = len(state.joints), 2 * len(self.cameras) * len(self.machine.marker_names)
+        base = state.rotation is not None
+        joints = np.array(state.joints, dtype=float, order="C").reshape(n_frames, self.machine.n_joints)
+        rotation = np.array(state.rotation, dtype=float, order="C") if base else np.empty((0, 3, 3))
+        translation = np.array(state.translation, dtype=float, order="C") if base else np.empty((0, 3))
+        if known is None:
+            known_arrays = (np.empty((0, joints.shape[1])), np.empty((0, 3, 3)), np.empty((0, 3)),
+                            np.empty((0, self.n_params, self.n_params)))
+        else:
+            known_arrays = (np.ascontiguousarray(known.joints, dtype=float),
+                            np.ascontiguousarray(known.rotation, dtype=float) if base else np.empty((0, 3, 3)),
+                            np.ascontiguousarray(known.translation, dtype=float) if base else np.empty((0, 3)),
+                            np.ascontiguousarray(known.hessian, dtype=float))
+        cost, hessian = np.empty(n_frames), np.empty((n_frames, self.n_params, self.n_params))
+        residual, weight = np.empty((n_frames, n_rows), np.float32), np.empty((n_frames, n_rows), np.float32)
+        sd = np.empty(0) if self.marker_sd is None else self.marker_sd
+        levenberg_marquardt(joints, rotation, translation, np.ascontiguousarray(pixels, dtype=float),
+                            *self._chain_arrays, *self._camera_arrays, sd, float(self.noise_px),
+                            LOSS_CODES[self.loss], float(self.scale_px), np.ascontiguousarray(self.lower),
+                            np.ascontiguousarray(self.upper),
+                            np.asarray(self.wrap, dtype=bool), self.options.iterations, _EPS_INFO, _CONVERGED,
+                            *known_arrays, _SAME_PX2, cost, hessian, residual, weight)
+        return FrameState(joints, rotation if base else None, translation if base else None, cost, hessian,
+                          residual, weight)
 
     def grid_start(self, pixels: np.ndarray) -> np.ndarray:
         """The best of a coarse grid of joint values for every frame (F, J), by the sum of
@@ -435,7 +423,7 @@ class _Problem(KinematicModel):
         inlier_chi2 = np.where(seen & ~far, e2, 0.0).sum(1)
         misfit = n_far > far_share * n_obs
         if tail is not None:
-            limit = chdtri(np.maximum(dof, 1), tail)  # the chi-square upper quantile
+            limit = upper_quantile(np.maximum(dof, 1), tail)
             misfit |= (dof > 0) & (inlier_chi2 > limit)
         return (2 * n_obs > self.n_params) & misfit
 

@@ -143,23 +143,6 @@ class KinematicModel:
             np.matmul(d_uv_world, d_world, out=jac[:, c])
         return residual.reshape(n_frames, -1), jac.reshape(n_frames, -1, self.n_params)
 
-    def normal_equations(self, pixels: np.ndarray, state: FrameState):
-        """For pixels (F, C, M, 2): robustly weighted residuals (F, N) as `evaluate`'s,
-        their weights (F, N) (both float32: kept for a whole session, not computed with),
-        the robust cost (F,), JᵀWJ (F, P, P) and JᵀWr (F, P), by the compiled kernel
-        (mocap.reconstruct.kinkernel)."""
-        from mocap.reconstruct.kinkernel import LOSS_CODES, normal_equations
-
-        markers, d_world = self.world_markers(state)
-        n_frames, n_rows, n_params = len(markers), 2 * len(self.cameras) * markers.shape[1], self.n_params
-        out = (np.empty((n_frames, n_rows), np.float32), np.empty((n_frames, n_rows), np.float32), np.empty(n_frames),
-               np.empty((n_frames, n_params, n_params)), np.empty((n_frames, n_params)))
-        sd = np.empty(0) if self.marker_sd is None else self.marker_sd
-        normal_equations(markers, np.ascontiguousarray(d_world), np.ascontiguousarray(pixels, dtype=float),
-                         *self._camera_arrays, sd, float(self.noise_px), LOSS_CODES[self.loss],
-                         float(self.scale_px), *out)
-        return out
-
     def robust(self, residual: np.ndarray):
         """Per-observation weights and per-frame cost for residuals (F, N)."""
         r2 = (residual.reshape(residual.shape[0], -1, 2) ** 2).sum(-1)  # (F, C*M)

@@ -15,7 +15,8 @@ Shapes: F frames, M markers.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import chdtri
+
+from mocap.reconstruct.chi2 import upper_quantile
 
 RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of unit SD per axis
 
@@ -38,7 +39,7 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     time to judge). A flagged pixel is judged again without the flagged ones: a good pixel
     whose neighbours were all wild is kept when its other neighbours agree with it."""
     pixels = np.asarray(pixels, dtype=float)
-    judged, scaled, raw = _deviations(pixels)
+    judged, scaled, raw = _deviations(pixels, pixels, np.ones(pixels.shape[:2], bool))
     if not judged.any():
         return np.zeros(pixels.shape[:2], bool)
     tracked = judged.any(0)
@@ -49,15 +50,15 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     limit = factor * np.maximum(scale, np.median(scaled[calm]) / RAYLEIGH_MEDIAN if calm.any() else 0.0)
     flagged = calm & (scaled > limit) & (raw > floor_px)
     if flagged.any():
-        again = _deviations(np.where(flagged[..., None], np.nan, pixels))
+        again = _deviations(np.where(flagged[..., None], np.nan, pixels), pixels, flagged)
         flagged &= ~(again[0] & ((again[1] <= limit) | (again[2] <= floor_px)))
     return flagged
 
 
-def _deviations(pixels: np.ndarray):
-    """Per pixel (F, M): whether two or more predictions exist, and the deviation from the
-    nearest one divided by its noise gain, and in pixels (compiled:
-    mocap.reconstruct.outliers_kernel)."""
+def _deviations(pixels: np.ndarray, values: np.ndarray, todo: np.ndarray):
+    """Per pixel of values (F, M, 2) that todo (F, M) names: whether two or more
+    predictions from pixels (F, M, 2) exist, and the deviation from the nearest one divided
+    by its noise gain, and in pixels (compiled: mocap.reconstruct.outliers_kernel)."""
     from mocap.reconstruct.outliers_kernel import deviations
 
     n_terms = max(len(w) for w in _PREDICTORS)
@@ -69,7 +70,8 @@ def _deviations(pixels: np.ndarray):
     gains = np.sqrt(1.0 + (weights**2).sum(1))  # noise of pixel minus prediction
     shape = pixels.shape[:2]
     out = np.empty(shape, bool), np.empty(shape), np.empty(shape)
-    deviations(np.ascontiguousarray(pixels, dtype=float), offsets, weights, gains, *out)
+    deviations(np.ascontiguousarray(pixels, dtype=float), np.ascontiguousarray(values, dtype=float),
+               np.ascontiguousarray(todo, dtype=bool), offsets, weights, gains, *out)
     return out
 
 
@@ -81,5 +83,5 @@ def noise_from_fits(sum_squares: np.ndarray, dof: np.ndarray) -> float:
     if not ok.any():
         return float("nan")
     statistic = np.sqrt(sum_squares[ok] / dof[ok])
-    expected = np.sqrt(chdtri(dof[ok], 0.5) / dof[ok])  # median of sqrt(chi2_k / k)
+    expected = np.sqrt(upper_quantile(dof[ok], 0.5) / dof[ok])  # median of sqrt(chi2_k / k)
     return float(np.median(statistic / expected))

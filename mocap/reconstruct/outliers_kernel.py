@@ -9,17 +9,24 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def deviations(pixels, offsets, weights, gains, judged, scaled, raw):
+def deviations(pixels, values, todo, offsets, weights, gains, judged, scaled, raw):
     """Fill judged (F, M) (two or more predictions), scaled (F, M) (the nearest
     prediction's distance over its noise gain) and raw (F, M) (that distance in px) for
-    pixels (F, M, 2), NaN where not seen. Predictor k is sum_t weights[k, t] *
-    pixels[f + offsets[k, t]] (terms with weight 0 unused), its noise gain gains[k]."""
+    the pixels values (F, M, 2) that todo (F, M) names, predicted from pixels (F, M, 2)
+    (NaN where not seen); the others are left unjudged (NaN). Predictor k is sum_t
+    weights[k, t] * pixels[f + offsets[k, t]] (terms with weight 0 unused), its noise gain
+    gains[k]."""
     n_frames, n_markers = pixels.shape[0], pixels.shape[1]
     n_predictors, n_terms = offsets.shape
+    inverse_gain2 = 1.0 / gains**2
     for f in range(n_frames):
         for m in range(n_markers):
-            count, best_scaled, best_raw = 0, np.inf, np.nan
-            first_scaled, first_raw = np.nan, np.nan
+            if not todo[f, m]:
+                judged[f, m], scaled[f, m], raw[f, m] = False, np.nan, np.nan
+                continue
+            u, v = values[f, m, 0], values[f, m, 1]
+            count, best_scaled2, best_raw2 = 0, np.inf, np.nan
+            first_scaled2, first_raw2 = np.nan, np.nan
             for k in range(n_predictors):
                 px, py, ok = 0.0, 0.0, True
                 for t in range(n_terms):
@@ -29,20 +36,18 @@ def deviations(pixels, offsets, weights, gains, judged, scaled, raw):
                     if g < 0 or g >= n_frames:
                         ok = False
                         break
-                    px = px + weights[k, t] * pixels[g, m, 0]
-                    py = py + weights[k, t] * pixels[g, m, 1]
-                r = np.nan
-                if ok:
-                    r = np.sqrt((pixels[f, m, 0] - px) ** 2 + (pixels[f, m, 1] - py) ** 2)
-                s = r / gains[k]
+                    px += weights[k, t] * pixels[g, m, 0]
+                    py += weights[k, t] * pixels[g, m, 1]
+                r2 = (u - px) ** 2 + (v - py) ** 2 if ok else np.nan
+                s2 = r2 * inverse_gain2[k]
                 if k == 0:
-                    first_scaled, first_raw = s, r
-                if np.isfinite(s):
+                    first_scaled2, first_raw2 = s2, r2
+                if s2 < np.inf:  # finite (NaN compares false)
                     count += 1
-                    if s < best_scaled:
-                        best_scaled, best_raw = s, r
+                    if s2 < best_scaled2:
+                        best_scaled2, best_raw2 = s2, r2
             judged[f, m] = count >= 2
             if count:
-                scaled[f, m], raw[f, m] = best_scaled, best_raw
+                scaled[f, m], raw[f, m] = np.sqrt(best_scaled2), np.sqrt(best_raw2)
             else:
-                scaled[f, m], raw[f, m] = first_scaled, first_raw
+                scaled[f, m], raw[f, m] = np.sqrt(first_scaled2), np.sqrt(first_raw2)

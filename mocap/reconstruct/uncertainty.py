@@ -3,7 +3,9 @@ parameters of a fit (or of the smoother) and their covariance.
 
 The SD of a named point is the root of the trace of its 3-D covariance ``G Σ Gᵀ`` with G
 the point's Jacobian by the parameters (analytic, as for the markers); the bucket angle's
-by a central-difference gradient. Point velocities are ``G q̇`` from the smoother's
+from its gradient, analytic too: the angle is that of the bucket link's direction to the
+house's horizontal forward axis, each the difference of two link-fixed points whose
+Jacobians come with the named points'. Point velocities are ``G q̇`` from the smoother's
 velocities; accelerations the time derivative of those.
 
 Shapes: F frames, P parameters (J joints, then 6 base parameters with base motion),
@@ -19,7 +21,6 @@ import numpy as np
 from mocap.machine import Machine
 from mocap.reconstruct.kinmodel import KinematicModel, FrameState, base_matrices
 
-_ANGLE_STEP = 1e-6
 
 
 @dataclass(frozen=True)
@@ -55,26 +56,15 @@ def point_quantities(
         raise ValueError(f"values must be (F, {n_joints + 6 * base_motion}) with covariance (F, P, P)")
     ok = np.isfinite(values).all(1) & np.isfinite(covariance).all((1, 2))
     safe = np.where(ok[:, None], values, _neutral(machine, p))
-    joints = safe[:, :n_joints]
-    world_from_base = base_matrices(safe[:, n_joints:]) if base_motion else None
-    points_machine = replace(
-        machine,
-        marker_names=machine.point_names,
-        marker_links=machine.point_links,
-        marker_positions=machine.point_positions,
-    )
-    points, jac = _point_jacobian(points_machine, safe, base_motion)
+    points, jac = _point_jacobian(machine, safe, base_motion)  # the named points, then the angle's four
+    n_named = len(machine.point_names)
+    if machine.bucket_angle is not None:
+        angle, gradient = _bucket_angle(points[:, n_named:], jac[:, n_named:])
+    else:
+        angle, gradient = np.full(n, np.nan), np.zeros((n, p))
+    points, jac = points[:, :n_named], jac[:, :n_named]
     point_cov = jac @ covariance[:, None] @ np.swapaxes(jac, -1, -2)  # (F, N, 3, 3)
     points_sd = np.sqrt(np.trace(point_cov, axis1=-2, axis2=-1))
-    angle = machine.bucket_angles(joints, world_from_base)
-    gradient = np.empty((n, p))
-    for k in range(p):
-        step = np.zeros(p)
-        step[k] = _ANGLE_STEP
-        plus, minus = safe + step, safe - step
-        gradient[:, k] = (
-            _angle(machine, plus, base_motion) - _angle(machine, minus, base_motion)
-        ) / (2 * _ANGLE_STEP)
     angle_sd = np.sqrt(np.einsum("fp,fpq,fq->f", gradient, covariance, gradient))
     velocity = None
     if velocities is not None:
@@ -90,18 +80,40 @@ def _neutral(machine: Machine, p: int) -> np.ndarray:
     return neutral
 
 
-def _angle(machine: Machine, values: np.ndarray, base_motion: bool) -> np.ndarray:
-    n_joints = machine.n_joints
-    base = base_matrices(values[:, n_joints:]) if base_motion else None
-    return machine.bucket_angles(values[:, :n_joints], base)
+def _bucket_angle(ends: np.ndarray, jac: np.ndarray):
+    """The bucket angle (F,) and its gradient by the parameters (F, P) from the bucket
+    link's origin and the tip of its unit direction, then the house link's origin and the
+    tip of its forward (x) axis (F, 4, 3), and their Jacobians (F, 4, 3, P)
+    (as mocap.machine.Machine.bucket_angles: atan2 of the direction's height over its
+    component along the forward axis made horizontal and unit)."""
+    direction, d_direction = ends[:, 1] - ends[:, 0], jac[:, 1] - jac[:, 0]  # (F, 3), (F, 3, P)
+    forward, d_forward = ends[:, 3] - ends[:, 2], jac[:, 3] - jac[:, 2]
+    forward, d_forward = forward * [1.0, 1.0, 0.0], d_forward * np.array([1.0, 1.0, 0.0])[:, None]
+    length = np.linalg.norm(forward, axis=-1, keepdims=True)
+    unit = forward / length
+    d_unit = (d_forward - unit[..., None] * np.einsum("fi,fip->fp", unit, d_forward)[:, None]) / length[..., None]
+    rise, run = direction[:, 2], np.einsum("fi,fi->f", direction, unit)
+    d_rise = d_direction[:, 2]
+    d_run = np.einsum("fip,fi->fp", d_direction, unit) + np.einsum("fi,fip->fp", direction, d_unit)
+    gradient = (run[:, None] * d_rise - rise[:, None] * d_run) / (run**2 + rise**2)[:, None]
+    return np.arctan2(rise, run), gradient
 
 
-def _point_jacobian(points_machine: Machine, values: np.ndarray, base_motion: bool):
-    """Points (F, N, 3) and d point / d parameters (F, N, 3, P); the base parameters are the
-    rotation vector and translation of ``world_from_base`` (small-increment derivative)."""
-    if not points_machine.marker_names:
+def _point_jacobian(machine: Machine, values: np.ndarray, base_motion: bool):
+    """Points (F, N, 3) and d point / d parameters (F, N, 3, P) of the named points, then
+    (with a bucket angle) of the bucket link's origin and the tip of its direction and the
+    house link's origin and the tip of its x axis; the base parameters are the rotation
+    vector and translation of ``world_from_base`` (small-increment derivative)."""
+    links, positions = list(machine.point_links), list(machine.point_positions)
+    if machine.bucket_angle is not None:
+        links += [machine.bucket_angle.link] * 2 + [machine.house_link] * 2
+        positions += [np.zeros(3), machine.bucket_angle.direction, np.zeros(3), np.array([1.0, 0.0, 0.0])]
+    if not links:
         n = len(values)
         return np.zeros((n, 0, 3)), np.zeros((n, 0, 3, values.shape[1]))
+    points_machine = replace(machine, marker_names=tuple(f"point{k}" for k in range(len(links))),
+                             marker_links=np.array(links, dtype=int), marker_positions=np.array(positions, dtype=float),
+                             marker_tags=None)
     n_joints = points_machine.n_joints
     problem = KinematicModel(points_machine, (), base_motion)
     rotation = translation = None
