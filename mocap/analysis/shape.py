@@ -271,12 +271,12 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
-               scales: np.ndarray, min_angle_deg: float = 3.0,
-               max_unexplained: float = 1.15, cutoff_hz: float = 0.6) -> Deviations:
+               scales: np.ndarray, min_angle_deg: float = 4.0,
+               max_unexplained: float = 0.4, cutoff_hz: float = 0.6) -> Deviations:
     """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
     that turns the bucket by at least `min_angle_deg` and leaves at most `max_unexplained`
-    of the smooth fits' squared residuals (the angle's and the height's shares added, of 2)
-    is a redirection."""
+    of the squared residual of the bucket angle about a quintic in time is a redirection;
+    its lift is the same event fitted to the tip's height about a quintic in time."""
     k = len(starts)
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
@@ -292,18 +292,17 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
             reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
         if b - a < MIN_EVENT_FRAMES:  # too short to tell an event from the smooth profile
             continue
-        u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
-        tau = np.linspace(0.0, 1.0, len(u))
+        tau = np.linspace(0.0, 1.0, b - a + 1)
         shapes, kept, centre, width = _events(tau)
-        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
-        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], np.vander(tau, 6, increasing=True), shapes)
-        unexplained = sse_a / max(sse0_a, 1e-12) + sse_z / max(sse0_z, 1e-12)
-        g = int(np.argmin(unexplained))
-        if unexplained[g] > max_unexplained or abs(np.degrees(amp[g])) < min_angle_deg:
+        base = np.vander(tau, 6, increasing=True)
+        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], base, shapes)
+        g = int(np.argmin(sse_a))
+        if sse_a[g] > max_unexplained * sse0_a or abs(np.degrees(amp[g])) < min_angle_deg:
             continue
+        _, amp_z, _ = _fit_event(series.height[a:b + 1], base, shapes[g:g + 1])
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
-        d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
+        d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[0], centre[g], width[g]
         length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
         words = []
         if abs(lift[i]) > 0.015 * length:
@@ -312,7 +311,7 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         window = (tau > centre[g] - width[g]) & (tau < centre[g] + width[g])
         chord = np.array([series.reach[b] - series.reach[a], series.height[b] - series.height[a]])
         forward = np.diff(series.reach[a:b + 1]) * chord[0] + np.diff(series.height[a:b + 1]) * chord[1]
-        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(u), 1)):
+        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(tau), 1)):
             words.append("reversal")
         words.append(kind[i])
         what[i] = ", ".join(words)
