@@ -271,12 +271,21 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
-               scales: np.ndarray, min_angle_deg: float = 4.0,
-               max_unexplained: float = 0.4, cutoff_hz: float = 0.6) -> Deviations:
-    """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
-    that turns the bucket by at least `min_angle_deg` and leaves at most `max_unexplained`
-    of the squared residual of the bucket angle about a quintic in time is a redirection;
-    its lift is the same event fitted to the tip's height about a quintic in time."""
+               scales: np.ndarray, min_angle_deg: float = 4.0, max_unexplained: float = 0.4,
+               slow_angle_deg: float = 6.0, slow_unexplained: float = 1.0, cutoff_hz: float = 0.6) -> Deviations:
+    """Reactive RMS and operator redirections of every dig [start, end] (indices).
+
+    A redirection is an event (a pulse or a step of the grid of `_events`) that turns the
+    bucket by at least `min_angle_deg` and leaves at most `max_unexplained` of the squared
+    residual of the bucket angle about a quintic in time: the classes' angle profiles are
+    smooth in time, while the height's are not (the floor push bends into the rise within
+    a second, as fast as an event), so the angle alone says whether there is one. A slow
+    kept step is partly absorbed by the quintic; it is also a redirection when it turns the
+    bucket by at least `slow_angle_deg` and the same event explains the angle about a cubic
+    in arc length and the height about a quintic in time together, leaving at most
+    `slow_unexplained` of their squared residuals (the two shares added, of 2). Its lift is
+    the same event fitted to the tip's height about a quintic in time.
+    """
     k = len(starts)
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
@@ -296,13 +305,18 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         shapes, kept, centre, width = _events(tau)
         base = np.vander(tau, 6, increasing=True)
         sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], base, shapes)
+        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], base, shapes)
         g = int(np.argmin(sse_a))
         if sse_a[g] > max_unexplained * sse0_a or abs(np.degrees(amp[g])) < min_angle_deg:
-            continue
-        _, amp_z, _ = _fit_event(series.height[a:b + 1], base, shapes[g:g + 1])
+            u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
+            sse_u, amp, sse0_u = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
+            unexplained = sse_u / max(sse0_u, 1e-12) + sse_z / max(sse0_z, 1e-12)
+            g = int(np.argmin(unexplained))
+            if unexplained[g] > slow_unexplained or abs(np.degrees(amp[g])) < slow_angle_deg:
+                continue
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
-        d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[0], centre[g], width[g]
+        d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
         length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
         words = []
         if abs(lift[i]) > 0.015 * length:
