@@ -13,13 +13,15 @@ redirection fitted beside the vertical stretch where it explains the height (a k
 Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
-- **operator redirection**: a sudden change the general shape cannot explain, found by
-  fitting the bucket angle with a cubic in arc length (the classes' angle profiles are
-  smooth in it) and the tip's height with a quintic in time, each plus the same event in
-  time — a pulse (temporary) or a step (kept) — at every place and width of a grid, and
-  keeping the event that explains most of both together (an operator's correction lifts
-  or lowers the bucket and turns it). Its kind says lift or lower (the same event in
-  the height), the angle change, temporary or kept, and reversal when the tip moved back.
+- **operator redirection**: a sudden turn of the bucket its smooth profile cannot explain,
+  found by fitting the bucket angle with a quintic in time (the classes' angle profiles are
+  smooth in it; the height's are not, the floor push bending into the rise within a
+  second) plus an event in time — a pulse (temporary) or a step (kept) — at every place
+  and width of a grid, and keeping the event that explains most of it; a slow kept step,
+  partly taken up by the quintic, also counts where the same event explains the angle
+  about a cubic in arc length and the height about a quintic in time together. Its kind
+  says lift or lower (the same event in the height), the angle change, temporary or kept,
+  and reversal when the tip moved back.
 
 Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
 """
