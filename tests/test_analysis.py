@@ -77,7 +77,7 @@ def test_redirections_and_scales_over_sessions():
         inside = (a.table["redirection_time"] >= a.table["dig_start_time"]) & (
             a.table["redirection_time"] <= a.table["dig_end_time"])
         assert np.all(inside[found])
-    assert tp / (tp + fp) >= 0.8 and tp / (tp + fn) >= 0.8, (tp, fp, fn)
+    assert tp / (tp + fp) >= 0.9 and tp / (tp + fn) >= 0.9, (tp, fp, fn)
     # the truth's scale is each dig's stretch against its class's general shape; what a
     # stretch cannot express of a dig's own push and rise is a few per cent; an operator's
     # kept lift is confounded with a vertical stretch as far as its fit is off, and a
@@ -411,3 +411,42 @@ def test_the_score_line_says_when_scales_cannot_be_scored():
     assert "scale error not scored (fewer than two digs of any one class)" in format_analysis_score(score([]))
     assert "scale error median 3.0%" in format_analysis_score(score([0.02, -0.04]))
     assert "nan" not in format_analysis_score(score([]))
+
+
+def _dig_series(angle_deg: np.ndarray, height: np.ndarray, reach: np.ndarray, rng: np.random.Generator):
+    """A TipSeries of one dig (30 fps) with smooth (1-3 Hz) reactive noise of 1 deg and 5 cm
+    (0.3 % of a 15 m reach, as the synthetic sessions have)."""
+    from mocap.analysis.series import TipSeries
+    n = len(angle_deg)
+    t = np.arange(n) / 30.0
+    smooth = lambda sd: sd * np.sin(2 * np.pi * rng.uniform(1, 3, 4)[:, None] * t + rng.uniform(0, 6, 4)[:, None]).sum(0) / 1.4  # noqa: E731
+    angle = np.radians(angle_deg + smooth(1.0))
+    z, r = height + smooth(0.05), reach + smooth(0.05)
+    zero = np.zeros(n)
+    return TipSeries(np.arange(n), t, r, z, zero, angle, zero + 1.0, zero, zero.astype(bool), zero.astype(bool), r, z, angle)
+
+
+def test_a_turn_of_the_bucket_within_a_dig_is_a_redirection_and_a_late_curl_is_not():
+    from mocap.analysis.shape import deviations, event_shape
+    from mocap.synthetic.paths import min_jerk
+    tau = np.linspace(0.0, 1.0, 225)  # a 7.5 s dig
+    u = min_jerk(tau)
+    # a Type 2 like dig: the tip pushes along the floor and bends up; the bucket curls late
+    # and fast (45 deg as u^4), which a cubic in arc length does not follow
+    curl = 45.0 * u**4
+    height = 0.5 + 3.5 * np.clip((u - 0.3) / 0.7, 0, 1) ** 1.5
+    reach = 10.0 + 4.0 * u
+    # a temporary turn and lift (a kept step is partly taken up by the smooth profile: the
+    # benchmark's misses are such)
+    event = event_shape(tau, np.array([0.5]), np.array([0.1]), np.array([False]))[0]
+    ends = np.array([0]), np.array([224])
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        none = deviations(_dig_series(curl, height, reach, rng), *ends, np.ones((1, 2)))
+        found = deviations(_dig_series(curl - 10.0 * event, height + 0.3 * event, reach, rng), *ends, np.ones((1, 2)))
+        assert none.redirection[0] == "none", seed
+        assert found.redirection[0] != "none", seed
+        # the grid's centres 0.025 of the dig apart, its half-widths 0.04 apart
+        assert abs(found.redirection_centre[0] - 0.5) <= 0.1
+        assert found.redirection[0] == "temporary" and -13.0 < np.degrees(found.redirection_angle[0]) < -7.0
+        assert found.redirection_lift[0] > 0.1

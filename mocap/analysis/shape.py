@@ -13,13 +13,15 @@ redirection fitted beside the vertical stretch where it explains the height (a k
 Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
-- **operator redirection**: a sudden change the general shape cannot explain, found by
-  fitting the bucket angle with a cubic in arc length (the classes' angle profiles are
-  smooth in it) and the tip's height with a quintic in time, each plus the same event in
-  time — a pulse (temporary) or a step (kept) — at every place and width of a grid, and
-  keeping the event that explains most of both together (an operator's correction lifts
-  or lowers the bucket and turns it). Its kind says lift or lower (the same event in
-  the height), the angle change, temporary or kept, and reversal when the tip moved back.
+- **operator redirection**: a sudden turn of the bucket its smooth profile cannot explain,
+  found by fitting the bucket angle with a quintic in time (the classes' angle profiles are
+  smooth in it; the height's are not, the floor push bending into the rise within a
+  second) plus an event in time — a pulse (temporary) or a step (kept) — at every place
+  and width of a grid, and keeping the event that explains most of it; a slow kept step,
+  partly taken up by the quintic, also counts where the same event explains the angle
+  about a cubic in arc length and the height about a quintic in time together. Its kind
+  says lift or lower (the same event in the height), the angle change, temporary or kept,
+  and reversal when the tip moved back.
 
 Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
 """
@@ -271,12 +273,21 @@ def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
-               scales: np.ndarray, min_angle_deg: float = 3.0,
-               max_unexplained: float = 1.15, cutoff_hz: float = 0.6) -> Deviations:
-    """Reactive RMS and operator redirections of every dig [start, end] (indices): an event
-    that turns the bucket by at least `min_angle_deg` and leaves at most `max_unexplained`
-    of the smooth fits' squared residuals (the angle's and the height's shares added, of 2)
-    is a redirection."""
+               scales: np.ndarray, min_angle_deg: float = 4.0, max_unexplained: float = 0.4,
+               slow_angle_deg: float = 6.0, slow_unexplained: float = 1.0, cutoff_hz: float = 0.6) -> Deviations:
+    """Reactive RMS and operator redirections of every dig [start, end] (indices).
+
+    A redirection is an event (a pulse or a step of the grid of `_events`) that turns the
+    bucket by at least `min_angle_deg` and leaves at most `max_unexplained` of the squared
+    residual of the bucket angle about a quintic in time: the classes' angle profiles are
+    smooth in time, while the height's are not (the floor push bends into the rise within
+    a second, as fast as an event), so the angle alone says whether there is one. A slow
+    kept step is partly absorbed by the quintic; it is also a redirection when it turns the
+    bucket by at least `slow_angle_deg` and the same event explains the angle about a cubic
+    in arc length and the height about a quintic in time together, leaving at most
+    `slow_unexplained` of their squared residuals (the two shares added, of 2). Its lift is
+    the same event fitted to the tip's height about a quintic in time.
+    """
     k = len(starts)
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reactive_m, reactive_deg = np.full(k, np.nan), np.full(k, np.nan)
@@ -292,15 +303,19 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
             reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
         if b - a < MIN_EVENT_FRAMES:  # too short to tell an event from the smooth profile
             continue
-        u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
-        tau = np.linspace(0.0, 1.0, len(u))
+        tau = np.linspace(0.0, 1.0, b - a + 1)
         shapes, kept, centre, width = _events(tau)
-        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
-        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], np.vander(tau, 6, increasing=True), shapes)
-        unexplained = sse_a / max(sse0_a, 1e-12) + sse_z / max(sse0_z, 1e-12)
-        g = int(np.argmin(unexplained))
-        if unexplained[g] > max_unexplained or abs(np.degrees(amp[g])) < min_angle_deg:
-            continue
+        base = np.vander(tau, 6, increasing=True)
+        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], base, shapes)
+        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], base, shapes)
+        g = int(np.argmin(sse_a))
+        if sse_a[g] > max_unexplained * sse0_a or abs(np.degrees(amp[g])) < min_angle_deg:
+            u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
+            sse_u, amp, sse0_u = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
+            unexplained = sse_u / max(sse0_u, 1e-12) + sse_z / max(sse0_z, 1e-12)
+            g = int(np.argmin(unexplained))
+            if unexplained[g] > slow_unexplained or abs(np.degrees(amp[g])) < slow_angle_deg:
+                continue
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
         d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
@@ -312,7 +327,7 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         window = (tau > centre[g] - width[g]) & (tau < centre[g] + width[g])
         chord = np.array([series.reach[b] - series.reach[a], series.height[b] - series.height[a]])
         forward = np.diff(series.reach[a:b + 1]) * chord[0] + np.diff(series.height[a:b + 1]) * chord[1]
-        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(u), 1)):
+        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(tau), 1)):
             words.append("reversal")
         words.append(kind[i])
         what[i] = ", ".join(words)
