@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mocap.camera import project_cam
 from mocap.cli import main
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
@@ -135,11 +136,67 @@ def test_fit_recovers_joints_from_noisy_pixels():
     pixels = model.pixels(joints) + rng.normal(0, noise, (5, len(model.machine.marker_names), 2))
     fitted, residual, _ = model.fit(pixels, joints + np.radians(4), iterations=10)
     # the joints' standard deviations from the pixel noise: noise * sqrt(diag((J^T J)^-1))
-    _, jac = model._residuals(joints, np.zeros_like(pixels), model.camera.cam_from_world.rotation)
+    _, jac = numpy_residuals(model, joints, np.zeros_like(pixels))
     information = np.einsum("fmaj,fmak->fjk", jac, jac)
     sd = noise * np.sqrt(np.diagonal(np.linalg.inv(information), axis1=1, axis2=2))
     assert np.all(np.abs(fitted - joints) < 4 * sd)
     assert np.sqrt(np.nanmean(residual**2)) < 2 * noise
+
+
+def numpy_residuals(model: CameraModel, joints: np.ndarray, target: np.ndarray):
+    """Residuals (F, M, 2) and their Jacobian (F, M, 2, J) by the vectorised numpy of the
+    machine's and the camera's own functions (the reference for the compiled fit)."""
+    markers, dmarkers = model.machine.markers_with_jacobian(joints)
+    camera = model.camera
+    uv, duv = project_cam(camera.cam_from_world.apply(markers), camera.matrix, camera.distortion, with_jacobian=True)
+    return uv - target, (duv @ camera.cam_from_world.rotation) @ dmarkers
+
+
+def numpy_fit(model: CameraModel, pixels, start, iterations=6, scale_px=2.0, prior_weight=1e-2):
+    """`CameraModel.fit`'s robust Gauss-Newton in vectorised numpy."""
+    start = np.broadcast_to(start, (len(pixels), model.machine.n_joints))
+    observed = np.all(np.isfinite(pixels), axis=-1)
+    target = np.where(observed[..., None], pixels, 0.0)
+    joints = start.copy()
+    for _ in range(iterations):
+        residual, jac = numpy_residuals(model, joints, target)
+        norm = np.linalg.norm(residual, axis=-1)
+        weight = np.where(observed & np.isfinite(norm), np.minimum(1.0, scale_px / np.maximum(norm, 1e-12)), 0.0)
+        residual = np.where(weight[..., None] > 0, residual, 0.0)
+        jac = np.where(weight[..., None, None] > 0, jac, 0.0)
+        normal = np.einsum("fm,fmaj,fmak->fjk", weight, jac, jac) + prior_weight * np.eye(model.machine.n_joints)
+        gradient = np.einsum("fm,fmaj,fma->fj", weight, jac, residual) + prior_weight * (joints - start)
+        joints = model.machine.clip_to_limits(joints - np.linalg.solve(normal, gradient[..., None])[..., 0])
+    uv = model.camera.project(model.machine.markers(joints))
+    return joints, np.where(observed, np.linalg.norm(uv - target, axis=-1), np.nan), uv
+
+
+@pytest.mark.parametrize("distortion", [np.zeros(5), np.array([-0.12, 0.05, 0.002, -0.001, 0.01])])
+def test_compiled_fit_is_the_numpy_fit(distortion):
+    """The compiled fit and pixels give what numpy's vectorised kinematics, lens and normal
+    equations give: markers missing, an outlier, a start far off, a distorting lens, and
+    some markers behind the camera."""
+    rng = np.random.default_rng(8)
+    _, _, _, model, joints = make_scene(n_frames=6, clutter=0, seed=8)
+    model = CameraModel(model.machine, replace(model.camera, distortion=distortion))
+    truth = model.camera.project(model.machine.markers(joints))
+    np.testing.assert_allclose(model.pixels(joints), truth, rtol=0, atol=1e-9)
+    pixels = truth + rng.normal(0, 0.5, truth.shape)
+    pixels[rng.random(pixels.shape[:2]) < 0.3] = np.nan
+    pixels[1, 2] += 40.0  # an outlier the Huber weight takes down
+    start = model.machine.clip_to_limits(joints + rng.normal(0, np.radians(8), joints.shape))
+    # (behind the camera, the pinhole: a lens's polynomial far outside the picture is no lens)
+    behind = replace(model.camera, distortion=np.zeros(5), cam_from_world=replace(
+        model.camera.cam_from_world, translation=model.camera.cam_from_world.translation + [0, 0, -6.0]))
+    for tested in (model, CameraModel(model.machine, behind)):
+        if tested is not model:
+            z = tested.camera.cam_from_world.apply(model.machine.markers(joints))[..., 2]
+            assert np.any(z < 0) and np.any(z > 0)  # some markers behind the camera
+            assert np.array_equal(np.isnan(tested.pixels(joints)[..., 0]), z <= 0)
+        for iterations in (1, 8):
+            got, want = tested.fit(pixels, start, iterations=iterations), numpy_fit(tested, pixels, start, iterations)
+            for a, b in zip(got, want):
+                np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
 
 
 def test_centre_offsets_are_the_perspective_shift_of_each_disk():
