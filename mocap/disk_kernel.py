@@ -151,3 +151,61 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             out_spread[i] = (background - darkest) / max(background - foreground, 1.0)
             out_uneven[i] = (background - middle) / max(background - foreground, 1.0)
     return out_xy, out_axes, out_angle, out_contrast, out_fill, out_spread, out_uneven
+
+
+@njit(
+    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
+    "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], i8)",
+    cache=True,
+    nogil=True,
+)
+def refine_disks_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int):
+    """`refine_disks` from xy (N, 2) with semi-axis matrices shape (N, 2, 2), each window
+    reaching twice the start's major semi-axis and 4 px; a candidate that moved more than a
+    quarter of its radius (at least a pixel's) is refined once more from where it arrived,
+    with the ellipse it found. Returns what `refine_disks` returns, the candidates that stayed
+    first, then those refined again, each in their input order."""
+    n = xy.shape[0]
+    max_major = np.empty(n)
+    for i in range(n):
+        major2 = _eigen(shape[i, 0, 0], shape[i, 0, 1], shape[i, 1, 1])[1]
+        max_major[i] = 2.0 * math.sqrt(max(major2, 0.25)) + 4.0
+    first = refine_disks(gray, xy, shape, max_major, iterations)
+    centre, axes, angle = first[0], first[1], first[2]
+    far = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        dx, dy = centre[i, 0] - xy[i, 0], centre[i, 1] - xy[i, 1]
+        moved = math.sqrt(dx * dx + dy * dy)
+        far[i] = moved > 0.25 * max(math.sqrt(axes[i, 0] * axes[i, 1]), 1.0)
+    again = np.flatnonzero(far)
+    stayed = np.flatnonzero(~far)
+    k = again.shape[0]
+    start = np.empty((k, 2))
+    start_shape = np.empty((k, 2, 2))
+    again_major = np.empty(k)
+    for j in range(k):
+        i = again[j]
+        start[j, 0], start[j, 1] = centre[i, 0], centre[i, 1]
+        # R diag(a², b²) R^T, R's first column the major axis (`Detections.shape`)
+        cos, sin = math.cos(angle[i]), math.sin(angle[i])
+        a2, b2 = axes[i, 0] ** 2, axes[i, 1] ** 2
+        start_shape[j, 0, 0] = cos * a2 * cos + sin * b2 * sin
+        start_shape[j, 0, 1] = start_shape[j, 1, 0] = cos * a2 * sin - sin * b2 * cos
+        start_shape[j, 1, 1] = sin * a2 * sin + cos * b2 * cos
+        major2 = _eigen(start_shape[j, 0, 0], start_shape[j, 0, 1], start_shape[j, 1, 1])[1]
+        again_major[j] = 2.0 * math.sqrt(max(major2, 0.25)) + 4.0
+    second = refine_disks(gray, start, start_shape, again_major, iterations)
+    results = (np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+    for j in range(n):
+        if j < stayed.shape[0]:
+            i, source = stayed[j], first
+        else:
+            i, source = j - stayed.shape[0], second
+        results[0][j, 0], results[0][j, 1] = source[0][i, 0], source[0][i, 1]
+        results[1][j, 0], results[1][j, 1] = source[1][i, 0], source[1][i, 1]
+        results[2][j] = source[2][i]
+        results[3][j] = source[3][i]
+        results[4][j] = source[4][i]
+        results[5][j] = source[5][i]
+        results[6][j] = source[6][i]
+    return results
