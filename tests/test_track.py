@@ -12,6 +12,7 @@ import pytest
 
 from mocap.camera import project_cam
 from mocap.cli import main
+from mocap.visibility import visible_markers
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
@@ -197,6 +198,46 @@ def test_compiled_fit_is_the_numpy_fit(distortion):
             got, want = tested.fit(pixels, start, iterations=iterations), numpy_fit(tested, pixels, start, iterations)
             for a, b in zip(got, want):
                 np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+
+
+def numpy_view(model: CameraModel, joints: np.ndarray):
+    """`CameraModel.view` by `mocap.visibility`'s vectorised numpy: pixels, seen, px per metre."""
+    poses = model.machine.link_poses(joints)
+    camera = model.camera
+    cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
+    uv, seen = visible_markers(model.machine, model.boxes, model.normals, poses, cam_from_world, camera.matrix,
+                               camera.distortion, camera.size)
+    on_link = poses[:, model.machine.marker_links]
+    points_cam = camera.cam_from_world.apply(model.machine.markers(joints))
+    if not model.solid:
+        seen = (points_cam[..., 2] > 0) & np.all((uv >= -0.5) & (uv <= np.array(camera.size) - 0.5), axis=-1)
+    normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], model.normals)
+    facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / np.linalg.norm(points_cam, axis=-1)
+    facing = facing if model.solid else np.ones_like(facing)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
+    return uv, seen, scale
+
+
+@pytest.mark.parametrize("solid", [True, False])
+def test_compiled_view_is_the_numpy_view(solid):
+    """The compiled view gives `mocap.visibility`'s pixels and hidden markers, and the same
+    scale, over a machine's motion (markers turning away, hidden by links, leaving the
+    picture), through a distorting lens."""
+    rng = np.random.default_rng(9)
+    _, _, _, model, _ = make_scene(n_frames=1, clutter=0, seed=9)
+    camera = replace(model.camera, distortion=np.array([-0.12, 0.05, 0.002, -0.001, 0.01]))
+    model = CameraModel(model.machine, camera, solid=solid)
+    limits = model.machine.joint_limits.copy()
+    limits[0] = [-np.pi, np.pi]
+    joints = rng.uniform(limits[:, 0], limits[:, 1], (300, model.machine.n_joints))
+    got, want = model.view(joints), numpy_view(model, joints)
+    np.testing.assert_allclose(got.uv, want[0], rtol=0, atol=1e-9)
+    assert np.array_equal(got.visible, want[1])
+    np.testing.assert_allclose(got.scale, want[2], rtol=1e-12)
+    if solid:  # some hidden by links and some turned away, not only outside the picture
+        inside = np.all((want[0] >= 0) & (want[0] <= np.array(camera.size) - 1), axis=-1)
+        assert 0.1 < np.mean(want[1][inside]) < 0.9
 
 
 def test_centre_offsets_are_the_perspective_shift_of_each_disk():
@@ -512,3 +553,16 @@ def test_markers_in_view_but_never_found_are_named():
     tracks, summary = track_frames(model, frames, joints[0], fps=30.0)
     assert summary.unplaced == (names[gone],)
     assert names[gone] not in set(tracks.marker)
+
+
+def test_luma_stretch_is_the_exact_formula():
+    """Every limited-range level, at a frame's width and at odd widths (the vector and the
+    scalar paths), maps to round((v - 16) * 255 / 219), saturated."""
+    from mocap.io.video import full_range
+
+    exact = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+    rng = np.random.default_rng(0)
+    for width in (1920, 1917, 7, 1):
+        luma = rng.integers(0, 256, (9, width + 3), dtype=np.uint8)[:, :width]
+        luma[0, : min(width, 256)] = np.arange(min(width, 256))
+        assert np.array_equal(full_range(luma), exact[luma])

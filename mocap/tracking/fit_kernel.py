@@ -191,3 +191,91 @@ def marker_pixels(joints, chain, marker_links, positions, rotation, translation,
         _markers(joints[f], chain, marker_links, positions, rotation, translation, matrix, distortion, moves, False,
                  out[f], duv)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _hits_box(start, end, low_corner, high_corner):
+    """Whether the segment from `start` to `end` (3,) passes through the box (`visibility.segment_hits_box`)."""
+    enter, leave = -math.inf, math.inf
+    for a in range(3):
+        d = end[a] - start[a]
+        if d == 0:
+            if not (low_corner[a] <= start[a] <= high_corner[a]):
+                return False
+            continue
+        t1 = (low_corner[a] - start[a]) / d
+        t2 = (high_corner[a] - start[a]) / d
+        enter = max(enter, min(t1, t2))
+        leave = min(leave, max(t1, t2))
+    return leave >= max(enter, 0.0) and enter <= 1.0
+
+
+@njit(cache=True, nogil=True)
+def marker_view(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, boxes, normals,
+                width, height, solid, min_facing):
+    """What the camera sees at joints (F, J) (`CameraModel.view`): marker pixels (F, M, 2),
+    whether each is seen (F, M) (in the image, facing the camera by more than `min_facing`
+    and not behind another link's box; with `solid` False, in front of the camera and in the
+    image) and px per metre (F, M)."""
+    revolute, parents, joint_links, at_zero, first, second, axes, n_links = chain
+    n_frames, n_markers = joints.shape[0], positions.shape[0]
+    uv = np.empty((n_frames, n_markers, 2))
+    seen = np.zeros((n_frames, n_markers), dtype=np.bool_)
+    scale = np.empty((n_frames, n_markers))
+    poses = np.empty((n_links, 4, 4))
+    jac = np.empty((2, 3))
+    world = np.empty(3)
+    cam = np.empty(3)
+    centre = np.empty(3)
+    start = np.empty(3)
+    end = np.empty(3)
+    focal = 0.5 * (matrix[0, 0] + matrix[1, 1])
+    for a in range(3):  # the camera's centre in the world: -R^T t
+        centre[a] = -(rotation[0, a] * translation[0] + rotation[1, a] * translation[1] + rotation[2, a] * translation[2])
+    for f in range(n_frames):
+        _link_poses(joints[f], revolute, parents, joint_links, at_zero, first, second, poses)
+        for m in range(n_markers):
+            link = marker_links[m]
+            for a in range(3):
+                world[a] = (poses[link, a, 0] * positions[m, 0] + poses[link, a, 1] * positions[m, 1]
+                            + poses[link, a, 2] * positions[m, 2]) + poses[link, a, 3]
+            for a in range(3):
+                cam[a] = (rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2]) + translation[a]
+            _project(cam, matrix, distortion, uv[f, m], jac)
+            u, v = uv[f, m, 0], uv[f, m, 1]
+            nx = poses[link, 0, 0] * normals[m, 0] + poses[link, 0, 1] * normals[m, 1] + poses[link, 0, 2] * normals[m, 2]
+            ny = poses[link, 1, 0] * normals[m, 0] + poses[link, 1, 1] * normals[m, 1] + poses[link, 1, 2] * normals[m, 2]
+            nz = poses[link, 2, 0] * normals[m, 0] + poses[link, 2, 1] * normals[m, 1] + poses[link, 2, 2] * normals[m, 2]
+            if solid:
+                inside = math.isfinite(u) and math.isfinite(v) and 0 <= u <= width - 1 and 0 <= v <= height - 1
+                tx, ty, tz = centre[0] - world[0], centre[1] - world[1], centre[2] - world[2]
+                facing = (nx * tx + ny * ty + nz * tz) / math.sqrt(tx * tx + ty * ty + tz * tz) > min_facing
+                visible = inside and facing
+                for other in range(n_links):
+                    if not visible:
+                        break
+                    if other == link:  # its own box never hides it
+                        continue
+                    for a in range(3):  # link_from_world: R^T (p - t)
+                        start[a] = ((poses[other, 0, a] * (world[0] - poses[other, 0, 3])
+                                     + poses[other, 1, a] * (world[1] - poses[other, 1, 3]))
+                                    + poses[other, 2, a] * (world[2] - poses[other, 2, 3]))
+                        end[a] = ((poses[other, 0, a] * (centre[0] - poses[other, 0, 3])
+                                   + poses[other, 1, a] * (centre[1] - poses[other, 1, 3]))
+                                  + poses[other, 2, a] * (centre[2] - poses[other, 2, 3]))
+                    visible = not _hits_box(start, end, boxes[other, 0], boxes[other, 1])
+                seen[f, m] = visible
+            else:
+                inside = -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
+                seen[f, m] = cam[2] > 0 and inside
+            # px per metre: f / depth, times the square root of the cosine of the viewing angle
+            if cam[2] > 0:
+                distance = math.sqrt(cam[0] * cam[0] + cam[1] * cam[1] + cam[2] * cam[2])
+                ncx = rotation[0, 0] * nx + rotation[0, 1] * ny + rotation[0, 2] * nz
+                ncy = rotation[1, 0] * nx + rotation[1, 1] * ny + rotation[1, 2] * nz
+                ncz = rotation[2, 0] * nx + rotation[2, 1] * ny + rotation[2, 2] * nz
+                cosine = abs(ncx * cam[0] + ncy * cam[1] + ncz * cam[2]) / distance if solid else 1.0
+                scale[f, m] = focal / cam[2] * math.sqrt(cosine)
+            else:
+                scale[f, m] = math.nan
+    return uv, seen, scale

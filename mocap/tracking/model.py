@@ -16,8 +16,8 @@ import numpy as np
 from mocap.camera import Camera
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
-from mocap.tracking.fit_kernel import fit_joints, marker_pixels
-from mocap.visibility import marker_normals, visible_markers
+from mocap.tracking.fit_kernel import fit_joints, marker_pixels, marker_view
+from mocap.visibility import MIN_FACING_COS, marker_normals
 
 
 class Fit(NamedTuple):
@@ -94,27 +94,12 @@ class CameraModel:
     def view(self, joints: np.ndarray) -> View:
         """What the camera sees of the machine at joint values (F, J), from one pass of
         the forward kinematics."""
-        joints = np.atleast_2d(joints)
-        poses = self.machine.link_poses(joints)
-        camera = self.camera
-        cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
-        uv, seen = visible_markers(
-            self.machine, self.boxes, self.normals, poses, cam_from_world, camera.matrix, camera.distortion, camera.size
-        )
-        on_link = poses[:, self.machine.marker_links]  # (F, M, 4, 4)
-        world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], self.machine.marker_positions) + on_link[..., :3, 3]
-        points_cam = camera.cam_from_world.apply(world)
-        if not self.solid:
-            inside = np.all((uv >= -0.5) & (uv <= np.array(camera.size) - 0.5), axis=-1)
-            seen = (points_cam[..., 2] > 0) & inside
-        normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], self.normals)
-        distance = np.linalg.norm(points_cam, axis=-1)
-        facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / distance
-        if not self.solid:  # the disks' normals are unknown: take them facing the camera
-            facing = np.ones_like(facing)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
-        return View(uv, seen, scale)
+        joints = np.ascontiguousarray(np.atleast_2d(joints), dtype=float)
+        chain, links, positions, rotation, translation, matrix, distortion, _ = self._kernel_arguments
+        width, height = self.camera.size
+        return View(*marker_view(joints, chain, links, positions, rotation, translation, matrix, distortion,
+                                 np.ascontiguousarray(self.boxes, dtype=float), np.ascontiguousarray(self.normals),
+                                 float(width), float(height), self.solid, MIN_FACING_COS))
 
     def centre_offsets(self, joints: np.ndarray, radius_m: float) -> np.ndarray:
         """(F, M, 2) px from the centre of each disk's image ellipse to the image of the
