@@ -259,11 +259,11 @@ def unique(detections: Detections) -> Detections:
     if len(detections) < 2:
         return detections
     order = np.argsort(-detections.score)
-    d = detections.select(order)
-    dist = np.linalg.norm(d.xy[:, None] - d.xy[None], axis=-1)
-    close = dist < 0.5 * np.minimum(d.radius[:, None], d.radius[None])
+    xy, radius = detections.xy[order], detections.radius[order]
+    dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    close = dist < 0.5 * np.minimum(radius[:, None], radius[None])
     keep = ~np.any(np.triu(close, 1), axis=0)
-    return d.select(keep)
+    return detections.select(order[keep])
 
 
 # --- perspective: the image of a disk's centre -------------------------------------------

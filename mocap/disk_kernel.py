@@ -35,15 +35,24 @@ def _ring_radii(minor: float):
     return k_in, max(1.6, k_in + 0.35)
 
 
-@njit("f8(i8[::1], i8, f8)", cache=True, nogil=True)
-def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
-    rank = math.floor(q * max(total - 1, 0))
+@njit("UniTuple(f8, 3)(i8[::1], i8)", cache=True, nogil=True)
+def _ring_levels(histogram: np.ndarray, total: int):
+    """The 15th, 50th and 85th percentiles (the level at rank floor(q (n - 1))) of a 256-bin
+    histogram of `total` values, in one pass up to the last of them."""
+    span = max(total - 1, 0)
+    low, mid, high = math.floor(0.15 * span), math.floor(0.5 * span), math.floor(0.85 * span)
+    darkest = middle = bright = 255.0
     seen = 0
     for level in range(256):
         seen += histogram[level]
-        if seen > rank:
-            return float(level)
-    return 255.0
+        if seen > low and darkest == 255.0:
+            darkest = float(level)
+        if seen > mid and middle == 255.0:
+            middle = float(level)
+        if seen > high:
+            bright = float(level)
+            break
+    return darkest, middle, bright
 
 
 @njit(
@@ -104,9 +113,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             if ring_count == 0:
                 darkest = background = middle = math.nan
             else:
-                darkest = _quantile(histogram, ring_count, 0.15)
-                middle = _quantile(histogram, ring_count, 0.5)
-                background = _quantile(histogram, ring_count, 0.85)
+                darkest, middle, background = _ring_levels(histogram, ring_count)
             foreground = middle_sum / middle_count if middle_count > 0 else math.nan
             if background - middle > _UNEVEN * (background - foreground):
                 # a ring of two levels (half of it on something brighter than the disk's own
