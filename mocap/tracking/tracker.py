@@ -406,7 +406,7 @@ def assign(
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    sub = np.where(allowed[np.ix_(rows, cols)], cost[np.ix_(rows, cols)], _INFEASIBLE)
+    sub = np.where(allowed, cost, _INFEASIBLE)[rows][:, cols]
     # a marker may stay unassigned at the cost of a pair at its gate: without that choice
     # every marker takes some detection, and one not detected takes another's and passes
     # it on, which drags a fit from even the right joints
