@@ -55,6 +55,23 @@ def _ring_levels(histogram: np.ndarray, total: int):
     return darkest, middle, bright
 
 
+@njit("UniTuple(i8, 2)(f8, f8, f8, f8, f8, f8, i8, i8)", cache=True, nogil=True)
+def _row_span(ia: float, ib: float, ic: float, cx: float, dy: float, level: float, x0: int, x1: int):
+    """The columns (first, last) of a row, within x0..x1, that can hold pixels with
+    ``ia dx² + 2 ib dx dy + ic dy² < level`` (dx = x - cx; ia > 0): between the quadratic's
+    roots for a slightly higher level, widened by a pixel each side, so that no such pixel is
+    left out (each is still tested); last < first when there is none."""
+    level = level * (1.0 + 1e-9) + 1e-9
+    b = ib * dy
+    disc = b * b - ia * (ic * dy * dy - level)
+    if disc < 0.0:
+        return x0, x0 - 1
+    root = math.sqrt(disc)
+    first = int(math.floor(cx + (-b - root) / ia)) - 1
+    last = int(math.ceil(cx + (-b + root) / ia)) + 1
+    return max(first, x0), min(last, x1)
+
+
 @njit(
     "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
     "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], f8[::1], i8)",
@@ -101,7 +118,8 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             middle_sum = 0.0
             for y in range(y0, y1 + 1):
                 dy = y - cy
-                for x in range(x0, x1 + 1):
+                first, last = _row_span(ia, ib, ic, cx, dy, k_out2, x0, x1)
+                for x in range(first, last + 1):
                     dx = x - cx
                     rho2 = ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy
                     if rho2 < 0.25:
@@ -127,7 +145,8 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             m0 = mx = my = mxx = mxy = myy = 0.0
             for y in range(y0, y1 + 1):
                 dy = y - cy
-                for x in range(x0, x1 + 1):
+                first, last = _row_span(ia, ib, ic, cx, dy, k_in2, x0, x1)
+                for x in range(first, last + 1):
                     dx = x - cx
                     if ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy < k_in2:
                         w = min(max((background - gray[y, x]) / contrast, 0.0), 1.0)

@@ -173,7 +173,8 @@ class CameraModel:
         observed) and the fitted pixels (F, M, 2).
         """
         pixels = np.ascontiguousarray(pixels, dtype=float)
-        start = np.ascontiguousarray(np.broadcast_to(np.asarray(start, dtype=float), (len(pixels), self.machine.n_joints)))
+        starts = np.empty((len(pixels), self.machine.n_joints))
+        starts[:] = start
         limits = np.ascontiguousarray(self.machine.joint_limits)
-        return Fit(*fit_joints(pixels, start, int(iterations), float(scale_px), float(prior_weight), limits,
+        return Fit(*fit_joints(pixels, starts, int(iterations), float(scale_px), float(prior_weight), limits,
                                *self._kernel_arguments))
