@@ -1,9 +1,12 @@
 """Tracking and synchronisation on a rendered synthetic session, against its truth.
 
 Renders a session with `mocap synth` (clutter, motion blur, dust, noise, occlusion by the
-machine's own links), then per camera: the decode floor (OpenCV reading every frame, the
-peer), detection + labelling + tracking of the same video (decoding included; the least
-of `--repeat` interleaved runs of each), and the labels and centres against the true
+machine's own links), then per camera: two decode floors, OpenCV reading every frame in
+colour (`decode s`, the peer a user would write) and the tracker's own grey decoding alone
+(`grey s`: the same decoder and settings), detection + labelling + tracking of the same
+video (decoding included; the least of `--repeat` interleaved runs of each; `cpu s` the
+process's CPU time for it, both threads) and its ratio to each floor, and the labels and
+centres against the true
 tracks; then the cameras' time offsets from the tracks against the truth. A marker counts
 as visible when all of its painted square is in view (the true tracks' score is 1).
 
@@ -56,13 +59,22 @@ from mocap.tracking import CameraModel, track_frames
 
 
 def decode_floor(path: Path) -> tuple[float, int]:
-    """Seconds OpenCV takes to read (decode) every frame, and the frame count."""
+    """Seconds OpenCV takes to read (decode, to colour) every frame, and the frame count."""
     capture = cv2.VideoCapture(str(path))
     start, count = time.perf_counter(), 0
     while capture.read()[0]:
         count += 1
     capture.release()
     return time.perf_counter() - start, count
+
+
+def grey_floor(video: Video) -> float:
+    """Seconds the tracker's own decoding takes alone: every frame's grey image from the
+    decoder's luma plane (`Video.frames`, the same decoder and settings, no tracking)."""
+    start = time.perf_counter()
+    for _ in video.frames(prefetch=4):
+        pass
+    return time.perf_counter() - start
 
 
 def score(truth, tracks):
@@ -220,7 +232,8 @@ def main() -> int:
         machine = load_machine(args.machine)
         truth_cal = load_calibration(root / "truth" / "cameras.toml")
         truth = load_tracks(root / "truth" / "tracks.csv")
-        header = f"{'camera':>7} {'frames':>6} {'decode s':>8} {'track s':>8} {'ratio':>6} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}"
+        header = (f"{'camera':>7} {'frames':>6} {'decode s':>8} {'grey s':>6} {'track s':>8} {'cpu s':>6} {'ratio':>6} {'/ grey':>6} "
+                  f"{'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
         print(header)
         print("-" * len(header))
         curves, all_errors = [], []
@@ -228,18 +241,21 @@ def main() -> int:
             video_path = root / "videos" / f"{camera.name}.mp4"
             video = Video(video_path)
             model = CameraModel(machine, camera)
-            floors, tooks = [], []
+            floors, greys, tooks, cpus = [], [], [], []
             for _ in range(args.repeat):  # interleaved, the least of each: the machine is shared
                 floor, count = decode_floor(video_path)
-                t0 = time.perf_counter()
+                greys.append(grey_floor(video))
+                t0, cpu0 = time.perf_counter(), time.process_time()
                 tracks, _ = track_frames(model, video.frames(prefetch=4), truth_cal.joints(machine), None,
                                          video.info.fps)
                 floors.append(floor)
                 tooks.append(time.perf_counter() - t0)
-            floor, took = min(floors), min(tooks)
+                cpus.append(time.process_time() - cpu0)
+            floor, grey, took, cpu = min(floors), min(greys), min(tooks), min(cpus)
             labelled, wrong, errors = score(truth.of_camera(camera.name), tracks)
             all_errors.append(errors)
-            print(f"{camera.name:>7} {count:>6} {floor:>8.2f} {took:>8.2f} {took / floor:>6.2f} {labelled:>8.2%} "
+            print(f"{camera.name:>7} {count:>6} {floor:>8.2f} {grey:>6.2f} {took:>8.2f} {cpu:>6.2f} {took / floor:>6.2f} "
+                  f"{took / grey:>6.2f} {labelled:>8.2%} "
                   f"{wrong:>7.3%} {np.median(errors):>9.3f} {np.percentile(errors, 95):>7.3f}")
             frames = np.arange(tracks.frame.max() + 1)
             pixels = tracks.dense([camera.name], machine.marker_names, frames)[0]

@@ -32,7 +32,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from mocap.disk_kernel import refine_disks
+from mocap.disk_kernel import refine_disks, refine_disks_converged
 
 
 FULL_FRAME_BLOCKS = (9, 15, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search
@@ -182,8 +182,12 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
     centre, axes, angle, contrast, fill, spread, uneven = refine_disks(
         np.ascontiguousarray(gray, dtype=np.uint8), np.ascontiguousarray(xy), shape, 2.0 * major + 4.0, iterations
     )
-    score = np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
-    return Detections(centre, axes, angle, contrast, fill, score), np.stack([spread, uneven], axis=-1)
+    return Detections(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)), np.stack([spread, uneven], axis=-1)
+
+
+def _score(contrast: np.ndarray, fill: np.ndarray, spread: np.ndarray) -> np.ndarray:
+    """(N,) in [0, 1]: high for a dark, filled disk in a clean white ring."""
+    return np.clip(contrast / 255.0, 0, 1) * np.exp(-2.0 * np.abs(1.0 - fill)) * np.exp(-2.0 * spread)
 
 
 def accept(detections: Detections, ring: np.ndarray, options: DetectOptions) -> np.ndarray:
@@ -225,15 +229,29 @@ def refine_and_accept(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, optio
     """`refine` then `accept`, duplicates merged (centres closer than half a radius). A
     candidate that moved more than a quarter of its radius from where it started (a far or
     ill-sized start) is refined once more from where it arrived, so that it converges."""
-    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    found, ring = refine(gray, xy, shape)
-    far = np.linalg.norm(found.xy - xy, axis=1) > 0.25 * np.maximum(found.radius, 1.0)
-    if np.any(far):
-        again, again_ring = refine(gray, found.xy[far], found.shape[far])
-        found = concatenate([found.select(~far), again])
-        ring = np.concatenate([ring[~far], again_ring])
-    found = found.select(accept(found, ring, options))
-    return unique(found)
+    return accepted(*refine_converged(gray, xy, shape), options)
+
+
+def refine_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray) -> tuple[Detections, np.ndarray]:
+    """`refine`, and a candidate that moved more than a quarter of its radius from where it
+    started refined once more from where it arrived (`disk_kernel.refine_disks_converged`):
+    the Detections (those that stayed first) and their rings, no test applied."""
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    shape = np.asarray(shape, dtype=float)
+    if shape.ndim == 1:
+        shape = shape[:, None, None] ** 2 * np.eye(2)
+    shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
+    if len(xy) == 0:
+        return Detections.empty(), np.zeros((0, 2))
+    centre, axes, angle, contrast, fill, spread, uneven = refine_disks_converged(
+        np.ascontiguousarray(gray, dtype=np.uint8), xy, shape, 3)
+    return (Detections(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)),
+            np.stack([spread, uneven], axis=-1))
+
+
+def accepted(found: Detections, ring: np.ndarray, options: DetectOptions) -> Detections:
+    """The refined detections that pass `accept`, duplicates merged (`unique`)."""
+    return unique(found.select(accept(found, ring, options)))
 
 
 def unique(detections: Detections) -> Detections:
@@ -241,11 +259,11 @@ def unique(detections: Detections) -> Detections:
     if len(detections) < 2:
         return detections
     order = np.argsort(-detections.score)
-    d = detections.select(order)
-    dist = np.linalg.norm(d.xy[:, None] - d.xy[None], axis=-1)
-    close = dist < 0.5 * np.minimum(d.radius[:, None], d.radius[None])
+    xy, radius = detections.xy[order], detections.radius[order]
+    dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    close = dist < 0.5 * np.minimum(radius[:, None], radius[None])
     keep = ~np.any(np.triu(close, 1), axis=0)
-    return d.select(keep)
+    return detections.select(order[keep])
 
 
 # --- perspective: the image of a disk's centre -------------------------------------------

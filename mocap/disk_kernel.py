@@ -35,15 +35,41 @@ def _ring_radii(minor: float):
     return k_in, max(1.6, k_in + 0.35)
 
 
-@njit("f8(i8[::1], i8, f8)", cache=True, nogil=True)
-def _quantile(histogram: np.ndarray, total: int, q: float) -> float:
-    rank = math.floor(q * max(total - 1, 0))
+@njit("UniTuple(f8, 3)(i8[::1], i8)", cache=True, nogil=True)
+def _ring_levels(histogram: np.ndarray, total: int):
+    """The 15th, 50th and 85th percentiles (the level at rank floor(q (n - 1))) of a 256-bin
+    histogram of `total` values, in one pass up to the last of them."""
+    span = max(total - 1, 0)
+    low, mid, high = math.floor(0.15 * span), math.floor(0.5 * span), math.floor(0.85 * span)
+    darkest = middle = bright = 255.0
     seen = 0
     for level in range(256):
         seen += histogram[level]
-        if seen > rank:
-            return float(level)
-    return 255.0
+        if seen > low and darkest == 255.0:
+            darkest = float(level)
+        if seen > mid and middle == 255.0:
+            middle = float(level)
+        if seen > high:
+            bright = float(level)
+            break
+    return darkest, middle, bright
+
+
+@njit("UniTuple(i8, 2)(f8, f8, f8, f8, f8, f8, i8, i8)", cache=True, nogil=True)
+def _row_span(ia: float, ib: float, ic: float, cx: float, dy: float, level: float, x0: int, x1: int):
+    """The columns (first, last) of a row, within x0..x1, that can hold pixels with
+    ``ia dx² + 2 ib dx dy + ic dy² < level`` (dx = x - cx; ia > 0): between the quadratic's
+    roots for a slightly higher level, widened by a pixel each side, so that no such pixel is
+    left out (each is still tested); last < first when there is none."""
+    level = level * (1.0 + 1e-9) + 1e-9
+    b = ib * dy
+    disc = b * b - ia * (ic * dy * dy - level)
+    if disc < 0.0:
+        return x0, x0 - 1
+    root = math.sqrt(disc)
+    first = int(math.floor(cx + (-b - root) / ia)) - 1
+    last = int(math.ceil(cx + (-b + root) / ia)) + 1
+    return max(first, x0), min(last, x1)
 
 
 @njit(
@@ -92,7 +118,8 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             middle_sum = 0.0
             for y in range(y0, y1 + 1):
                 dy = y - cy
-                for x in range(x0, x1 + 1):
+                first, last = _row_span(ia, ib, ic, cx, dy, k_out2, x0, x1)
+                for x in range(first, last + 1):
                     dx = x - cx
                     rho2 = ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy
                     if rho2 < 0.25:
@@ -104,9 +131,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             if ring_count == 0:
                 darkest = background = middle = math.nan
             else:
-                darkest = _quantile(histogram, ring_count, 0.15)
-                middle = _quantile(histogram, ring_count, 0.5)
-                background = _quantile(histogram, ring_count, 0.85)
+                darkest, middle, background = _ring_levels(histogram, ring_count)
             foreground = middle_sum / middle_count if middle_count > 0 else math.nan
             if background - middle > _UNEVEN * (background - foreground):
                 # a ring of two levels (half of it on something brighter than the disk's own
@@ -120,7 +145,8 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             m0 = mx = my = mxx = mxy = myy = 0.0
             for y in range(y0, y1 + 1):
                 dy = y - cy
-                for x in range(x0, x1 + 1):
+                first, last = _row_span(ia, ib, ic, cx, dy, k_in2, x0, x1)
+                for x in range(first, last + 1):
                     dx = x - cx
                     if ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy < k_in2:
                         w = min(max((background - gray[y, x]) / contrast, 0.0), 1.0)
@@ -151,3 +177,61 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
             out_spread[i] = (background - darkest) / max(background - foreground, 1.0)
             out_uneven[i] = (background - middle) / max(background - foreground, 1.0)
     return out_xy, out_axes, out_angle, out_contrast, out_fill, out_spread, out_uneven
+
+
+@njit(
+    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
+    "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], i8)",
+    cache=True,
+    nogil=True,
+)
+def refine_disks_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int):
+    """`refine_disks` from xy (N, 2) with semi-axis matrices shape (N, 2, 2), each window
+    reaching twice the start's major semi-axis and 4 px; a candidate that moved more than a
+    quarter of its radius (at least a pixel's) is refined once more from where it arrived,
+    with the ellipse it found. Returns what `refine_disks` returns, the candidates that stayed
+    first, then those refined again, each in their input order."""
+    n = xy.shape[0]
+    max_major = np.empty(n)
+    for i in range(n):
+        major2 = _eigen(shape[i, 0, 0], shape[i, 0, 1], shape[i, 1, 1])[1]
+        max_major[i] = 2.0 * math.sqrt(max(major2, 0.25)) + 4.0
+    first = refine_disks(gray, xy, shape, max_major, iterations)
+    centre, axes, angle = first[0], first[1], first[2]
+    far = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        dx, dy = centre[i, 0] - xy[i, 0], centre[i, 1] - xy[i, 1]
+        moved = math.sqrt(dx * dx + dy * dy)
+        far[i] = moved > 0.25 * max(math.sqrt(axes[i, 0] * axes[i, 1]), 1.0)
+    again = np.flatnonzero(far)
+    stayed = np.flatnonzero(~far)
+    k = again.shape[0]
+    start = np.empty((k, 2))
+    start_shape = np.empty((k, 2, 2))
+    again_major = np.empty(k)
+    for j in range(k):
+        i = again[j]
+        start[j, 0], start[j, 1] = centre[i, 0], centre[i, 1]
+        # R diag(a², b²) R^T, R's first column the major axis (`Detections.shape`)
+        cos, sin = math.cos(angle[i]), math.sin(angle[i])
+        a2, b2 = axes[i, 0] ** 2, axes[i, 1] ** 2
+        start_shape[j, 0, 0] = cos * a2 * cos + sin * b2 * sin
+        start_shape[j, 0, 1] = start_shape[j, 1, 0] = cos * a2 * sin - sin * b2 * cos
+        start_shape[j, 1, 1] = sin * a2 * sin + cos * b2 * cos
+        major2 = _eigen(start_shape[j, 0, 0], start_shape[j, 0, 1], start_shape[j, 1, 1])[1]
+        again_major[j] = 2.0 * math.sqrt(max(major2, 0.25)) + 4.0
+    second = refine_disks(gray, start, start_shape, again_major, iterations)
+    results = (np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+    for j in range(n):
+        if j < stayed.shape[0]:
+            i, source = stayed[j], first
+        else:
+            i, source = j - stayed.shape[0], second
+        results[0][j, 0], results[0][j, 1] = source[0][i, 0], source[0][i, 1]
+        results[1][j, 0], results[1][j, 1] = source[1][i, 0], source[1][i, 1]
+        results[2][j] = source[2][i]
+        results[3][j] = source[3][i]
+        results[4][j] = source[4][i]
+        results[5][j] = source[5][i]
+        results[6][j] = source[6][i]
+    return results

@@ -40,7 +40,7 @@ def opencv_tags(gray: np.ndarray, dictionary: str) -> dict[int, np.ndarray]:
     """OpenCV's ArucoDetector with its default settings: {id: centre (diagonals' crossing)}."""
     detector = cv2.aruco.ArucoDetector(tag_dictionary(dictionary), cv2.aruco.DetectorParameters())
     corners, ids, _ = detector.detectMarkers(gray)
-    if ids is None:
+    if ids is None or len(corners) == 0:  # (some OpenCV versions give an empty id array, not None)
         return {}
     corners = np.concatenate(corners).reshape(-1, 4, 2)
     return dict(zip(ids.reshape(-1).tolist(), diagonal_intersection(corners)))

@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
+from mocap.camera import project_cam
 from mocap.cli import main
+from mocap.visibility import visible_markers
 from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
@@ -135,11 +137,107 @@ def test_fit_recovers_joints_from_noisy_pixels():
     pixels = model.pixels(joints) + rng.normal(0, noise, (5, len(model.machine.marker_names), 2))
     fitted, residual, _ = model.fit(pixels, joints + np.radians(4), iterations=10)
     # the joints' standard deviations from the pixel noise: noise * sqrt(diag((J^T J)^-1))
-    _, jac = model._residuals(joints, np.zeros_like(pixels), model.camera.cam_from_world.rotation)
+    _, jac = numpy_residuals(model, joints, np.zeros_like(pixels))
     information = np.einsum("fmaj,fmak->fjk", jac, jac)
     sd = noise * np.sqrt(np.diagonal(np.linalg.inv(information), axis1=1, axis2=2))
     assert np.all(np.abs(fitted - joints) < 4 * sd)
     assert np.sqrt(np.nanmean(residual**2)) < 2 * noise
+
+
+def numpy_residuals(model: CameraModel, joints: np.ndarray, target: np.ndarray):
+    """Residuals (F, M, 2) and their Jacobian (F, M, 2, J) by the vectorised numpy of the
+    machine's and the camera's own functions (the reference for the compiled fit)."""
+    markers, dmarkers = model.machine.markers_with_jacobian(joints)
+    camera = model.camera
+    uv, duv = project_cam(camera.cam_from_world.apply(markers), camera.matrix, camera.distortion, with_jacobian=True)
+    return uv - target, (duv @ camera.cam_from_world.rotation) @ dmarkers
+
+
+def numpy_fit(model: CameraModel, pixels, start, iterations=6, scale_px=2.0, prior_weight=1e-2):
+    """`CameraModel.fit`'s robust Gauss-Newton in vectorised numpy."""
+    start = np.broadcast_to(start, (len(pixels), model.machine.n_joints))
+    observed = np.all(np.isfinite(pixels), axis=-1)
+    target = np.where(observed[..., None], pixels, 0.0)
+    joints = start.copy()
+    for _ in range(iterations):
+        residual, jac = numpy_residuals(model, joints, target)
+        norm = np.linalg.norm(residual, axis=-1)
+        weight = np.where(observed & np.isfinite(norm), np.minimum(1.0, scale_px / np.maximum(norm, 1e-12)), 0.0)
+        residual = np.where(weight[..., None] > 0, residual, 0.0)
+        jac = np.where(weight[..., None, None] > 0, jac, 0.0)
+        normal = np.einsum("fm,fmaj,fmak->fjk", weight, jac, jac) + prior_weight * np.eye(model.machine.n_joints)
+        gradient = np.einsum("fm,fmaj,fma->fj", weight, jac, residual) + prior_weight * (joints - start)
+        joints = model.machine.clip_to_limits(joints - np.linalg.solve(normal, gradient[..., None])[..., 0])
+    uv = model.camera.project(model.machine.markers(joints))
+    return joints, np.where(observed, np.linalg.norm(uv - target, axis=-1), np.nan), uv
+
+
+@pytest.mark.parametrize("distortion", [np.zeros(5), np.array([-0.12, 0.05, 0.002, -0.001, 0.01])])
+def test_compiled_fit_is_the_numpy_fit(distortion):
+    """The compiled fit and pixels give what numpy's vectorised kinematics, lens and normal
+    equations give: markers missing, an outlier, a start far off, a distorting lens, and
+    some markers behind the camera."""
+    rng = np.random.default_rng(8)
+    _, _, _, model, joints = make_scene(n_frames=6, clutter=0, seed=8)
+    model = CameraModel(model.machine, replace(model.camera, distortion=distortion))
+    truth = model.camera.project(model.machine.markers(joints))
+    np.testing.assert_allclose(model.pixels(joints), truth, rtol=0, atol=1e-9)
+    pixels = truth + rng.normal(0, 0.5, truth.shape)
+    pixels[rng.random(pixels.shape[:2]) < 0.3] = np.nan
+    pixels[1, 2] += 40.0  # an outlier the Huber weight takes down
+    start = model.machine.clip_to_limits(joints + rng.normal(0, np.radians(8), joints.shape))
+    # (behind the camera, the pinhole: a lens's polynomial far outside the picture is no lens)
+    behind = replace(model.camera, distortion=np.zeros(5), cam_from_world=replace(
+        model.camera.cam_from_world, translation=model.camera.cam_from_world.translation + [0, 0, -6.0]))
+    for tested in (model, CameraModel(model.machine, behind)):
+        if tested is not model:
+            z = tested.camera.cam_from_world.apply(model.machine.markers(joints))[..., 2]
+            assert np.any(z < 0) and np.any(z > 0)  # some markers behind the camera
+            assert np.array_equal(np.isnan(tested.pixels(joints)[..., 0]), z <= 0)
+        for iterations in (1, 8):
+            got, want = tested.fit(pixels, start, iterations=iterations), numpy_fit(tested, pixels, start, iterations)
+            for a, b in zip(got, want):
+                np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+
+
+def numpy_view(model: CameraModel, joints: np.ndarray):
+    """`CameraModel.view` by `mocap.visibility`'s vectorised numpy: pixels, seen, px per metre."""
+    poses = model.machine.link_poses(joints)
+    camera = model.camera
+    cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
+    uv, seen = visible_markers(model.machine, model.boxes, model.normals, poses, cam_from_world, camera.matrix,
+                               camera.distortion, camera.size)
+    on_link = poses[:, model.machine.marker_links]
+    points_cam = camera.cam_from_world.apply(model.machine.markers(joints))
+    if not model.solid:
+        seen = (points_cam[..., 2] > 0) & np.all((uv >= -0.5) & (uv <= np.array(camera.size) - 0.5), axis=-1)
+    normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], model.normals)
+    facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / np.linalg.norm(points_cam, axis=-1)
+    facing = facing if model.solid else np.ones_like(facing)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
+    return uv, seen, scale
+
+
+@pytest.mark.parametrize("solid", [True, False])
+def test_compiled_view_is_the_numpy_view(solid):
+    """The compiled view gives `mocap.visibility`'s pixels and hidden markers, and the same
+    scale, over a machine's motion (markers turning away, hidden by links, leaving the
+    picture), through a distorting lens."""
+    rng = np.random.default_rng(9)
+    _, _, _, model, _ = make_scene(n_frames=1, clutter=0, seed=9)
+    camera = replace(model.camera, distortion=np.array([-0.12, 0.05, 0.002, -0.001, 0.01]))
+    model = CameraModel(model.machine, camera, solid=solid)
+    limits = model.machine.joint_limits.copy()
+    limits[0] = [-np.pi, np.pi]
+    joints = rng.uniform(limits[:, 0], limits[:, 1], (300, model.machine.n_joints))
+    got, want = model.view(joints), numpy_view(model, joints)
+    np.testing.assert_allclose(got.uv, want[0], rtol=0, atol=1e-9)
+    assert np.array_equal(got.visible, want[1])
+    np.testing.assert_allclose(got.scale, want[2], rtol=1e-12)
+    if solid:  # some hidden by links and some turned away, not only outside the picture
+        inside = np.all((want[0] >= 0) & (want[0] <= np.array(camera.size) - 1), axis=-1)
+        assert 0.1 < np.mean(want[1][inside]) < 0.9
 
 
 def test_centre_offsets_are_the_perspective_shift_of_each_disk():
@@ -455,3 +553,16 @@ def test_markers_in_view_but_never_found_are_named():
     tracks, summary = track_frames(model, frames, joints[0], fps=30.0)
     assert summary.unplaced == (names[gone],)
     assert names[gone] not in set(tracks.marker)
+
+
+def test_luma_stretch_is_the_exact_formula():
+    """Every limited-range level, at a frame's width and at odd widths (the vector and the
+    scalar paths), maps to round((v - 16) * 255 / 219), saturated."""
+    from mocap.io.video import full_range
+
+    exact = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+    rng = np.random.default_rng(0)
+    for width in (1920, 1917, 7, 1):
+        luma = rng.integers(0, 256, (9, width + 3), dtype=np.uint8)[:, :width]
+        luma[0, : min(width, 256)] = np.arange(min(width, 256))
+        assert np.array_equal(full_range(luma), exact[luma])

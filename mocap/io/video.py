@@ -174,7 +174,15 @@ def probe_video(path: Path) -> None:
         raise InputError(f"is a still image ({codec}), not a video; give the camera's video", path=path)
 
 
-_LIMITED_TO_FULL = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+_STRETCH = 255 / 219  # limited-range luma (16-235) to full (0-255): round((v - 16) * 255 / 219), saturated
+
+
+def full_range(luma: np.ndarray) -> np.ndarray:
+    """Limited-range luma (H, W) uint8 stretched to full range, a new contiguous image. One
+    multiply-add a pixel (`cv2.addWeighted`, the second image weighted 0; float32 lands at
+    least 1/438 from a rounding tie, so every level maps as the exact formula does) costs
+    about half of a table lookup (`cv2.LUT`) on a 1080p frame."""
+    return cv2.addWeighted(luma, _STRETCH, luma, 0.0, -16 * _STRETCH, dtype=cv2.CV_8U)
 
 
 def _luma(frame) -> np.ndarray:
@@ -186,4 +194,4 @@ def _luma(frame) -> np.ndarray:
     plane = frame.planes[0]
     luma = np.frombuffer(plane, np.uint8).reshape(plane.height, plane.line_size)[:, : plane.width]
     full = name.startswith("yuvj") or name == "gray" or getattr(frame, "color_range", 1) == 2
-    return np.ascontiguousarray(luma) if full else cv2.LUT(luma, _LIMITED_TO_FULL)
+    return np.ascontiguousarray(luma) if full else full_range(luma)

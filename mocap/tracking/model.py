@@ -8,14 +8,16 @@ Shapes: F frames, M markers, J joints, L links.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
 
-from mocap.camera import Camera, project_cam
+from mocap.camera import Camera
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
-from mocap.visibility import marker_normals, visible_markers
+from mocap.tracking.fit_kernel import fit_joints, marker_pixels, marker_view
+from mocap.visibility import MIN_FACING_COS, marker_normals
 
 
 class Fit(NamedTuple):
@@ -62,7 +64,26 @@ class CameraModel:
 
     def pixels(self, joints: np.ndarray) -> np.ndarray:
         """Marker pixels (F, M, 2) for joint values (F, J); NaN behind the camera."""
-        return self.camera.project(self.machine.markers(joints))
+        joints = np.ascontiguousarray(np.atleast_2d(joints), dtype=float)
+        if joints.shape[1:] != (self.machine.n_joints,):
+            raise ValueError(f"joint values must have shape (F, {self.machine.n_joints}), got {joints.shape}")
+        return marker_pixels(joints, *self._kernel_arguments)
+
+    @cached_property
+    def _kernel_arguments(self) -> tuple:
+        """The machine's chain and the camera, as `mocap.tracking.fit_kernel` takes them."""
+        machine, camera = self.machine, self.camera
+        revolute, parents, at_zero, axes = machine._chain
+        first, second = machine._motion_terms
+        chain = (np.ascontiguousarray(revolute), np.ascontiguousarray(parents, dtype=np.int64),
+                 np.array(machine.joint_links, dtype=np.int64).reshape(-1), np.ascontiguousarray(at_zero, dtype=float),
+                 np.ascontiguousarray(first), np.ascontiguousarray(second), np.ascontiguousarray(axes, dtype=float),
+                 len(machine.links))
+        rotation, translation = camera.cam_from_world.rotation, camera.cam_from_world.translation
+        return (chain, np.ascontiguousarray(machine.marker_links, dtype=np.int64),
+                np.ascontiguousarray(machine.marker_positions, dtype=float), np.ascontiguousarray(rotation, dtype=float),
+                np.ascontiguousarray(translation, dtype=float), np.ascontiguousarray(camera.matrix, dtype=float),
+                np.ascontiguousarray(camera.distortion, dtype=float).reshape(5), np.array(machine.marker_moves))
 
     def visible(self, joints: np.ndarray) -> np.ndarray:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
@@ -73,27 +94,12 @@ class CameraModel:
     def view(self, joints: np.ndarray) -> View:
         """What the camera sees of the machine at joint values (F, J), from one pass of
         the forward kinematics."""
-        joints = np.atleast_2d(joints)
-        poses = self.machine.link_poses(joints)
-        camera = self.camera
-        cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
-        uv, seen = visible_markers(
-            self.machine, self.boxes, self.normals, poses, cam_from_world, camera.matrix, camera.distortion, camera.size
-        )
-        on_link = poses[:, self.machine.marker_links]  # (F, M, 4, 4)
-        world = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], self.machine.marker_positions) + on_link[..., :3, 3]
-        points_cam = camera.cam_from_world.apply(world)
-        if not self.solid:
-            inside = np.all((uv >= -0.5) & (uv <= np.array(camera.size) - 0.5), axis=-1)
-            seen = (points_cam[..., 2] > 0) & inside
-        normal_cam = np.einsum("ij,fmjk,mk->fmi", camera.cam_from_world.rotation, on_link[..., :3, :3], self.normals)
-        distance = np.linalg.norm(points_cam, axis=-1)
-        facing = np.abs(np.einsum("fmi,fmi->fm", normal_cam, points_cam)) / distance
-        if not self.solid:  # the disks' normals are unknown: take them facing the camera
-            facing = np.ones_like(facing)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            scale = np.where(points_cam[..., 2] > 0, camera.focal / points_cam[..., 2], np.nan) * np.sqrt(facing)
-        return View(uv, seen, scale)
+        joints = np.ascontiguousarray(np.atleast_2d(joints), dtype=float)
+        chain, links, positions, rotation, translation, matrix, distortion, _ = self._kernel_arguments
+        width, height = self.camera.size
+        return View(*marker_view(joints, chain, links, positions, rotation, translation, matrix, distortion,
+                                 np.ascontiguousarray(self.boxes, dtype=float), np.ascontiguousarray(self.normals),
+                                 float(width), float(height), self.solid, MIN_FACING_COS))
 
     def centre_offsets(self, joints: np.ndarray, radius_m: float) -> np.ndarray:
         """(F, M, 2) px from the centre of each disk's image ellipse to the image of the
@@ -166,28 +172,9 @@ class CameraModel:
         Fit: joints (F, J), clipped to the limits, residuals (F, M) px (NaN where not
         observed) and the fitted pixels (F, M, 2).
         """
-        pixels = np.asarray(pixels, dtype=float)
-        start = np.broadcast_to(np.asarray(start, dtype=float), (len(pixels), self.machine.n_joints))
-        observed = np.all(np.isfinite(pixels), axis=-1)  # (F, M)
-        target = np.where(observed[..., None], pixels, 0.0)
-        rotation = self.camera.cam_from_world.rotation
-        n_joints = self.machine.n_joints
-        joints = start.copy()
-        for _ in range(iterations):
-            residual, jac = self._residuals(joints, target, rotation)
-            norm = np.linalg.norm(residual, axis=-1)
-            weight = np.where(observed & np.isfinite(norm), np.minimum(1.0, scale_px / np.maximum(norm, 1e-12)), 0.0)
-            residual = np.where(weight[..., None] > 0, residual, 0.0)
-            jac = np.where(weight[..., None, None] > 0, jac, 0.0)
-            normal = np.einsum("fm,fmaj,fmak->fjk", weight, jac, jac) + prior_weight * np.eye(n_joints)
-            gradient = np.einsum("fm,fmaj,fma->fj", weight, jac, residual)
-            gradient += prior_weight * (joints - start)
-            joints = self.machine.clip_to_limits(joints - np.linalg.solve(normal, gradient[..., None])[..., 0])
-        uv = self.pixels(joints)
-        return Fit(joints, np.where(observed, np.linalg.norm(uv - target, axis=-1), np.nan), uv)
-
-    def _residuals(self, joints, target, rotation):
-        markers, dmarkers = self.machine.markers_with_jacobian(joints)  # (F, M, 3), (F, M, 3, J)
-        points_cam = self.camera.cam_from_world.apply(markers)
-        uv, duv = project_cam(points_cam, self.camera.matrix, self.camera.distortion, with_jacobian=True)
-        return uv - target, (duv @ rotation) @ dmarkers  # (F, M, 2), (F, M, 2, J)
+        pixels = np.ascontiguousarray(pixels, dtype=float)
+        starts = np.empty((len(pixels), self.machine.n_joints))
+        starts[:] = start
+        limits = np.ascontiguousarray(self.machine.joint_limits)
+        return Fit(*fit_joints(pixels, starts, int(iterations), float(scale_px), float(prior_weight), limits,
+                               *self._kernel_arguments))

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import (DetectOptions, Detections, concatenate, find_candidates, refine, refine_and_accept,
-                          unique)
+from mocap.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
+                          refine_and_accept, refine_converged, unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -316,9 +316,11 @@ class Tracker:
         is taken with `near_ring_spread` times the test's bound if it stays put when refined
         again from a smaller window where it arrived (a window that straddles a disk's edge,
         whose ring the disk itself darkens, moves on)."""
-        strict = refine_and_accept(gray, xy, 0.25 * shape, detect)
+        small = refine_converged(gray, xy, 0.25 * shape)
+        strict = accepted(*small, detect)
         loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
-        loose = unique(concatenate([refine_and_accept(gray, xy, s, loose_options) for s in (shape, 0.25 * shape)]))
+        loose = unique(concatenate([accepted(*refine_converged(gray, xy, shape), loose_options),
+                                    accepted(*small, loose_options)]))
         loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
         if len(loose) == 0:
             return strict
@@ -404,7 +406,7 @@ def assign(
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    sub = np.where(allowed[np.ix_(rows, cols)], cost[np.ix_(rows, cols)], _INFEASIBLE)
+    sub = np.where(allowed, cost, _INFEASIBLE)[rows][:, cols]
     # a marker may stay unassigned at the cost of a pair at its gate: without that choice
     # every marker takes some detection, and one not detected takes another's and passes
     # it on, which drags a fit from even the right joints

@@ -1,0 +1,281 @@
+"""The tracker's joint fit, compiled (numba): forward kinematics, projection through the
+camera's lens with its Jacobian, and robust Gauss-Newton steps, one frame at a time.
+
+`mocap.tracking.model.CameraModel.fit` states the method; this module only computes it, the
+same sums in the same order as the vectorised numpy of `Machine.markers_with_jacobian`,
+`camera.project_cam` and the fit's normal equations (a few frames of a dozen markers and a
+handful of joints: numpy's per-call overhead, not arithmetic, was the cost).
+
+Shapes: F frames, M markers, J joints, L links.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _link_poses(joints, revolute, parents, joint_links, at_zero, first, second, poses):
+    """World-from-link transforms (L, 4, 4) into `poses` for one frame's joints (J,);
+    motion(q) = I + a(q) A + b(q) B (see `Machine._motion_terms`), links parents first."""
+    n_links = poses.shape[0]
+    for i in range(n_links):
+        for a in range(4):
+            for b in range(4):
+                poses[i, a, b] = 1.0 if a == b else 0.0
+    motion = np.empty((4, 4))
+    step = np.empty((4, 4))
+    for j in range(joints.shape[0]):
+        q = joints[j]
+        if revolute[j]:
+            sa, sb = math.sin(q), 1.0 - math.cos(q)
+        else:
+            sa, sb = q, 0.0
+        for a in range(4):
+            for b in range(4):
+                motion[a, b] = (1.0 if a == b else 0.0) + sa * first[j, a, b] + sb * second[j, a, b]
+        for a in range(4):
+            for b in range(4):
+                total = 0.0
+                for k in range(4):
+                    total += at_zero[j, a, k] * motion[k, b]
+                step[a, b] = total
+        parent, link = parents[j], joint_links[j]
+        for a in range(4):
+            for b in range(4):
+                total = 0.0
+                for k in range(4):
+                    total += poses[parent, a, k] * step[k, b]
+                poses[link, a, b] = total
+
+
+@njit(cache=True, nogil=True)
+def _project(p, matrix, distortion, uv, jac):
+    """Pixel (2,) of a camera-frame point p (3,) into `uv` and d(uv)/dp (2, 3) into `jac`
+    (`camera.project_cam`'s lens model); False (uv NaN) at or behind the camera."""
+    z = p[2]
+    if not z > 0:
+        uv[0] = uv[1] = math.nan
+        return False
+    x, y = p[0] / z, p[1] / z
+    fx, s, cx = matrix[0, 0], matrix[0, 1], matrix[0, 2]
+    fy, cy = matrix[1, 1], matrix[1, 2]
+    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    uv[0] = fx * xd + s * yd + cx
+    uv[1] = fy * yd + cy
+    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dxd_dx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+    dxd_dy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+    dyd_dx = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
+    dyd_dy = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+    du_dx = fx * dxd_dx + s * dyd_dx
+    du_dy = fx * dxd_dy + s * dyd_dy
+    dv_dx = fy * dyd_dx
+    dv_dy = fy * dyd_dy
+    inv_z = 1.0 / z
+    jac[0, 0] = du_dx * inv_z
+    jac[0, 1] = du_dy * inv_z
+    jac[0, 2] = -(du_dx * x + du_dy * y) * inv_z
+    jac[1, 0] = dv_dx * inv_z
+    jac[1, 1] = dv_dy * inv_z
+    jac[1, 2] = -(dv_dx * x + dv_dy * y) * inv_z
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _markers(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, moves, with_jac,
+             uv, duv):
+    """One frame's marker pixels (M, 2) into `uv` and, `with_jac`, d(uv)/d(joints)
+    (M, 2, J) into `duv` (zero for a marker behind the camera)."""
+    revolute, parents, joint_links, at_zero, first, second, axes, n_links = chain
+    poses = np.empty((n_links, 4, 4))
+    _link_poses(joints, revolute, parents, joint_links, at_zero, first, second, poses)
+    n_markers, n_joints = positions.shape[0], joints.shape[0]
+    world = np.empty(3)
+    cam = np.empty(3)
+    jac = np.empty((2, 3))
+    dworld = np.empty(3)
+    for m in range(n_markers):
+        link = marker_links[m]
+        for a in range(3):
+            world[a] = (poses[link, a, 0] * positions[m, 0] + poses[link, a, 1] * positions[m, 1]
+                        + poses[link, a, 2] * positions[m, 2]) + poses[link, a, 3]
+        for a in range(3):
+            cam[a] = (rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2]) + translation[a]
+        ahead = _project(cam, matrix, distortion, uv[m], jac)
+        if not with_jac:
+            continue
+        # d(uv)/d(world) = jac @ rotation, then by each joint that moves the marker
+        for j in range(n_joints):
+            duv[m, 0, j] = duv[m, 1, j] = 0.0
+            if not (ahead and moves[j, m]):
+                continue
+            link_j = joint_links[j]
+            ax = poses[link_j, 0, 0] * axes[j, 0] + poses[link_j, 0, 1] * axes[j, 1] + poses[link_j, 0, 2] * axes[j, 2]
+            ay = poses[link_j, 1, 0] * axes[j, 0] + poses[link_j, 1, 1] * axes[j, 1] + poses[link_j, 1, 2] * axes[j, 2]
+            az = poses[link_j, 2, 0] * axes[j, 0] + poses[link_j, 2, 1] * axes[j, 1] + poses[link_j, 2, 2] * axes[j, 2]
+            if revolute[j]:
+                lx, ly, lz = world[0] - poses[link_j, 0, 3], world[1] - poses[link_j, 1, 3], world[2] - poses[link_j, 2, 3]
+                dworld[0], dworld[1], dworld[2] = ay * lz - az * ly, az * lx - ax * lz, ax * ly - ay * lx
+            else:
+                dworld[0], dworld[1], dworld[2] = ax, ay, az
+            for r in range(2):
+                total = 0.0
+                for a in range(3):
+                    total += (jac[r, 0] * rotation[0, a] + jac[r, 1] * rotation[1, a] + jac[r, 2] * rotation[2, a]) * dworld[a]
+                duv[m, r, j] = total
+
+
+@njit(cache=True, nogil=True)
+def fit_joints(pixels, start, iterations, scale_px, prior_weight, limits, chain, marker_links, positions, rotation,
+               translation, matrix, distortion, moves):
+    """Robust Gauss-Newton fits of the joints (F, J) from `start` (F, J) to `pixels`
+    (F, M, 2) (NaN: not observed). Returns the joints (F, J), the residuals (F, M) px (NaN
+    where not observed) and the fitted pixels (F, M, 2)."""
+    n_frames, n_markers = pixels.shape[0], pixels.shape[1]
+    n_joints = start.shape[1]
+    joints = start.copy()
+    residuals = np.full((n_frames, n_markers), np.nan)
+    fitted = np.empty((n_frames, n_markers, 2))
+    uv = np.empty((n_markers, 2))
+    duv = np.zeros((n_markers, 2, n_joints))
+    normal = np.empty((n_joints, n_joints))
+    gradient = np.empty(n_joints)
+    for f in range(n_frames):
+        q = joints[f]
+        for _ in range(iterations if n_joints > 0 else 0):
+            _markers(q, chain, marker_links, positions, rotation, translation, matrix, distortion, moves, True, uv, duv)
+            for a in range(n_joints):
+                gradient[a] = prior_weight * (q[a] - start[f, a])
+                for b in range(n_joints):
+                    normal[a, b] = prior_weight if a == b else 0.0
+            for m in range(n_markers):
+                tx, ty = pixels[f, m, 0], pixels[f, m, 1]
+                if not (math.isfinite(tx) and math.isfinite(ty)):
+                    continue
+                rx, ry = uv[m, 0] - tx, uv[m, 1] - ty
+                norm = math.sqrt(rx * rx + ry * ry)
+                if not math.isfinite(norm):
+                    continue
+                weight = min(1.0, scale_px / max(norm, 1e-12))
+                for a in range(n_joints):
+                    gradient[a] += weight * (duv[m, 0, a] * rx + duv[m, 1, a] * ry)
+                    for b in range(n_joints):
+                        normal[a, b] += weight * (duv[m, 0, a] * duv[m, 0, b] + duv[m, 1, a] * duv[m, 1, b])
+            move = np.linalg.solve(normal, gradient)
+            for a in range(n_joints):
+                q[a] = min(max(q[a] - move[a], limits[a, 0]), limits[a, 1])
+        _markers(q, chain, marker_links, positions, rotation, translation, matrix, distortion, moves, False,
+                 fitted[f], duv)
+        for m in range(n_markers):
+            tx, ty = pixels[f, m, 0], pixels[f, m, 1]
+            if math.isfinite(tx) and math.isfinite(ty):
+                residuals[f, m] = math.sqrt((fitted[f, m, 0] - tx) ** 2 + (fitted[f, m, 1] - ty) ** 2)
+    return joints, residuals, fitted
+
+
+@njit(cache=True, nogil=True)
+def marker_pixels(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, moves):
+    """Marker pixels (F, M, 2) at joints (F, J); NaN behind the camera."""
+    n_frames, n_markers = joints.shape[0], positions.shape[0]
+    out = np.empty((n_frames, n_markers, 2))
+    duv = np.zeros((n_markers, 2, joints.shape[1]))
+    for f in range(n_frames):
+        _markers(joints[f], chain, marker_links, positions, rotation, translation, matrix, distortion, moves, False,
+                 out[f], duv)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _hits_box(start, end, low_corner, high_corner):
+    """Whether the segment from `start` to `end` (3,) passes through the box (`visibility.segment_hits_box`)."""
+    enter, leave = -math.inf, math.inf
+    for a in range(3):
+        d = end[a] - start[a]
+        if d == 0:
+            if not (low_corner[a] <= start[a] <= high_corner[a]):
+                return False
+            continue
+        t1 = (low_corner[a] - start[a]) / d
+        t2 = (high_corner[a] - start[a]) / d
+        enter = max(enter, min(t1, t2))
+        leave = min(leave, max(t1, t2))
+    return leave >= max(enter, 0.0) and enter <= 1.0
+
+
+@njit(cache=True, nogil=True)
+def marker_view(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, boxes, normals,
+                width, height, solid, min_facing):
+    """What the camera sees at joints (F, J) (`CameraModel.view`): marker pixels (F, M, 2),
+    whether each is seen (F, M) (in the image, facing the camera by more than `min_facing`
+    and not behind another link's box; with `solid` False, in front of the camera and in the
+    image) and px per metre (F, M)."""
+    revolute, parents, joint_links, at_zero, first, second, axes, n_links = chain
+    n_frames, n_markers = joints.shape[0], positions.shape[0]
+    uv = np.empty((n_frames, n_markers, 2))
+    seen = np.zeros((n_frames, n_markers), dtype=np.bool_)
+    scale = np.empty((n_frames, n_markers))
+    poses = np.empty((n_links, 4, 4))
+    jac = np.empty((2, 3))
+    world = np.empty(3)
+    cam = np.empty(3)
+    centre = np.empty(3)
+    start = np.empty(3)
+    end = np.empty(3)
+    focal = 0.5 * (matrix[0, 0] + matrix[1, 1])
+    for a in range(3):  # the camera's centre in the world: -R^T t
+        centre[a] = -(rotation[0, a] * translation[0] + rotation[1, a] * translation[1] + rotation[2, a] * translation[2])
+    for f in range(n_frames):
+        _link_poses(joints[f], revolute, parents, joint_links, at_zero, first, second, poses)
+        for m in range(n_markers):
+            link = marker_links[m]
+            for a in range(3):
+                world[a] = (poses[link, a, 0] * positions[m, 0] + poses[link, a, 1] * positions[m, 1]
+                            + poses[link, a, 2] * positions[m, 2]) + poses[link, a, 3]
+            for a in range(3):
+                cam[a] = (rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2]) + translation[a]
+            _project(cam, matrix, distortion, uv[f, m], jac)
+            u, v = uv[f, m, 0], uv[f, m, 1]
+            nx = poses[link, 0, 0] * normals[m, 0] + poses[link, 0, 1] * normals[m, 1] + poses[link, 0, 2] * normals[m, 2]
+            ny = poses[link, 1, 0] * normals[m, 0] + poses[link, 1, 1] * normals[m, 1] + poses[link, 1, 2] * normals[m, 2]
+            nz = poses[link, 2, 0] * normals[m, 0] + poses[link, 2, 1] * normals[m, 1] + poses[link, 2, 2] * normals[m, 2]
+            if solid:
+                inside = math.isfinite(u) and math.isfinite(v) and 0 <= u <= width - 1 and 0 <= v <= height - 1
+                tx, ty, tz = centre[0] - world[0], centre[1] - world[1], centre[2] - world[2]
+                facing = (nx * tx + ny * ty + nz * tz) / math.sqrt(tx * tx + ty * ty + tz * tz) > min_facing
+                visible = inside and facing
+                for other in range(n_links):
+                    if not visible:
+                        break
+                    if other == link:  # its own box never hides it
+                        continue
+                    for a in range(3):  # link_from_world: R^T (p - t)
+                        start[a] = ((poses[other, 0, a] * (world[0] - poses[other, 0, 3])
+                                     + poses[other, 1, a] * (world[1] - poses[other, 1, 3]))
+                                    + poses[other, 2, a] * (world[2] - poses[other, 2, 3]))
+                        end[a] = ((poses[other, 0, a] * (centre[0] - poses[other, 0, 3])
+                                   + poses[other, 1, a] * (centre[1] - poses[other, 1, 3]))
+                                  + poses[other, 2, a] * (centre[2] - poses[other, 2, 3]))
+                    visible = not _hits_box(start, end, boxes[other, 0], boxes[other, 1])
+                seen[f, m] = visible
+            else:
+                inside = -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
+                seen[f, m] = cam[2] > 0 and inside
+            # px per metre: f / depth, times the square root of the cosine of the viewing angle
+            if cam[2] > 0:
+                distance = math.sqrt(cam[0] * cam[0] + cam[1] * cam[1] + cam[2] * cam[2])
+                ncx = rotation[0, 0] * nx + rotation[0, 1] * ny + rotation[0, 2] * nz
+                ncy = rotation[1, 0] * nx + rotation[1, 1] * ny + rotation[1, 2] * nz
+                ncz = rotation[2, 0] * nx + rotation[2, 1] * ny + rotation[2, 2] * nz
+                cosine = abs(ncx * cam[0] + ncy * cam[1] + ncz * cam[2]) / distance if solid else 1.0
+                scale[f, m] = focal / cam[2] * math.sqrt(cosine)
+            else:
+                scale[f, m] = math.nan
+    return uv, seen, scale
