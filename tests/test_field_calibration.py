@@ -51,7 +51,7 @@ def test_a_camera_its_markers_do_not_fix_is_refused():
     """One camera, five base markers, each ±5 %: the bound itself is 1.7 times the camera's
     distance. The fit slid kilometres away; it is refused with one line instead."""
     scene, templates, options = _field_scene(1000130)
-    with pytest.raises(DegenerateError, match="cam1 cannot be told apart .* do not fix it"):
+    with pytest.raises(DegenerateError, match="cam1 cannot be told apart"):
         calibrate(scene.model, scene.observations(), templates, options)
 
 
