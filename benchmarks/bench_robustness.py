@@ -19,7 +19,13 @@ inverted after scaling (a plain pseudo-inverse drops a far camera's distance);
 scenes (one draw from the bound's covariance: a single camera's error lies along its line
 of sight, |N(0, 1)|, 2.58 at 99 %); `calibration_worst_camera` the worst camera's ratio;
 `calibration_unflagged` the scenes whose calibration carries no warning (a camera its
-markers hardly fix, or one that lost a fifth of its pixels as outliers).
+markers hardly fix, or one that lost a fifth of its pixels as outliers);
+on field scenes `calibration_stated_prior` the same error over the bound with the prior the
+calibration is told (the tape tolerance, `mocap.reconstruct.offsets.tape_sd`) and
+`calibration_exact_model` over the bound of an exact model (what the offsets cost: the
+excess of the first row over this one no estimator removes). A refusal is counted wrong
+when every camera's own bound lies below a fifth of its distance (an estimator could place
+it). `--calibration-only` skips the fit and the triangulation.
 `fit` the tip's RMS error / RMS bound over the frames whose markers show the tip's joints
 (on field scenes with the markers' offsets estimated over the scene's frames,
 `mocap.reconstruct.offsets`; `fit_weighted_only` the per-frame fit that only weighs the

@@ -398,7 +398,8 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
             problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options, _least_squares,
                                             bounds)
         back = _readmitted(problem, problem_of(observations.select(~inlier), problem.prior_px), final, free, options)
-        if back.any():  # a wild pixel's pull on the robust fit can make its neighbours look wild too
+        # a wild pixel's pull on the robust fit can make its neighbours look wild too
+        if back.any() and _pixel_rms(final.fun, problem) <= _max_rms(options, templates):
             log.info("%d observation(s) named outliers agree with the fit without them: kept", back.sum())
             inlier[np.flatnonzero(~inlier)[back]] = True
             problem = problem_of(observations.select(inlier), problem.prior_px)
@@ -406,12 +407,10 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
             if marker_sd is not None:
                 problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options,
                                                 _least_squares, bounds)
-    pixel_fun = final.fun[: problem.n_pixel_rows]
-    rms = float(np.sqrt(np.mean(pixel_fun**2) * 2))
-    diagonal = max(np.hypot(*t.size) for t in templates)
-    if rms > (options.max_rms_px or 0.01 * diagonal):
+    rms = _pixel_rms(final.fun, problem)
+    if rms > _max_rms(options, templates):
         raise ConvergenceError(
-            f"the fit did not converge: {rms:.1f} px rms over {len(pixel_fun) // 2} observations "
+            f"the fit did not converge: {rms:.1f} px rms over {problem.n_pixel_rows // 2} observations "
             "(expected about the pixel noise); check the marker labels, or give a --guess "
             "(or a larger --max-rms)"
         )
@@ -517,12 +516,25 @@ def _suspects(errors: np.ndarray, options: CalibrationOptions) -> np.ndarray:
     return errors > max(4.0, 5.0 * noise.robust_sigma(errors))
 
 
+def _pixel_rms(fun: np.ndarray, problem: Problem) -> float:
+    """RMS length (px) of the observations' residuals (the prior rows left out)."""
+    return float(np.sqrt(np.mean(fun[: problem.n_pixel_rows] ** 2) * 2))
+
+
+def _max_rms(options: CalibrationOptions, templates) -> float:
+    """The residual RMS (px) beyond which a fit has not converged: `max_rms_px`, else 1 % of
+    the largest image diagonal."""
+    return options.max_rms_px or 0.01 * max(np.hypot(*t.size) for t in templates)
+
+
 def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, options: CalibrationOptions) -> np.ndarray:
     """(D,) bool: the dropped observations (the problem `dropped`, at the prior weight of
     `problem`) that the fit `final` of the others predicts within the outlier rule: each
     residual over sqrt(1 + its leverage) (the variance of a pixel the fit did not see is the
     noise plus the fit's own uncertainty projected), against the threshold that the kept
-    observations' standardised residuals give."""
+    observations' standardised residuals give. One the others predict less well than the
+    noise (leverage beyond 1: its marker's offset, or its link's joint, hardly seen by them)
+    would be fitted whatever it says, and stays out."""
     n = dropped.n_pixel_rows
     if not n:
         return np.zeros(0, dtype=bool)
@@ -532,7 +544,7 @@ def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, opt
     leverage = np.einsum("ij,jk,ik->i", jacobian, covariance, jacobian).reshape(-1, 2).mean(axis=1)
     errors = np.linalg.norm(dropped.residuals(final.x)[:n].reshape(-1, 2), axis=1) / np.sqrt(1.0 + leverage)
     threshold = options.outlier_px if options.outlier_px is not None else max(4.0, 5.0 * noise.robust_sigma(kept))
-    return errors <= threshold
+    return (errors <= threshold) & (leverage < 1.0)  # a pixel the others hardly predict stays out
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
