@@ -532,9 +532,8 @@ def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, opt
     `problem`) that the fit `final` of the others predicts within the outlier rule: each
     residual over sqrt(1 + its leverage) (the variance of a pixel the fit did not see is the
     noise plus the fit's own uncertainty projected), against the threshold that the kept
-    observations' standardised residuals give. One the others predict less well than the
-    noise (leverage beyond 1: its marker's offset, or its link's joint, hardly seen by them)
-    would be fitted whatever it says, and stays out."""
+    observations' standardised residuals give (to first order the statistic by which it was
+    dropped, sqrt(1 - leverage) for a fitted residual, without the wild pixels' pull)."""
     n = dropped.n_pixel_rows
     if not n:
         return np.zeros(0, dtype=bool)
@@ -544,7 +543,7 @@ def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, opt
     leverage = np.einsum("ij,jk,ik->i", jacobian, covariance, jacobian).reshape(-1, 2).mean(axis=1)
     errors = np.linalg.norm(dropped.residuals(final.x)[:n].reshape(-1, 2), axis=1) / np.sqrt(1.0 + leverage)
     threshold = options.outlier_px if options.outlier_px is not None else max(4.0, 5.0 * noise.robust_sigma(kept))
-    return (errors <= threshold) & (leverage < 1.0)  # a pixel the others hardly predict stays out
+    return errors <= threshold
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
