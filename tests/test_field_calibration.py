@@ -47,11 +47,35 @@ def test_field_calibration_of_a_weakly_seen_camera_stays_near_the_bound(seed):
     assert 0.4 < result.sigma_px < 2.0  # the 0.8 px noise, not what the offsets left of it
 
 
+def test_the_offsets_prior_is_the_tape_measures():
+    """Scene 1000057 (two cameras, one wild pixel): with the tolerance spread over every
+    direction (5 % of each marker's distance, where the tape errs by 5 % of each coordinate)
+    the offsets absorbed the far camera's perspective and it was refused, though its bound is
+    a sixth of its distance; read as the tape's, per coordinate, it is placed."""
+    scene, templates, options = _field_scene(1000057)
+    result = calibrate(scene.model, scene.observations(), templates, options)
+    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
+    assert np.all(error < 4 * _bound(scene)), f"camera centres {error / _bound(scene)} x the bound"
+
+
+def test_good_observations_a_wild_pixel_made_look_wild_are_taken_back():
+    """Scene 1000001: the robust fit, drawn by a 99 px wild pixel, left three good pixels
+    beyond the rule as well; the fit without them predicts them within it, so they are kept
+    and only the wild pixel is named."""
+    scene, templates, options = _field_scene(1000001)
+    result = calibrate(scene.model, scene.observations(), templates, options)
+    wild = scene.outlier[scene.tracks.frame == 0]
+    assert wild.sum() == 1
+    np.testing.assert_array_equal([r.outlier for r in result.residuals], wild)
+    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
+    assert np.median(error / _bound(scene)) < 2.0
+
+
 def test_a_camera_its_markers_do_not_fix_is_refused():
     """One camera, five base markers, each ±5 %: the bound itself is 1.7 times the camera's
     distance. The fit slid kilometres away; it is refused with one line instead."""
     scene, templates, options = _field_scene(1000130)
-    with pytest.raises(DegenerateError, match="cam1 cannot be told apart .* do not fix it"):
+    with pytest.raises(DegenerateError, match="cam1 cannot be told apart"):
         calibrate(scene.model, scene.observations(), templates, options)
 
 

@@ -20,6 +20,7 @@ from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, P
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
 from mocap.machine import Machine, Tolerance
+from mocap.reconstruct.offsets import tape_sd
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +158,7 @@ def calibrate(
         missing = [n for n in names if n not in guess.cameras]
         if missing:
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
-    marker_sd = tolerance.sd(machine.marker_positions) if tolerance else None
+    marker_sd = tape_sd(tolerance, machine.marker_positions) if tolerance else None  # as the fit reads it
     x0 = _starting_point(machine, observations, templates, options, guess, layout)
     result = _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result.outliers:
@@ -396,12 +397,20 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
         if marker_sd is not None:  # the noise again, without the outliers
             problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options, _least_squares,
                                             bounds)
-    pixel_fun = final.fun[: problem.n_pixel_rows]
-    rms = float(np.sqrt(np.mean(pixel_fun**2) * 2))
-    diagonal = max(np.hypot(*t.size) for t in templates)
-    if rms > (options.max_rms_px or 0.01 * diagonal):
+        back = _readmitted(problem, problem_of(observations.select(~inlier), problem.prior_px), final, free, options)
+        # a wild pixel's pull on the robust fit can make its neighbours look wild too
+        if back.any() and _pixel_rms(final.fun, problem) <= _max_rms(options, templates):
+            log.info("%d observation(s) named outliers agree with the fit without them: kept", back.sum())
+            inlier[np.flatnonzero(~inlier)[back]] = True
+            problem = problem_of(observations.select(inlier), problem.prior_px)
+            final = _least_squares(problem, final.x, bounds)
+            if marker_sd is not None:
+                problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options,
+                                                _least_squares, bounds)
+    rms = _pixel_rms(final.fun, problem)
+    if rms > _max_rms(options, templates):
         raise ConvergenceError(
-            f"the fit did not converge: {rms:.1f} px rms over {len(pixel_fun) // 2} observations "
+            f"the fit did not converge: {rms:.1f} px rms over {problem.n_pixel_rows // 2} observations "
             "(expected about the pixel noise); check the marker labels, or give a --guess "
             "(or a larger --max-rms)"
         )
@@ -505,6 +514,36 @@ def _suspects(errors: np.ndarray, options: CalibrationOptions) -> np.ndarray:
     if options.outlier_px is not None:
         return errors > options.outlier_px
     return errors > max(4.0, 5.0 * noise.robust_sigma(errors))
+
+
+def _pixel_rms(fun: np.ndarray, problem: Problem) -> float:
+    """RMS length (px) of the observations' residuals (the prior rows left out)."""
+    return float(np.sqrt(np.mean(fun[: problem.n_pixel_rows] ** 2) * 2))
+
+
+def _max_rms(options: CalibrationOptions, templates) -> float:
+    """The residual RMS (px) beyond which a fit has not converged: `max_rms_px`, else 1 % of
+    the largest image diagonal."""
+    return options.max_rms_px or 0.01 * max(np.hypot(*t.size) for t in templates)
+
+
+def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, options: CalibrationOptions) -> np.ndarray:
+    """(D,) bool: the dropped observations (the problem `dropped`, at the prior weight of
+    `problem`) that the fit `final` of the others predicts within the outlier rule: each
+    residual over sqrt(1 + its leverage) (the variance of a pixel the fit did not see is the
+    noise plus the fit's own uncertainty projected), against the threshold that the kept
+    observations' standardised residuals give (to first order the statistic by which it was
+    dropped, sqrt(1 - leverage) for a fitted residual, without the wild pixels' pull)."""
+    n = dropped.n_pixel_rows
+    if not n:
+        return np.zeros(0, dtype=bool)
+    kept, _ = noise.standardised_errors(final.fun, final.jac, problem.n_pixel_rows)
+    jacobian = dropped.jacobian(final.x)[:n][:, free]
+    covariance = identify.inverse_information(final.jac.T @ final.jac)
+    leverage = np.einsum("ij,jk,ik->i", jacobian, covariance, jacobian).reshape(-1, 2).mean(axis=1)
+    errors = np.linalg.norm(dropped.residuals(final.x)[:n].reshape(-1, 2), axis=1) / np.sqrt(1.0 + leverage)
+    threshold = options.outlier_px if options.outlier_px is not None else max(4.0, 5.0 * noise.robust_sigma(kept))
+    return errors <= threshold
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
