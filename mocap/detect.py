@@ -160,6 +160,16 @@ def find_candidates(
     return mean + np.asarray(origin, dtype=float), shape
 
 
+def _starts(xy, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Starting centres (N, 2) and semi-axis matrices (N, 2, 2), contiguous, from centres
+    and matrices or radii (N,)."""
+    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
+    shape = np.asarray(shape, dtype=float)
+    if shape.ndim == 1:
+        shape = shape[:, None, None] ** 2 * np.eye(2)
+    return xy, np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
+
+
 def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int = 3) -> tuple[Detections, np.ndarray]:
     """Sub-pixel centres and ellipses of dark disks near `xy` (N, 2), of about `shape`:
     semi-axis matrices (N, 2, 2) or radii (N,).
@@ -171,11 +181,7 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
     far its median does (the ring is not one white: half of it on something brighter, as a
     disk painted without a square at the edge of a link's face, whose centroid would lean).
     """
-    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-    shape = np.asarray(shape, dtype=float)
-    if shape.ndim == 1:
-        shape = shape[:, None, None] ** 2 * np.eye(2)
-    shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
+    xy, shape = _starts(xy, shape)
     if len(xy) == 0:
         return Detections.empty(), np.zeros((0, 2))
     major = np.sqrt(np.clip(np.linalg.eigvalsh(shape)[:, 1], 0.25, None))
@@ -236,11 +242,7 @@ def refine_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray) -> tup
     """`refine`, and a candidate that moved more than a quarter of its radius from where it
     started refined once more from where it arrived (`disk_kernel.refine_disks_converged`):
     the Detections (those that stayed first) and their rings, no test applied."""
-    xy = np.ascontiguousarray(xy, dtype=float).reshape(-1, 2)
-    shape = np.asarray(shape, dtype=float)
-    if shape.ndim == 1:
-        shape = shape[:, None, None] ** 2 * np.eye(2)
-    shape = np.ascontiguousarray(shape.reshape(len(xy), 2, 2))
+    xy, shape = _starts(xy, shape)
     if len(xy) == 0:
         return Detections.empty(), np.zeros((0, 2))
     centre, axes, angle, contrast, fill, spread, uneven = refine_disks_converged(

@@ -90,6 +90,16 @@ def _project(p, matrix, distortion, uv, jac):
 
 
 @njit(cache=True, nogil=True)
+def _marker_in_camera(pose, position, rotation, translation, world, cam):
+    """A marker at `position` (3,) in its link's frame `pose` (4, 4): its world point into
+    `world` (3,) and its camera-frame point into `cam` (3,)."""
+    for a in range(3):
+        world[a] = pose[a, 0] * position[0] + pose[a, 1] * position[1] + pose[a, 2] * position[2] + pose[a, 3]
+    for a in range(3):
+        cam[a] = rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2] + translation[a]
+
+
+@njit(cache=True, nogil=True)
 def _markers(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, moves, with_jac,
              uv, duv):
     """One frame's marker pixels (M, 2) into `uv` and, `with_jac`, d(uv)/d(joints)
@@ -104,11 +114,7 @@ def _markers(joints, chain, marker_links, positions, rotation, translation, matr
     dworld = np.empty(3)
     for m in range(n_markers):
         link = marker_links[m]
-        for a in range(3):
-            world[a] = (poses[link, a, 0] * positions[m, 0] + poses[link, a, 1] * positions[m, 1]
-                        + poses[link, a, 2] * positions[m, 2]) + poses[link, a, 3]
-        for a in range(3):
-            cam[a] = (rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2]) + translation[a]
+        _marker_in_camera(poses[link], positions[m], rotation, translation, world, cam)
         ahead = _project(cam, matrix, distortion, uv[m], jac)
         if not with_jac:
             continue
@@ -236,11 +242,7 @@ def marker_view(joints, chain, marker_links, positions, rotation, translation, m
         _link_poses(joints[f], revolute, parents, joint_links, at_zero, first, second, poses)
         for m in range(n_markers):
             link = marker_links[m]
-            for a in range(3):
-                world[a] = (poses[link, a, 0] * positions[m, 0] + poses[link, a, 1] * positions[m, 1]
-                            + poses[link, a, 2] * positions[m, 2]) + poses[link, a, 3]
-            for a in range(3):
-                cam[a] = (rotation[a, 0] * world[0] + rotation[a, 1] * world[1] + rotation[a, 2] * world[2]) + translation[a]
+            _marker_in_camera(poses[link], positions[m], rotation, translation, world, cam)
             _project(cam, matrix, distortion, uv[f, m], jac)
             u, v = uv[f, m, 0], uv[f, m, 1]
             nx = poses[link, 0, 0] * normals[m, 0] + poses[link, 0, 1] * normals[m, 1] + poses[link, 0, 2] * normals[m, 2]
