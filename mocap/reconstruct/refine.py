@@ -3,8 +3,8 @@ joint values and, optionally, the marker positions within a stated tolerance.
 
 The cameras calibrated from one frame and a tape-measured machine (markers ±5 %) leave
 errors that one frame cannot reveal; many frames of a moving machine can. The problem is
-solved with scipy.optimize.least_squares (trust region, robust loss with its scale in
-pixels) and an analytic sparse Jacobian: every residual depends on one camera, one frame
+solved by Levenberg-Marquardt on the normal equations (mocap.reconstruct.sparse_lm; a Huber
+loss with its scale in pixels) of an analytic sparse Jacobian: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
 ``Tolerance.sd`` per coordinate (mocap.machine), expressed in pixel units through
 the pixel noise. The priors also fix the gauge: a rigid motion of the base's markers
@@ -33,7 +33,6 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 
 from mocap.calibration.problem import DISTORTION_MODELS
@@ -44,6 +43,7 @@ from mocap.machine import Machine, Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 from mocap.reconstruct.lens_start import board_poses
+from mocap.reconstruct.sparse_lm import Solution, levenberg_marquardt
 
 log = logging.getLogger(__name__)
 
@@ -167,9 +167,10 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
                         criterion if len(models) > 1 else {})
 
 
-def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions):
-    """Plain least squares first (a robust loss from a start pixels off stalls the trust
-    region), then the robust loss; over the free parameters only."""
+def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions) -> Solution:
+    """Plain least squares first (a robust loss from a start pixels off stalls), then the
+    Huber loss at the loss scale; over the free parameters only (Levenberg-Marquardt on the
+    sparse normal equations, mocap.reconstruct.sparse_lm)."""
     free = problem.free
 
     def residuals(z):
@@ -178,11 +179,10 @@ def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions):
     def jacobian(z):
         return problem.jacobian(_full(x0, free, z))[:, free]
 
-    start = least_squares(residuals, x0[free], jac=jacobian, method="trf", x_scale="jac", max_nfev=PLAIN_EVALUATIONS)
-    solution = least_squares(residuals, start.x, jac=jacobian, method="trf", loss="huber",
-                             f_scale=options.scale_px, x_scale="jac", max_nfev=options.max_evaluations)
-    solution.x = _full(x0, free, solution.x)
-    return solution
+    start = levenberg_marquardt(residuals, jacobian, x0[free], max_iterations=PLAIN_EVALUATIONS)
+    solution = levenberg_marquardt(residuals, jacobian, start.x, scale=options.scale_px,
+                                   max_iterations=options.max_evaluations)
+    return replace(solution, x=_full(x0, free, solution.x))
 
 
 def _full(x0: np.ndarray, free: np.ndarray, z: np.ndarray) -> np.ndarray:
