@@ -9,6 +9,7 @@ written as Parquet with the same columns.
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +29,15 @@ def is_parquet(path: str | Path) -> bool:
     return Path(path).suffix.lower() == ".parquet"
 
 
-def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | None:
+def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str, ...] = ()) -> pa.Table | None:
     """The columns of `types` present in the header, typed; an empty field is null. None
     when the file is anything but a plain UTF-8 CSV of one header line, stripped unique
-    names and rows of the header's width (the caller then reads it the checked way)."""
+    names and rows of the header's width (the caller then reads it the checked way).
+
+    The columns `counts` (of whole numbers, each typed NAMES in `types`) are read as int64
+    straight away when the file holds no text that pyarrow reads as an integer but the
+    checked reader refuses (hexadecimal ``0x1f``, a negative zero ``-0``), else as names,
+    to be checked by `whole_numbers`."""
     try:
         if not path.is_file() or path.stat().st_size > MAX_BYTES:
             return None
@@ -42,7 +48,8 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
         data = data[3:]
     if b"\0" in data or b'"' in data:
         return None
-    first = data.split(b"\n", 1)[0].rstrip(b"\r")
+    end = data.find(b"\n")
+    first = (data if end < 0 else data[:end]).rstrip(b"\r")
     try:
         header = next(csv.reader([first.decode("utf-8")]), [])
     except UnicodeDecodeError:
@@ -50,17 +57,31 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
     if not header or len(set(header)) != len(header) or any(h != h.strip() or not h for h in header):
         return None
     wanted = [h for h in header if h in types]
+    column_types = {h: types[h] for h in wanted}
+    if counts and not _integer_lookalikes(data, max(end, 0)):
+        column_types |= {h: pa.int64() for h in counts if h in column_types}
     try:
         table = pacsv.read_csv(
             pa.py_buffer(data),
             parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=True),
             convert_options=pacsv.ConvertOptions(
-                column_types={h: types[h] for h in wanted}, include_columns=wanted, null_values=[""],
+                column_types=column_types, include_columns=wanted, null_values=[""],
                 strings_can_be_null=True, quoted_strings_can_be_null=True, true_values=[], false_values=[]),
         )
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
         return None
     return table if table.num_rows else None
+
+
+_NEGATIVE_ZERO = re.compile(rb"-0+[ \t]*(?:[,\r\n]|\Z)")
+
+
+def _integer_lookalikes(data: bytes, start: int) -> bool:
+    """Whether the rows (from `start`) may hold a field pyarrow reads as an integer that is
+    not plain digits: hexadecimal (``0x``) or a negative zero (any other sign shows in the
+    value). Single bytes are looked for first (fast); the patterns only where they occur."""
+    hexadecimal = any(data.find(x, start) >= 0 and data.find(b"0" + x, start) >= 0 for x in (b"x", b"X"))
+    return hexadecimal or (data.find(b"-", start) >= 0 and _NEGATIVE_ZERO.search(data, start) is not None)
 
 
 def read_parquet(path: Path, hint: str) -> pa.Table:
@@ -121,34 +142,39 @@ def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
     column = column.unify_dictionaries()
     if not column.num_chunks:
         return pa.array([], column.type.value_type), np.zeros(0, np.int64)
-    return column.chunk(0).dictionary, np.concatenate([c.indices.to_numpy() for c in column.chunks])
+    indices = [c.indices.to_numpy() for c in column.chunks]
+    return column.chunk(0).dictionary, indices[0] if len(indices) == 1 else np.concatenate(indices)
 
 
 def strings(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) object array of Python str from a string column without nulls, one object per
     distinct value, and (N,) int codes of the values (equal where the values are equal)."""
     values, codes = _distinct(column)
-    return np.array(values.to_pylist(), dtype=object)[codes], codes
+    return np.take(np.array(values.to_pylist(), dtype=object), codes), codes
+
+
+def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """`strings` of a column whose every value is a non-empty string of at most `longest`
+    characters without surrounding white space, else None."""
+    text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
+    if not pa.types.is_string(text) and not pa.types.is_large_string(text) or column.null_count:
+        return None
+    values, codes = _distinct(column)
+    if not _plain(values, longest):
+        return None
+    return np.take(np.array(values.to_pylist(), dtype=object), codes), codes
+
+
+def _plain(values: pa.Array, longest: int) -> bool:
+    length = pc.utf8_length(values)
+    if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
+        return False
+    return pc.all(pc.equal(pc.utf8_trim_whitespace(values), values)).as_py() is not False
 
 
 def codes(names: np.ndarray) -> np.ndarray:
     """(N,) int codes of (N,) names, equal where the names are equal."""
     return pa.array(names, pa.string()).dictionary_encode().indices.to_numpy()
-
-
-def plain_names(column: pa.ChunkedArray, longest: int) -> bool:
-    """Whether every value is a non-empty string of at most `longest` characters without
-    surrounding white space."""
-    text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
-    if not pa.types.is_string(text) and not pa.types.is_large_string(text):
-        return False
-    if column.null_count:
-        return False
-    values, _ = _distinct(column)
-    length = pc.utf8_length(values)
-    if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
-        return False
-    return pc.all(pc.equal(pc.utf8_trim_whitespace(values), values)).as_py() is not False
 
 
 def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
@@ -167,10 +193,10 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
             return None
         numbers = pc.cast(values, pa.int64()).to_numpy(zero_copy_only=False)[index]
     elif pa.types.is_integer(column.type):
-        numbers = column.combine_chunks().to_numpy(zero_copy_only=False)
+        numbers = _writable(column.to_numpy())  # a chunked column is concatenated once
     else:
         return None
-    numbers = numbers.astype(np.int64)
+    numbers = numbers.astype(np.int64, copy=False)
     if len(numbers) and (numbers.min() < 0 or numbers.max() > largest):
         return None
     return numbers
@@ -178,10 +204,16 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
 
 def floats(column: pa.ChunkedArray) -> np.ndarray | None:
     """(N,) float64, NaN for null, or None if the column is not numeric."""
-    column = column.combine_chunks()
     if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
         return None
-    return pc.cast(column, pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+    if column.type == pa.float64() and not column.null_count:
+        return _writable(column.to_numpy())  # a chunked column is concatenated once
+    return pc.cast(column.combine_chunks(), pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+
+
+def _writable(values: np.ndarray) -> np.ndarray:
+    """`values`, copied if pyarrow's memory backs them (read-only)."""
+    return values if values.flags.writeable else values.copy()
 
 
 def parse_floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str = "line") -> np.ndarray:

@@ -105,6 +105,8 @@ def _indices(names: np.ndarray, index: dict) -> np.ndarray:
 
 
 def concatenate(parts: list[Tracks]) -> Tracks:
+    if len(parts) == 1:
+        return parts[0]
     fields = ("camera", "frame", "marker", "xy", "time", "score")
     return Tracks(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
@@ -150,7 +152,7 @@ def _load_one(path: Path) -> tuple[Tracks, np.ndarray | None]:
     with nothing to report."""
     if is_parquet(path):
         return _load_parquet(path)
-    table = columnar.read_csv_strict(path, TYPES)
+    table = columnar.read_csv_strict(path, TYPES, counts=("frame",))
     tracks = None if table is None else _from_table(table)
     if tracks is not None:
         return tracks, None
@@ -179,23 +181,25 @@ def _from_table(table) -> Tracks | None:
     names the first bad row)."""
     if any(h not in table.column_names for h in REQUIRED):
         return None
-    if not (columnar.plain_names(table["camera"], MAX_NAME) and columnar.plain_names(table["marker"], MAX_NAME)):
-        return None
+    camera = columnar.plain_strings(table["camera"], MAX_NAME)
+    marker = columnar.plain_strings(table["marker"], MAX_NAME)
     frame = columnar.whole_numbers(table["frame"], MAX_FRAME)
+    if camera is None or marker is None or frame is None:
+        return None
     values = {}
     for key in ("x", "y", "time", "score"):
         values[key] = columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
-    if frame is None or any(v is None for v in values.values()):
+    if any(v is None for v in values.values()):
         return None
-    xy = np.c_[values["x"], values["y"]]
-    if not np.all(np.isfinite(xy)) or np.any(np.abs(xy) > MAX_PIXEL):
+    xy = np.empty((table.num_rows, 2))
+    xy[:, 0], xy[:, 1] = values["x"], values["y"]
+    if not np.all(np.abs(xy) <= MAX_PIXEL):  # NaN (an empty field) fails too
         return None
-    if any(np.any(np.isinf(values[key])) for key in ("time", "score")):
-        return None
-    if any(key in table.column_names and table[key].null_count < np.isnan(values[key]).sum()
-           for key in ("time", "score")):  # a NaN written out, not an empty field
-        return None
-    (camera, camera_id), (marker, marker_id) = columnar.strings(table["camera"]), columnar.strings(table["marker"])
+    for key in ("time", "score"):
+        if key in table.column_names and (np.any(np.isinf(values[key]))
+                                          or table[key].null_count < np.isnan(values[key]).sum()):
+            return None  # infinite, or a NaN written out rather than an empty field
+    (camera, camera_id), (marker, marker_id) = camera, marker
     tracks = Tracks(camera, frame, marker, xy, values["time"], values["score"])
     if _first_duplicate(tracks, camera_id, marker_id) is not None or _sparse_camera(tracks, camera_id) is not None:
         return None
@@ -258,7 +262,7 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
     fail(np.char.startswith(text, "-") & ascii_digits(np.char.lstrip(text, "-")),
          lambda k: f"frame {text[k]} is negative; frames count from 0")
     fail(~digits, lambda k: f"frame {str(text[k])[:40]!r} is not an integer")
-    fail(np.char.str_len(text) > 9, lambda k: f"frame {text[k]} is beyond {MAX_FRAME:,}; a typo?")
+    fail(np.char.str_len(np.char.lstrip(text, "0")) > 9, lambda k: f"frame {text[k]} is beyond {MAX_FRAME:,}; a typo?")
     frame = text.astype(np.int64)
     fail(frame > MAX_FRAME, lambda k: f"frame {frame[k]:,} is beyond {MAX_FRAME:,}; a typo?")
 
@@ -330,6 +334,8 @@ def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | Non
     """A camera whose frames run over a span far larger than the frames it has rows in (the
     stages allocate by the span): its name, the row of its last frame and the count of its
     frames, or None; the cameras' codes (R,) when known."""
+    if not len(tracks) or int(tracks.frame.max() - tracks.frame.min()) + 1 <= SPARSE_SPAN:
+        return None  # no camera's frames span more
     camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
     for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
         mine = np.flatnonzero(camera_id == code)
