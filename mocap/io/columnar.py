@@ -146,23 +146,18 @@ def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
     return column.chunk(0).dictionary, indices[0] if len(indices) == 1 else np.concatenate(indices)
 
 
-def strings(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) object array of Python str from a string column without nulls, one object per
-    distinct value, and (N,) int codes of the values (equal where the values are equal)."""
-    values, codes = _distinct(column)
-    return np.take(np.array(values.to_pylist(), dtype=object), codes), codes
-
-
-def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray] | None:
+def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]] | None:
     """`strings` of a column whose every value is a non-empty string of at most `longest`
-    characters without surrounding white space, else None."""
+    characters without surrounding white space, and the distinct values (K,) the codes
+    index; else None."""
     text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
     if not pa.types.is_string(text) and not pa.types.is_large_string(text) or column.null_count:
         return None
     values, codes = _distinct(column)
     if not _plain(values, longest):
         return None
-    return np.take(np.array(values.to_pylist(), dtype=object), codes), codes
+    names = values.to_pylist()
+    return np.take(np.array(names, dtype=object), codes), codes, tuple(names)
 
 
 def _plain(values: pa.Array, longest: int) -> bool:
@@ -170,11 +165,6 @@ def _plain(values: pa.Array, longest: int) -> bool:
     if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
         return False
     return pc.all(pc.equal(pc.utf8_trim_whitespace(values), values)).as_py() is not False
-
-
-def codes(names: np.ndarray) -> np.ndarray:
-    """(N,) int codes of (N,) names, equal where the names are equal."""
-    return pa.array(names, pa.string()).dictionary_encode().indices.to_numpy()
 
 
 def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:

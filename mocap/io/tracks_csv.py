@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -63,18 +64,39 @@ class Tracks:
     @property
     def cameras(self) -> tuple[str, ...]:
         """Camera names in order of first appearance."""
-        _, first = np.unique(self.camera, return_index=True)
-        return tuple(self.camera[np.sort(first)])
+        return self.camera_codes.in_order()
+
+    @property
+    def markers(self) -> tuple[str, ...]:
+        """Marker names in order of first appearance."""
+        return self.marker_codes.in_order()
 
     @property
     def frames(self) -> np.ndarray:
         return np.unique(self.frame)
 
+    @cached_property
+    def camera_codes(self) -> Coded:
+        """The camera column as codes into its names (computed once; the readers know them)."""
+        return Coded.of(self.camera)
+
+    @cached_property
+    def marker_codes(self) -> Coded:
+        return Coded.of(self.marker)
+
+    def rows_of_camera(self, name: str) -> np.ndarray:
+        """(R,) bool: the rows of camera `name`."""
+        return self.camera_codes.equal(name)
+
     def select(self, mask: np.ndarray) -> Tracks:
-        return Tracks(*(getattr(self, f)[mask] for f in ("camera", "frame", "marker", "xy", "time", "score")))
+        part = Tracks(*(getattr(self, f)[mask] for f in ("camera", "frame", "marker", "xy", "time", "score")))
+        for name in ("camera_codes", "marker_codes"):  # codes known are carried over
+            if name in self.__dict__:
+                part.__dict__[name] = self.__dict__[name].select(mask)
+        return part
 
     def of_camera(self, name: str) -> Tracks:
-        return self.select(self.camera == name)
+        return self.select(self.rows_of_camera(name))
 
     def of_frame(self, frame: int) -> Tracks:
         return self.select(self.frame == frame)
@@ -82,11 +104,9 @@ class Tracks:
     def dense(self, cameras, markers, frames) -> np.ndarray:
         """Pixels as (C, F, M, 2), NaN where not seen; rows of other cameras, markers or
         frames are ignored."""
-        cam_index = {name: i for i, name in enumerate(cameras)}
-        mark_index = {name: i for i, name in enumerate(markers)}
         frames = np.asarray(frames)
         out = np.full((len(cameras), len(frames), len(markers), 2), np.nan)
-        c, m = _indices(self.camera, cam_index), _indices(self.marker, mark_index)
+        c, m = self.camera_codes.index_in(cameras), self.marker_codes.index_in(markers)
         f = np.searchsorted(frames, self.frame)
         f_ok = (f < len(frames)) & (frames[np.minimum(f, len(frames) - 1)] == self.frame)
         ok = (c >= 0) & (m >= 0) & f_ok
@@ -94,14 +114,44 @@ class Tracks:
         return out
 
 
-def _indices(names: np.ndarray, index: dict) -> np.ndarray:
-    """(R,) the `index` of each name, -1 for a name it lacks: looked up once per distinct
-    name (the column dictionary-encoded), not once per row."""
-    if not len(names):
-        return np.zeros(0, int)
-    encoded = pa.array(names, pa.string()).dictionary_encode()
-    lookup = np.array([index.get(name, -1) for name in encoded.dictionary.to_pylist()], dtype=int)
-    return lookup[encoded.indices.to_numpy(zero_copy_only=False)]
+@dataclass(frozen=True)
+class Coded:
+    """A column of names (R,) as codes (R,) into distinct `names` (K,) (some may have no
+    row, e.g. after a selection)."""
+
+    names: tuple[str, ...]
+    codes: np.ndarray
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> Coded:
+        """The codes of (R,) names: dictionary-encoded once, not compared per row."""
+        if not len(values):
+            return cls((), np.zeros(0, np.int64))
+        encoded = pa.array(values, pa.string()).dictionary_encode()
+        return cls(tuple(encoded.dictionary.to_pylist()), encoded.indices.to_numpy(zero_copy_only=False))
+
+    def select(self, mask: np.ndarray) -> Coded:
+        return Coded(self.names, self.codes[mask])
+
+    def index_in(self, names) -> np.ndarray:
+        """(R,) each row's index in `names`, -1 for a name not there: looked up once per
+        distinct name."""
+        index = {name: i for i, name in enumerate(names)}
+        lookup = np.array([index.get(name, -1) for name in self.names] + [-1], dtype=np.int64)
+        return lookup[self.codes]
+
+    def equal(self, name: str) -> np.ndarray:
+        """(R,) bool: the rows of `name`."""
+        return np.array([n == name for n in self.names] + [False])[self.codes]
+
+    def in_order(self) -> tuple[str, ...]:
+        """The names that have rows, in order of their first row."""
+        head, index = np.unique(self.codes[:65536], return_index=True)  # most names show early
+        first = dict(zip(head.tolist(), index.tolist()))
+        for k in np.flatnonzero(np.bincount(self.codes, minlength=len(self.names))):
+            if int(k) not in first:
+                first[int(k)] = int(np.argmax(self.codes == k))
+        return tuple(self.names[k] for k in sorted(first, key=first.get))
 
 
 def concatenate(parts: list[Tracks]) -> Tracks:
@@ -199,8 +249,10 @@ def _from_table(table) -> Tracks | None:
         if key in table.column_names and (np.any(np.isinf(values[key]))
                                           or table[key].null_count < np.isnan(values[key]).sum()):
             return None  # infinite, or a NaN written out rather than an empty field
-    (camera, camera_id), (marker, marker_id) = camera, marker
+    (camera, camera_id, camera_names), (marker, marker_id, marker_names) = camera, marker
     tracks = Tracks(camera, frame, marker, xy, values["time"], values["score"])
+    tracks.__dict__["camera_codes"] = Coded(camera_names, camera_id)  # known: not encoded again
+    tracks.__dict__["marker_codes"] = Coded(marker_names, marker_id)
     if _first_duplicate(tracks, camera_id, marker_id) is not None or _sparse_camera(tracks, camera_id) is not None:
         return None
     return tracks
@@ -298,11 +350,11 @@ def ascii_digits(text: np.ndarray) -> np.ndarray:
 
 def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[int, int] | None:
     """The first two rows (in file order) of one (camera, marker, frame), or None; the
-    names' codes (R,) (`columnar.codes`) when known."""
+    names' codes (R,) when known."""
     if len(tracks) < 2:
         return None
-    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
-    marker_id = columnar.codes(tracks.marker) if marker_id is None else marker_id
+    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
+    marker_id = tracks.marker_codes.codes if marker_id is None else marker_id
     key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
     low = int(tracks.frame.min())
     span = int(tracks.frame.max()) - low + 1
@@ -336,15 +388,22 @@ def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | Non
     frames, or None; the cameras' codes (R,) when known."""
     if not len(tracks) or int(tracks.frame.max() - tracks.frame.min()) + 1 <= SPARSE_SPAN:
         return None  # no camera's frames span more
-    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
+    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
     for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
         mine = np.flatnonzero(camera_id == code)
+        if not len(mine):
+            continue
         name = tracks.camera[mine[0]]
         frames = tracks.frame[mine]
         span = int(frames.max() - frames.min()) + 1
         if span <= SPARSE_SPAN:
             continue
-        present = len(np.unique(frames))
+        if len(frames) * 10 < span:  # fewer rows than a tenth: fewer frames too
+            present = len(np.unique(frames))
+        else:
+            seen = np.zeros(span, bool)
+            seen[frames - frames.min()] = True
+            present = int(np.count_nonzero(seen))
         if present * 10 < span:
             return name, int(mine[np.argmax(frames)]), present
     return None
@@ -384,7 +443,7 @@ def check_in_images(tracks: Tracks, sizes: dict, where, what: str = "calibration
     """Every row's pixel within its camera's image (`sizes` {camera: (width, height)}), with a
     margin of a quarter of the image; the first row outside is named."""
     for name, (width, height) in sizes.items():
-        mine = np.flatnonzero(tracks.camera == name)
+        mine = np.flatnonzero(tracks.rows_of_camera(name))
         if not len(mine):
             continue
         xy = tracks.xy[mine]
