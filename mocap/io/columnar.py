@@ -84,11 +84,12 @@ def _integer_lookalikes(data: bytes, start: int) -> bool:
     return hexadecimal or (data.find(b"-", start) >= 0 and _NEGATIVE_ZERO.search(data, start) is not None)
 
 
-def read_parquet(path: Path, hint: str) -> pa.Table:
-    """The Parquet file's table; an unreadable one is an InputError."""
+def read_parquet(path: Path, hint: str, names: tuple[str, ...] = ()) -> pa.Table:
+    """The Parquet file's table, the columns `names` (where present) as dictionaries (read
+    once per name, not per row); an unreadable file is an InputError."""
     try:
         with opening(path, hint):
-            return pq.read_table(path)
+            return pq.read_table(path, read_dictionary=list(names) or None)
     except (pa.ArrowException, OSError) as exc:
         raise InputError(f"not a readable Parquet file ({str(exc).splitlines()[0][:200]}); {hint}",
                          path=path) from None
@@ -96,7 +97,8 @@ def read_parquet(path: Path, hint: str) -> pa.Table:
 
 def write_parquet(columns: dict[str, np.ndarray], path: str | Path) -> None:
     """Write named (N,) columns as a Parquet file, atomically."""
-    table = pa.table({name: pa.array(value, from_pandas=True) for name, value in columns.items()})  # NaN -> null
+    table = pa.table({name: text(value) if np.asarray(value).dtype.kind in "OUS" else pa.array(value, from_pandas=True)
+                      for name, value in columns.items()})  # NaN -> null
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
 
@@ -114,7 +116,7 @@ def write_csv(columns: dict[str, np.ndarray], path: str | Path, digits: dict[str
         elif values.dtype.kind in "iub":
             arrays[name] = pa.array(values.astype(np.int64))
         else:
-            arrays[name] = pa.array(values.astype(str))
+            arrays[name] = text(values)
     table = pa.table(arrays)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -128,6 +130,18 @@ def write_csv(columns: dict[str, np.ndarray], path: str | Path, digits: dict[str
             writer = csv.writer(fh, lineterminator="\n")
             writer.writerow(list(columns))
             writer.writerows(zip(*(["" if v is None else v for v in table[n].to_pylist()] for n in columns)))
+
+
+def text(values: np.ndarray) -> pa.Array:
+    """A string array of (N,) names: an object array of str converted as it is (no
+    fixed-width copy), anything else through str."""
+    values = np.asarray(values)
+    if values.dtype == object:
+        try:
+            return pa.array(values, pa.string())
+        except (pa.ArrowTypeError, pa.ArrowInvalid):  # not all str
+            pass
+    return pa.array(values.astype(str))
 
 
 NAMES = pa.dictionary(pa.int32(), pa.string())  # a CSV column of few distinct names, read once each

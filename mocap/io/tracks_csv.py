@@ -101,6 +101,21 @@ class Tracks:
     def of_frame(self, frame: int) -> Tracks:
         return self.select(self.frame == frame)
 
+    def dense_of_camera(self, name: str, markers) -> tuple[int, np.ndarray]:
+        """Camera `name`'s pixels as (F, M, 2) over its frames first .. last (those of its
+        rows), NaN where not seen, and its first frame; rows of other markers are
+        ignored. No rows: (0, an empty (0, M, 2))."""
+        rows = np.flatnonzero(self.rows_of_camera(name))
+        if not len(rows):
+            return 0, np.zeros((0, len(markers), 2))
+        frame = self.frame[rows]
+        first = int(frame.min())
+        out = np.full((int(frame.max()) - first + 1, len(markers), 2), np.nan)
+        m = self.marker_codes.index_in(markers)[rows]
+        ok = m >= 0
+        out[frame[ok] - first, m[ok]] = self.xy[rows[ok]]
+        return first, out
+
     def dense(self, cameras, markers, frames) -> np.ndarray:
         """Pixels as (C, F, M, 2), NaN where not seen; rows of other cameras, markers or
         frames are ignored."""
@@ -211,7 +226,7 @@ def _load_one(path: Path) -> tuple[Tracks, np.ndarray | None]:
 
 
 def _load_parquet(path: Path) -> tuple[Tracks, np.ndarray | None]:
-    table = columnar.read_parquet(path, "check the tracks path")
+    table = columnar.read_parquet(path, "check the tracks path", names=("camera", "marker"))
     missing = [h for h in REQUIRED if h not in table.column_names]
     if missing:
         raise InputError(f"lacks the columns {', '.join(missing)}; expected columns "
@@ -427,9 +442,8 @@ def save_tracks(tracks: Tracks, path: str | Path) -> None:
     has_time = bool(np.any(np.isfinite(tracks.time)))
     has_score = bool(np.any(np.isfinite(tracks.score)))
     header = list(REQUIRED) + (["time"] if has_time else []) + (["score"] if has_score else [])
-    columns = {"camera": tracks.camera.astype(str), "frame": tracks.frame.astype(np.int64),
-               "marker": tracks.marker.astype(str), "x": tracks.xy[:, 0], "y": tracks.xy[:, 1],
-               "time": tracks.time, "score": tracks.score}
+    columns = {"camera": tracks.camera, "frame": tracks.frame.astype(np.int64), "marker": tracks.marker,
+               "x": tracks.xy[:, 0], "y": tracks.xy[:, 1], "time": tracks.time, "score": tracks.score}
     if is_parquet(path):
         columnar.write_parquet({h: columns[h] for h in header}, path)
         return
