@@ -101,20 +101,33 @@ class Tracks:
     def of_frame(self, frame: int) -> Tracks:
         return self.select(self.frame == frame)
 
-    def dense_of_camera(self, name: str, markers) -> tuple[int, np.ndarray]:
-        """Camera `name`'s pixels as (F, M, 2) over its frames first .. last (those of its
-        rows), NaN where not seen, and its first frame; rows of other markers are
-        ignored. No rows: (0, an empty (0, M, 2))."""
+    def dense_of_camera(self, name: str, markers, frames=None) -> np.ndarray:
+        """Camera `name`'s pixels as (F, M, 2) at `frames` (F,) (sorted), NaN where not
+        seen; by default over its frames from its first to its last (`frame_span`). Rows
+        of other markers or frames are ignored."""
         rows = np.flatnonzero(self.rows_of_camera(name))
-        if not len(rows):
-            return 0, np.zeros((0, len(markers), 2))
         frame = self.frame[rows]
-        first = int(frame.min())
-        out = np.full((int(frame.max()) - first + 1, len(markers), 2), np.nan)
+        if frames is None:
+            frames = np.arange(frame.min(), frame.max() + 1) if len(rows) else np.zeros(0, int)
+        frames = np.asarray(frames)
+        out = np.full((len(frames), len(markers), 2), np.nan)
+        if not len(rows) or not len(frames):
+            return out
+        if np.all(np.diff(frames) == 1):  # consecutive: an offset, no search
+            f = frame - frames[0]
+            f_ok = (f >= 0) & (f < len(frames))
+        else:
+            f = np.searchsorted(frames, frame)
+            f_ok = (f < len(frames)) & (frames[np.minimum(f, len(frames) - 1)] == frame)
         m = self.marker_codes.index_in(markers)[rows]
-        ok = m >= 0
-        out[frame[ok] - first, m[ok]] = self.xy[rows[ok]]
-        return first, out
+        ok = (m >= 0) & f_ok
+        out[f[ok], m[ok]] = self.xy[rows[ok]]
+        return out
+
+    def frame_span(self, name: str) -> tuple[int, int] | None:
+        """Camera `name`'s first and last frame, None without rows."""
+        frame = self.frame[self.rows_of_camera(name)]
+        return (int(frame.min()), int(frame.max())) if len(frame) else None
 
     def dense(self, cameras, markers, frames) -> np.ndarray:
         """Pixels as (C, F, M, 2), NaN where not seen; rows of other cameras, markers or

@@ -110,7 +110,9 @@ def tracks_on_reference_clock(
     (`mocap.reconstruct.outliers.track_outliers`) are dropped first, and counted."""
     pixels, first_frames, dropped = [], [], 0
     for name in camera_names:
-        first, dense = tracks.dense_of_camera(name, marker_names)
+        span = tracks.frame_span(name)
+        first = span[0] if span else 0
+        dense = tracks.dense_of_camera(name, marker_names, np.arange(first, span[1] + 1) if span else np.zeros(0, int))
         if drop_outliers and len(dense):
             wild = track_outliers(dense)
             dense[wild] = np.nan
