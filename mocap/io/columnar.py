@@ -215,6 +215,23 @@ def floats(column: pa.ChunkedArray) -> np.ndarray | None:
     return pc.cast(column.combine_chunks(), pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
 
 
+def float_columns(columns: list[pa.ChunkedArray]) -> np.ndarray | None:
+    """(N, K) float64 of K numeric columns side by side (NaN for null), filled chunk by
+    chunk (no concatenated copy), or None if a column is not numeric."""
+    if not all(pa.types.is_floating(c.type) or pa.types.is_integer(c.type) for c in columns):
+        return None
+    out = np.empty((len(columns[0]), len(columns)))
+    for k, column in enumerate(columns):
+        if column.type != pa.float64() or column.null_count:
+            out[:, k] = floats(column)
+            continue
+        start = 0
+        for chunk in column.chunks:
+            out[start : start + len(chunk), k] = chunk.to_numpy()
+            start += len(chunk)
+    return out
+
+
 def _writable(values: np.ndarray) -> np.ndarray:
     """`values`, copied if pyarrow's memory backs them (read-only)."""
     return values if values.flags.writeable else values.copy()

@@ -264,14 +264,12 @@ def _from_table(table) -> Tracks | None:
     frame = columnar.whole_numbers(table["frame"], MAX_FRAME)
     if camera is None or marker is None or frame is None:
         return None
-    values = {}
-    for key in ("x", "y", "time", "score"):
-        values[key] = columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
-    if any(v is None for v in values.values()):
+    xy = columnar.float_columns([table["x"], table["y"]])
+    values = {key: columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
+              for key in ("time", "score")}
+    if xy is None or any(v is None for v in values.values()):
         return None
-    xy = np.empty((table.num_rows, 2))
-    xy[:, 0], xy[:, 1] = values["x"], values["y"]
-    if not np.all(np.abs(xy) <= MAX_PIXEL):  # NaN (an empty field) fails too
+    if not (len(xy) and -MAX_PIXEL <= xy.min() and xy.max() <= MAX_PIXEL):  # NaN (an empty field) fails too
         return None
     for key in ("time", "score"):
         if key in table.column_names and (np.any(np.isinf(values[key]))
