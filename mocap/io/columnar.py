@@ -144,7 +144,21 @@ def text(values: np.ndarray) -> pa.Array:
     return pa.array(values.astype(str))
 
 
-NAMES = pa.dictionary(pa.int32(), pa.string())  # a CSV column of few distinct names, read once each
+# a CSV column of few distinct names, read once each, as bytes (UTF-8 is checked once per name)
+NAMES = pa.dictionary(pa.int32(), pa.binary())
+
+
+def _text(values: pa.Array) -> pa.Array | None:
+    """String values as they are, bytes decoded as UTF-8; None for anything else or
+    bytes that are not UTF-8."""
+    if pa.types.is_string(values.type) or pa.types.is_large_string(values.type):
+        return values
+    if not pa.types.is_binary(values.type) and not pa.types.is_large_binary(values.type):
+        return None
+    try:
+        return pc.cast(values, pa.string() if pa.types.is_binary(values.type) else pa.large_string())
+    except pa.ArrowInvalid:
+        return None
 
 
 def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
@@ -161,14 +175,15 @@ def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
 
 
 def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]] | None:
-    """`strings` of a column whose every value is a non-empty string of at most `longest`
-    characters without surrounding white space, and the distinct values (K,) the codes
-    index; else None."""
-    text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
-    if not pa.types.is_string(text) and not pa.types.is_large_string(text) or column.null_count:
+    """(N,) object array of Python str of a text column (string, or UTF-8 bytes) whose
+    every value is a non-empty string of at most `longest` characters without surrounding
+    white space, one object per distinct value; its (N,) codes (equal where the values are
+    equal) and the distinct values (K,) they index. None for any other column."""
+    if column.null_count:
         return None
     values, codes = _distinct(column)
-    if not _plain(values, longest):
+    values = _text(values)
+    if values is None or not _plain(values, longest):
         return None
     names = values.to_pylist()
     return np.take(np.array(names, dtype=object), codes), codes, tuple(names)
@@ -186,9 +201,11 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
     many digits as `largest`), or None. Text is checked once per distinct value."""
     if column.null_count:
         return None
-    if pa.types.is_dictionary(column.type) or pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+    if pa.types.is_dictionary(column.type) or pa.types.is_string(column.type) or pa.types.is_large_string(column.type) \
+            or pa.types.is_binary(column.type):
         values, index = _distinct(column)
-        if not pa.types.is_string(values.type) and not pa.types.is_large_string(values.type):
+        values = _text(values)
+        if values is None:
             return None
         length = pc.binary_length(values)
         if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest))):
