@@ -467,6 +467,12 @@ IMAGE_MARGIN = 0.25  # share of the image's width / height a pixel may lie beyon
 def check_in_images(tracks: Tracks, sizes: dict, where, what: str = "calibration") -> None:
     """Every row's pixel within its camera's image (`sizes` {camera: (width, height)}), with a
     margin of a quarter of the image; the first row outside is named."""
+    if not sizes or not len(tracks):
+        return
+    size = np.array(list(sizes.values()), dtype=float)  # (C, 2)
+    if np.all(tracks.xy.min(0) >= (-IMAGE_MARGIN * size).max(0)) and np.all(
+            tracks.xy.max(0) <= ((1 + IMAGE_MARGIN) * size).min(0)):
+        return  # every row inside every camera's image: nothing to look for camera by camera
     for name, (width, height) in sizes.items():
         mine = np.flatnonzero(tracks.rows_of_camera(name))
         if not len(mine):
