@@ -123,11 +123,19 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
     save_points(points, out)
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return (
-        f"{len(points)} points in {len(np.unique(points.frame))} frames written to {out}; "
+        f"{len(points)} points in {_count_distinct(points.frame)} frames written to {out}; "
         f"median reprojection error {np.median(points.error_px):.2f} px; "
         f"{seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
         + _dropped(clock)
     )
+
+
+def _count_distinct(values: np.ndarray) -> int:
+    """The number of distinct values (N,): by their steps where they are sorted (as the
+    chunks write them), else by sorting."""
+    if len(values) and np.all(values[1:] >= values[:-1]):
+        return int(np.count_nonzero(values[1:] != values[:-1])) + 1
+    return len(np.unique(values))
 
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
