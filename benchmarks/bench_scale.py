@@ -10,7 +10,8 @@ of pixel noise. Tables: (1) `mocap triangulate` and `mocap fit` wall time beside
 numpy/scipy reference run through its own small command line (the csv module, one
 `scipy.optimize.least_squares` per point and per frame, the previous frame's joints as the
 start), and the ratio; (2) tracks CSV parsing in rows/s, the columnar reader beside the
-csv module's checked reader; (3) start time of `mocap --help` and of a command's --help;
+csv module's checked reader and pyarrow's bare read (no checks); (3) start time of
+`mocap --help` and of a command's --help;
 (4) a --long-frames session (216,000 frames: two hours at 30 fps, Parquet tracks) from
 tracks to analysis as `mocap run` goes after tracking (sync, triangulate, fit, analyze):
 each command's wall time, CPU time (user + system) and its own peak resident memory. Wall
@@ -194,11 +195,19 @@ def parse_table(tracks: Path) -> None:
         header, columns, lines = _parse(read_text(tracks, ""), tracks)
         return len(_validate(header, columns, lines, tracks))
 
+    def bare() -> int:  # pyarrow's own read of the same file: no checks, no Tracks
+        import pyarrow.csv as pacsv
+
+        return pacsv.read_csv(tracks).num_rows
+
     wall, cpu, n = best(lambda: len(load_tracks(tracks)))
+    wall_bare, cpu_bare, _ = best(bare)
     wall_csv, cpu_csv, _ = best(checked)
     print(f"\n(2) tracks CSV parsing, {n:,} rows (best of 5)")
     print(f"{'reader':<28} {'wall s':>7} {'M rows/s':>9} {'CPU s':>7} {'M rows/CPU s':>13}")
     print(f"{'pyarrow (load_tracks)':<28} {wall:7.3f} {n / wall / 1e6:9.2f} {cpu:7.3f} {n / cpu / 1e6:13.2f}   target 5")
+    print(f"{'pyarrow.csv.read_csv (bare)':<28} {wall_bare:7.3f} {n / wall_bare / 1e6:9.2f} {cpu_bare:7.3f} "
+          f"{n / cpu_bare / 1e6:13.2f}   (no checks: the floor)")
     print(f"{'csv module (checked)':<28} {wall_csv:7.3f} {n / wall_csv / 1e6:9.2f} {cpu_csv:7.3f} "
           f"{n / cpu_csv / 1e6:13.2f}   ratio {wall_csv / wall:.1f}x")
 

@@ -128,3 +128,23 @@ def test_motion_parquet_round_trip_and_check(tmp_path):
     pq.write_table(table.drop_columns(["arm"]), tmp_path / "no_arm.parquet")
     with pytest.raises(InputError, match=r"header lacks arm \(is it the motion of"):
         load_motion(tmp_path / "no_arm.parquet", machine)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_names_codes_a_reader_keeps_agree_with_the_names(tmp_path, seed):
+    tracks = random_tracks(np.random.default_rng(seed), n_frames=30)
+    save_tracks(tracks, tmp_path / "t.csv")
+    for loaded in (load_tracks(tmp_path / "t.csv"), tracks):  # codes from the reader, or encoded
+        order = lambda names: tuple(dict.fromkeys(names.tolist()))  # noqa: E731
+        assert loaded.cameras == order(loaded.camera) and loaded.markers == order(loaded.marker)
+        name = loaded.camera[-1]
+        np.testing.assert_array_equal(loaded.rows_of_camera(name), loaded.camera == name)
+        part = loaded.select(loaded.marker != loaded.marker[0])  # the codes carried over
+        assert part.markers == order(part.marker) and loaded.marker[0] not in part.markers
+        frames = np.arange(0, 40, 3)
+        markers = ["M0", "nobody", *loaded.markers]
+        np.testing.assert_array_equal(loaded.dense_of_camera(name, markers, frames),
+                                      loaded.dense([name], markers, frames)[0])
+        first, last = loaded.frame_span(name)
+        np.testing.assert_array_equal(loaded.dense_of_camera(name, markers),
+                                      loaded.dense([name], markers, np.arange(first, last + 1))[0])

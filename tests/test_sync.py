@@ -134,3 +134,21 @@ def test_cli_writes_time_offsets(scene, tmp_path, capsys):
     assert main(["sync", str(tmp_path / "cameras.toml"), str(tmp_path / "untimed.csv"), "--machine",
                  "hitachi_ex3500", "--out", str(tmp_path / "x.toml")]) == 2
     assert "pass --fps" in capsys.readouterr().err
+
+
+def test_coarse_costs_of_all_offsets_equal_each_offsets_cost():
+    from mocap.sync.align import _Reference
+
+    rng = np.random.default_rng(0)
+    frames = np.arange(3000)
+    joints = np.c_[np.sin(frames / 50), np.cos(frames / 37), np.full(3000, 1.0)]
+    joints[rng.random(joints.shape) < 0.05] = np.nan
+    reference = _Reference.build(JointCurves(frames, joints), 30.0)
+    time = (np.arange(0, 2000, 3) + 7.3) / 30
+    values = np.c_[np.sin(time * 30 / 50), np.cos(time * 30 / 37), np.ones(len(time))] * 1.01
+    grid = np.arange(-90, 10, 0.5 / 30)  # some offsets leave too few samples inside: inf
+    each = np.array([reference.cost(time + o, values, 400, linear=True)[0] for o in grid])
+    together = reference.costs(time, grid, values, 400)
+    assert np.isinf(each).any() and np.array_equal(np.isinf(together), np.isinf(each))
+    finite = np.isfinite(each)
+    np.testing.assert_allclose(together[finite], each[finite], rtol=1e-12)

@@ -13,7 +13,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points
 from mocap.io.tracks_csv import Tracks, save_tracks
 from mocap.reconstruct.timing import resample, tracks_on_reference_clock
-from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
+from mocap.reconstruct.triangulate import TriangulateOptions, _solve, _solve_numpy, triangulate, undistort
 from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 NOISE = 0.5
@@ -81,6 +81,28 @@ def test_drops_a_wrong_view(machine):
     assert (result.views[one_wrong] == 3).all()
     d2 = cramer_rao_mahalanobis(cameras, world, result.used, result.xyz - world)
     assert np.mean(d2[one_wrong]) < 3.6
+
+
+@pytest.mark.parametrize("distorted", [True, False])
+def test_compiled_solve_equals_its_numpy_statement(machine, distorted):
+    cameras, rng = rig(4, seed=6, distorted=distorted)
+    world = machine.markers(random_joints(machine, 40, rng)).reshape(-1, 3)
+    world[:5] = cameras[1].center + (cameras[1].center - world[:5])  # behind camera 1
+    pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (4, len(world), 2))
+    pixels[:, :5][1] = rng.uniform(0, 500, (5, 2))  # camera 1 claims to see them anyway
+    pixels[rng.random(pixels.shape[:2]) < 0.2] = np.nan
+    used = np.isfinite(pixels).all(-1) & (rng.random(pixels.shape[:2]) < 0.9)
+    keep = used.sum(0) >= 2  # as triangulate solves (one view leaves the point undetermined)
+    pixels, used, world = pixels[:, keep], used[:, keep], world[keep]
+    normalised = undistort(cameras, pixels)
+    start = world + rng.normal(0, 0.05, world.shape)
+    for iterations, begin in [(0, None), (2, None), (3, start)]:
+        compiled = _solve(cameras, pixels, normalised, used, iterations, start=begin)
+        statement = _solve_numpy(cameras, pixels, normalised, used, iterations, start=begin)
+        for a, b in zip(compiled, statement):
+            assert np.array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+    assert np.isnan(statement[2][:5]).any()  # the points behind a camera were covered
 
 
 def test_unseen_points_are_nan():

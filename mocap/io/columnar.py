@@ -9,6 +9,7 @@ written as Parquet with the same columns.
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +29,15 @@ def is_parquet(path: str | Path) -> bool:
     return Path(path).suffix.lower() == ".parquet"
 
 
-def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | None:
+def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str, ...] = ()) -> pa.Table | None:
     """The columns of `types` present in the header, typed; an empty field is null. None
     when the file is anything but a plain UTF-8 CSV of one header line, stripped unique
-    names and rows of the header's width (the caller then reads it the checked way)."""
+    names and rows of the header's width (the caller then reads it the checked way).
+
+    The columns `counts` (of whole numbers, each typed NAMES in `types`) are read as int64
+    straight away when the file holds no text that pyarrow reads as an integer but the
+    checked reader refuses (hexadecimal ``0x1f``, a negative zero ``-0``), else as names,
+    to be checked by `whole_numbers`."""
     try:
         if not path.is_file() or path.stat().st_size > MAX_BYTES:
             return None
@@ -42,7 +48,8 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
         data = data[3:]
     if b"\0" in data or b'"' in data:
         return None
-    first = data.split(b"\n", 1)[0].rstrip(b"\r")
+    end = data.find(b"\n")
+    first = (data if end < 0 else data[:end]).rstrip(b"\r")
     try:
         header = next(csv.reader([first.decode("utf-8")]), [])
     except UnicodeDecodeError:
@@ -50,12 +57,15 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
     if not header or len(set(header)) != len(header) or any(h != h.strip() or not h for h in header):
         return None
     wanted = [h for h in header if h in types]
+    column_types = {h: types[h] for h in wanted}
+    if counts and not _integer_lookalikes(data, max(end, 0)):
+        column_types |= {h: pa.int64() for h in counts if h in column_types}
     try:
         table = pacsv.read_csv(
             pa.py_buffer(data),
             parse_options=pacsv.ParseOptions(newlines_in_values=False, ignore_empty_lines=True),
             convert_options=pacsv.ConvertOptions(
-                column_types={h: types[h] for h in wanted}, include_columns=wanted, null_values=[""],
+                column_types=column_types, include_columns=wanted, null_values=[""],
                 strings_can_be_null=True, quoted_strings_can_be_null=True, true_values=[], false_values=[]),
         )
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
@@ -63,11 +73,23 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType]) -> pa.Table | Non
     return table if table.num_rows else None
 
 
-def read_parquet(path: Path, hint: str) -> pa.Table:
-    """The Parquet file's table; an unreadable one is an InputError."""
+_NEGATIVE_ZERO = re.compile(rb"-0+[ \t]*(?:[,\r\n]|\Z)")
+
+
+def _integer_lookalikes(data: bytes, start: int) -> bool:
+    """Whether the rows (from `start`) may hold a field pyarrow reads as an integer that is
+    not plain digits: hexadecimal (``0x``) or a negative zero (any other sign shows in the
+    value). Single bytes are looked for first (fast); the patterns only where they occur."""
+    hexadecimal = any(data.find(x, start) >= 0 and data.find(b"0" + x, start) >= 0 for x in (b"x", b"X"))
+    return hexadecimal or (data.find(b"-", start) >= 0 and _NEGATIVE_ZERO.search(data, start) is not None)
+
+
+def read_parquet(path: Path, hint: str, names: tuple[str, ...] = ()) -> pa.Table:
+    """The Parquet file's table, the columns `names` (where present) as dictionaries (read
+    once per name, not per row); an unreadable file is an InputError."""
     try:
         with opening(path, hint):
-            return pq.read_table(path)
+            return pq.read_table(path, read_dictionary=list(names) or None)
     except (pa.ArrowException, OSError) as exc:
         raise InputError(f"not a readable Parquet file ({str(exc).splitlines()[0][:200]}); {hint}",
                          path=path) from None
@@ -75,7 +97,8 @@ def read_parquet(path: Path, hint: str) -> pa.Table:
 
 def write_parquet(columns: dict[str, np.ndarray], path: str | Path) -> None:
     """Write named (N,) columns as a Parquet file, atomically."""
-    table = pa.table({name: pa.array(value, from_pandas=True) for name, value in columns.items()})  # NaN -> null
+    table = pa.table({name: text(value) if np.asarray(value).dtype.kind in "OUS" else pa.array(value, from_pandas=True)
+                      for name, value in columns.items()})  # NaN -> null
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
 
@@ -93,7 +116,7 @@ def write_csv(columns: dict[str, np.ndarray], path: str | Path, digits: dict[str
         elif values.dtype.kind in "iub":
             arrays[name] = pa.array(values.astype(np.int64))
         else:
-            arrays[name] = pa.array(values.astype(str))
+            arrays[name] = text(values)
     table = pa.table(arrays)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -109,7 +132,33 @@ def write_csv(columns: dict[str, np.ndarray], path: str | Path, digits: dict[str
             writer.writerows(zip(*(["" if v is None else v for v in table[n].to_pylist()] for n in columns)))
 
 
-NAMES = pa.dictionary(pa.int32(), pa.string())  # a CSV column of few distinct names, read once each
+def text(values: np.ndarray) -> pa.Array:
+    """A string array of (N,) names: an object array of str converted as it is (no
+    fixed-width copy), anything else through str."""
+    values = np.asarray(values)
+    if values.dtype == object:
+        try:
+            return pa.array(values, pa.string())
+        except (pa.ArrowTypeError, pa.ArrowInvalid):  # not all str
+            pass
+    return pa.array(values.astype(str))
+
+
+# a CSV column of few distinct names, read once each, as bytes (UTF-8 is checked once per name)
+NAMES = pa.dictionary(pa.int32(), pa.binary())
+
+
+def _text(values: pa.Array) -> pa.Array | None:
+    """String values as they are, bytes decoded as UTF-8; None for anything else or
+    bytes that are not UTF-8."""
+    if pa.types.is_string(values.type) or pa.types.is_large_string(values.type):
+        return values
+    if not pa.types.is_binary(values.type) and not pa.types.is_large_binary(values.type):
+        return None
+    try:
+        return pc.cast(values, pa.string() if pa.types.is_binary(values.type) else pa.large_string())
+    except pa.ArrowInvalid:
+        return None
 
 
 def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
@@ -121,30 +170,26 @@ def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
     column = column.unify_dictionaries()
     if not column.num_chunks:
         return pa.array([], column.type.value_type), np.zeros(0, np.int64)
-    return column.chunk(0).dictionary, np.concatenate([c.indices.to_numpy() for c in column.chunks])
+    indices = [c.indices.to_numpy() for c in column.chunks]
+    return column.chunk(0).dictionary, indices[0] if len(indices) == 1 else np.concatenate(indices)
 
 
-def strings(column: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) object array of Python str from a string column without nulls, one object per
-    distinct value, and (N,) int codes of the values (equal where the values are equal)."""
-    values, codes = _distinct(column)
-    return np.array(values.to_pylist(), dtype=object)[codes], codes
-
-
-def codes(names: np.ndarray) -> np.ndarray:
-    """(N,) int codes of (N,) names, equal where the names are equal."""
-    return pa.array(names, pa.string()).dictionary_encode().indices.to_numpy()
-
-
-def plain_names(column: pa.ChunkedArray, longest: int) -> bool:
-    """Whether every value is a non-empty string of at most `longest` characters without
-    surrounding white space."""
-    text = column.type.value_type if pa.types.is_dictionary(column.type) else column.type
-    if not pa.types.is_string(text) and not pa.types.is_large_string(text):
-        return False
+def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]] | None:
+    """(N,) object array of Python str of a text column (string, or UTF-8 bytes) whose
+    every value is a non-empty string of at most `longest` characters without surrounding
+    white space, one object per distinct value; its (N,) codes (equal where the values are
+    equal) and the distinct values (K,) they index. None for any other column."""
     if column.null_count:
-        return False
-    values, _ = _distinct(column)
+        return None
+    values, codes = _distinct(column)
+    values = _text(values)
+    if values is None or not _plain(values, longest):
+        return None
+    names = values.to_pylist()
+    return np.take(np.array(names, dtype=object), codes), codes, tuple(names)
+
+
+def _plain(values: pa.Array, longest: int) -> bool:
     length = pc.utf8_length(values)
     if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > longest):
         return False
@@ -156,9 +201,11 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
     many digits as `largest`), or None. Text is checked once per distinct value."""
     if column.null_count:
         return None
-    if pa.types.is_dictionary(column.type) or pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+    if pa.types.is_dictionary(column.type) or pa.types.is_string(column.type) or pa.types.is_large_string(column.type) \
+            or pa.types.is_binary(column.type):
         values, index = _distinct(column)
-        if not pa.types.is_string(values.type) and not pa.types.is_large_string(values.type):
+        values = _text(values)
+        if values is None:
             return None
         length = pc.binary_length(values)
         if len(values) and (pc.min(length).as_py() < 1 or pc.max(length).as_py() > len(str(largest))):
@@ -167,10 +214,10 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
             return None
         numbers = pc.cast(values, pa.int64()).to_numpy(zero_copy_only=False)[index]
     elif pa.types.is_integer(column.type):
-        numbers = column.combine_chunks().to_numpy(zero_copy_only=False)
+        numbers = _writable(column.to_numpy())  # a chunked column is concatenated once
     else:
         return None
-    numbers = numbers.astype(np.int64)
+    numbers = numbers.astype(np.int64, copy=False)
     if len(numbers) and (numbers.min() < 0 or numbers.max() > largest):
         return None
     return numbers
@@ -178,10 +225,33 @@ def whole_numbers(column: pa.ChunkedArray, largest: int) -> np.ndarray | None:
 
 def floats(column: pa.ChunkedArray) -> np.ndarray | None:
     """(N,) float64, NaN for null, or None if the column is not numeric."""
-    column = column.combine_chunks()
     if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
         return None
-    return pc.cast(column, pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+    if column.type == pa.float64() and not column.null_count:
+        return _writable(column.to_numpy())  # a chunked column is concatenated once
+    return pc.cast(column.combine_chunks(), pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+
+
+def float_columns(columns: list[pa.ChunkedArray]) -> np.ndarray | None:
+    """(N, K) float64 of K numeric columns side by side (NaN for null), filled chunk by
+    chunk (no concatenated copy), or None if a column is not numeric."""
+    if not all(pa.types.is_floating(c.type) or pa.types.is_integer(c.type) for c in columns):
+        return None
+    out = np.empty((len(columns[0]), len(columns)))
+    for k, column in enumerate(columns):
+        if column.type != pa.float64() or column.null_count:
+            out[:, k] = floats(column)
+            continue
+        start = 0
+        for chunk in column.chunks:
+            out[start : start + len(chunk), k] = chunk.to_numpy()
+            start += len(chunk)
+    return out
+
+
+def _writable(values: np.ndarray) -> np.ndarray:
+    """`values`, copied if pyarrow's memory backs them (read-only)."""
+    return values if values.flags.writeable else values.copy()
 
 
 def parse_floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str = "line") -> np.ndarray:

@@ -42,11 +42,11 @@ class Points:
 def save_points(points: Points, path: str | Path) -> None:
     """Write the points as CSV, or as Parquet for a ``.parquet`` path."""
     if is_parquet(path):
-        columnar.write_parquet({"frame": points.frame.astype(np.int64), "marker": points.marker.astype(str),
+        columnar.write_parquet({"frame": points.frame.astype(np.int64), "marker": points.marker,
                                 "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
                                 "error_px": points.error_px, "views": points.views.astype(np.int64)}, path)
         return
-    columnar.write_csv({"frame": points.frame.astype(np.int64), "marker": points.marker.astype(str),
+    columnar.write_csv({"frame": points.frame.astype(np.int64), "marker": points.marker,
                         "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
                         "error_px": points.error_px, "views": points.views.astype(np.int64)}, path,
                        {"x": 5, "y": 5, "z": 5, "error_px": 4})

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -63,30 +64,77 @@ class Tracks:
     @property
     def cameras(self) -> tuple[str, ...]:
         """Camera names in order of first appearance."""
-        _, first = np.unique(self.camera, return_index=True)
-        return tuple(self.camera[np.sort(first)])
+        return self.camera_codes.in_order()
+
+    @property
+    def markers(self) -> tuple[str, ...]:
+        """Marker names in order of first appearance."""
+        return self.marker_codes.in_order()
 
     @property
     def frames(self) -> np.ndarray:
         return np.unique(self.frame)
 
+    @cached_property
+    def camera_codes(self) -> Coded:
+        """The camera column as codes into its names (computed once; the readers know them)."""
+        return Coded.of(self.camera)
+
+    @cached_property
+    def marker_codes(self) -> Coded:
+        return Coded.of(self.marker)
+
+    def rows_of_camera(self, name: str) -> np.ndarray:
+        """(R,) bool: the rows of camera `name`."""
+        return self.camera_codes.equal(name)
+
     def select(self, mask: np.ndarray) -> Tracks:
-        return Tracks(*(getattr(self, f)[mask] for f in ("camera", "frame", "marker", "xy", "time", "score")))
+        part = Tracks(*(getattr(self, f)[mask] for f in ("camera", "frame", "marker", "xy", "time", "score")))
+        for name in ("camera_codes", "marker_codes"):  # codes known are carried over
+            if name in self.__dict__:
+                part.__dict__[name] = self.__dict__[name].select(mask)
+        return part
 
     def of_camera(self, name: str) -> Tracks:
-        return self.select(self.camera == name)
+        return self.select(self.rows_of_camera(name))
 
     def of_frame(self, frame: int) -> Tracks:
         return self.select(self.frame == frame)
 
+    def dense_of_camera(self, name: str, markers, frames=None) -> np.ndarray:
+        """Camera `name`'s pixels as (F, M, 2) at `frames` (F,) (sorted), NaN where not
+        seen; by default over its frames from its first to its last (`frame_span`). Rows
+        of other markers or frames are ignored."""
+        rows = np.flatnonzero(self.rows_of_camera(name))
+        frame = self.frame[rows]
+        if frames is None:
+            frames = np.arange(frame.min(), frame.max() + 1) if len(rows) else np.zeros(0, int)
+        frames = np.asarray(frames)
+        out = np.full((len(frames), len(markers), 2), np.nan)
+        if not len(rows) or not len(frames):
+            return out
+        if np.all(np.diff(frames) == 1):  # consecutive: an offset, no search
+            f = frame - frames[0]
+            f_ok = (f >= 0) & (f < len(frames))
+        else:
+            f = np.searchsorted(frames, frame)
+            f_ok = (f < len(frames)) & (frames[np.minimum(f, len(frames) - 1)] == frame)
+        m = self.marker_codes.index_in(markers)[rows]
+        ok = (m >= 0) & f_ok
+        out[f[ok], m[ok]] = self.xy[rows[ok]]
+        return out
+
+    def frame_span(self, name: str) -> tuple[int, int] | None:
+        """Camera `name`'s first and last frame, None without rows."""
+        frame = self.frame[self.rows_of_camera(name)]
+        return (int(frame.min()), int(frame.max())) if len(frame) else None
+
     def dense(self, cameras, markers, frames) -> np.ndarray:
         """Pixels as (C, F, M, 2), NaN where not seen; rows of other cameras, markers or
         frames are ignored."""
-        cam_index = {name: i for i, name in enumerate(cameras)}
-        mark_index = {name: i for i, name in enumerate(markers)}
         frames = np.asarray(frames)
         out = np.full((len(cameras), len(frames), len(markers), 2), np.nan)
-        c, m = _indices(self.camera, cam_index), _indices(self.marker, mark_index)
+        c, m = self.camera_codes.index_in(cameras), self.marker_codes.index_in(markers)
         f = np.searchsorted(frames, self.frame)
         f_ok = (f < len(frames)) & (frames[np.minimum(f, len(frames) - 1)] == self.frame)
         ok = (c >= 0) & (m >= 0) & f_ok
@@ -94,17 +142,49 @@ class Tracks:
         return out
 
 
-def _indices(names: np.ndarray, index: dict) -> np.ndarray:
-    """(R,) the `index` of each name, -1 for a name it lacks: looked up once per distinct
-    name (the column dictionary-encoded), not once per row."""
-    if not len(names):
-        return np.zeros(0, int)
-    encoded = pa.array(names, pa.string()).dictionary_encode()
-    lookup = np.array([index.get(name, -1) for name in encoded.dictionary.to_pylist()], dtype=int)
-    return lookup[encoded.indices.to_numpy(zero_copy_only=False)]
+@dataclass(frozen=True)
+class Coded:
+    """A column of names (R,) as codes (R,) into distinct `names` (K,) (some may have no
+    row, e.g. after a selection)."""
+
+    names: tuple[str, ...]
+    codes: np.ndarray
+
+    @classmethod
+    def of(cls, values: np.ndarray) -> Coded:
+        """The codes of (R,) names: dictionary-encoded once, not compared per row."""
+        if not len(values):
+            return cls((), np.zeros(0, np.int64))
+        encoded = pa.array(values, pa.string()).dictionary_encode()
+        return cls(tuple(encoded.dictionary.to_pylist()), encoded.indices.to_numpy(zero_copy_only=False))
+
+    def select(self, mask: np.ndarray) -> Coded:
+        return Coded(self.names, self.codes[mask])
+
+    def index_in(self, names) -> np.ndarray:
+        """(R,) each row's index in `names`, -1 for a name not there: looked up once per
+        distinct name."""
+        index = {name: i for i, name in enumerate(names)}
+        lookup = np.array([index.get(name, -1) for name in self.names] + [-1], dtype=np.int64)
+        return lookup[self.codes]
+
+    def equal(self, name: str) -> np.ndarray:
+        """(R,) bool: the rows of `name`."""
+        return np.array([n == name for n in self.names] + [False])[self.codes]
+
+    def in_order(self) -> tuple[str, ...]:
+        """The names that have rows, in order of their first row."""
+        head, index = np.unique(self.codes[:65536], return_index=True)  # most names show early
+        first = dict(zip(head.tolist(), index.tolist()))
+        for k in np.flatnonzero(np.bincount(self.codes, minlength=len(self.names))):
+            if int(k) not in first:
+                first[int(k)] = int(np.argmax(self.codes == k))
+        return tuple(self.names[k] for k in sorted(first, key=first.get))
 
 
 def concatenate(parts: list[Tracks]) -> Tracks:
+    if len(parts) == 1:
+        return parts[0]
     fields = ("camera", "frame", "marker", "xy", "time", "score")
     return Tracks(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
@@ -150,7 +230,7 @@ def _load_one(path: Path) -> tuple[Tracks, np.ndarray | None]:
     with nothing to report."""
     if is_parquet(path):
         return _load_parquet(path)
-    table = columnar.read_csv_strict(path, TYPES)
+    table = columnar.read_csv_strict(path, TYPES, counts=("frame",))
     tracks = None if table is None else _from_table(table)
     if tracks is not None:
         return tracks, None
@@ -159,7 +239,7 @@ def _load_one(path: Path) -> tuple[Tracks, np.ndarray | None]:
 
 
 def _load_parquet(path: Path) -> tuple[Tracks, np.ndarray | None]:
-    table = columnar.read_parquet(path, "check the tracks path")
+    table = columnar.read_parquet(path, "check the tracks path", names=("camera", "marker"))
     missing = [h for h in REQUIRED if h not in table.column_names]
     if missing:
         raise InputError(f"lacks the columns {', '.join(missing)}; expected columns "
@@ -179,24 +259,26 @@ def _from_table(table) -> Tracks | None:
     names the first bad row)."""
     if any(h not in table.column_names for h in REQUIRED):
         return None
-    if not (columnar.plain_names(table["camera"], MAX_NAME) and columnar.plain_names(table["marker"], MAX_NAME)):
-        return None
+    camera = columnar.plain_strings(table["camera"], MAX_NAME)
+    marker = columnar.plain_strings(table["marker"], MAX_NAME)
     frame = columnar.whole_numbers(table["frame"], MAX_FRAME)
-    values = {}
-    for key in ("x", "y", "time", "score"):
-        values[key] = columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
-    if frame is None or any(v is None for v in values.values()):
+    if camera is None or marker is None or frame is None:
         return None
-    xy = np.c_[values["x"], values["y"]]
-    if not np.all(np.isfinite(xy)) or np.any(np.abs(xy) > MAX_PIXEL):
+    xy = columnar.float_columns([table["x"], table["y"]])
+    values = {key: columnar.floats(table[key]) if key in table.column_names else np.full(table.num_rows, np.nan)
+              for key in ("time", "score")}
+    if xy is None or any(v is None for v in values.values()):
         return None
-    if any(np.any(np.isinf(values[key])) for key in ("time", "score")):
+    if not (len(xy) and -MAX_PIXEL <= xy.min() and xy.max() <= MAX_PIXEL):  # NaN (an empty field) fails too
         return None
-    if any(key in table.column_names and table[key].null_count < np.isnan(values[key]).sum()
-           for key in ("time", "score")):  # a NaN written out, not an empty field
-        return None
-    (camera, camera_id), (marker, marker_id) = columnar.strings(table["camera"]), columnar.strings(table["marker"])
+    for key in ("time", "score"):
+        if key in table.column_names and (np.any(np.isinf(values[key]))
+                                          or table[key].null_count < np.isnan(values[key]).sum()):
+            return None  # infinite, or a NaN written out rather than an empty field
+    (camera, camera_id, camera_names), (marker, marker_id, marker_names) = camera, marker
     tracks = Tracks(camera, frame, marker, xy, values["time"], values["score"])
+    tracks.__dict__["camera_codes"] = Coded(camera_names, camera_id)  # known: not encoded again
+    tracks.__dict__["marker_codes"] = Coded(marker_names, marker_id)
     if _first_duplicate(tracks, camera_id, marker_id) is not None or _sparse_camera(tracks, camera_id) is not None:
         return None
     return tracks
@@ -258,7 +340,7 @@ def _validate(header: list[str], columns: dict[str, np.ndarray], lines: np.ndarr
     fail(np.char.startswith(text, "-") & ascii_digits(np.char.lstrip(text, "-")),
          lambda k: f"frame {text[k]} is negative; frames count from 0")
     fail(~digits, lambda k: f"frame {str(text[k])[:40]!r} is not an integer")
-    fail(np.char.str_len(text) > 9, lambda k: f"frame {text[k]} is beyond {MAX_FRAME:,}; a typo?")
+    fail(np.char.str_len(np.char.lstrip(text, "0")) > 9, lambda k: f"frame {text[k]} is beyond {MAX_FRAME:,}; a typo?")
     frame = text.astype(np.int64)
     fail(frame > MAX_FRAME, lambda k: f"frame {frame[k]:,} is beyond {MAX_FRAME:,}; a typo?")
 
@@ -294,11 +376,11 @@ def ascii_digits(text: np.ndarray) -> np.ndarray:
 
 def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[int, int] | None:
     """The first two rows (in file order) of one (camera, marker, frame), or None; the
-    names' codes (R,) (`columnar.codes`) when known."""
+    names' codes (R,) when known."""
     if len(tracks) < 2:
         return None
-    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
-    marker_id = columnar.codes(tracks.marker) if marker_id is None else marker_id
+    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
+    marker_id = tracks.marker_codes.codes if marker_id is None else marker_id
     key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
     low = int(tracks.frame.min())
     span = int(tracks.frame.max()) - low + 1
@@ -330,15 +412,24 @@ def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | Non
     """A camera whose frames run over a span far larger than the frames it has rows in (the
     stages allocate by the span): its name, the row of its last frame and the count of its
     frames, or None; the cameras' codes (R,) when known."""
-    camera_id = columnar.codes(tracks.camera) if camera_id is None else camera_id
+    if not len(tracks) or int(tracks.frame.max() - tracks.frame.min()) + 1 <= SPARSE_SPAN:
+        return None  # no camera's frames span more
+    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
     for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
         mine = np.flatnonzero(camera_id == code)
+        if not len(mine):
+            continue
         name = tracks.camera[mine[0]]
         frames = tracks.frame[mine]
         span = int(frames.max() - frames.min()) + 1
         if span <= SPARSE_SPAN:
             continue
-        present = len(np.unique(frames))
+        if len(frames) * 10 < span:  # fewer rows than a tenth: fewer frames too
+            present = len(np.unique(frames))
+        else:
+            seen = np.zeros(span, bool)
+            seen[frames - frames.min()] = True
+            present = int(np.count_nonzero(seen))
         if present * 10 < span:
             return name, int(mine[np.argmax(frames)]), present
     return None
@@ -362,9 +453,8 @@ def save_tracks(tracks: Tracks, path: str | Path) -> None:
     has_time = bool(np.any(np.isfinite(tracks.time)))
     has_score = bool(np.any(np.isfinite(tracks.score)))
     header = list(REQUIRED) + (["time"] if has_time else []) + (["score"] if has_score else [])
-    columns = {"camera": tracks.camera.astype(str), "frame": tracks.frame.astype(np.int64),
-               "marker": tracks.marker.astype(str), "x": tracks.xy[:, 0], "y": tracks.xy[:, 1],
-               "time": tracks.time, "score": tracks.score}
+    columns = {"camera": tracks.camera, "frame": tracks.frame.astype(np.int64), "marker": tracks.marker,
+               "x": tracks.xy[:, 0], "y": tracks.xy[:, 1], "time": tracks.time, "score": tracks.score}
     if is_parquet(path):
         columnar.write_parquet({h: columns[h] for h in header}, path)
         return
@@ -377,8 +467,14 @@ IMAGE_MARGIN = 0.25  # share of the image's width / height a pixel may lie beyon
 def check_in_images(tracks: Tracks, sizes: dict, where, what: str = "calibration") -> None:
     """Every row's pixel within its camera's image (`sizes` {camera: (width, height)}), with a
     margin of a quarter of the image; the first row outside is named."""
+    if not sizes or not len(tracks):
+        return
+    size = np.array(list(sizes.values()), dtype=float)  # (C, 2)
+    if np.all(tracks.xy.min(0) >= (-IMAGE_MARGIN * size).max(0)) and np.all(
+            tracks.xy.max(0) <= ((1 + IMAGE_MARGIN) * size).min(0)):
+        return  # every row inside every camera's image: nothing to look for camera by camera
     for name, (width, height) in sizes.items():
-        mine = np.flatnonzero(tracks.camera == name)
+        mine = np.flatnonzero(tracks.rows_of_camera(name))
         if not len(mine):
             continue
         xy = tracks.xy[mine]

@@ -14,6 +14,8 @@ Shapes: F frames, M markers.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from mocap.reconstruct.chi2 import upper_quantile
@@ -83,5 +85,16 @@ def noise_from_fits(sum_squares: np.ndarray, dof: np.ndarray) -> float:
     if not ok.any():
         return float("nan")
     statistic = np.sqrt(sum_squares[ok] / dof[ok])
-    expected = np.sqrt(upper_quantile(dof[ok], 0.5) / dof[ok])  # median of sqrt(chi2_k / k)
+    distinct, inverse = np.unique(dof[ok], return_inverse=True)
+    medians = _chi2_medians(distinct.dtype.str, distinct.tobytes())  # the few distinct dof once
+    expected = np.sqrt(medians / distinct)[inverse]  # median of sqrt(chi2_k / k)
     return float(np.median(statistic / expected))
+
+
+@lru_cache(maxsize=64)
+def _chi2_medians(dtype: str, distinct: bytes) -> np.ndarray:
+    """Chi-square medians of the distinct dof (given as their bytes, so that a repeat is
+    looked up, not computed again)."""
+    medians = upper_quantile(np.frombuffer(distinct, dtype=dtype), 0.5)
+    medians.flags.writeable = False
+    return medians

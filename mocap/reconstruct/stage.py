@@ -49,10 +49,9 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
         )
     check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
     if machine is None:
-        _, first = np.unique(tracks.marker, return_index=True)
-        markers = tuple(tracks.marker[np.sort(first)])
+        markers = tracks.markers
     else:
-        strange = sorted(set(tracks.marker) - set(machine.marker_names))
+        strange = sorted(set(tracks.markers) - set(machine.marker_names))
         if strange:
             raise InputError(
                 f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
@@ -79,7 +78,7 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
     fps, offsets = calibration.fps(), calibration.time_offsets - calibration.time_offsets[0]
     starts, ends, held = [], [], 0
     for name, rate, offset in zip(calibration.names, fps, offsets):
-        frames = tracks.frame[tracks.camera == name]
+        frames = tracks.frame[tracks.rows_of_camera(name)]
         if len(frames):
             starts.append(frames.min() / rate + offset)
             ends.append(frames.max() / rate + offset)
@@ -124,11 +123,19 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
     save_points(points, out)
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return (
-        f"{len(points)} points in {len(np.unique(points.frame))} frames written to {out}; "
+        f"{len(points)} points in {_count_distinct(points.frame)} frames written to {out}; "
         f"median reprojection error {np.median(points.error_px):.2f} px; "
         f"{seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
         + _dropped(clock)
     )
+
+
+def _count_distinct(values: np.ndarray) -> int:
+    """The number of distinct values (N,): by their steps where they are sorted (as the
+    chunks write them), else by sorting."""
+    if len(values) and np.all(values[1:] >= values[:-1]):
+        return int(np.count_nonzero(values[1:] != values[:-1])) + 1
+    return len(np.unique(values))
 
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,

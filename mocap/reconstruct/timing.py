@@ -91,12 +91,13 @@ def _sample(pixels: np.ndarray, first_frame: int, fps: float, offset: float, tim
     fraction = np.clip(position - lower, 0.0, None)
     exact = fraction < _TIME_EPS
     inside = (lower >= 0) & (lower < len(pixels)) & (exact | (lower + 1 < len(pixels)))
-    i0 = np.clip(lower, 0, len(pixels) - 1)
-    i1 = np.clip(lower + 1, 0, len(pixels) - 1)
-    a = fraction[:, None, None]
-    blended = (1.0 - a) * pixels[i0] + a * pixels[i1]
-    values = np.where(exact[:, None, None], pixels[i0], blended)
-    out[inside] = values[inside]
+    rows = np.flatnonzero(inside)
+    values = pixels[lower[rows]]  # exact samples as they are
+    between = np.flatnonzero(~exact[rows])
+    if len(between):
+        a = fraction[rows[between], None, None]
+        values[between] = (1.0 - a) * values[between] + a * pixels[lower[rows[between]] + 1]
+    out[rows] = values
     return out
 
 
@@ -109,19 +110,15 @@ def tracks_on_reference_clock(
     (`mocap.reconstruct.outliers.track_outliers`) are dropped first, and counted."""
     pixels, first_frames, dropped = [], [], 0
     for name in camera_names:
-        own = tracks.of_camera(name)
-        if len(own):
-            frames = np.arange(own.frame.min(), own.frame.max() + 1)
-            dense = own.dense([name], marker_names, frames)[0]
-            if drop_outliers:
-                wild = track_outliers(dense)
-                dense[wild] = np.nan
-                dropped += int(wild.sum())
-            pixels.append(dense)
-            first_frames.append(int(frames[0]))
-        else:
-            pixels.append(np.zeros((0, len(marker_names), 2)))
-            first_frames.append(0)
+        span = tracks.frame_span(name)
+        first = span[0] if span else 0
+        dense = tracks.dense_of_camera(name, marker_names, np.arange(first, span[1] + 1) if span else np.zeros(0, int))
+        if drop_outliers and len(dense):
+            wild = track_outliers(dense)
+            dense[wild] = np.nan
+            dropped += int(wild.sum())
+        pixels.append(dense)
+        first_frames.append(first)
     if dropped:
         log.info("%d pixel(s) dropped: their own tracks contradict them", dropped)
     return replace(resample(pixels, np.array(first_frames), fps, offsets), dropped=dropped)

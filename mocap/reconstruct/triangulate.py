@@ -148,7 +148,32 @@ def undistort(cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:
 def _solve(cameras, pixels, normalised, used, iterations, start=None):
     """DLT (or `start` (N, 3)) then Gauss-Newton for points (N,) with views `used` (C, N)
     -> xyz (N, 3), residuals (C, N, 2) observed minus projected and their Jacobians
-    (N, 2C, 3) by xyz (zero where unused)."""
+    (N, 2C, 3) by xyz (zero where unused), compiled (mocap.reconstruct.triangulate_kernel;
+    `_dlt` and `_residuals` are its numpy statement)."""
+    from mocap.reconstruct.triangulate_kernel import solve_points
+
+    n_cams, n = used.shape
+    xyz, residual, jac = np.empty((n, 3)), np.empty((n_cams, n, 2)), np.empty((n, 2 * n_cams, 3))
+    solve_points(
+        np.ascontiguousarray(pixels, dtype=float), np.ascontiguousarray(normalised, dtype=float),
+        np.ascontiguousarray(used, dtype=bool), np.zeros((0, 3)) if start is None else np.ascontiguousarray(start, dtype=float),
+        start is not None, *_camera_arrays(cameras), int(iterations), xyz, residual, jac)
+    return xyz, residual, jac
+
+
+def _camera_arrays(cameras):
+    """rotation (C, 3, 3), translation (C, 3), intrinsics (C, 5) fx, skew, cx, fy, cy and
+    distortion (C, 5) of the cameras, for the compiled solve."""
+    rotation = np.array([c.cam_from_world.rotation for c in cameras], dtype=float)
+    translation = np.array([c.cam_from_world.translation for c in cameras], dtype=float)
+    intrinsics = np.array([[c.matrix[0, 0], c.matrix[0, 1], c.matrix[0, 2], c.matrix[1, 1], c.matrix[1, 2]]
+                           for c in cameras], dtype=float)
+    distortion = np.array([c.distortion for c in cameras], dtype=float)
+    return rotation, translation, intrinsics, distortion
+
+
+def _solve_numpy(cameras, pixels, normalised, used, iterations, start=None):
+    """`_solve` in numpy (the statement the compiled kernel follows; for tests)."""
     xyz = _dlt(cameras, normalised, used) if start is None else start
     eye = _EPS * np.eye(3)
     for _ in range(iterations):

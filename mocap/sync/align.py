@@ -160,8 +160,7 @@ def synchronise(
         step = 0.5 / fps[0]
         grid = np.arange(-max_offset, max_offset + step / 2, step)
         stride = max(1, len(time) // _COARSE_SAMPLES)  # the coarse search on a long session's every stride-th sample
-        costs = np.array([reference.cost(time[::stride] + o, values[::stride], max(4, need // stride), linear=True)[0]
-                          for o in grid])
+        costs = reference.costs(time[::stride], grid, values[::stride], max(4, need // stride))
         if not np.any(np.isfinite(costs)):
             offsets[k], residual[k], reasons[k] = np.nan, np.nan, "the recordings do not overlap within the search range"
             continue
@@ -252,3 +251,27 @@ class _Reference:
         if frames.sum() < need or count == 0:
             return np.inf, int(frames.sum())
         return total / count, int(frames.sum())
+
+    def costs(self, time: np.ndarray, offsets: np.ndarray, joints: np.ndarray, need: int) -> np.ndarray:
+        """`cost` (linear) at `time` (N,) shifted by each of `offsets` (G,) -> (G,), all
+        offsets at once (in blocks of a bounded size)."""
+        out = np.empty(len(offsets))
+        block = max(1, 2_000_000 // max(len(time), 1))
+        for start in range(0, len(offsets), block):
+            shifted = time[None, :] + offsets[start : start + block, None]  # (B, N)
+            total, count = np.zeros(len(shifted)), np.zeros(len(shifted), dtype=int)
+            frames = np.zeros(shifted.shape, dtype=bool)
+            for j, curve in enumerate(self.curves):
+                if curve is None:
+                    continue
+                values = joints[:, j] / self.scale[j]
+                predicted, inside = curve.at(shifted.ravel(), self.gap, True)
+                predicted, inside = predicted.reshape(shifted.shape), inside.reshape(shifted.shape)
+                inside &= np.isfinite(values)[None, :]
+                total += np.where(inside, np.minimum((values[None, :] - predicted) ** 2, TRUNCATE**2), 0.0).sum(1)
+                count += inside.sum(1)
+                frames |= inside
+            n_frames = frames.sum(1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[start : start + block] = np.where((n_frames < need) | (count == 0), np.inf, total / count)
+        return out

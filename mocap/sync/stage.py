@@ -26,22 +26,22 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
         raise InputError(f"tracks name camera(s) {unknown} that the calibration lacks (it has "
                          f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
                          path=calibration_path)
-    strange = sorted(set(tracks.marker) - set(machine.marker_names))
+    strange = sorted(set(tracks.markers) - set(machine.marker_names))
     if strange:
         raise InputError(f"marker(s) {strange[:5]} are not in the machine model {machine.name!r}; check the "
                          "model or the tracks' marker names", path=", ".join(map(str, tracks_paths)))
-    missing = [name for name in calibration.names if name not in tracks.cameras]
+    present = tracks.cameras
+    missing = [name for name in calibration.names if name not in present]
     if missing:
         raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")
     fps = frame_rates(calibration, tracks, parse_fps(fps_values, calibration.names))
     spans = []
     for camera in calibration.cameras:
-        frame = tracks.of_camera(camera.name).frame
+        frame = tracks.frame[tracks.rows_of_camera(camera.name)]
         spans.append((int(frame.min()), int(frame.max())))
     curves = []
     for k, (camera, frames) in enumerate(zip(calibration.cameras, window_frames(spans, fps, max_offset))):
-        rows = tracks.of_camera(camera.name)
-        pixels = rows.dense([camera.name], machine.marker_names, frames)[0]
+        pixels = tracks.dense_of_camera(camera.name, machine.marker_names, frames)
         if machine.n_joints:
             curves.append(joint_curves(machine, camera, frames, pixels, calibration.joints(machine, k)))
         else:  # a rigid object: its pose is the motion to align
@@ -95,9 +95,9 @@ def frame_rates(calibration: Calibration, tracks: Tracks, given: dict[str, float
         if "fps" in extra:
             fps.append(float(extra["fps"]))
             continue
-        rows = tracks.of_camera(camera.name)
-        timed = np.isfinite(rows.time)
-        frames, times = rows.frame[timed].astype(float), rows.time[timed]
+        mine = tracks.rows_of_camera(camera.name)
+        timed = mine & np.isfinite(tracks.time)
+        frames, times = tracks.frame[timed].astype(float), tracks.time[timed]
         if len(np.unique(frames)) < 2:
             raise InputError(f"no frame rate for camera {camera.name!r} (its tracks have no time column "
                              f"over two frames or more): pass --fps {camera.name}=FPS")
