@@ -97,6 +97,7 @@ class TrackState:
     unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
     disk_m: float  # the disks' radius (m), estimated from the labelled ellipses
     lost: int = 0  # frames since the last fit
+    anchor: np.ndarray | None = None  # (J,) the joints of the last frame fitted after a fitted one
     shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
 
     @property
@@ -121,7 +122,7 @@ class Tracker:
         view = model.view(start.joints[None])
         visible = self._visible(view)
         self.state = TrackState(start.joints.copy(), start.joints.copy(), view.uv[0], shape, missed, visible, unseen,
-                                np.nan)
+                                np.nan, anchor=start.joints.copy())
         self._update_disk(view.scale[0], start.markers, start.detections.radius)
 
     def step(self, gray: np.ndarray) -> FrameResult:
@@ -190,6 +191,8 @@ class Tracker:
         # a joint no marker shows keeps its value: it does not drift on its last velocity
         state.previous = np.where(seen_joints, state.joints, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
+        if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
+            state.anchor = joints
         state.joints, state.lost = joints, 0
         state.uv = fitted_uv
         state.shape[markers] = found.shape[index]
@@ -216,11 +219,18 @@ class Tracker:
         return bool(np.any(self.state.unseen >= self.options.lost_frames))
 
     def restart(self, start: FrameResult) -> None:
-        """Carry on from a fresh labelling of the current frame (after a loss)."""
+        """Carry on from a fresh labelling of the current frame (after a loss). The joints
+        its markers do not show keep the values of the tracker's last steady fit: the
+        proposal's are whatever its start had (a link whose blurred markers the full-frame
+        detection misses would be left turned wherever the start put it, and its markers,
+        looked for there, never found again)."""
         state = self.state
-        state.joints = start.joints.copy()
-        state.previous = start.joints.copy()
-        state.uv = self.model.pixels(start.joints[None])[0]
+        shown = self.model.observed_joints(start.markers)
+        anchor = state.joints if state.anchor is None else state.anchor
+        joints = np.where(shown, start.joints, anchor)
+        state.joints = joints
+        state.previous = joints.copy()
+        state.uv = self.model.pixels(joints[None])[0]
         state.lost = 0
         state.shift = np.zeros(2)
         state.missed[start.markers] = 0
