@@ -359,6 +359,11 @@ class Tracker:
             again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect)
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
+        followed = missing & (missed[seeds] <= 2)
+        if np.any(followed):  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
+            again = refine_and_accept(gray, uv[seeds[followed]], circles[followed], detect)
+            found = unique(concatenate([found, again]))
+            missing[followed] = ~_near_any(uv[seeds[followed]], again.xy, close[followed])
         missing = seeds[missing]
         missing = missing[(missed[missing] <= 3) | (missed[missing] % 4 == 0)]
         if len(missing) == 0:
@@ -397,12 +402,15 @@ def assign(
     detected_radius: np.ndarray | None = None,
     expected_radius: np.ndarray | None = None,
     size_ratio: float = 1.33,
+    size_px: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one assignment of detections to predicted markers: the least sum of
     squared distances, a marker left unassigned counting as a pair at its gate.
 
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
-    and (M,), pairs whose radii differ by more than `size_ratio` are not allowed.
+    and (M,), pairs whose radii differ by more than `size_ratio` and by more than `size_px`
+    are not allowed (a small disk's radius, measured on a few blurred pixels, varies by
+    more than a third from frame to frame).
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
     if len(detected) == 0 or not np.any(visible):
@@ -410,8 +418,9 @@ def assign(
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
     if detected_radius is not None and expected_radius is not None:
-        ratio = detected_radius[None] / np.maximum(expected_radius[:, None], 1e-6)
-        allowed &= (ratio > 1.0 / size_ratio) & (ratio < size_ratio)
+        expected, detected = expected_radius[:, None], detected_radius[None]
+        ratio = detected / np.maximum(expected, 1e-6)
+        allowed &= ((ratio > 1.0 / size_ratio) & (ratio < size_ratio)) | (np.abs(detected - expected) <= size_px)
     rows = np.nonzero(np.any(allowed, axis=1))[0]
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
