@@ -166,7 +166,7 @@ def track_frames(
                 if again is not None and (lost or len(again.markers) > len(result.markers)
                                           or found_again and len(again.markers) == len(result.markers)
                                           and again.rms_px < result.rms_px):
-                    tracker.restart(again)
+                    tracker.restart(again, gray)
                     result = again
                     restarts += 1
                     interval = options.lost_frames

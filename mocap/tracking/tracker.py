@@ -218,16 +218,33 @@ class Tracker:
         left, or out of the model's view)."""
         return bool(np.any(self.state.unseen >= self.options.lost_frames))
 
-    def restart(self, start: FrameResult) -> None:
+    def restart(self, start: FrameResult, gray: np.ndarray | None = None) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss). The joints
-        its markers do not show keep the values of the tracker's last steady fit: the
-        proposal's are whatever its start had (a link whose blurred markers the full-frame
-        detection misses would be left turned wherever the start put it, and its markers,
-        looked for there, never found again)."""
-        state = self.state
-        shown = self.model.observed_joints(start.markers)
+        its markers do not show are whichever of the tracker's last steady fit, where the
+        tracker carried them since, and the proposal's, puts the most of the markers they
+        move on disks of the frame `gray` (refined from there, as `step` looks for them;
+        ties in that order): the proposal's are whatever its start had, and a link whose
+        blurred markers the full-frame detection misses would be left turned wherever the
+        start put it, its markers looked for there and never found again."""
+        state, model = self.state, self.model
+        shown = model.observed_joints(start.markers)
         anchor = state.joints if state.anchor is None else state.anchor
-        joints = np.where(shown, start.joints, anchor)
+        candidates = np.where(shown, start.joints, np.array([anchor, state.joints, start.joints]))
+        joints = candidates[0]
+        unshown = np.any(model.machine.marker_moves[~shown], axis=0)  # (M,) the markers they move
+        if gray is not None and np.any(unshown):
+            view = model.view(candidates)
+            radius = view.scale * state.disk_m if np.isfinite(state.disk_m) else np.full(view.scale.shape, np.median(
+                start.detections.radius) if len(start.detections) else 3.0)
+            detect = replace(self.options.detect, min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
+            counts = []
+            for k in range(len(candidates)):
+                seeds = np.flatnonzero(self._visible(View(view.uv[k:k + 1], view.visible[k:k + 1], view.scale[k:k + 1]))
+                                       & unshown & np.isfinite(radius[k]))
+                r = np.maximum(radius[k, seeds], 1.0)
+                found = refine_and_accept(gray, view.uv[k, seeds], r[:, None, None] ** 2 * np.eye(2), detect)
+                counts.append(int(np.sum(_near_any(view.uv[k, seeds], found.xy, np.maximum(0.5 * r, 1.0)))))
+            joints = candidates[int(np.argmax(counts))]
         state.joints = joints
         state.previous = joints.copy()
         state.uv = self.model.pixels(joints[None])[0]
@@ -443,3 +460,4 @@ def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndar
     if len(xy) == 0:
         return np.zeros(len(points), dtype=bool)
     return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
+
