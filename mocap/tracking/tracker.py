@@ -435,9 +435,9 @@ def assign(
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
     if detected_radius is not None and expected_radius is not None:
-        expected, detected = expected_radius[:, None], detected_radius[None]
-        ratio = detected / np.maximum(expected, 1e-6)
-        allowed &= ((ratio > 1.0 / size_ratio) & (ratio < size_ratio)) | (np.abs(detected - expected) <= size_px)
+        r_expected, r_detected = expected_radius[:, None], detected_radius[None]
+        ratio = r_detected / np.maximum(r_expected, 1e-6)
+        allowed &= ((ratio > 1.0 / size_ratio) & (ratio < size_ratio)) | (np.abs(r_detected - r_expected) <= size_px)
     rows = np.nonzero(np.any(allowed, axis=1))[0]
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
@@ -460,4 +460,3 @@ def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndar
     if len(xy) == 0:
         return np.zeros(len(points), dtype=bool)
     return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
-
