@@ -236,7 +236,8 @@ class Tracker:
             view = model.view(candidates)
             radius = view.scale * state.disk_m if np.isfinite(state.disk_m) else np.full(view.scale.shape, np.median(
                 start.detections.radius) if len(start.detections) else 3.0)
-            detect = replace(self.options.detect, min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
+            options = self.options
+            detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
             counts = []
             for k in range(len(candidates)):
                 seeds = np.flatnonzero(self._visible(View(view.uv[k:k + 1], view.visible[k:k + 1], view.scale[k:k + 1]))
