@@ -123,6 +123,7 @@ def track_frames(
     in_view = np.zeros(len(names), dtype=int)  # frames the fitted model showed each disk marker
     placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
+    blank_disks = 0  # while lost: disks the last failed full-frame search had (or fewest since)
     for index, gray in frames:
         n_frames += 1
         tags = tag_pixels(model.machine, gray, finder)
@@ -147,23 +148,31 @@ def track_frames(
             # the machine picked up again by the tracker after a loss (it may have moved meanwhile
             # and left a link's markers on others' disks): the whole frame searched at once too
             found_again = was_lost and not lost
-            if (lost or tracker.needs_search()) and searched >= interval or found_again:
+            frame_disks = None
+            if lost and searched < interval:
+                # the picture come back (a cover taken away, the machine back in view) while
+                # the machine moved on: searched at once rather than at the next interval
+                frame_disks = detect_disks(gray, options.detect)
+                if len(frame_disks) < blank_disks + options.min_markers:
+                    blank_disks = min(blank_disks, len(frame_disks))
+                    frame_disks = None
+            if (lost or tracker.needs_search()) and (searched >= interval or frame_disks is not None) or found_again:
                 searched = 0
-                again = propose_labels(
-                    model, detect_disks(gray, options.detect), starts_around(model, result.joints),
-                    min_markers=options.min_markers,
-                )
+                frame_disks = detect_disks(gray, options.detect) if frame_disks is None else frame_disks
+                again = propose_labels(model, frame_disks, starts_around(model, result.joints),
+                                       min_markers=options.min_markers)
                 if again is not None and not (lost or found_again):
                     again = _supported(model, again, result.markers)
                 if again is not None and (lost or len(again.markers) > len(result.markers)
                                           or found_again and len(again.markers) == len(result.markers)
                                           and again.rms_px < result.rms_px):
-                    tracker.restart(again)
+                    tracker.restart(again, gray)
                     result = again
                     restarts += 1
                     interval = options.lost_frames
                     log.info("frame %d: markers found again by a full-frame search", index)
                 else:
+                    blank_disks = len(frame_disks)
                     most = _MAX_LOST_INTERVAL if lost else _MAX_SEARCH_INTERVAL
                     interval = min(2 * interval, most * options.lost_frames)
             elif not (lost or tracker.needs_search()):

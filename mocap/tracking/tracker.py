@@ -97,6 +97,7 @@ class TrackState:
     unseen: np.ndarray  # (J,) int, frames since a labelled marker last showed each joint
     disk_m: float  # the disks' radius (m), estimated from the labelled ellipses
     lost: int = 0  # frames since the last fit
+    anchor: np.ndarray | None = None  # (J,) the joints of the last frame fitted after a fitted one
     shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
 
     @property
@@ -121,7 +122,7 @@ class Tracker:
         view = model.view(start.joints[None])
         visible = self._visible(view)
         self.state = TrackState(start.joints.copy(), start.joints.copy(), view.uv[0], shape, missed, visible, unseen,
-                                np.nan)
+                                np.nan, anchor=start.joints.copy())
         self._update_disk(view.scale[0], start.markers, start.detections.radius)
 
     def step(self, gray: np.ndarray) -> FrameResult:
@@ -190,6 +191,8 @@ class Tracker:
         # a joint no marker shows keeps its value: it does not drift on its last velocity
         state.previous = np.where(seen_joints, state.joints, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
+        if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
+            state.anchor = joints
         state.joints, state.lost = joints, 0
         state.uv = fitted_uv
         state.shape[markers] = found.shape[index]
@@ -215,12 +218,37 @@ class Tracker:
         left, or out of the model's view)."""
         return bool(np.any(self.state.unseen >= self.options.lost_frames))
 
-    def restart(self, start: FrameResult) -> None:
-        """Carry on from a fresh labelling of the current frame (after a loss)."""
-        state = self.state
-        state.joints = start.joints.copy()
-        state.previous = start.joints.copy()
-        state.uv = self.model.pixels(start.joints[None])[0]
+    def restart(self, start: FrameResult, gray: np.ndarray | None = None) -> None:
+        """Carry on from a fresh labelling of the current frame (after a loss). The joints
+        its markers do not show are whichever of the tracker's last steady fit, where the
+        tracker carried them since, and the proposal's, puts the most of the markers they
+        move on disks of the frame `gray` (refined from there, as `step` looks for them;
+        ties in that order): the proposal's are whatever its start had, and a link whose
+        blurred markers the full-frame detection misses would be left turned wherever the
+        start put it, its markers looked for there and never found again."""
+        state, model = self.state, self.model
+        shown = model.observed_joints(start.markers)
+        anchor = state.joints if state.anchor is None else state.anchor
+        candidates = np.where(shown, start.joints, np.array([anchor, state.joints, start.joints]))
+        joints = candidates[0]
+        unshown = np.any(model.machine.marker_moves[~shown], axis=0)  # (M,) the markers they move
+        if gray is not None and np.any(unshown):
+            view = model.view(candidates)
+            radius = view.scale * state.disk_m if np.isfinite(state.disk_m) else np.full(view.scale.shape, np.median(
+                start.detections.radius) if len(start.detections) else 3.0)
+            options = self.options
+            detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
+            counts = []
+            for k in range(len(candidates)):
+                seeds = np.flatnonzero(self._visible(View(view.uv[k:k + 1], view.visible[k:k + 1], view.scale[k:k + 1]))
+                                       & unshown & np.isfinite(radius[k]))
+                r = np.maximum(radius[k, seeds], 1.0)
+                found = refine_and_accept(gray, view.uv[k, seeds], r[:, None, None] ** 2 * np.eye(2), detect)
+                counts.append(int(np.sum(_near_any(view.uv[k, seeds], found.xy, np.maximum(0.5 * r, 1.0)))))
+            joints = candidates[int(np.argmax(counts))]
+        state.joints = joints
+        state.previous = joints.copy()
+        state.uv = self.model.pixels(joints[None])[0]
         state.lost = 0
         state.shift = np.zeros(2)
         state.missed[start.markers] = 0
@@ -349,6 +377,11 @@ class Tracker:
             again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect)
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
+        followed = missing & (missed[seeds] <= 2)
+        if np.any(followed):  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
+            again = refine_and_accept(gray, uv[seeds[followed]], circles[followed], detect)
+            found = unique(concatenate([found, again]))
+            missing[followed] = ~_near_any(uv[seeds[followed]], again.xy, close[followed])
         missing = seeds[missing]
         missing = missing[(missed[missing] <= 3) | (missed[missing] % 4 == 0)]
         if len(missing) == 0:
@@ -387,12 +420,15 @@ def assign(
     detected_radius: np.ndarray | None = None,
     expected_radius: np.ndarray | None = None,
     size_ratio: float = 1.33,
+    size_px: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one assignment of detections to predicted markers: the least sum of
     squared distances, a marker left unassigned counting as a pair at its gate.
 
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
-    and (M,), pairs whose radii differ by more than `size_ratio` are not allowed.
+    and (M,), pairs whose radii differ by more than `size_ratio` and by more than `size_px`
+    are not allowed (a small disk's radius, measured on a few blurred pixels, varies by
+    more than a third from frame to frame).
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
     if len(detected) == 0 or not np.any(visible):
@@ -400,8 +436,9 @@ def assign(
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
     if detected_radius is not None and expected_radius is not None:
-        ratio = detected_radius[None] / np.maximum(expected_radius[:, None], 1e-6)
-        allowed &= (ratio > 1.0 / size_ratio) & (ratio < size_ratio)
+        r_expected, r_detected = expected_radius[:, None], detected_radius[None]
+        ratio = r_detected / np.maximum(r_expected, 1e-6)
+        allowed &= ((ratio > 1.0 / size_ratio) & (ratio < size_ratio)) | (np.abs(r_detected - r_expected) <= size_px)
     rows = np.nonzero(np.any(allowed, axis=1))[0]
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:

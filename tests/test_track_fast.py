@@ -1,0 +1,55 @@
+"""Tracking through the fastest frames of a rendered session: the picture covered while the
+machine swings, then tracked on against the truth."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from mocap.io.machine_toml import load_machine
+from mocap.synthetic.render import CameraRenderer, RenderOptions
+from mocap.synthetic.session import make_session
+from mocap.tracking import CameraModel, track_frames
+
+
+def test_machine_swinging_while_covered_is_labelled_again_at_once():
+    """In the 60 frames in which the markers move most (4-5 px a frame, motion blur), the
+    picture covered for 25 frames while the house swings on: the constant-velocity coast
+    ends far from the machine, which must be found again in the first frame after the cover
+    with every link (the proposal sees only the sharp house disks; the arm's and bucket's
+    joints are taken from the tracker's own fit, not from wherever the proposal's start
+    put them). Before: found again 15 frames late and the arm and bucket never, half the
+    markers labelled after the cover."""
+    machine = load_machine("hitachi_ex3500")
+    session = make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1, size=(960, 540), seed=5)
+    field = session.cameras[0]
+    uv, seen, _ = session.observe(field, np.arange(field.frames))
+    step = np.where(seen[1:] & seen[:-1], np.linalg.norm(np.diff(uv, axis=0), axis=-1), np.nan)
+    fastest = np.nan_to_num(np.nanmax(step, axis=1, initial=0.0))
+    n = 60
+    first = int(np.argmax(np.convolve(fastest, np.ones(n), "valid")))
+    assert np.median(fastest[first:first + n]) > 4.0  # px a frame
+    cover = (first + 10, first + 35)
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(5))
+    frames = []
+    for f, image in renderer.frames(np.arange(first, first + n)):
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        frames.append((f, np.full_like(gray, 110) if cover[0] <= f < cover[1] else gray))
+    model = CameraModel(machine, field.camera)
+    start = session.plan.joints(field.times(np.array([first])))[0]
+    tracks, _ = track_frames(model, frames, start, fps=field.fps)
+
+    truth = session.tracks.of_camera(field.name)
+    truth = truth.select((truth.frame >= first) & (truth.frame < first + n))
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), np.inf))
+                      for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
+    assert not np.any((tracks.frame >= cover[0]) & (tracks.frame < cover[1]))  # nothing on the board
+    assert np.all(error < 2.0)  # no wrong label
+    whole = truth.select((truth.score >= 1.0) & (truth.frame >= cover[1]))
+    labelled = set(zip(tracks.frame.tolist(), tracks.marker.tolist()))
+    found = np.array([(int(f), m) in labelled for f, m in zip(whole.frame, whole.marker)])
+    assert np.mean(found) >= 0.98
+    assert np.mean(found[whole.frame == cover[1]]) >= 0.9  # the first frame after the cover
+    # half-size pictures with motion blur and noise (not encoded)
+    assert np.median(error) < 0.05 and np.percentile(error, 95) < 0.15
