@@ -81,9 +81,10 @@ def test_redirections_and_scales_over_sessions():
     # the truth's scale is each dig's stretch against its class's general shape; what a
     # stretch cannot express of a dig's own push and rise is a few per cent; an operator's
     # kept lift is confounded with a vertical stretch as far as its fit is off, and a
-    # missed or misjudged one moves its classmates' scales through the class's size
+    # missed or misjudged one moves its classmates' scales through the class's size (the
+    # issue asks 95 % of all factors within 5 %; main's fit had 94.8 % here, this one 95.8 %)
     errors, redirected = np.abs(np.concatenate(errors)), np.concatenate(redirected)
-    assert np.median(errors) < 0.015 and np.mean(errors <= 0.05) >= 0.9
+    assert np.median(errors) < 0.015 and np.mean(errors <= 0.05) >= 0.95
     assert np.mean(errors[~redirected] <= 0.05) >= 0.95 and np.all(errors[~redirected] <= 0.1)
 
 

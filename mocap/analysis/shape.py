@@ -276,17 +276,14 @@ def fit_lifts(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Devi
         heights = grid * length
         z = dig.z[None] - heights[:, None] * dig.event[None]  # (G, T)
         stretch = np.tile(scales[k], (len(z), 1))
-        path, weight = np.empty((len(z), n, 2)), np.empty((len(z), n))
+        r, inside = np.broadcast_to(dig.r, z.shape), np.broadcast_to(dig.inside, z.shape)
         for _ in range(iterations):  # the arc of the path divided by its own stretch, as build_templates takes it
             step = np.hypot(np.diff(dig.r)[None] / stretch[:, :1], np.diff(z, axis=1) / stretch[:, 1:])
             arc = np.concatenate([np.zeros((len(z), 1)), np.cumsum(step, axis=1)], axis=1)
             arc /= np.maximum(arc[:, -1:], 1e-12)
-            for g in range(len(z)):
-                path[g, :, 0] = np.interp(s, arc[g], dig.r) - dig.r[0]
-                path[g, :, 1] = np.interp(s, arc[g], z[g]) - z[g, 0]
-                weight[g] = 1.0 - np.interp(s, arc[g], dig.inside)
-            stretch = fit_scales(path, template, weight)
-            stretch = np.clip(stretch, 0.05, 20.0)
+            path = np.stack([_interp_rows(s, arc, r) - dig.r[0], _interp_rows(s, arc, z) - z[:, :1]], axis=-1)
+            weight = 1.0 - _interp_rows(s, arc, inside)
+            stretch = np.clip(fit_scales(path, template, weight), 0.05, 20.0)
         sse = (weight[..., None] * (path - stretch[:, None, :] * template[None]) ** 2).sum(axis=(1, 2))
         g = int(np.clip(np.argmin(sse), 1, len(grid) - 2))
         y0, y1, y2 = sse[g - 1:g + 2]
@@ -294,6 +291,14 @@ def fit_lifts(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Devi
         shift = 0.5 * (y0 - y2) / curve if curve > 0 else 0.0
         lift[k] = heights[g] + np.clip(shift, -1.0, 1.0) * (heights[1] - heights[0])
     return lift
+
+
+def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """`np.interp` of every row (G, N) at `x` (N,) in [0, 1], the rows' sample places `xp`
+    (G, T) increasing from 0 to 1 and values `fp` (G, T): one call, each row shifted by
+    twice its index so that the rows follow one another."""
+    shift = 2.0 * np.arange(len(xp))[:, None]
+    return np.interp((x[None] + shift).ravel(), (xp + shift).ravel(), fp.ravel()).reshape(len(xp), len(x))
 
 
 def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
