@@ -113,16 +113,13 @@ def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Digs' paths (K, N, C) resampled at even arc length of their first two channels
     divided by their scales (K, 2), so that a stretched dig's points meet the template's
     at the same place; further channels (events) follow their points."""
-    out = np.empty_like(xy)
     n = xy.shape[1]
+    q = xy[:, :, :2] / scale[:, None, :]
+    step = np.hypot(*np.diff(q, axis=1).transpose(2, 0, 1))
+    arc = np.concatenate([np.zeros((len(xy), 1)), np.cumsum(step, axis=1)], axis=1)
+    arc /= np.maximum(arc[:, -1:], 1e-12)
     even = np.linspace(0.0, 1.0, n)
-    for k in range(len(xy)):
-        q = xy[k, :, :2] / scale[k]
-        u = _arc(q[:, 0], q[:, 1])
-        u, keep = np.unique(u, return_index=True)
-        for d in range(xy.shape[2]):
-            out[k, :, d] = np.interp(even, u, xy[k, keep, d])
-    return out
+    return np.stack([_interp_rows(even, arc, xy[:, :, d]) for d in range(xy.shape[2])], axis=-1)
 
 
 def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, after: np.ndarray | None = None,
@@ -192,37 +189,14 @@ def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return event_shape(tau, c, w, kept), kept, c, w
 
 
-def general_paths(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
-                  lift: np.ndarray | None = None, n: int = N_SAMPLES, cutoff_hz: float = PATH_CUTOFF_HZ,
-                  margin_s: float = 0.5) -> tuple[DigPaths, np.ndarray, np.ndarray]:
-    """Each dig [start, end] (indices) as its general shape and scale are taken from,
-    resampled at `n` points of normalised arc length: the tip's raw path low-passed at
-    `cutoff_hz` (the reactive variations' wiggles would lengthen the arc and shift every
-    sample along it), less each found redirection's `lift` (K,) m times its event's shape
-    in time (a step or a pulse, same low-pass), so that the arc is that of the dig without it.
-
-    Also, for the digs with a redirection in `dev`, (K, N) `after`: 1 at the samples after
-    it, and (K, N) `window`: 1 within it, widened by `margin_s` either side (the low-pass
-    spreads it), both zero elsewhere and for the other digs.
-    """
-    s = np.linspace(0.0, 1.0, n)
-    lift = np.zeros(len(starts)) if lift is None else lift
-    out = np.empty((len(starts), n, 3))
-    after, window = np.zeros((len(starts), n)), np.zeros((len(starts), n))
-    for k, dig in enumerate(_dig_channels(series, starts, ends, dev, cutoff_hz, margin_s)):
-        z = dig.z - lift[k] * dig.event
-        u = _arc(dig.r, z)
-        for d, v in enumerate((dig.r - dig.r[0], z - z[0], dig.angle)):
-            out[k, :, d] = np.interp(s, u, v)
-        after[k], window[k] = np.interp(s, u, dig.late), np.interp(s, u, dig.inside)
-    return DigPaths(s, out), after, window
-
-
 @dataclass(frozen=True)
-class _DigChannels:
-    """One dig's frames (T,): low-passed reach `r` and height `z` (m), bucket angle (rad);
-    its redirection's shape in time `event` (0 to 1, low-passed like the path; zeros
-    without one), `late` 1 after it and `inside` 1 within it (widened by the margin)."""
+class DigChannels:
+    """One dig's frames (T,) as its general shape and scale are taken from: the tip's reach
+    `r` and height `z` (m) low-passed (the reactive variations' wiggles would lengthen the
+    arc and shift every sample along it), bucket angle (rad); its redirection's shape in
+    time `event` (0 to 1, a step when kept, a pulse when temporary, low-passed like the
+    path; zeros without one), `late` 1 after it and `inside` 1 within it, widened by the
+    margin either side (the low-pass spreads it)."""
 
     r: np.ndarray
     z: np.ndarray
@@ -232,12 +206,15 @@ class _DigChannels:
     inside: np.ndarray
 
 
-def _dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None,
-                  cutoff_hz: float, margin_s: float):
-    """`_DigChannels` of every dig [start, end] (indices), in order (a generator)."""
+def dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
+                 cutoff_hz: float = PATH_CUTOFF_HZ, margin_s: float = 0.5) -> list[DigChannels]:
+    """`DigChannels` of every dig [start, end] (indices): the path low-passed at `cutoff_hz`,
+    each redirection of `dev` (if given) at the place and width its event fit found, its
+    window widened by `margin_s`."""
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reach, height = (sosfiltfilt(sos, v) for v in (series.raw_reach, series.raw_height))
     pad = int(round(3.0 * series.rate))
+    out = []
     for k, (a, b) in enumerate(zip(starts, ends)):
         m = b - a + 1
         event, late, inside = np.zeros(m), np.zeros(m), np.zeros(m)
@@ -250,13 +227,31 @@ def _dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: 
             wide = width + margin_s / max(series.time[b] - series.time[a], 1e-9)
             tau = tau[pad:pad + m]
             late, inside = (tau >= centre + wide).astype(float), (np.abs(tau - centre) < wide).astype(float)
-        yield _DigChannels(reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1], event, late, inside)
+        out.append(DigChannels(reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1], event, late, inside))
+    return out
 
 
-def fit_lifts(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations, labels: np.ndarray,
-              templates: dict[str, Template], scales: np.ndarray, n: int = N_SAMPLES,
-              cutoff_hz: float = PATH_CUTOFF_HZ, margin_s: float = 0.5, span: float = 0.15,
-              steps: int = 31, iterations: int = 3) -> np.ndarray:
+def general_paths(channels: list[DigChannels], lift: np.ndarray | None = None,
+                  n: int = N_SAMPLES) -> tuple[DigPaths, np.ndarray, np.ndarray]:
+    """Each dig's `channels` resampled at `n` points of normalised arc length, less its
+    redirection's `lift` (K,) m times its event's shape in time, so that the arc is that of
+    the dig without it; also (K, N) `after`, 1 at the samples after the redirection, and
+    (K, N) `window`, 1 within it (both zero for the digs without one)."""
+    s = np.linspace(0.0, 1.0, n)
+    lift = np.zeros(len(channels)) if lift is None else lift
+    out = np.empty((len(channels), n, 3))
+    after, window = np.zeros((len(channels), n)), np.zeros((len(channels), n))
+    for k, dig in enumerate(channels):
+        z = dig.z - lift[k] * dig.event
+        u = _arc(dig.r, z)
+        for d, v in enumerate((dig.r - dig.r[0], z - z[0], dig.angle)):
+            out[k, :, d] = np.interp(s, u, v)
+        after[k], window[k] = np.interp(s, u, dig.late), np.interp(s, u, dig.inside)
+    return DigPaths(s, out), after, window
+
+
+def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[str, Template], scales: np.ndarray,
+              n: int = N_SAMPLES, span: float = 0.15, steps: int = 31, iterations: int = 3) -> np.ndarray:
     """The lift (K,) m of each dig's redirection (0 without one): the height of its event's
     own shape in time (a step when kept, a pulse when temporary) that, taken out of the
     tip's height before the arc length is taken, lets its class template (N, 2), scaled by
@@ -266,9 +261,9 @@ def fit_lifts(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Devi
     for each of `steps` heights over +-`span` of the dig's length, and a parabola through
     the best three gives the minimum. `scales` (K, 2) the digs' current stretch."""
     s = np.linspace(0.0, 1.0, n)
-    lift = np.zeros(len(starts))
+    lift = np.zeros(len(channels))
     grid = np.linspace(-span, span, steps)
-    for k, dig in enumerate(_dig_channels(series, starts, ends, dev, cutoff_hz, margin_s)):
+    for k, dig in enumerate(channels):
         if not dig.event.any() or labels[k] not in templates:
             continue
         template = templates[labels[k]].path[:, :2]
