@@ -7,11 +7,11 @@ resampled at N points of normalised arc length ``s`` in [0, 1]. A class's templa
 median of its digs divided by their scales; a dig's scale (sx, sz) is the least-squares
 stretch of the template onto it, normalised so that each class's scales have a geometric
 mean of 1 (the template's size is the class's typical size). Both are taken from the path
-low-passed at `PATH_CUTOFF_HZ` (`general_paths`), without the samples within an operator's
-redirection (nor, for the template, after it), and less the redirection's own lift: its
-event's shape in time (a step or a pulse) times the height that lets the class template
-fit the dig best (`fit_lifts`), taken out before the arc length is taken (a kept lift
-along a steep rise would otherwise read as a taller dig).
+low-passed at `PATH_CUTOFF_HZ` (`dig_channels`, `general_paths`), without the samples
+within an operator's redirection (nor, for the template, after it), and less the
+redirection's own lift: its event's shape in time (a step or a pulse) times the height
+that lets the class template fit the dig best (`fit_lifts`), taken out before the arc
+length is taken (a kept lift along a steep rise would otherwise read as a taller dig).
 Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
