@@ -23,6 +23,8 @@ pixel noise, with the true cameras (the same fit as table 1's).
 Table (5) (`--only seeds`): redirections and scales over many planned truth sessions of 12
 cycles (seeds `--seeds A-B` of each machine, no cameras, no fit): pooled precision and
 recall, and how many sessions fall below 0.9 in either.
+Table (4b) (`--only machines-truth`): table 4's first 10 machines of each kind on the
+truth motion alone (no cameras, no fit).
 Table (3): a 2-hour session (216,000 frames at 30 fps, about 290 cycles) built by
 concatenating planned truth sessions, analysed end to end (`mocap analyze`: CSV read,
 analysis, report, templates) and the analysis alone; CPU seconds of one thread.
@@ -235,6 +237,32 @@ def other_machines(n: int, root: Path) -> None:
            "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], rows)
 
 
+def machines_truth(n: int) -> None:
+    """Table (4b): table (4)'s first `n` machines of each kind on the truth motion alone (no
+    cameras, no fit): a quick look at the scales and redirections."""
+    rows = []
+    bobcat = load_machine("bobcat_225")
+    for kind, classes in (("random digger, shovel digs", CLASSES), ("random digger, backhoe digs", (BACKHOE,)),
+                          ("Bobcat 225, backhoe digs", (BACKHOE,))):
+        scores, other, refused = [], [], 0
+        for seed in range(n):
+            machine = bobcat if kind.startswith("Bobcat") else random_digger(np.random.default_rng(seed))
+            try:
+                plan = plan_session(machine, 12, np.random.default_rng(1000 + seed), classes=classes)
+            except InputError:
+                refused += 1
+                continue
+            motion, truth = planned_truth(machine, plan)
+            a = analyze(tip_series(motion))
+            scores.append(score_analysis(a.table, truth))
+            other.append(np.mean(a.table["class"] == "other") if len(a) else 1.0)
+        rows.append(machine_row(kind, "truth", len(scores), refused, 0, scores, other))
+    table(f"(4b) machines nobody designed, the first {n} of each kind, truth motion only",
+          ["machines, digs", "motion", "sessions", "refused by the planner", "refused by the fit", "true", "found",
+           "missed", "extra", "start med", "start p95", "end med", "end p95", "class acc", "share other",
+           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], rows)
+
+
 def machine_row(kind: str, label: str, machines: int, refused: int, fit_refused: int, scores: list,
                 other: list) -> list:
     """One row of table (4): the sessions' scores pooled."""
@@ -347,8 +375,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two sessions instead of six, 5 random machines "
                         "instead of 30, no 2-hour session")
-    parser.add_argument("--only", choices=("accuracy", "machines", "long", "seeds"),
-                        help="one part only (seeds: table 5, run only when asked)")
+    parser.add_argument("--only", choices=("accuracy", "machines", "long", "seeds", "machines-truth"),
+                        help="one part only (seeds: table 5, machines-truth: table 4b, run only when asked)")
     parser.add_argument("--seeds", default="1-60", help="table 5's seeds, A-B (default 1-60)")
     args = parser.parse_args()
     if os.environ.get("OMP_NUM_THREADS") != "1":
@@ -360,6 +388,8 @@ def main() -> int:
             other_machines(5 if args.quick else 30, Path(tmp))
         if args.only in (None, "long") and not args.quick:
             two_hours(Path(tmp))
+        if args.only == "machines-truth":
+            machines_truth(10)
         if args.only == "seeds":
             first, _, last = args.seeds.partition("-")
             seed_sweep(int(first), int(last or first))

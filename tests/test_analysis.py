@@ -15,7 +15,7 @@ from mocap.analysis.core import FIRST, analyze
 from mocap.analysis.features import ClassRules, classify
 from mocap.analysis.score import planned_truth, score_analysis
 from mocap.analysis.series import tip_series
-from mocap.analysis.shape import build_templates, DigPaths, fit_scales
+from mocap.analysis.shape import build_templates, DigPaths
 from mocap.analysis.similarity import group_digs
 from mocap.errors import InputError
 from mocap.ik import PlanarChain
@@ -81,10 +81,34 @@ def test_redirections_and_scales_over_sessions():
     # the truth's scale is each dig's stretch against its class's general shape; what a
     # stretch cannot express of a dig's own push and rise is a few per cent; an operator's
     # kept lift is confounded with a vertical stretch as far as its fit is off, and a
-    # missed or misjudged one moves its classmates' scales through the class's size
+    # missed or misjudged one moves its classmates' scales through the class's size (the
+    # issue asks 95 % of all factors within 5 %; main's fit had 94.8 % here, this one 95.8 %)
     errors, redirected = np.abs(np.concatenate(errors)), np.concatenate(redirected)
-    assert np.median(errors) < 0.015 and np.mean(errors <= 0.05) >= 0.9
+    assert np.median(errors) < 0.015 and np.mean(errors <= 0.05) >= 0.95
     assert np.mean(errors[~redirected] <= 0.05) >= 0.95 and np.all(errors[~redirected] <= 0.1)
+
+
+def test_vertical_scale_of_digs_with_a_kept_lift():
+    # an operator's kept lift (1.5-3 % of the reach) on a steep rise lies almost along the
+    # path: in arc length it reads as a taller dig (main's fit had these digs' vertical
+    # factors 7-10 % off). With the event's own height taken out of the path in time, the
+    # vertical factor of every dig whose kept redirection is found as kept is within 5 % of
+    # the truth's (relative to the class's size, as the benchmark scores it)
+    errors = []
+    for seed in (1, 2, 7):
+        a, truth = analysed("hitachi_ex3500", seed, 12)
+        found = a.table["dig_start_time"]
+        match = np.array([int(np.argmin(np.abs(found - t))) for t in truth["dig_start_time"]])
+        assert np.all(np.abs(found[match] - truth["dig_start_time"]) < 1.0)
+        ratio = a.table["scale_z"][match] / truth["scale_z"]
+        labels = a.table["class"][match]
+        kept = (truth["redirection"] == "kept") & (a.table["redirection"][match] == "kept")
+        for label in np.unique(labels):
+            pick = labels == label
+            error = ratio[pick] / np.exp(np.median(np.log(ratio[pick]))) - 1.0
+            errors.append(error[kept[pick]])
+    errors = np.abs(np.concatenate(errors))
+    assert len(errors) >= 4 and np.all(errors <= 0.05), errors
 
 
 def test_scale_fit_recovers_exact_stretches():
@@ -102,7 +126,7 @@ def test_scale_fit_recovers_exact_stretches():
         u = step / step[-1]
         paths[k] = np.column_stack([np.interp(s, u, dense[:, d]) for d in range(3)])
     labels = np.array(["Type 1"] * 4, dtype=object)
-    _, fitted, _ = build_templates(DigPaths(s, paths), labels, np.zeros((4, 3)))
+    _, fitted = build_templates(DigPaths(s, paths), labels, np.zeros((4, 3)))
     expected = scales / np.exp(np.log(scales).mean(axis=0))
     np.testing.assert_allclose(fitted, expected, rtol=0.01)
 
@@ -303,27 +327,10 @@ def test_random_diggers_and_backhoe_digs(seed):
         assert np.median(errors) < 0.5 and errors.max() < 1.5
 
 
-def test_vertical_scale_and_kept_lift_are_fitted_together():
-    s = np.linspace(0, 1, 64)
-    template = np.column_stack([4 * s, 3 * s**2])
-    step = np.clip((s - 0.4) / 0.2, 0, 1)
-    steps = np.stack([step, np.zeros_like(s), step])
-    scale = np.array([[1.1, 0.9], [0.8, 1.2], [1.0, 1.05]])
-    lift = np.array([0.3, 0.0, -0.2])
-    paths = template[None] * scale[:, None, :]
-    paths[:, :, 1] += lift[:, None] * steps
-    fitted, lifts = fit_scales(paths, template, steps)
-    np.testing.assert_allclose(fitted, scale, atol=1e-9)
-    np.testing.assert_allclose(lifts, lift, atol=1e-9)
-    alone, _ = fit_scales(paths, template)  # without the event the lift reads as a taller dig
-    assert abs(alone[0, 1] - 0.9) > 0.02
-
-
 def test_redirection_window_left_out_of_scales_and_template():
     # five digs of one class, stretched, one lifted for a while (a temporary redirection):
     # with its window left out, every scale is the true one within 0.5 % (the lift still
-    # lengthens its arc) and the template is the class's shape; a kept lift is fitted as
-    # a constant after its window
+    # lengthens its arc) and the template is the class's shape
     rng = np.random.default_rng(7)
     s = np.linspace(0, 1, 64)
     shape = np.column_stack([4 * s - 1.5 * s**3, 3 * s**2 + 0.5 * s])
@@ -341,7 +348,7 @@ def test_redirection_window_left_out_of_scales_and_template():
         even[k, :, 0], even[k, :, 1] = np.interp(s, u, paths[k, :, 0]), np.interp(s, u, paths[k, :, 1])
         window[k] = np.interp(s, u, window[k])
     labels = np.array(["Type 1"] * 5, dtype=object)
-    templates, fitted, lifts = build_templates(DigPaths(s, even), labels, np.zeros((5, 3)), None, window)
+    templates, fitted = build_templates(DigPaths(s, even), labels, np.zeros((5, 3)), None, window)
     expected = scale / np.exp(np.log(scale).mean(axis=0))
     np.testing.assert_allclose(fitted, expected, rtol=0.005)
     size = np.exp(np.log(scale).mean(axis=0))
@@ -349,14 +356,7 @@ def test_redirection_window_left_out_of_scales_and_template():
     u = np.concatenate([[0], np.cumsum(np.hypot(*np.diff(sized, axis=0).T))])
     sized = np.column_stack([np.interp(s, u / u[-1], sized[:, d]) for d in range(2)])
     np.testing.assert_allclose(templates["Type 1"].path[:, :2], sized, atol=0.005 * 3.5)
-    assert np.all(lifts == 0)
-    # a kept lift: the samples within the event left out, a constant height after it
-    after = (s >= 0.65).astype(float)[None]
-    lifted = shape[None] * scale[:1, None, :]
-    lifted[0, :, 1] += 0.4 * np.clip((s - 0.35) / 0.3, 0, 1)
-    got, lift = fit_scales(lifted, shape, after, 1.0 - inside[None])
-    np.testing.assert_allclose(got, scale[:1], rtol=1e-9)
-    np.testing.assert_allclose(lift, [0.4], rtol=1e-9)
+
 
 
 @pytest.mark.parametrize("seed", [5, 17])

@@ -13,8 +13,8 @@ import numpy as np
 from mocap.analysis.features import ClassRules, cycle_parameters
 from mocap.analysis.segment import SegmentOptions, Segments, segment
 from mocap.analysis.series import TipSeries
-from mocap.analysis.shape import (DigPaths, Deviations, Template, build_templates, deviations, general_paths,
-                                  resample_digs)
+from mocap.analysis.shape import (DigPaths, Deviations, Template, build_templates, deviations, dig_channels,
+                                  fit_lifts, general_paths, resample_digs)
 from mocap.analysis.similarity import Grouping, Relation, correlations, direction_relation, dtw_matrix, group_digs
 
 FIRST = ("cycle", "start_frame", "end_frame", "dig_start_frame", "dig_end_frame", "class")
@@ -63,11 +63,12 @@ def analyze(series: TipSeries, rules: ClassRules = ClassRules(), options: Segmen
     paths = resample_digs(series, seg.dig_start, seg.dig_end)
     starts = np.column_stack([table["start_reach_m"], table["start_height_m"], np.radians(table["start_angle_deg"])])
     dev = deviations(series, seg.dig_start, seg.dig_end, np.ones((len(labels), 2)))
-    lift = np.zeros(len(labels))
-    for _ in range(LIFT_ROUNDS):  # a kept lift taken out of the path, its arc length taken again
-        general, after, window = general_paths(series, seg.dig_start, seg.dig_end, dev, lift)
-        templates, scales, more = build_templates(general, labels, starts, after, window)
-        lift = lift + more
+    channels = dig_channels(series, seg.dig_start, seg.dig_end, dev)
+    general, after, window = general_paths(channels)
+    templates, scales = build_templates(general, labels, starts, after, window)
+    for _ in range(LIFT_ROUNDS):  # the redirection's lift taken out of the path, its arc length taken again
+        general, after, window = general_paths(channels, fit_lifts(channels, labels, templates, scales))
+        templates, scales = build_templates(general, labels, starts, after, window)
     dev = replace(dev, scale_x=scales[:, 0], scale_z=scales[:, 1])
     distance = dtw_matrix(paths.path)
     grouping = group_digs(distance)

@@ -7,9 +7,11 @@ resampled at N points of normalised arc length ``s`` in [0, 1]. A class's templa
 median of its digs divided by their scales; a dig's scale (sx, sz) is the least-squares
 stretch of the template onto it, normalised so that each class's scales have a geometric
 mean of 1 (the template's size is the class's typical size). Both are taken from the path
-low-passed at `PATH_CUTOFF_HZ` (`general_paths`), without the samples within an operator's
-redirection (nor, for the template, after it), and with a constant height after a
-redirection fitted beside the vertical stretch where it explains the height (a kept lift).
+low-passed at `PATH_CUTOFF_HZ` (`dig_channels`, `general_paths`), without the samples
+within an operator's redirection (nor, for the template, after it), and less the
+redirection's own lift: its event's shape in time (a step or a pulse) times the height
+that lets the class template fit the dig best (`fit_lifts`), taken out before the arc
+length is taken (a kept lift along a steep rise would otherwise read as a taller dig).
 Deviations:
 
 - **reactive**: the RMS of the path and angle about their own low-pass (``cutoff_hz``);
@@ -38,7 +40,6 @@ from mocap.analysis.series import TipSeries
 N_SAMPLES = 64
 MIN_EVENT_FRAMES = 30
 PATH_CUTOFF_HZ = 0.5  # low-pass of the path a dig's general shape and scale are taken from
-KEPT_GAIN = 2.0  # a constant height after a redirection must halve the height residual to be fitted
 
 
 @dataclass(frozen=True)
@@ -100,62 +101,39 @@ def resample_digs(series: TipSeries, starts: np.ndarray, ends: np.ndarray, n: in
     return DigPaths(s, out)
 
 
-def fit_scales(path: np.ndarray, template: np.ndarray, events: np.ndarray | None = None,
-               weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2),
-    and the lift (K,) m of each dig's redirection: with `events` (K, N), the unit shape of
-    each dig's redirection at its samples (zero without), the height is fitted as stretch x
-    template + lift x event together, so that a kept lift is not taken for a taller dig.
+def fit_scales(path: np.ndarray, template: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Weighted least-squares stretch (K, 2) of a template path (N, 2) onto digs (K, N, 2).
     `weights` (K, N) in [0, 1], default 1 (0 leaves a sample out: the redirection's window)."""
     w = np.ones(path.shape[:2]) if weights is None else weights
     num = np.einsum("kn,knd,nd->kd", w, path, template)
-    tt = np.maximum(w @ template**2, 1e-12)
-    scale = num / tt
-    lift = np.zeros(len(path))
-    if events is None:
-        return scale, lift
-    ee = np.einsum("kn,kn,kn->k", w, events, events)
-    te = (w * events) @ template[:, 1]
-    ze = np.einsum("kn,kn,kn->k", w, events, path[:, :, 1])
-    det = tt[:, 1] * ee - te**2
-    ok = (ee > 1e-9) & (det > 1e-6 * tt[:, 1] * np.maximum(ee, 1e-12))
-    scale[ok, 1] = (num[ok, 1] * ee[ok] - te[ok] * ze[ok]) / det[ok]
-    lift[ok] = (tt[ok, 1] * ze[ok] - te[ok] * num[ok, 1]) / det[ok]
-    return scale, lift
+    return num / np.maximum(w @ template**2, 1e-12)
 
 
 def _descaled(xy: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """Digs' paths (K, N, C) resampled at even arc length of their first two channels
     divided by their scales (K, 2), so that a stretched dig's points meet the template's
     at the same place; further channels (events) follow their points."""
-    out = np.empty_like(xy)
     n = xy.shape[1]
+    q = xy[:, :, :2] / scale[:, None, :]
+    step = np.hypot(*np.diff(q, axis=1).transpose(2, 0, 1))
+    arc = np.concatenate([np.zeros((len(xy), 1)), np.cumsum(step, axis=1)], axis=1)
+    arc /= np.maximum(arc[:, -1:], 1e-12)
     even = np.linspace(0.0, 1.0, n)
-    for k in range(len(xy)):
-        q = xy[k, :, :2] / scale[k]
-        u = _arc(q[:, 0], q[:, 1])
-        u, keep = np.unique(u, return_index=True)
-        for d in range(xy.shape[2]):
-            out[k, :, d] = np.interp(even, u, xy[k, keep, d])
-    return out
+    return np.stack([_interp_rows(even, arc, xy[:, :, d]) for d in range(xy.shape[2])], axis=-1)
 
 
 def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, after: np.ndarray | None = None,
-                    window: np.ndarray | None = None, iterations: int = 4,
-                    kept_gain: float = KEPT_GAIN) -> tuple[dict[str, Template], np.ndarray, np.ndarray]:
-    """Per-label templates, every dig's scale (K, 2) against its label's template and the
-    height (K,) m a redirection left the rest of its dig at (0 where none did).
+                    window: np.ndarray | None = None, iterations: int = 4) -> tuple[dict[str, Template], np.ndarray]:
+    """Per-label templates and every dig's scale (K, 2) against its label's template.
 
     `starts` (K, 3) start reach, height, angle of each dig. `window` (K, N) in [0, 1], the
     samples within a redirection (1): they are left out of the scale fit and of the
     template (each sample the median of the digs outside a window there), so that a
     temporary lift or lower neither stretches its dig nor bends its class's shape. `after`
-    (K, N) 1 at the samples after a redirection: a constant height there is fitted beside
-    the vertical stretch when it leaves at most 1 / `kept_gain` of the squared height
-    residual without it (a kept lift is not a taller dig; the event's kind as the event
-    fit reads it is not trusted for this, a pulse and a step being alike over a short window).
+    (K, N) 1 at the samples after a redirection: left out of the template too (a kept
+    lift the path still holds would bend it; `fit_lifts` takes it out of the dig's path).
     """
-    scales, lifts = np.ones((len(labels), 2)), np.zeros(len(labels))
+    scales = np.ones((len(labels), 2))
     after = np.zeros(paths.path.shape[:2]) if after is None else after
     window = np.zeros(paths.path.shape[:2]) if window is None else window
     templates: dict[str, Template] = {}
@@ -166,23 +144,14 @@ def build_templates(paths: DigPaths, labels: np.ndarray, starts: np.ndarray, aft
         sc = np.ones((len(xy), 2))
         for _ in range(iterations):
             even = _descaled(xy, sc)
-            sc, _ = fit_scales(even[..., :2], template, None, 1.0 - np.clip(even[..., 3], 0, 1))
-            sc = _normalised(sc)
+            sc = _normalised(fit_scales(even[..., :2], template, 1.0 - np.clip(even[..., 3], 0, 1)))
             general = _descaled(xy, sc)
             template = _template(general[..., :2] / sc[:, None, :], general[..., 3] + general[..., 2])
-        even = _descaled(xy, sc)
-        weight = 1.0 - np.clip(even[..., 3], 0, 1)
-        step = (even[..., 2] > 0.5).astype(float)
-        with_step, lift = fit_scales(even[..., :2], template, step, weight)
-        unexplained = ((even[..., 1] - sc[:, 1:] * template[:, 1]) ** 2 * weight).sum(axis=1)
-        left = ((even[..., 1] - with_step[:, 1:] * template[:, 1] - lift[:, None] * step) ** 2 * weight).sum(axis=1)
-        kept = step.any(axis=1) & (unexplained > kept_gain * left)
-        scales[pick] = _normalised(np.where(kept[:, None], with_step, sc))
-        lifts[pick] = np.where(kept, lift, 0.0)
+        scales[pick] = sc
         angle = np.median(paths.path[pick, :, 2], axis=0)
         templates[label] = Template(label, int(pick.sum()), paths.s, np.column_stack([template, angle]),
                                     np.median(starts[pick], axis=0))
-    return templates, scales, lifts
+    return templates, scales
 
 
 def _normalised(scale: np.ndarray) -> np.ndarray:
@@ -220,43 +189,111 @@ def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return event_shape(tau, c, w, kept), kept, c, w
 
 
-def general_paths(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
-                  lift: np.ndarray | None = None, n: int = N_SAMPLES, cutoff_hz: float = PATH_CUTOFF_HZ,
-                  margin_s: float = 0.5) -> tuple[DigPaths, np.ndarray, np.ndarray]:
-    """Each dig [start, end] (indices) as its general shape and scale are taken from,
-    resampled at `n` points of normalised arc length: the tip's raw path low-passed at
-    `cutoff_hz` (the reactive variations' wiggles would lengthen the arc and shift every
-    sample along it), less each found redirection's kept `lift` (K,) m as a smooth step
-    (same low-pass), so that the arc is that of the dig without it.
+@dataclass(frozen=True)
+class DigChannels:
+    """One dig's frames (T,) as its general shape and scale are taken from: the tip's reach
+    `r` and height `z` (m) low-passed (the reactive variations' wiggles would lengthen the
+    arc and shift every sample along it), bucket angle (rad); its redirection's shape in
+    time `event` (0 to 1, a step when kept, a pulse when temporary, low-passed like the
+    path; zeros without one), `late` 1 after it and `inside` 1 within it, widened by the
+    margin either side (the low-pass spreads it)."""
 
-    Also, for the digs with a redirection in `dev`, (K, N) `after`: 1 at the samples after
-    it, and (K, N) `window`: 1 within it, widened by `margin_s` either side (the low-pass
-    spreads it), both zero elsewhere and for the other digs.
-    """
-    s = np.linspace(0.0, 1.0, n)
+    r: np.ndarray
+    z: np.ndarray
+    angle: np.ndarray
+    event: np.ndarray
+    late: np.ndarray
+    inside: np.ndarray
+
+
+def dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
+                 cutoff_hz: float = PATH_CUTOFF_HZ, margin_s: float = 0.5) -> list[DigChannels]:
+    """`DigChannels` of every dig [start, end] (indices): the path low-passed at `cutoff_hz`,
+    each redirection of `dev` (if given) at the place and width its event fit found, its
+    window widened by `margin_s`."""
     sos = butter(2, cutoff_hz, fs=series.rate, output="sos")
     reach, height = (sosfiltfilt(sos, v) for v in (series.raw_reach, series.raw_height))
-    lift = np.zeros(len(starts)) if lift is None else lift
     pad = int(round(3.0 * series.rate))
-    out = np.empty((len(starts), n, 3))
-    after, window = np.zeros((len(starts), n)), np.zeros((len(starts), n))
+    out = []
     for k, (a, b) in enumerate(zip(starts, ends)):
-        r, z, angle = reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1]
-        late, inside = np.zeros(b - a + 1), np.zeros(b - a + 1)
+        m = b - a + 1
+        event, late, inside = np.zeros(m), np.zeros(m), np.zeros(m)
         if dev is not None and dev.redirection[k] != "none":
-            tau = np.arange(-pad, b - a + 1 + pad) / max(b - a, 1)
-            centre = dev.redirection_centre[k]
-            width = dev.redirection_width[k] + margin_s / max(series.time[b] - series.time[a], 1e-9)
-            if lift[k]:
-                step = event_shape(tau, np.array([centre]), np.array([width]), np.array([True]))[0]
-                z = z - lift[k] * sosfiltfilt(sos, np.where(tau < 0, 0.0, step))[pad:pad + b - a + 1]
-            tau = tau[pad:pad + b - a + 1]
-            late, inside = (tau >= centre + width).astype(float), (np.abs(tau - centre) < width).astype(float)
-        u, keep = np.unique(_arc(r, z), return_index=True)
-        for d, v in enumerate((r - r[0], z - z[0], angle)):
-            out[k, :, d] = np.interp(s, u, v[keep])
-        after[k], window[k] = np.interp(s, u, late[keep]), np.interp(s, u, inside[keep])
+            tau = np.arange(-pad, m + pad) / max(b - a, 1)
+            centre, width = dev.redirection_centre[k], dev.redirection_width[k]
+            shape = event_shape(tau, np.array([centre]), np.array([width]),
+                                np.array([dev.redirection[k] == "kept"]))[0]
+            event = sosfiltfilt(sos, np.where(tau < 0, 0.0, shape))[pad:pad + m]
+            wide = width + margin_s / max(series.time[b] - series.time[a], 1e-9)
+            tau = tau[pad:pad + m]
+            late, inside = (tau >= centre + wide).astype(float), (np.abs(tau - centre) < wide).astype(float)
+        out.append(DigChannels(reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1], event, late, inside))
+    return out
+
+
+def general_paths(channels: list[DigChannels], lift: np.ndarray | None = None,
+                  n: int = N_SAMPLES) -> tuple[DigPaths, np.ndarray, np.ndarray]:
+    """Each dig's `channels` resampled at `n` points of normalised arc length, less its
+    redirection's `lift` (K,) m times its event's shape in time, so that the arc is that of
+    the dig without it; also (K, N) `after`, 1 at the samples after the redirection, and
+    (K, N) `window`, 1 within it (both zero for the digs without one)."""
+    s = np.linspace(0.0, 1.0, n)
+    lift = np.zeros(len(channels)) if lift is None else lift
+    out = np.empty((len(channels), n, 3))
+    after, window = np.zeros((len(channels), n)), np.zeros((len(channels), n))
+    for k, dig in enumerate(channels):
+        z = dig.z - lift[k] * dig.event
+        u = _arc(dig.r, z)
+        for d, v in enumerate((dig.r - dig.r[0], z - z[0], dig.angle)):
+            out[k, :, d] = np.interp(s, u, v)
+        after[k], window[k] = np.interp(s, u, dig.late), np.interp(s, u, dig.inside)
     return DigPaths(s, out), after, window
+
+
+def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[str, Template], scales: np.ndarray,
+              n: int = N_SAMPLES, span: float = 0.15, steps: int = 31, iterations: int = 3) -> np.ndarray:
+    """The lift (K,) m of each dig's redirection (0 without one): the height of its event's
+    own shape in time (a step when kept, a pulse when temporary) that, taken out of the
+    tip's height before the arc length is taken, lets its class template (N, 2), scaled by
+    a least-squares stretch, fit the dig best outside the event's window. In arc length a
+    kept lift and a taller dig are nearly alike (a lift along a steep rise lies almost along
+    the path), so the lift is not fitted there as a column: the whole path is taken again
+    for each of `steps` heights over +-`span` of the dig's length, and a parabola through
+    the best three gives the minimum. `scales` (K, 2) the digs' current stretch."""
+    s = np.linspace(0.0, 1.0, n)
+    lift = np.zeros(len(channels))
+    grid = np.linspace(-span, span, steps)
+    for k, dig in enumerate(channels):
+        if not dig.event.any() or labels[k] not in templates:
+            continue
+        template = templates[labels[k]].path[:, :2]
+        length = np.hypot(np.diff(dig.r), np.diff(dig.z)).sum()
+        heights = grid * length
+        z = dig.z[None] - heights[:, None] * dig.event[None]  # (G, T)
+        stretch = np.tile(scales[k], (len(z), 1))
+        r, inside = np.broadcast_to(dig.r, z.shape), np.broadcast_to(dig.inside, z.shape)
+        for _ in range(iterations):  # the arc of the path divided by its own stretch, as build_templates takes it
+            step = np.hypot(np.diff(dig.r)[None] / stretch[:, :1], np.diff(z, axis=1) / stretch[:, 1:])
+            arc = np.concatenate([np.zeros((len(z), 1)), np.cumsum(step, axis=1)], axis=1)
+            arc /= np.maximum(arc[:, -1:], 1e-12)
+            path = np.stack([_interp_rows(s, arc, r) - dig.r[0], _interp_rows(s, arc, z) - z[:, :1]], axis=-1)
+            weight = 1.0 - _interp_rows(s, arc, inside)
+            stretch = np.clip(fit_scales(path, template, weight), 0.05, 20.0)
+        sse = (weight[..., None] * (path - stretch[:, None, :] * template[None]) ** 2).sum(axis=(1, 2))
+        g = int(np.clip(np.argmin(sse), 1, len(grid) - 2))
+        y0, y1, y2 = sse[g - 1:g + 2]
+        curve = y0 - 2 * y1 + y2
+        shift = 0.5 * (y0 - y2) / curve if curve > 0 else 0.0
+        lift[k] = heights[g] + np.clip(shift, -1.0, 1.0) * (heights[1] - heights[0])
+    return lift
+
+
+def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """`np.interp` of every row (G, N) at `x` (N,) in [0, 1], the rows' sample places `xp`
+    (G, T) increasing from 0 to 1 and values `fp` (G, T): one call, each row shifted by
+    twice its index so that the rows follow one another."""
+    shift = 2.0 * np.arange(len(xp))[:, None]
+    return np.interp((x[None] + shift).ravel(), (xp + shift).ravel(), fp.ravel()).reshape(len(xp), len(x))
 
 
 def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
