@@ -160,6 +160,26 @@ def calibrate(
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
     marker_sd = tape_sd(tolerance, machine.marker_positions) if tolerance else None  # as the fit reads it
     x0 = _starting_point(machine, observations, templates, options, guess, layout)
+    try:
+        return _calibrated(machine, observations, layout, templates, x0, options, guess, marker_sd)
+    except InputError as failure:
+        # a camera that sees too few base markers is placed at the joint values the others
+        # found alone, which can be far off: the joints are searched again with every camera
+        # placed, and those cameras placed again
+        again = None if guess is not None or options.per_camera else _chained_start(machine, observations, templates,
+                                                                                   options, layout, x0)
+        if again is None:
+            raise
+        log.info("the fit from the first start failed (%s); the joints searched again with every camera", failure)
+        try:
+            return _calibrated(machine, observations, layout, templates, again, options, guess, marker_sd)
+        except InputError:
+            raise failure from None
+
+
+def _calibrated(machine, observations, layout, templates, x0, options, guess, marker_sd) -> CalibrationResult:
+    """The calibration from the start x0 (P,): the first fit, new starts where it named
+    outliers; refused (DegenerateError) when a camera stays unfixed."""
     result = _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result.outliers:
         # pixels named outliers may be a wrong minimum's doing: the start is found again
@@ -182,9 +202,31 @@ def calibrate(
             if _robust_cost(again, options) < _robust_cost(result, options):
                 log.info("a new start explains the pixels better: kept")
                 result = again
-    if tolerance:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
+    if marker_sd is not None:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
         doubts.refuse_unfixed(result)
     return replace(result, warnings=doubts.warnings(result))
+
+
+def _chained_start(machine, observations, templates, options, layout, x0) -> np.ndarray | None:
+    """The start x0 (P,) again where some camera saw fewer than four base markers (placed
+    at joint values the others fixed alone): the joints searched along the chain with every
+    camera as placed, then those cameras placed again on all their markers at these joint
+    values. None when every camera was placed from the base link."""
+    cameras, joints = layout.unpack(x0, templates)
+    base = machine.marker_links[observations.marker] == 0
+    late = [c for c in range(len(templates)) if np.sum((observations.camera == c) & base) < 4]
+    if not late:
+        return None
+    joints = initial.joints_along_chain(machine, cameras, observations.camera, observations.marker, observations.xy,
+                                        joints)
+    world = machine.markers(joints[None])[0]
+    for c in late:
+        rows = observations.camera == c
+        placed, rms = _placed(world[observations.marker[rows]], observations.xy[rows], templates[c],
+                              options.fixed_intrinsics)
+        if np.isfinite(rms):
+            cameras[c] = placed
+    return layout.pack(cameras, joints)
 
 
 def _first_fit(machine, observations, layout, templates, x0, options, marker_sd) -> CalibrationResult:
@@ -209,6 +251,20 @@ def _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
     if result is None or _robust_cost(plain, options) < _robust_cost(result, options):
         return plain
     return result
+
+
+def _posterior(problem: Problem, x: np.ndarray, options: CalibrationOptions) -> float:
+    """The negative log posterior (up to a constant) of the parameters x (P,) of `problem`
+    (its prior rows at any weight), by which fits of the same pixels are told apart: every
+    observation's residual under a soft-L1 loss at `f_scale_px` (a wild pixel counts little,
+    whichever fit named it an outlier) at the stated pixel noise, and the markers' offsets
+    over their prior SDs."""
+    fun = problem.residuals(x)
+    n = problem.n_pixel_rows
+    e = np.linalg.norm(fun[:n].reshape(-1, 2), axis=1) / options.f_scale_px
+    scale = (options.f_scale_px / options.noise_px) ** 2 / 2.0  # a small residual r counts r^2 / (2 noise^2)
+    prior = 0.5 * float(np.sum((fun[n:] / problem.prior_px) ** 2))
+    return scale * float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0))) + prior
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
@@ -400,13 +456,20 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
         back = _readmitted(problem, problem_of(observations.select(~inlier), problem.prior_px), final, free, options)
         # a wild pixel's pull on the robust fit can make its neighbours look wild too
         if back.any() and _pixel_rms(final.fun, problem) <= _max_rms(options, templates):
-            log.info("%d observation(s) named outliers agree with the fit without them: kept", back.sum())
+            before = problem, final, inlier.copy()
             inlier[np.flatnonzero(~inlier)[back]] = True
             problem = problem_of(observations.select(inlier), problem.prior_px)
             final = _least_squares(problem, final.x, bounds)
             if marker_sd is not None:
                 problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options,
                                                 _least_squares, bounds)
+                # a wild pixel whose marker only one camera sees is predicted loosely (its offset
+                # free within the prior); taken back, it can draw a weak camera along its valley
+                whole = problem_of(observations)
+                if _posterior(whole, final.x, options) > _posterior(whole, before[1].x, options):
+                    problem, final, inlier = before
+            if not np.array_equal(inlier, before[2]):
+                log.info("%d observation(s) named outliers agree with the fit without them: kept", back.sum())
     rms = _pixel_rms(final.fun, problem)
     if rms > _max_rms(options, templates):
         raise ConvergenceError(
