@@ -162,14 +162,13 @@ def _solve(cameras, pixels, normalised, used, iterations, start=None):
 
 
 def _camera_arrays(cameras):
-    """rotation (C, 3, 3), translation (C, 3), intrinsics (C, 5) fx, skew, cx, fy, cy and
-    distortion (C, 5) of the cameras, for the compiled solve."""
+    """rotation (C, 3, 3), translation (C, 3), matrix (C, 3, 3) and distortion (C, 5) of the
+    cameras, for the compiled solve."""
     rotation = np.array([c.cam_from_world.rotation for c in cameras], dtype=float)
     translation = np.array([c.cam_from_world.translation for c in cameras], dtype=float)
-    intrinsics = np.array([[c.matrix[0, 0], c.matrix[0, 1], c.matrix[0, 2], c.matrix[1, 1], c.matrix[1, 2]]
-                           for c in cameras], dtype=float)
+    matrix = np.array([c.matrix for c in cameras], dtype=float)
     distortion = np.array([c.distortion for c in cameras], dtype=float)
-    return rotation, translation, intrinsics, distortion
+    return rotation, translation, matrix, distortion
 
 
 def _solve_numpy(cameras, pixels, normalised, used, iterations, start=None):

@@ -16,6 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
+from mocap.camera_kernel import project_point
+
 
 @njit(cache=True, nogil=True)
 def _link_poses(joints, revolute, parents, joint_links, at_zero, first, second, poses):
@@ -53,43 +55,6 @@ def _link_poses(joints, revolute, parents, joint_links, at_zero, first, second, 
 
 
 @njit(cache=True, nogil=True)
-def _project(p, matrix, distortion, uv, jac):
-    """Pixel (2,) of a camera-frame point p (3,) into `uv` and d(uv)/dp (2, 3) into `jac`
-    (`camera.project_cam`'s lens model); False (uv NaN) at or behind the camera."""
-    z = p[2]
-    if not z > 0:
-        uv[0] = uv[1] = math.nan
-        return False
-    x, y = p[0] / z, p[1] / z
-    fx, s, cx = matrix[0, 0], matrix[0, 1], matrix[0, 2]
-    fy, cy = matrix[1, 1], matrix[1, 2]
-    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    uv[0] = fx * xd + s * yd + cx
-    uv[1] = fy * yd + cy
-    dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    dxd_dx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-    dxd_dy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    dyd_dx = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
-    dyd_dy = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-    du_dx = fx * dxd_dx + s * dyd_dx
-    du_dy = fx * dxd_dy + s * dyd_dy
-    dv_dx = fy * dyd_dx
-    dv_dy = fy * dyd_dy
-    inv_z = 1.0 / z
-    jac[0, 0] = du_dx * inv_z
-    jac[0, 1] = du_dy * inv_z
-    jac[0, 2] = -(du_dx * x + du_dy * y) * inv_z
-    jac[1, 0] = dv_dx * inv_z
-    jac[1, 1] = dv_dy * inv_z
-    jac[1, 2] = -(dv_dx * x + dv_dy * y) * inv_z
-    return True
-
-
-@njit(cache=True, nogil=True)
 def _marker_in_camera(pose, position, rotation, translation, world, cam):
     """A marker at `position` (3,) in its link's frame `pose` (4, 4): its world point into
     `world` (3,) and its camera-frame point into `cam` (3,)."""
@@ -115,7 +80,7 @@ def _markers(joints, chain, marker_links, positions, rotation, translation, matr
     for m in range(n_markers):
         link = marker_links[m]
         _marker_in_camera(poses[link], positions[m], rotation, translation, world, cam)
-        ahead = _project(cam, matrix, distortion, uv[m], jac)
+        ahead = project_point(cam, matrix, distortion, uv[m], jac)
         if not with_jac:
             continue
         # d(uv)/d(world) = jac @ rotation, then by each joint that moves the marker
@@ -243,7 +208,7 @@ def marker_view(joints, chain, marker_links, positions, rotation, translation, m
         for m in range(n_markers):
             link = marker_links[m]
             _marker_in_camera(poses[link], positions[m], rotation, translation, world, cam)
-            _project(cam, matrix, distortion, uv[f, m], jac)
+            project_point(cam, matrix, distortion, uv[f, m], jac)
             u, v = uv[f, m, 0], uv[f, m, 1]
             nx = poses[link, 0, 0] * normals[m, 0] + poses[link, 0, 1] * normals[m, 1] + poses[link, 0, 2] * normals[m, 2]
             ny = poses[link, 1, 0] * normals[m, 0] + poses[link, 1, 1] * normals[m, 1] + poses[link, 1, 2] * normals[m, 2]
