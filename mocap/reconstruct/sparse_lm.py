@@ -52,14 +52,11 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], jacobian:
     x = np.asarray(x0, dtype=float).copy()
     r = residuals(x)
     cost = huber_cost(r, scale)
-    damping, message = None, f"{max_iterations} iterations reached"
+    damping = 1e-3
     for iteration in range(1, max_iterations + 1):
-        weights = _weights(r, scale)
-        J = jacobian(x)
-        normal, gradient = _normal_equations(J, r, weights)
-        diagonal = np.maximum(np.diag(normal).copy(), 1e-12 * max(float(np.diag(normal).max()), 1e-300))
-        if damping is None:
-            damping = 1e-3
+        normal, gradient = _normal_equations(jacobian(x), r, _weights(r, scale))
+        diagonal = _diagonal(normal)
+        diagonal = np.maximum(diagonal, 1e-12 * max(float(diagonal.max()), 1e-300))
         while True:  # raise the damping until a step lowers the cost
             step = _solve(normal, diagonal * damping, -gradient)
             if step is None:
@@ -80,7 +77,7 @@ def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray], jacobian:
         if reduction <= ftol * cost_new or small_step:
             message = "converged: " + ("the cost's change below ftol" if not small_step else "the step below xtol")
             return Solution(x, cost, iteration, message)
-    return Solution(x, cost, max_iterations, message)
+    return Solution(x, cost, max_iterations, f"{max_iterations} iterations reached")
 
 
 def _weights(r: np.ndarray, scale: float | None) -> np.ndarray | None:
@@ -98,6 +95,10 @@ def _normal_equations(J, r: np.ndarray, weights: np.ndarray | None):
     if scipy.sparse.issparse(normal) and normal.shape[0] <= DENSE_LIMIT:
         normal = normal.toarray()
     return normal, gradient
+
+
+def _diagonal(normal) -> np.ndarray:
+    return normal.diagonal().copy() if scipy.sparse.issparse(normal) else np.diag(normal).copy()
 
 
 def _solve(normal, damping: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
