@@ -109,3 +109,17 @@ def test_cameras_that_see_no_base_marker_are_placed_after_the_joints_are_searche
     bound = _bound(scene)
     assert np.all(error < 3 * bound), f"camera centres {error / bound} x the bound"
     np.testing.assert_allclose(result.joints, scene.joints[0], atol=0.1)
+
+
+def test_a_joint_in_a_mirror_minimum_is_searched_again_when_the_residuals_exceed_the_noise():
+    """Scene 1000197 (six joints, four cameras, no wild pixel): the first fit turned the last
+    joint 130° from the truth and bent every camera's focal length by 5-30 % to suit it, at
+    1.5 px of residual noise where the pixels have 0.8 (the stated 1 px). With nothing named
+    an outlier it was kept, 5.9 times the bound; the joint of the link whose markers it
+    fitted worst is now searched across its range, and the fit at the noise is kept."""
+    scene, templates, options = _field_scene(1000197)
+    result = calibrate(scene.model, scene.observations(), templates, options)
+    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
+    assert np.median(error / _bound(scene)) < 2.0, f"camera centres {error / _bound(scene)} x the bound"
+    assert result.sigma_px < 1.0  # the 0.8 px noise, not the wrong minimum's 1.5 px
+    assert not any(r.outlier for r in result.residuals)

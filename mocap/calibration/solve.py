@@ -179,29 +179,39 @@ def calibrate(
 
 def _calibrated(machine, observations, layout, templates, x0, options, guess, marker_sd) -> CalibrationResult:
     """The calibration from the start x0 (P,): the first fit, new starts where it named
-    outliers; refused (DegenerateError) when a camera stays unfixed."""
+    outliers or left residuals above the stated noise; refused (DegenerateError) when a
+    camera stays unfixed."""
     result = _first_fit(machine, observations, layout, templates, x0, options, marker_sd)
+    starts, swept = [], np.zeros(0, int)
     if result.outliers:
         # pixels named outliers may be a wrong minimum's doing: the start is found again
         # without them, and the cameras that lost many are placed again on all their markers
         # at the fitted pose; the fit from each is kept if it explains the pixels better
         kept = np.array([not r.outlier for r in result.residuals])
-        starts = [lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout)]
+        starts.append(lambda: _starting_point(machine, observations.select(kept), templates, options, guess, layout))
         doubtful = doubts.doubtful_cameras(result)
         if doubtful:
             starts.append(lambda: layout.pack(_replaced_cameras(result, observations, templates, doubtful,
                                                                 options.fixed_intrinsics), result.joints))
-        if not result.per_camera:
-            starts += _swept_joints(machine, layout, result, observations.marker[~kept])
-        for start in starts:
-            try:
-                again = _fit(machine, observations, layout, templates, start(), options, marker_sd)
-            except InputError as exc:
-                log.info("a new start did not converge: %s", exc)
-                continue
-            if _robust_cost(again, options) < _robust_cost(result, options):
-                log.info("a new start explains the pixels better: kept")
-                result = again
+        swept = observations.marker[~kept]
+    if result.sigma_px > options.noise_px:
+        # residuals above the pixels' stated noise: a joint may sit in a mirror minimum (the
+        # cameras' focal lengths and places bent to suit it); that of the link whose markers
+        # the fit explains worst is searched across its range
+        log.info("residual noise %.2f px above the stated %.2f px: the worst-fitted links' joints searched",
+                 result.sigma_px, options.noise_px)
+        swept = np.union1d(swept, _worst_links_markers(machine, observations, result))
+    if not result.per_camera:
+        starts += _swept_joints(machine, layout, result, swept)
+    for start in starts:
+        try:
+            again = _fit(machine, observations, layout, templates, start(), options, marker_sd)
+        except (InputError, np.linalg.LinAlgError) as exc:  # a start the solver cannot leave
+            log.info("a new start did not converge: %s", exc)
+            continue
+        if _robust_cost(again, options) < _robust_cost(result, options):
+            log.info("a new start explains the pixels better: kept")
+            result = again
     if marker_sd is not None:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
         doubts.refuse_unfixed(result)
     return replace(result, warnings=doubts.warnings(result))
@@ -265,6 +275,18 @@ def _posterior(problem: Problem, x: np.ndarray, options: CalibrationOptions) -> 
     scale = (options.f_scale_px / options.noise_px) ** 2 / 2.0  # a small residual r counts r^2 / (2 noise^2)
     prior = 0.5 * float(np.sum((fun[n:] / problem.prior_px) ** 2))
     return scale * float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0))) + prior
+
+
+def _worst_links_markers(machine: Machine, observations: Observations, result: CalibrationResult,
+                         links: int = 1) -> np.ndarray:
+    """The markers (indices) of the `links` moving links whose observations' residuals have
+    the largest RMS (outliers left out)."""
+    error = np.array([np.linalg.norm(r.residual) if not r.outlier else np.nan for r in result.residuals])
+    link = machine.marker_links[observations.marker]
+    moving = [k for k in np.unique(link) if k != 0 and np.isfinite(error[link == k]).any()]
+    rms = [np.sqrt(np.nanmean(error[link == k] ** 2)) for k in moving]
+    worst = [moving[i] for i in np.argsort(rms)[::-1][:links]]
+    return np.flatnonzero(np.isin(machine.marker_links, worst))
 
 
 def _swept_joints(machine: Machine, layout: Layout, result: CalibrationResult, dropped: np.ndarray) -> list:
