@@ -198,7 +198,7 @@ def _calibrated(machine, observations, layout, templates, x0, options, guess, ma
         # residuals above the pixels' stated noise: a joint may sit in a mirror minimum (the
         # cameras' focal lengths and places bent to suit it); that of the link whose markers
         # the fit explains worst is searched across its range
-        log.info("residual noise %.2f px above the stated %.2f px: the worst-fitted links' joints searched",
+        log.info("residual noise %.2f px above the stated %.2f px: the worst-fitted link's joint searched",
                  result.sigma_px, options.noise_px)
         swept = np.union1d(swept, _worst_links_markers(machine, observations, result))
     if not result.per_camera:
