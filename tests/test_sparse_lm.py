@@ -51,8 +51,9 @@ def test_finds_the_least_squares_minimum_and_the_truth(outliers, scale):
     assert ours.message.startswith("converged")
     assert ours.cost <= theirs.cost * (1 + 1e-6)  # scipy's cost is ½ Σ ρ too
     assert huber_cost(residuals(ours.x), scale) == pytest.approx(ours.cost)
-    np.testing.assert_allclose(ours.x, theirs.x, atol=1e-5)
-    # each circle's 40 points fix its centre and radius to about NOISE / sqrt(20)
+    # each circle's 40 points fix its centre and radius to about NOISE / sqrt(20); two solvers
+    # stopped at the same minimum agree to a hundredth of that (the Huber cost is flat there)
+    np.testing.assert_allclose(ours.x, theirs.x, atol=0.01 * NOISE / np.sqrt(20))
     error = np.abs(ours.x.reshape(-1, 3) - truth)
     assert np.sqrt(np.mean(error**2)) < 2 * NOISE / np.sqrt(20)
 
