@@ -174,19 +174,17 @@ def _distinct(column: pa.ChunkedArray) -> tuple[pa.Array, np.ndarray]:
     return column.chunk(0).dictionary, indices[0] if len(indices) == 1 else np.concatenate(indices)
 
 
-def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]] | None:
-    """(N,) object array of Python str of a text column (string, or UTF-8 bytes) whose
-    every value is a non-empty string of at most `longest` characters without surrounding
-    white space, one object per distinct value; its (N,) codes (equal where the values are
-    equal) and the distinct values (K,) they index. None for any other column."""
+def plain_strings(column: pa.ChunkedArray, longest: int) -> tuple[tuple[str, ...], np.ndarray] | None:
+    """The distinct values (K,) of a text column (string, or UTF-8 bytes) whose every value
+    is a non-empty string of at most `longest` characters without surrounding white space,
+    and each row's (N,) code: its index into them. None for any other column."""
     if column.null_count:
         return None
     values, codes = _distinct(column)
     values = _text(values)
     if values is None or not _plain(values, longest):
         return None
-    names = values.to_pylist()
-    return np.take(np.array(names, dtype=object), codes), codes, tuple(names)
+    return tuple(values.to_pylist()), codes
 
 
 def _plain(values: pa.Array, longest: int) -> bool:

@@ -25,25 +25,36 @@ REQUIRED = ("camera", "frame", "marker", "x", "y")
 OPTIONAL = ("time", "score")
 
 
-@dataclass(frozen=True)
 class Tracks:
     """Observations in long form, R rows: camera (R,) str, frame (R,) int, marker (R,) str,
-    xy (R, 2) px, time (R,) s and score (R,), NaN where not given."""
+    xy (R, 2) px, time (R,) s and score (R,), NaN where not given.
 
-    camera: np.ndarray
-    frame: np.ndarray
-    marker: np.ndarray
-    xy: np.ndarray
-    time: np.ndarray
-    score: np.ndarray
+    The camera and marker columns may be given as names (R,) or as `Coded` names; each
+    form is made from the other when first asked for (the readers know the codes, and most
+    stages use only them: no Python string per row is made for them)."""
 
-    def __post_init__(self) -> None:
-        n = len(self.frame)
-        for name in ("camera", "marker", "time", "score"):
-            if len(getattr(self, name)) != n:
-                raise ValueError(f"Tracks.{name} has {len(getattr(self, name))} rows, expected {n}")
-        if np.shape(self.xy) != (n, 2):
-            raise ValueError(f"Tracks.xy must have shape ({n}, 2), got {np.shape(self.xy)}")
+    def __init__(self, camera, frame, marker, xy, time, score) -> None:
+        for name, column in (("camera", camera), ("marker", marker)):
+            self.__dict__[f"{name}_codes" if isinstance(column, Coded) else name] = column
+        self.frame, self.xy, self.time, self.score = frame, xy, time, score
+        n = len(frame)
+        for name, column in (("camera", camera), ("marker", marker), ("time", time), ("score", score)):
+            if len(column) != n:
+                raise ValueError(f"Tracks.{name} has {len(column)} rows, expected {n}")
+        if np.shape(xy) != (n, 2):
+            raise ValueError(f"Tracks.xy must have shape ({n}, 2), got {np.shape(xy)}")
+
+    def __repr__(self) -> str:
+        return f"Tracks({len(self)} rows, cameras {self.cameras}, {len(self.markers)} markers)"
+
+    @cached_property
+    def camera(self) -> np.ndarray:
+        """(R,) object array of the camera names."""
+        return self.camera_codes.values()
+
+    @cached_property
+    def marker(self) -> np.ndarray:
+        return self.marker_codes.values()
 
     @classmethod
     def from_rows(cls, camera, frame, marker, xy, time=None, score=None) -> Tracks:
@@ -89,11 +100,9 @@ class Tracks:
         return self.camera_codes.equal(name)
 
     def select(self, mask: np.ndarray) -> Tracks:
-        part = Tracks(*(getattr(self, f)[mask] for f in ("camera", "frame", "marker", "xy", "time", "score")))
-        for name in ("camera_codes", "marker_codes"):  # codes known are carried over
-            if name in self.__dict__:
-                part.__dict__[name] = self.__dict__[name].select(mask)
-        return part
+        camera, marker = (self.__dict__[f"{name}_codes"].select(mask) if f"{name}_codes" in self.__dict__
+                          else self.__dict__[name][mask] for name in ("camera", "marker"))  # codes known are kept
+        return Tracks(camera, self.frame[mask], marker, self.xy[mask], self.time[mask], self.score[mask])
 
     def of_camera(self, name: str) -> Tracks:
         return self.select(self.rows_of_camera(name))
@@ -161,6 +170,23 @@ class Coded:
     def select(self, mask: np.ndarray) -> Coded:
         return Coded(self.names, self.codes[mask])
 
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def values(self) -> np.ndarray:
+        """(R,) object array of the names, one Python str per distinct name."""
+        return np.take(np.array(self.names, dtype=object), self.codes)
+
+    @classmethod
+    def joined(cls, parts: list[Coded]) -> Coded:
+        """The parts' rows one after the other, coded into the union of their names."""
+        index: dict[str, int] = {}
+        for part in parts:
+            for name in part.names:
+                index.setdefault(name, len(index))
+        codes = [np.array([index[n] for n in part.names] + [-1], dtype=np.int64)[part.codes] for part in parts]
+        return cls(tuple(index), np.concatenate(codes))
+
     def index_in(self, names) -> np.ndarray:
         """(R,) each row's index in `names`, -1 for a name not there: looked up once per
         distinct name."""
@@ -185,8 +211,14 @@ class Coded:
 def concatenate(parts: list[Tracks]) -> Tracks:
     if len(parts) == 1:
         return parts[0]
-    fields = ("camera", "frame", "marker", "xy", "time", "score")
-    return Tracks(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+
+    def names(name: str):
+        if all(f"{name}_codes" in p.__dict__ for p in parts):  # all coded: stays coded
+            return Coded.joined([p.__dict__[f"{name}_codes"] for p in parts])
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    frame, xy, time, score = (np.concatenate([getattr(p, f) for p in parts]) for f in ("frame", "xy", "time", "score"))
+    return Tracks(names("camera"), frame, names("marker"), xy, time, score)
 
 
 MAX_FRAME = 100_000_000  # about five weeks at 30 fps: a larger frame number is a typo
@@ -275,11 +307,8 @@ def _from_table(table) -> Tracks | None:
         if key in table.column_names and (np.any(np.isinf(values[key]))
                                           or table[key].null_count < np.isnan(values[key]).sum()):
             return None  # infinite, or a NaN written out rather than an empty field
-    (camera, camera_id, camera_names), (marker, marker_id, marker_names) = camera, marker
-    tracks = Tracks(camera, frame, marker, xy, values["time"], values["score"])
-    tracks.__dict__["camera_codes"] = Coded(camera_names, camera_id)  # known: not encoded again
-    tracks.__dict__["marker_codes"] = Coded(marker_names, marker_id)
-    if _first_duplicate(tracks, camera_id, marker_id) is not None or _sparse_camera(tracks, camera_id) is not None:
+    tracks = Tracks(Coded(*camera), frame, Coded(*marker), xy, values["time"], values["score"])  # codes known
+    if _first_duplicate(tracks) is not None or _sparse_camera(tracks) is not None:
         return None
     return tracks
 
@@ -374,13 +403,11 @@ def ascii_digits(text: np.ndarray) -> np.ndarray:
     return np.char.isdigit(text) & ascii
 
 
-def _first_duplicate(tracks: Tracks, camera_id=None, marker_id=None) -> tuple[int, int] | None:
-    """The first two rows (in file order) of one (camera, marker, frame), or None; the
-    names' codes (R,) when known."""
+def _first_duplicate(tracks: Tracks) -> tuple[int, int] | None:
+    """The first two rows (in file order) of one (camera, marker, frame), or None."""
     if len(tracks) < 2:
         return None
-    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
-    marker_id = tracks.marker_codes.codes if marker_id is None else marker_id
+    camera_id, marker_id = tracks.camera_codes.codes, tracks.marker_codes.codes
     key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
     low = int(tracks.frame.min())
     span = int(tracks.frame.max()) - low + 1
@@ -408,18 +435,18 @@ def _check_duplicates(tracks: Tracks, place, where) -> None:
             "and frame", path=where)
 
 
-def _sparse_camera(tracks: Tracks, camera_id=None) -> tuple[str, int, int] | None:
+def _sparse_camera(tracks: Tracks) -> tuple[str, int, int] | None:
     """A camera whose frames run over a span far larger than the frames it has rows in (the
     stages allocate by the span): its name, the row of its last frame and the count of its
-    frames, or None; the cameras' codes (R,) when known."""
+    frames, or None."""
     if not len(tracks) or int(tracks.frame.max() - tracks.frame.min()) + 1 <= SPARSE_SPAN:
         return None  # no camera's frames span more
-    camera_id = tracks.camera_codes.codes if camera_id is None else camera_id
+    camera_id = tracks.camera_codes.codes
     for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
         mine = np.flatnonzero(camera_id == code)
         if not len(mine):
             continue
-        name = tracks.camera[mine[0]]
+        name = tracks.camera_codes.names[code]
         frames = tracks.frame[mine]
         span = int(frames.max() - frames.min()) + 1
         if span <= SPARSE_SPAN:
@@ -440,7 +467,7 @@ def _check_span(tracks: Tracks, place, where) -> None:
     sparse = _sparse_camera(tracks)
     if sparse is not None:
         name, k, present = sparse
-        frames = tracks.frame[tracks.camera == name]
+        frames = tracks.frame[tracks.rows_of_camera(name)]
         span = int(frames.max() - frames.min()) + 1
         raise InputError(
             f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
