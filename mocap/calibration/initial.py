@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import cv2
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
@@ -27,6 +29,10 @@ FOCAL_GRID = np.geomspace(0.2, 12.0, 28)  # focal lengths tried, in image widths
 BEAM = 4
 GRID_STEP_DEG = 3.0
 MAX_PENDING = 1024  # combinations of unfixed joints' values tried with the next joint
+WILD_RMS_PX = 3.0  # a placement's RMS above any pixel noise and tape error of the base: a wild pixel suspected
+LEFT_OUT_GAIN = 4.0  # how many times better the others must be explained without one point
+
+log = logging.getLogger(__name__)
 
 
 def place_camera(
@@ -34,7 +40,34 @@ def place_camera(
 ) -> tuple[Camera, float]:
     """A camera from N >= 4 known 3-D points and their pixels, focal length searched when
     not given: PnP on a grid of focal lengths, then a bounded 1-D search of the RMS
-    reprojection error around the best. Returns the camera and that RMS (px)."""
+    reprojection error around the best. Returns the camera and that RMS (px).
+
+    A wild pixel among five or more points bends every point's fit (a focal length and
+    pose that split its error): when the RMS is far above any pixel noise, each point is
+    left out in turn, and a placement from the others that explains them several times
+    better is kept (its RMS over the points it kept)."""
+    camera, rms = _place_all(points, pixels, template, focal)
+    if len(points) < 5 or rms <= WILD_RMS_PX:
+        return camera, rms
+    keep = np.ones(len(points), dtype=bool)
+    best = (camera, rms, -1)
+    for k in range(len(points)):
+        keep[:] = True
+        keep[k] = False
+        placed, rms_k = _place_all(points[keep], pixels[keep], template, focal)
+        if rms_k < best[1]:
+            best = (placed, rms_k, k)
+    if best[1] * LEFT_OUT_GAIN <= rms:
+        log.info("camera %s: one of its %d points left out of its placement (rms %.2f px without it, %.2f px with it)",
+                 template.name, len(points), best[1], rms)
+        return best[0], best[1]
+    return camera, rms
+
+
+def _place_all(
+    points: np.ndarray, pixels: np.ndarray, template: Camera, focal: float | None = None
+) -> tuple[Camera, float]:
+    """`place_camera` on every point."""
     principal = template.matrix[:2, 2]
 
     def rms_at(f: float) -> float:
