@@ -31,6 +31,7 @@ GRID_STEP_DEG = 3.0
 MAX_PENDING = 1024  # combinations of unfixed joints' values tried with the next joint
 WILD_RMS_PX = 3.0  # a placement's RMS above any pixel noise and tape error of the base: a wild pixel suspected
 LEFT_OUT_GAIN = 4.0  # how many times better the others must be explained without one point
+LEFT_OUT_TRIED = 8  # points left out in turn, the worst fitted first
 
 log = logging.getLogger(__name__)
 
@@ -43,24 +44,24 @@ def place_camera(
     reprojection error around the best. Returns the camera and that RMS (px).
 
     A wild pixel among five or more points bends every point's fit (a focal length and
-    pose that split its error): when the RMS is far above any pixel noise, each point is
-    left out in turn, and a placement from the others that explains them several times
-    better is kept (its RMS over the points it kept)."""
+    pose that split its error): when the RMS is far above any pixel noise, the points
+    fitted worst are left out in turn (all of them, up to LEFT_OUT_TRIED), and a placement
+    from the others that explains them several times better is kept (its RMS over the
+    points it kept)."""
     camera, rms = _place_all(points, pixels, template, focal)
     if len(points) < 5 or rms <= WILD_RMS_PX:
         return camera, rms
-    keep = np.ones(len(points), dtype=bool)
-    best = (camera, rms, -1)
-    for k in range(len(points)):
-        keep[:] = True
-        keep[k] = False
+    worst = np.argsort(-np.linalg.norm(camera.project(points) - pixels, axis=1))[:LEFT_OUT_TRIED]
+    best = (camera, rms)
+    for k in worst:
+        keep = np.arange(len(points)) != k
         placed, rms_k = _place_all(points[keep], pixels[keep], template, focal)
         if rms_k < best[1]:
-            best = (placed, rms_k, k)
+            best = (placed, rms_k)
     if best[1] * LEFT_OUT_GAIN <= rms:
         log.info("camera %s: one of its %d points left out of its placement (rms %.2f px without it, %.2f px with it)",
                  template.name, len(points), best[1], rms)
-        return best[0], best[1]
+        return best
     return camera, rms
 
 
