@@ -132,9 +132,12 @@ def _rest_edge(speed: np.ndarray, k: int, low: float, forward: bool, pause: int)
 
 
 def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
-             options: SegmentOptions) -> tuple[int, int] | None:
+             options: SegmentOptions, typical_reach: float | None = None) -> tuple[int, int] | None:
     """The dig inside the face dwell [a, b] (indices): (start, end) or None when no cutting
-    motion is found."""
+    motion is found. `typical_reach` the median reach of the whole series (m), taken once
+    by the caller (a median over every frame per candidate would dominate the segmentation)."""
+    if typical_reach is None:
+        typical_reach = float(np.median(series.reach))
     rate = series.rate
     lead = int(round(1.0 * rate))
     candidates = minima[(minima >= a - lead) & (minima < b)]
@@ -153,7 +156,7 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
         # lowering: out, up, or in along the floor (a backhoe) at the horizon, or at most
         # of the frames from the move to the horizon (an operator's lower near the horizon
         # turns its displacement downwards)
-        far = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * float(np.median(series.reach)))
+        far = np.hypot(dr, dz) > max(0.25 * low * options.horizon_s, 0.01 * typical_reach)
         if not far[-1]:
             continue
         moved = far.argmax()  # the first frame beyond the bouncing
@@ -183,11 +186,12 @@ def segment(series: TipSeries, options: SegmentOptions = SegmentOptions()) -> Se
     minima, _ = find_peaks(-series.speed, prominence=options.prominence * scale,
                            distance=max(1, int(0.3 * series.rate)))
     low = 0.02 * scale
+    typical_reach = float(np.median(series.reach))
     digs, trucks, partial = [], [], []
     for d, (a, b) in enumerate(dwells):
         if not face[d]:
             continue
-        found = find_dig(series, minima, int(a), int(b), low, options)
+        found = find_dig(series, minima, int(a), int(b), low, options, typical_reach)
         if found is None:
             continue
         digs.append(found)

@@ -15,6 +15,7 @@ Shapes: F frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -54,9 +55,9 @@ class TipSeries:
     def __len__(self) -> int:
         return len(self.frame)
 
-    @property
+    @cached_property
     def rate(self) -> float:
-        """Frames per second."""
+        """Frames per second (kept once taken: the median over every frame is asked for per dig)."""
         return 1.0 / float(np.median(np.diff(self.time)))
 
     def index_at(self, t: float) -> int:
