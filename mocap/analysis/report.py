@@ -19,6 +19,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
 
 from mocap.analysis.core import RELATED, Analysis  # noqa: E402
 
@@ -27,19 +28,36 @@ PHASES = (("dig_s", "dig"), ("swing_loaded_s", "swing loaded"), ("dump_s", "dump
 
 
 def _png(fig) -> str:
+    """The figure as an <img>, drawn once: its margins are fixed (`_subplots`), where
+    bbox_inches="tight" would draw it twice."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
     return f'<img src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
 
 
+def _subplots(rows: int, cols: int, size: tuple[float, float], left: float, right: float, bottom: float,
+              top: float, wgap: float = 0.0, hgap: float = 0.0):
+    """plt.subplots (axes always 2-D) with margins and gaps between axes in inches, fixed
+    for the figure's labels: a constrained layout measures every text once more before
+    drawing, half of a figure's time."""
+    width, height = size
+    axes_w = (width - left - right - wgap * (cols - 1)) / cols
+    axes_h = (height - bottom - top - hgap * (rows - 1)) / rows
+    grid = dict(left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height,
+                wspace=wgap / axes_w, hspace=hgap / axes_h)
+    return plt.subplots(rows, cols, figsize=size, squeeze=False, gridspec_kw=grid)
+
+
 def _class_figures(a: Analysis) -> str:
     labels = list(a.templates)
-    fig, axes = plt.subplots(2, len(labels), figsize=(4.6 * len(labels), 8), squeeze=False, layout="constrained")
+    fig, axes = _subplots(2, len(labels), (4.6 * len(labels), 8), left=0.75, right=0.15, bottom=0.55, top=0.6,
+                          wgap=0.8, hgap=0.85)
     t, series = a.table, a.series
     for col, label in enumerate(labels):
         idx = np.flatnonzero(t["class"] == label)[:OVERLAID]
         path_ax, angle_ax = axes[0, col], axes[1, col]
+        marks = []  # (dx, dz, angle) of each redirection: one artist per axes
         for k in idx:
             s0, s1 = a.segments.dig_start[k], a.segments.dig_end[k]
             dx = series.reach[s0:s1 + 1] - series.reach[s0]
@@ -50,8 +68,11 @@ def _class_figures(a: Analysis) -> str:
             if np.isfinite(t["redirection_time"][k]):
                 j = series.index_at(t["redirection_time"][k]) - s0
                 j = int(np.clip(j, 0, len(dx) - 1))
-                path_ax.plot(dx[j], dz[j], "kx", ms=9, mew=2)
-                angle_ax.plot(dx[j], angle[j], "kx", ms=9, mew=2)
+                marks.append((dx[j], dz[j], angle[j]))
+        if marks:
+            mx, mz, ma = np.array(marks).T
+            path_ax.plot(mx, mz, "kx", ms=9, mew=2)
+            angle_ax.plot(mx, ma, "kx", ms=9, mew=2)
         tpl = a.templates[label]
         path_ax.plot(tpl.path[:, 0], tpl.path[:, 1], "k--", lw=2, label="template")
         angle_ax.plot(tpl.path[:, 0], np.degrees(tpl.path[:, 2]), "k--", lw=2)
@@ -60,28 +81,39 @@ def _class_figures(a: Analysis) -> str:
         path_ax.set_aspect("equal", adjustable="datalim")
         angle_ax.set(title=f"{label}: bucket angle", xlabel="horizontal displacement (m)",
                      ylabel="bucket angle (deg)")
-        path_ax.legend(fontsize=7)
+        path_ax.legend(fontsize=7, loc="upper left")  # a fixed place: "best" searches every line's points
         for ax in (path_ax, angle_ax):
             ax.grid(alpha=0.3)
     fig.suptitle("Dig paths from the dig start, per class (x: operator redirection; dashed: template)")
     return _png(fig)
 
 
+def _bars(x: np.ndarray, bottom: np.ndarray, top: np.ndarray, width: float = 0.8) -> np.ndarray:
+    """Rectangles (K, 4, 2) of bars centred at x (K,) from bottom to top (K,)."""
+    left, right = x - width / 2, x + width / 2
+    return np.stack([np.column_stack(c) for c in ((left, bottom), (left, top), (right, top), (right, bottom))], axis=1)
+
+
 def _time_figure(a: Analysis) -> str:
-    fig, ax = plt.subplots(figsize=(max(6, 0.25 * len(a) + 3), 3.5))
+    fig, axes = _subplots(1, 1, (max(6, 0.25 * len(a) + 3), 3.5), left=0.6, right=0.15, bottom=0.5, top=0.35)
+    ax = axes[0, 0]
+    x = np.asarray(a.table["cycle"], dtype=float)
     bottom = np.zeros(len(a))
-    for column, name in PHASES:
-        values = np.nan_to_num(np.asarray(a.table[column], dtype=float))
-        ax.bar(a.table["cycle"], values, bottom=bottom, label=name)
-        bottom += values
+    for i, (column, name) in enumerate(PHASES):  # one collection per phase: a patch per bar costs seconds
+        top = bottom + np.nan_to_num(np.asarray(a.table[column], dtype=float))
+        ax.add_collection(PolyCollection(_bars(x, bottom, top), facecolors=f"C{i}", edgecolors="none", label=name))
+        bottom = top
+    ax.autoscale_view()
+    ax.set_ylim(bottom=0)
     ax.set(xlabel="cycle", ylabel="time (s)", title="Cycle-time breakdown")
-    ax.legend(fontsize=8, ncols=4)
+    ax.legend(fontsize=8, ncols=4, loc="upper right")
     return _png(fig)
 
 
 def _similarity_figure(a: Analysis) -> str:
     order = np.lexsort((a.table["cycle"], a.table["class"].astype(str)))
-    fig, ax = plt.subplots(figsize=(5.5, 4.8))
+    fig, axes = _subplots(1, 1, (5.5, 4.8), left=0.75, right=0.1, bottom=0.35, top=0.3)
+    ax = axes[0, 0]
     image = ax.imshow(a.distance[np.ix_(order, order)], cmap="viridis")
     ticks = np.arange(len(order)) if len(order) <= 30 else np.arange(0, len(order), len(order) // 15)
     ax.set_xticks(ticks, [str(a.table["cycle"][order[i]]) for i in ticks], fontsize=6, rotation=90)
@@ -92,7 +124,9 @@ def _similarity_figure(a: Analysis) -> str:
 
 
 def _relation_figure(a: Analysis) -> str:
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    # the bottom margin holds the correlation matrix's vertical parameter names
+    fig, axes = _subplots(1, 2, (11, 5.2), left=0.75, right=0.75, bottom=1.25, top=0.3, wgap=1.35)
+    axes = axes[0]
     labels = a.table["class"]
     for rel in a.relations:
         path = a.paths.path[labels == rel.label]
@@ -104,7 +138,7 @@ def _relation_figure(a: Analysis) -> str:
                          label=f"{rel.label}: angle = {np.degrees(rel.intercept):.0f} + {rel.slope:.2f}·dir, r={rel.r:.2f}")
     axes[0].set(xlabel="direction of the tip's path (deg above horizontal)", ylabel="bucket angle (deg)",
                 title="Bucket angle vs path direction", xlim=(-90, 100))
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=7, loc="lower right")  # not "best": it would search the thousands of dots
     image = axes[1].imshow(a.correlation, cmap="coolwarm", vmin=-1, vmax=1)
     axes[1].set_xticks(range(len(RELATED)), RELATED, rotation=90, fontsize=7)
     axes[1].set_yticks(range(len(RELATED)), RELATED, fontsize=7)
