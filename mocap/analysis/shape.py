@@ -173,10 +173,16 @@ def event_shape(tau: np.ndarray, centre: np.ndarray, width: np.ndarray, kept: np
     """Event shapes (G, T) over time fraction `tau` (T,): a raised-cosine pulse (temporary)
     or a minimum-jerk step (kept) at `centre` (G,) of half-width `width` (G,)."""
     x = (tau[None] - centre[:, None]) / width[:, None]
-    pulse = np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
-    y = np.clip((x + 1) / 2, 0, 1)
-    step = y**3 * (10 + y * (-15 + 6 * y))
-    return np.where(np.asarray(kept)[:, None], step, pulse)
+    kept = np.asarray(kept, dtype=bool)[:, None]
+    inside = np.abs(x) < 1
+    # flat outside the event (0, or 1 after a step): the cosine and the polynomial are
+    # taken only within it, a fifth of the samples, and only each row's own one
+    out = np.where(kept & (x >= 1), 1.0, 0.0)
+    pulse, step = inside & ~kept, inside & kept
+    out[pulse] = 0.5 * (1 + np.cos(np.pi * x[pulse]))
+    y = (x[step] + 1) / 2
+    out[step] = y**3 * (10 + y * (-15 + 6 * y))
+    return out
 
 
 def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -296,17 +302,23 @@ def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
     return np.interp((x[None] + shift).ravel(), (xp + shift).ravel(), fp.ravel()).reshape(len(xp), len(x))
 
 
-def _fit_event(y: np.ndarray, base: np.ndarray, shapes: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least squares of y (T,) on base columns (T, B) plus each event (G, T): the SSE (G,)
-    and event amplitudes (G,), and the SSE with the base alone. The base is projected out
-    of y and of every event first (Frisch-Waugh), so each event is a one-column fit."""
+def _fit_events(ys: tuple[np.ndarray, ...], base: np.ndarray,
+                shapes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Least squares of each y (T,) of `ys` on base columns (T, B) plus each event (G, T):
+    per y the SSE (G,) and event amplitudes (G,), and the SSE with the base alone. The base
+    is projected out of y and of every event first (Frisch-Waugh), so each event is a
+    one-column fit; the events' projection, the costly part, is shared by all of `ys`."""
     q, _ = np.linalg.qr(base)
-    ry = y - q @ (q.T @ y)
     rs = shapes - (shapes @ q) @ q.T
-    sy = rs @ ry
-    amp = sy / np.maximum(np.einsum("gt,gt->g", rs, rs), 1e-12)
-    sse0 = float(ry @ ry)
-    return sse0 - sy * amp, amp, sse0
+    norm = np.maximum(np.einsum("gt,gt->g", rs, rs), 1e-12)
+    fits = []
+    for y in ys:
+        ry = y - q @ (q.T @ y)
+        sy = rs @ ry
+        amp = sy / norm
+        sse0 = float(ry @ ry)
+        fits.append((sse0 - sy * amp, amp, sse0))
+    return fits
 
 
 def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
@@ -334,8 +346,8 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
     at, half = np.full(k, np.nan), np.full(k, np.nan)
     for i, (a, b) in enumerate(zip(starts, ends)):
         r, z, angle = series.raw_reach[a:b + 1], series.raw_height[a:b + 1], series.raw_angle[a:b + 1]
-        if len(r) > 15:
-            low = [sosfiltfilt(sos, v, padlen=min(len(v) - 1, 3 * 6)) for v in (r, z, angle)]
+        if len(r) > 15:  # the three channels low-passed in one call (a call's set-up costs more than its filtering)
+            low = sosfiltfilt(sos, np.stack([r, z, angle]), padlen=min(len(r) - 1, 3 * 6))
             reactive_m[i] = np.sqrt(((r - low[0]) ** 2 + (z - low[1]) ** 2).mean())
             reactive_deg[i] = np.degrees(np.sqrt(((angle - low[2]) ** 2).mean()))
         if b - a < MIN_EVENT_FRAMES:  # too short to tell an event from the smooth profile
@@ -343,12 +355,12 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         tau = np.linspace(0.0, 1.0, b - a + 1)
         shapes, kept, centre, width = _events(tau)
         base = np.vander(tau, 6, increasing=True)
-        sse_a, amp, sse0_a = _fit_event(series.angle[a:b + 1], base, shapes)
-        sse_z, amp_z, sse0_z = _fit_event(series.height[a:b + 1], base, shapes)
+        (sse_a, amp, sse0_a), (sse_z, amp_z, sse0_z) = _fit_events((series.angle[a:b + 1], series.height[a:b + 1]),
+                                                                    base, shapes)
         g = int(np.argmin(sse_a))
         if sse_a[g] > max_unexplained * sse0_a or abs(np.degrees(amp[g])) < min_angle_deg:
             u = _arc(series.reach[a:b + 1], series.height[a:b + 1])
-            sse_u, amp, sse0_u = _fit_event(series.angle[a:b + 1], np.vander(u, 4, increasing=True), shapes)
+            [(sse_u, amp, sse0_u)] = _fit_events((series.angle[a:b + 1],), np.vander(u, 4, increasing=True), shapes)
             unexplained = sse_u / max(sse0_u, 1e-12) + sse_z / max(sse0_z, 1e-12)
             g = int(np.argmin(unexplained))
             if unexplained[g] > slow_unexplained or abs(np.degrees(amp[g])) < slow_angle_deg:
