@@ -450,3 +450,26 @@ def test_a_turn_of_the_bucket_within_a_dig_is_a_redirection_and_a_late_curl_is_n
         assert abs(found.redirection_centre[0] - 0.5) <= 0.1
         assert found.redirection[0] == "temporary" and -13.0 < np.degrees(found.redirection_angle[0]) < -7.0
         assert found.redirection_lift[0] > 0.1
+
+
+def test_the_pruned_dtw_matrix_is_the_unpruned_one():
+    """dtw_matrix prunes by each pair's Euclidean bound and takes the pairs the pruning loses
+    again: the same distances as dtaidistance's unpruned matrix."""
+    from dtaidistance import dtw_ndim
+
+    from mocap.analysis.similarity import dtw_matrix
+
+    rng = np.random.default_rng(2)
+    s = np.linspace(0, 1, 64)
+    path = np.stack([np.column_stack([s * (1 + 0.1 * rng.normal()), s**2 * (1 + 0.1 * rng.normal()),
+                                      0.3 * s + 0.05 * rng.normal(size=64)]) for _ in range(25)])
+    path[3] = path[2]  # identical digs: distance 0
+    path[8] = path[7] + [0.0, 0.0, 0.01]  # a pure offset: the diagonal warping is the best, its DTW the Euclidean bound
+    d = dtw_matrix(path)
+    length = np.median(np.abs(path[:, -1, :2]).sum(axis=1))
+    series = [np.ascontiguousarray(p / np.array([length, length, 1.0])) for p in path]
+    full = np.asarray(dtw_ndim.distance_matrix_fast(series), dtype=float)
+    i, j = np.triu_indices(len(path), 1)
+    np.testing.assert_array_equal(d[i, j], full[i, j])
+    np.testing.assert_array_equal(d, d.T)
+    assert d[2, 3] == 0.0

@@ -148,3 +148,34 @@ def test_the_names_codes_a_reader_keeps_agree_with_the_names(tmp_path, seed):
         first, last = loaded.frame_span(name)
         np.testing.assert_array_equal(loaded.dense_of_camera(name, markers),
                                       loaded.dense([name], markers, np.arange(first, last + 1))[0])
+
+
+def test_motion_csv_columnar_read_equals_the_checked_reader(tmp_path, monkeypatch):
+    """The pyarrow read of a motion CSV gives the checked reader's Motion bit for bit; a row
+    with a problem falls back to the checked reader, which names its line."""
+    from mocap.io import motion_csv
+
+    machine = load_machine("hitachi_ex3500")
+    rng = np.random.default_rng(5)
+    n, j, p = 40, len(machine.joint_names), len(machine.point_names)
+    points = rng.normal(size=(n, p, 3))
+    points[3, 0, 1] = np.nan  # an empty field
+    motion = Motion(machine.joint_names, machine.point_names, np.arange(n) * 2, np.arange(n) / 15.0,
+                    rng.normal(size=(n, j)), points, rng.normal(size=n), points_sd=np.abs(rng.normal(size=(n, p))),
+                    extra={"filled": (rng.random(n) < 0.5) * 1.0, "base_x": rng.normal(size=n)})
+    save_motion(motion, machine, tmp_path / "m.csv")
+    assert motion_csv._read_columnar(tmp_path / "m.csv", lambda header, where: None) is not None
+    fast = load_motion(tmp_path / "m.csv", machine)
+    with monkeypatch.context() as m:
+        m.setattr(motion_csv, "_read_columnar", lambda path, check_header: None)
+        checked = load_motion(tmp_path / "m.csv", machine)
+    for name in ("frame", "time", "joints", "points", "bucket_angle", "points_sd"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(checked, name), err_msg=name)
+    assert fast.extra.keys() == checked.extra.keys()
+    for name in fast.extra:
+        np.testing.assert_array_equal(fast.extra[name], checked.extra[name], err_msg=name)
+    lines = (tmp_path / "m.csv").read_text().splitlines()
+    lines[5] = "5" + lines[5][lines[5].index(","):]  # frame 8 becomes 5, after 6: frames no longer increase
+    (tmp_path / "bad.csv").write_text("\n".join(lines[:3] + [""] + lines[3:]) + "\n")  # a blank line shifts the rest
+    with pytest.raises(InputError, match=r"line 7: frames must increase"):
+        load_motion(tmp_path / "bad.csv", machine)

@@ -57,7 +57,7 @@ def dtw_matrix(path: np.ndarray) -> np.ndarray:
     length = np.median(np.abs(path[:, -1, :2]).sum(axis=1))
     unit = np.array([max(length, 1e-6)] * 2 + [1.0])
     series = [np.ascontiguousarray(p / unit, dtype=np.double) for p in path]
-    # pruned by each pair's Euclidean distance (an upper bound of its DTW): a third faster,
+    # pruned by each pair's Euclidean distance (an upper bound of its DTW): a quarter faster,
     # the same distances; a pair whose DTW is its Euclidean distance (the diagonal warping)
     # comes back infinite from the pruning and is taken again unpruned
     d = np.asarray(dtw_ndim.distance_matrix(series, use_c=True, parallel=True, use_pruning=True), dtype=float)
