@@ -36,39 +36,37 @@ LEFT_OUT_TRIED = 8  # points left out in turn, the worst fitted first
 log = logging.getLogger(__name__)
 
 
+def wild_point(points: np.ndarray, pixels: np.ndarray, template: Camera, focal: float | None = None) -> int | None:
+    """The one point of N >= 5 whose pixel is wild, or None. A wild pixel bends every
+    point's placement (a focal length and pose that split its error): when the placement's
+    RMS is far above any pixel noise, the points fitted worst are left out in turn (up to
+    LEFT_OUT_TRIED), and the one whose leaving out lets the others be explained several
+    times better is named."""
+    if len(points) < 5:
+        return None
+    camera, rms = place_camera(points, pixels, template, focal)
+    if rms <= WILD_RMS_PX:
+        return None
+    worst = np.argsort(-np.linalg.norm(camera.project(points) - pixels, axis=1))[:LEFT_OUT_TRIED]
+    best, best_k = rms, None
+    for k in worst:
+        keep = np.arange(len(points)) != k
+        rms_k = place_camera(points[keep], pixels[keep], template, focal)[1]
+        if rms_k < best:
+            best, best_k = rms_k, int(k)
+    if best * LEFT_OUT_GAIN > rms:
+        return None
+    log.info("camera %s: one of its %d points looks wild (placed at %.2f px rms without it, %.2f px with it)",
+             template.name, len(points), best, rms)
+    return best_k
+
+
 def place_camera(
     points: np.ndarray, pixels: np.ndarray, template: Camera, focal: float | None = None
 ) -> tuple[Camera, float]:
     """A camera from N >= 4 known 3-D points and their pixels, focal length searched when
     not given: PnP on a grid of focal lengths, then a bounded 1-D search of the RMS
-    reprojection error around the best. Returns the camera and that RMS (px).
-
-    A wild pixel among five or more points bends every point's fit (a focal length and
-    pose that split its error): when the RMS is far above any pixel noise, the points
-    fitted worst are left out in turn (all of them, up to LEFT_OUT_TRIED), and a placement
-    from the others that explains them several times better is kept (its RMS over the
-    points it kept)."""
-    camera, rms = _place_all(points, pixels, template, focal)
-    if len(points) < 5 or rms <= WILD_RMS_PX:
-        return camera, rms
-    worst = np.argsort(-np.linalg.norm(camera.project(points) - pixels, axis=1))[:LEFT_OUT_TRIED]
-    best = (camera, rms)
-    for k in worst:
-        keep = np.arange(len(points)) != k
-        placed, rms_k = _place_all(points[keep], pixels[keep], template, focal)
-        if rms_k < best[1]:
-            best = (placed, rms_k)
-    if best[1] * LEFT_OUT_GAIN <= rms:
-        log.info("camera %s: one of its %d points left out of its placement (rms %.2f px without it, %.2f px with it)",
-                 template.name, len(points), best[1], rms)
-        return best
-    return camera, rms
-
-
-def _place_all(
-    points: np.ndarray, pixels: np.ndarray, template: Camera, focal: float | None = None
-) -> tuple[Camera, float]:
-    """`place_camera` on every point."""
+    reprojection error around the best. Returns the camera and that RMS (px)."""
     principal = template.matrix[:2, 2]
 
     def rms_at(f: float) -> float:

@@ -160,6 +160,33 @@ def calibrate(
             raise InputError(f"the initial guess lacks camera(s) {', '.join(missing)}")
     marker_sd = tape_sd(tolerance, machine.marker_positions) if tolerance else None  # as the fit reads it
     x0 = _starting_point(machine, observations, templates, options, guess, layout)
+    wild = _wild_base_pixels(machine, observations, templates, options.fixed_intrinsics) if guess is None else []
+    try:
+        result = _from_start(machine, observations, layout, templates, x0, options, guess, marker_sd)
+    except InputError as failure:
+        if not len(wild):
+            raise
+        result, first_failure = None, failure
+    if len(wild):
+        # a wild pixel among a camera's base markers bends its placement, and the start with
+        # it: the start is found again without those pixels (the fit still sees them all)
+        kept = ~np.isin(np.arange(len(observations)), wild)
+        again = _starting_point(machine, observations.select(kept), templates, options, guess, layout)
+        try:
+            other = _from_start(machine, observations, layout, templates, again, options, guess, marker_sd)
+        except InputError:
+            if result is None:
+                raise first_failure from None
+            return result
+        if result is None or _robust_cost(other, options) < _robust_cost(result, options):
+            log.info("the start without the wild base pixel(s) explains the pixels better: kept")
+            result = other
+    return result
+
+
+def _from_start(machine, observations, layout, templates, x0, options, guess, marker_sd) -> CalibrationResult:
+    """The calibration from the start x0 (P,), and if it fails, from the joints searched
+    again with every camera placed (`_chained_start`)."""
     try:
         return _calibrated(machine, observations, layout, templates, x0, options, guess, marker_sd)
     except InputError as failure:
@@ -175,6 +202,24 @@ def calibrate(
             return _calibrated(machine, observations, layout, templates, again, options, guess, marker_sd)
         except InputError:
             raise failure from None
+
+
+def _wild_base_pixels(machine: Machine, observations: Observations, templates, known=frozenset()) -> list[int]:
+    """The observations (indices) that look wild among each camera's five or more base
+    markers (`initial.wild_point`, on the pixels undistorted for a known lens)."""
+    base = machine.marker_links[observations.marker] == 0
+    wild = []
+    for c, template in enumerate(templates):
+        rows = np.flatnonzero((observations.camera == c) & base)
+        if len(rows) < 5:
+            continue
+        pixels, focal = observations.xy[rows], None
+        if template.name in known:
+            pixels, focal = _undistorted(pixels, template), template.focal
+        k = initial.wild_point(machine.marker_positions[observations.marker[rows]], pixels, template, focal)
+        if k is not None:
+            wild.append(int(rows[k]))
+    return wild
 
 
 def _calibrated(machine, observations, layout, templates, x0, options, guess, marker_sd) -> CalibrationResult:
@@ -388,10 +433,14 @@ def _placed(points: np.ndarray, pixels: np.ndarray, template: Camera, known=froz
     keeps its template's focal length and distortion (the pixels undistorted for the PnP)."""
     if template.name not in known:
         return initial.place_camera(points, pixels, template)
-    undistorted = cv2.undistortPoints(np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2),
-                                      template.matrix, template.distortion, P=template.matrix).reshape(-1, 2)
-    placed, rms = initial.place_camera(points, undistorted, template, focal=template.focal)
+    placed, rms = initial.place_camera(points, _undistorted(pixels, template), template, focal=template.focal)
     return Camera(template.name, template.size, template.matrix, template.distortion, placed.cam_from_world), rms
+
+
+def _undistorted(pixels: np.ndarray, template: Camera) -> np.ndarray:
+    """(N, 2) pixels through the template's lens undistorted, in its pinhole's pixels."""
+    return cv2.undistortPoints(np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 1, 2),
+                               template.matrix, template.distortion, P=template.matrix).reshape(-1, 2)
 
 
 def _free(layout: Layout, templates) -> np.ndarray:
