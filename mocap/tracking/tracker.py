@@ -176,6 +176,17 @@ class Tracker:
         residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
+        # the fitted joints put the markers nearer their disks than the prediction did (a
+        # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
+        # refinement converges from): those the model now knows and no disk was found near
+        # are refined again from where the fit puts them
+        again = visible & known & ~_near_any(fitted_uv, found.xy, tight)
+        if np.any(again):
+            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
+            extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
+            if len(extra):
+                seen = concatenate([seen, extra])
+                found = replace(seen, xy=seen.xy - state.shift)
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
@@ -355,6 +366,20 @@ class Tracker:
         again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
         stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
+
+    def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
+        """Disks refined from the fitted pixels `uv` (M, 2) (image) of `markers` (K,): from
+        the last ellipse of a marker followed until now, else a circle of the expected
+        radius, and as `_refine_again` does for those not found so."""
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
+        circles = expected[markers, None, None] ** 2 * np.eye(2)
+        shapes = np.where((self.state.missed[markers] <= 2)[:, None, None], self.state.shape[markers], circles)
+        found = refine_and_accept(gray, uv[markers], shapes, detect)
+        missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        if np.any(missing):
+            found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect)]))
+        return found
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
                 expected: np.ndarray, recent: np.ndarray) -> Detections:
