@@ -379,6 +379,9 @@ class Tracker:
         missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
         if np.any(missing):
             found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect)]))
+            missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        if np.any(missing):
+            found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
         return found
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
