@@ -5,8 +5,10 @@ markers, refine a disk from each predicted marker with its last image ellipse (a
 found so, look for disks in a window around the prediction), assign detections
 to markers (gated, optimal: `scipy.optimize.linear_sum_assignment` on squared distances),
 fit the joint values to the assigned pixels (robust Gauss-Newton), drop assignments the fit
-disowns, then assign again against the fitted projection with a tight gate: a marker that
-comes back after an occlusion is picked up there. A blob is labelled only if it passes the
+disowns, refine a disk again from where the fit puts each marker no disk was found near (the
+prediction of a swing speeding up is a pixel or two off), then assign again against the
+fitted projection with a tight gate: a marker that comes back after an occlusion is picked
+up there. A blob is labelled only if it passes the
 disk tests and lies where the model puts a marker. When too few markers are found the
 joints coast on the prediction with widening windows; after a longer loss the whole frame
 is searched again (`propose.propose_labels`).
@@ -370,7 +372,9 @@ class Tracker:
     def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
         """Disks refined from the fitted pixels `uv` (M, 2) (image) of `markers` (K,): from
         the last ellipse of a marker followed until now, else a circle of the expected
-        radius, and as `_refine_again` does for those not found so."""
+        radius; for those not found so, as `_refine_again` does, then from the ellipse's
+        semi-axes times 1/sqrt(2) (a small disk a pixel from the start converges from
+        that window where neither the full one nor the half one took it)."""
         options = self.options
         detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         circles = expected[markers, None, None] ** 2 * np.eye(2)
