@@ -30,11 +30,15 @@ its settings.
 (the swing: where motion blur smears the markers and a rolling shutter moves them most)
 instead of the first ones, tracked from the true joints at the first of them. `--readout
 SHARE` gives every look that rolling shutter (0: a global shutter), to compare the same looks.
+`--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
+the settings that change the render) and tracks the kept clips on later runs: for comparing
+tracking code on the same clips (a change to the renderer is not in the key: use a new DIR).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import subprocess
 import sys
 import tempfile
@@ -127,6 +131,16 @@ def fastest_window(session, field, count: int) -> int:
     return int(np.argmax(np.convolve(np.nan_to_num(fastest), np.ones(count), "valid")))
 
 
+def kept_clips(args, k: int, names: list[str]) -> tuple[Path, bool]:
+    """The folder of look `k`'s clips under `args.keep`, keyed on every setting that changes
+    what is rendered (the look's seed and index, its shutter, the size, the cameras, the
+    window and the cover), and whether all of its cameras' clips are there. The cameras of
+    a look share one random stream, so a look's clips are rendered all together or not at all."""
+    key = repr((args.machine, args.size, args.cameras, args.seed, k, args.readout, args.fast, args.frames, args.hide))
+    folder = Path(args.keep) / f"look{k}-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
+    return folder, all((folder / f"{name}.mp4").is_file() for name in names)
+
+
 def track_looks(args) -> int:
     """Tracking over `args.looks` random looks; see the module's docstring."""
     machine = load_machine(args.machine)
@@ -148,15 +162,21 @@ def track_looks(args) -> int:
             options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
             rng = np.random.default_rng([args.seed, k, 1])
             look_rows = []
+            folder, kept = (kept_clips(args, k, [f.name for f in session.cameras]) if args.keep
+                            else (Path(tmp), False))
+            folder.mkdir(parents=True, exist_ok=True)
             for c, field in enumerate(session.cameras):
                 first = fastest_window(session, field, args.frames) if args.fast else 0
                 frames = np.arange(first, min(first + args.frames, field.frames))
                 hide = (first + len(frames) // 3, min(first + len(frames) // 3 + args.hide, frames[-1] + 1))
-                path = Path(tmp) / f"look{k}_{field.name}.mp4"
-                renderer = CameraRenderer(session, c, options, rng)
-                with video_writer(path, size, field.fps, "h264", 0, look.crf) as write:
-                    for f, image in renderer.frames(frames):
-                        write(covered(image, rng) if hide[0] <= f < hide[1] else image)
+                path = folder / f"{field.name}.mp4"
+                if not kept:
+                    renderer = CameraRenderer(session, c, options, rng)
+                    part = path.with_suffix(".part.mp4")  # renamed when whole: an interrupted render is not kept
+                    with video_writer(part, size, field.fps, "h264", 0, look.crf) as write:
+                        for f, image in renderer.frames(frames):
+                            write(covered(image, rng) if hide[0] <= f < hide[1] else image)
+                    part.replace(path)
                 model = CameraModel(machine, field.camera)
                 try:
                     video = ((first + i, grey) for i, grey in Video(path).frames(prefetch=4))
@@ -179,7 +199,8 @@ def track_looks(args) -> int:
                       f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
                       f"{np.percentile(errors, 95) if len(errors) else np.nan:>7.3f} "
                       f"{'never' if again is None else again:>11}  {look.name if c == 0 else ''}")
-                path.unlink()
+                if not args.keep:
+                    path.unlink()
             results.append((look, look_rows))
     share = [sum(r[1] * r[0] for r in rows) / max(sum(r[0] for r in rows), 1) for _, rows in results]
     visible = sum(r[0] for _, rows in results for r in rows)
@@ -214,6 +235,8 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=120, help="with --looks: frames per camera")
     parser.add_argument("--hide", type=int, default=30, help="with --looks: frames the picture is covered")
     parser.add_argument("--readout", type=float, help="with --looks: every look's rolling shutter (0: global)")
+    parser.add_argument("--keep", metavar="DIR",
+                        help="with --looks: render each look's clips once into DIR and reuse them on later runs")
     parser.add_argument("--fast", action="store_true",
                         help="with --looks: the frames in which the markers move most instead of the first ones")
     args = parser.parse_args()

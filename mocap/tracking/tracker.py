@@ -5,8 +5,10 @@ markers, refine a disk from each predicted marker with its last image ellipse (a
 found so, look for disks in a window around the prediction), assign detections
 to markers (gated, optimal: `scipy.optimize.linear_sum_assignment` on squared distances),
 fit the joint values to the assigned pixels (robust Gauss-Newton), drop assignments the fit
-disowns, then assign again against the fitted projection with a tight gate: a marker that
-comes back after an occlusion is picked up there. A blob is labelled only if it passes the
+disowns, refine a disk again from where the fit puts each marker no disk was found near (the
+prediction of a swing speeding up is a pixel or two off), then assign again against the
+fitted projection with a tight gate: a marker that comes back after an occlusion is picked
+up there. A blob is labelled only if it passes the
 disk tests and lies where the model puts a marker. When too few markers are found the
 joints coast on the prediction with widening windows; after a longer loss the whole frame
 is searched again (`propose.propose_labels`).
@@ -176,6 +178,17 @@ class Tracker:
         residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
+        # the fitted joints put the markers nearer their disks than the prediction did (a
+        # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
+        # refinement converges from): those the model now knows and no disk was found near
+        # are refined again from where the fit puts them
+        again = visible & known & ~_near_any(fitted_uv, found.xy, tight)
+        if np.any(again):
+            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
+            extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
+            if len(extra):
+                seen = concatenate([seen, extra])
+                found = replace(seen, xy=seen.xy - state.shift)
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
@@ -355,6 +368,25 @@ class Tracker:
         again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
         stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
+
+    def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
+        """Disks refined from the fitted pixels `uv` (M, 2) (image) of `markers` (K,): from
+        the last ellipse of a marker followed until now, else a circle of the expected
+        radius; for those not found so, as `_refine_again` does, then from the ellipse's
+        semi-axes times 1/sqrt(2) (a small disk a pixel from the start converges from
+        that window where neither the full one nor the half one took it)."""
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
+        circles = expected[markers, None, None] ** 2 * np.eye(2)
+        shapes = np.where((self.state.missed[markers] <= 2)[:, None, None], self.state.shape[markers], circles)
+        found = refine_and_accept(gray, uv[markers], shapes, detect)
+        missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        if np.any(missing):
+            found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect)]))
+            missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        if np.any(missing):
+            found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
+        return found
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
                 expected: np.ndarray, recent: np.ndarray) -> Detections:
