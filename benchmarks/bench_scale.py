@@ -9,7 +9,8 @@ block of the same duration, so that the cameras' clocks stay as calibrated) and 
 of pixel noise. Tables: (1) `mocap triangulate` and `mocap fit` wall time beside a naive
 numpy/scipy reference run through its own small command line (the csv module, one
 `scipy.optimize.least_squares` per point and per frame, the previous frame's joints as the
-start), and the ratio; (2) tracks CSV parsing in rows/s, the columnar reader beside the
+start), and the ratio; (2) tracks CSV parsing in rows/s (with pyarrow's own thread pool, as a
+command runs, and with one thread), the columnar reader beside the
 csv module's checked reader and pyarrow's bare read (no checks); (3) start time of
 `mocap --help` and of a command's --help;
 (4) a --long-frames session (216,000 frames: two hours at 30 fps, Parquet tracks) from
