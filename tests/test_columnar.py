@@ -47,6 +47,26 @@ def test_columnar_reading_equals_the_checked_reader(tmp_path, seed):
     assert_same(load_tracks(path), tracks, atol=5e-5)  # 4 decimals written
 
 
+def test_one_file_per_camera_reads_as_one_file_of_them_all(tmp_path):
+    """Per-camera files whose marker sets differ, read together: the same rows as the file of
+    them all, the names kept as codes into their union (no name per row made)."""
+    tracks = random_tracks(np.random.default_rng(5))
+    paths = []
+    for k, name in enumerate(tracks.cameras):
+        own = tracks.of_camera(name)
+        own = own.select(own.marker != tracks.markers[k % len(tracks.markers)])  # each lacks another marker
+        paths.append(tmp_path / f"{k}.csv")
+        save_tracks(own, paths[-1])
+    together = load_tracks(paths)
+    assert "camera" not in together.__dict__ and "marker" not in together.__dict__
+    whole = tmp_path / "all.csv"
+    save_tracks(together, whole)
+    assert_same(together, load_tracks(whole))
+    frames = together.frames
+    np.testing.assert_array_equal(together.dense(tracks.cameras, tracks.markers, frames),
+                                  load_tracks(whole).dense(tracks.cameras, tracks.markers, frames))
+
+
 def test_names_that_need_quotes_are_written_quoted_and_read_back(tmp_path):
     tracks = random_tracks(np.random.default_rng(7))
     names = np.where(tracks.marker == tracks.marker[0], 'arm, "left"', tracks.marker)

@@ -164,13 +164,14 @@ def calibrate(
     try:
         result = _from_start(machine, observations, layout, templates, x0, options, guess, marker_sd)
     except InputError as failure:
-        if not len(wild):
+        if not wild:
             raise
         result, first_failure = None, failure
-    if len(wild):
+    if wild:
         # a wild pixel among a camera's base markers bends its placement, and the start with
         # it: the start is found again without those pixels (the fit still sees them all)
-        kept = ~np.isin(np.arange(len(observations)), wild)
+        kept = np.ones(len(observations), dtype=bool)
+        kept[wild] = False
         again = _starting_point(machine, observations.select(kept), templates, options, guess, layout)
         try:
             other = _from_start(machine, observations, layout, templates, again, options, guess, marker_sd)

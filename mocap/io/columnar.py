@@ -29,8 +29,10 @@ def is_parquet(path: str | Path) -> bool:
     return Path(path).suffix.lower() == ".parquet"
 
 
-def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str, ...] = ()) -> pa.Table | None:
-    """The columns of `types` present in the header, typed; an empty field is null. None
+def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str, ...] = (),
+                    default: pa.DataType | None = None) -> pa.Table | None:
+    """The columns of `types` present in the header, typed (with a `default` type, every
+    other column of the header too, typed so); an empty field is null. None
     when the file is anything but a plain UTF-8 CSV of one header line, stripped unique
     names and rows of the header's width (the caller then reads it the checked way).
 
@@ -56,8 +58,8 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str
         return None
     if not header or len(set(header)) != len(header) or any(h != h.strip() or not h for h in header):
         return None
-    wanted = [h for h in header if h in types]
-    column_types = {h: types[h] for h in wanted}
+    wanted = [h for h in header if h in types or default is not None]
+    column_types = {h: types.get(h, default) for h in wanted}
     if counts and not _integer_lookalikes(data, max(end, 0)):
         column_types |= {h: pa.int64() for h in counts if h in column_types}
     try:

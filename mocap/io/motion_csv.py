@@ -12,7 +12,6 @@ walking) adds its pose ``world_from_base`` as ``base_x, base_y, base_z`` (m) and
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -163,17 +162,6 @@ def _columns(col: dict, names: list[str], n: int) -> np.ndarray:
     return np.column_stack([col[c] for c in names]) if names else np.zeros((n, 0))
 
 
-def _header_names(path: Path) -> list[str] | None:
-    """The names of the file's first line as the csv module reads them, None when the line
-    cannot be read (the checked reader then says why)."""
-    try:
-        with open(path, "rb") as f:
-            first = f.readline(1 << 20)
-        return next(csv.reader([first.decode("utf-8-sig").rstrip("\r\n")]), [])
-    except (OSError, UnicodeDecodeError, csv.Error):
-        return None
-
-
 def _row_problem(col: dict[str, np.ndarray]) -> tuple[str, int] | None:
     """The first reason why the rows are not a motion's and the row it shows in: a frame
     that is not a frame number, a time that is not finite, frames that do not increase."""
@@ -194,12 +182,10 @@ def _read_columnar(path: Path, check_header) -> tuple[list[str], np.ndarray] | N
     """The header and values (R, K) of a plain numeric CSV read by pyarrow (ten times as fast
     as the csv module and a float per field), None when the file is anything else or a
     row has a problem to report: the checked reader then reads it and names the line."""
-    header = _header_names(path)
-    if not header or "frame" not in header or "time" not in header:
+    table = columnar.read_csv_strict(path, {}, default=pa.float64())
+    if table is None or "frame" not in table.column_names or "time" not in table.column_names:
         return None
-    table = columnar.read_csv_strict(path, dict.fromkeys(header, pa.float64()))
-    if table is None or table.column_names != header:
-        return None
+    header = table.column_names
     check_header(header, "line 1")
     values = columnar.float_columns([table[h] for h in header])
     if values is None or _row_problem({h: values[:, i] for i, h in enumerate(header)}) is not None:
