@@ -151,7 +151,7 @@ def track_looks(args) -> int:
     print("-" * (len(header) + 40))
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k in range(args.looks):
+        for k in ([args.look] if args.look is not None else range(args.looks)):
             look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
             if args.readout is not None:  # the same look with another shutter
                 look = replace(look, readout=args.readout, name=f"{look.name[:-1]}; readout set to {args.readout:g})")
@@ -211,12 +211,12 @@ def track_looks(args) -> int:
     print(f"all {len(results)} looks x {args.cameras} cameras: {labelled:.2%} of {visible} visible markers labelled, "
           f"{wrong:.3%} wrong (mean over cameras), centre error median {np.median(errors):.3f} px, "
           f"95th percentile {np.percentile(errors, 95):.3f} px")
-    worst = int(np.argmin(share))
+    worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
     again = [r[4] for _, rows in results for r in rows]
     known = [a for a in again if a is not None]
     print(f"found again after {args.hide} covered frames: median {np.median(known) if known else np.nan:.0f}, "
           f"most {max(known) if known else np.nan} frames; never in {len(again) - len(known)} of {len(again)} cameras")
-    print(f"worst: look {worst}, {share[worst]:.2%} labelled; its settings:")
+    print(f"worst: {results[worst][0].name.split(' (')[0]}, {share[worst]:.2%} labelled; its settings:")
     for key, value in results[worst][0].table().items():
         print(f"    {key} = {value}")
     return 0
@@ -237,6 +237,8 @@ def main() -> int:
     parser.add_argument("--readout", type=float, help="with --looks: every look's rolling shutter (0: global)")
     parser.add_argument("--keep", metavar="DIR",
                         help="with --looks: render each look's clips once into DIR and reuse them on later runs")
+    parser.add_argument("--look", type=int, metavar="K",
+                        help="with --looks: track look K of the series alone (the same clips as in the whole run)")
     parser.add_argument("--fast", action="store_true",
                         help="with --looks: the frames in which the markers move most instead of the first ones")
     args = parser.parse_args()

@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -31,6 +32,11 @@ from mocap.tracking.model import CameraModel, View
 log = logging.getLogger(__name__)
 
 _INFEASIBLE = 1e12
+_SWEEP_EVERY = 4  # frames between sweeps of an unseen joint's range (`Tracker._sweep`)
+_SWEEP_SLOW = 60  # ... and 4 times as many after this many frames unseen
+_SWEEP_MARKERS = 2  # markers a swept step must show
+_SWEEP_CONTRAST = 0.25  # share of `DetectOptions.min_contrast` a marker's box contrast must reach
+_SWEEP_CHECKED = 4  # the best steps whose markers are refined
 
 
 @dataclass(frozen=True)
@@ -101,6 +107,7 @@ class TrackState:
     lost: int = 0  # frames since the last fit
     anchor: np.ndarray | None = None  # (J,) the joints of the last frame fitted after a fitted one
     shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
+    swept: np.ndarray | None = None  # (J,) int, frames since each joint's range was last swept (`Tracker._sweep`)
 
     @property
     def radius(self) -> np.ndarray:
@@ -131,6 +138,8 @@ class Tracker:
         options, state, model = self.options, self.state, self.model
         velocity = state.joints - state.previous if state.lost == 0 else 0.0
         predicted = model.machine.clip_to_limits(state.joints + velocity)
+        if state.lost == 0:
+            predicted = self._sweep(gray, predicted)
         view = model.view(predicted[None])
         uv = view.uv[0]
         visible = state.visible = self._visible(view)
@@ -201,8 +210,10 @@ class Tracker:
         else:
             rms = inlier_rms
         seen_joints = model.observed_joints(markers)
-        # a joint no marker shows keeps its value: it does not drift on its last velocity
-        state.previous = np.where(seen_joints, state.joints, joints)
+        # a joint no marker shows keeps its value: it does not drift on its last velocity; nor
+        # does one that markers show again: the value it held unseen (a proposal's guess, or
+        # where it was left) is no position to take a velocity from
+        state.previous = np.where(seen_joints & (state.unseen == 0), state.joints, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
             state.anchor = joints
@@ -333,6 +344,76 @@ class Tracker:
             known = known | model.known_markers(np.r_[held, back])
         return joints, known, moved_uv
 
+    def _sweep(self, gray: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """`predicted` (J,) with a joint that no labelled marker has shown for a while set
+        where its own markers (those it moves and no other unseen joint does) lie on disks of
+        `gray`: its range is swept in steps of half a disk's radius at the fastest marker,
+        each step scored by the markers' contrast against their surround (box means of an
+        integral image, all steps at once), and the best few steps checked by refining a
+        disk at each marker; a step at which two or more are found wins. A link turned while
+        the picture was covered, or while the camera saw only the undercarriage, is left
+        where the tracker last had it: its markers lie beyond the widest gate, and the
+        full-frame detection misses the faint ones (dark disks straight on the paint, in
+        haze) that a refinement where the model puts them takes. Swept at once, then every
+        `_SWEEP_EVERY` frames of the joint's absence (every 4 x that after `_SWEEP_SLOW`)."""
+        state, model = self.state, self.model
+        machine = model.machine
+        unseen = state.unseen > 0
+        if state.swept is None:
+            state.swept = np.full(len(unseen), 1000)
+        state.swept += 1
+        due = unseen & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY, _SWEEP_EVERY))
+        if not np.any(due) or not np.isfinite(state.disk_m):
+            return predicted
+        state.swept[due] = 0
+        moves = machine.marker_moves & (machine.tags < 0)  # (J, M), disks only
+        integral = None
+        for j in np.flatnonzero(due):
+            own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
+            if np.sum(own) < _SWEEP_MARKERS:
+                continue
+            low, high = machine.joint_limits[j]
+            if machine.wraps[j] or not np.isfinite(high - low):
+                low, high = predicted[j] - np.pi, predicted[j] + np.pi
+            coarse = np.tile(predicted, (64, 1))
+            coarse[:, j] = np.linspace(low, high, 64)
+            uv = model.pixels(coarse)[:, own]
+            speed = np.nanmax(np.linalg.norm(np.diff(uv, axis=0), axis=-1)) / (coarse[1, j] - coarse[0, j])
+            if not np.isfinite(speed) or speed <= 0:
+                continue
+            steps = int(min(np.ceil((high - low) * speed / (0.5 * max(np.nanmedian(state.radius), 1.0))), 4000)) + 1
+            samples = np.tile(predicted, (steps, 1))
+            samples[:, j] = np.linspace(low, high, steps)
+            view = model.view(samples)
+            visible = view.visible[:, own] & np.isfinite(view.scale[:, own])
+            if integral is None:
+                integral = cv2.integral(gray, sdepth=cv2.CV_64F)
+            radius = np.maximum(view.scale[:, own] * state.disk_m, 1.0)
+            contrast = _box_contrast(integral, view.uv[:, own], radius)
+            shows = visible & (contrast > _SWEEP_CONTRAST * self.options.detect.min_contrast)
+            count = np.sum(shows, axis=1)
+            if count.max() < _SWEEP_MARKERS:
+                continue
+            ranking = count + np.sum(np.where(shows, np.minimum(contrast / 255.0, 1.0), 0.0), axis=1) / (own.sum() + 1)
+            best, best_found = None, _SWEEP_MARKERS - 1
+            for k in _peaks(ranking, count >= _SWEEP_MARKERS, _SWEEP_CHECKED):
+                seeds = np.flatnonzero(visible[k])
+                r = radius[k, seeds]
+                detect = replace(self.options.detect,
+                                 min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
+                found = refine_and_accept(gray, view.uv[k, own][seeds] + state.shift, r[:, None, None] ** 2 * np.eye(2),
+                                          detect)
+                n_found = int(np.sum(_near_any(view.uv[k, own][seeds] + state.shift, found.xy, 0.5 * np.maximum(r, 2.0))))
+                if n_found > best_found:
+                    best, best_found = k, n_found
+            if best is not None:
+                log.debug("joint %d swept to %.3f (%d markers)", j, samples[best, j], best_found)
+                predicted = predicted.copy()
+                predicted[j] = samples[best, j]
+                state.previous[j] = state.joints[j] = predicted[j]
+                state.uv = model.pixels(state.joints[None])[0]
+        return predicted
+
     def _coast(self, predicted: np.ndarray, uv: np.ndarray, visible: np.ndarray, found: Detections,
                expected: np.ndarray) -> FrameResult:
         """Too few markers to fit: the joints carry on as predicted; detections `found`
@@ -442,6 +523,42 @@ class Tracker:
         _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
         extra = refine_and_accept(gray, xy[first], shape[first], detect)
         return unique(concatenate([found, extra]))
+
+
+def _box_contrast(integral: np.ndarray, uv: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(S, K) the mean grey of a ring of boxes around each pixel `uv` (S, K, 2) less the mean
+    of a box on it (half-sides 0.7 and 2.2 x `radius` (S, K)), from the image's `integral`
+    (H+1, W+1): a dark disk of that radius on a lighter surround scores its contrast; NaN
+    outside the image."""
+    height, width = integral.shape[0] - 1, integral.shape[1] - 1
+
+    def box(half):
+        x0 = np.clip(np.round(uv[..., 0] - half), 0, width).astype(int)
+        x1 = np.clip(np.round(uv[..., 0] + half) + 1, 0, width).astype(int)
+        y0 = np.clip(np.round(uv[..., 1] - half), 0, height).astype(int)
+        y1 = np.clip(np.round(uv[..., 1] + half) + 1, 0, height).astype(int)
+        total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+        return total, (x1 - x0) * (y1 - y0)
+
+    finite = np.all(np.isfinite(uv), axis=-1)
+    uv = np.where(finite[..., None], uv, -1e6)
+    inner, inner_area = box(np.maximum(0.7 * radius, 0.5))
+    outer, outer_area = box(2.2 * radius)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = (outer - inner) / (outer_area - inner_area) - inner / inner_area
+    inside = finite & (inner_area > 0) & (outer_area > inner_area)
+    return np.where(inside, contrast, np.nan)
+
+
+def _peaks(score: np.ndarray, eligible: np.ndarray, n: int) -> list[int]:
+    """Up to `n` indices of the highest `score` (S,) among `eligible` (S,), each the highest
+    of its run of eligible neighbours (one per stretch of steps that show the same disks)."""
+    order = np.flatnonzero(eligible)
+    if len(order) == 0:
+        return []
+    runs = np.split(order, np.flatnonzero(np.diff(order) > 1) + 1)
+    tops = [run[np.argmax(score[run])] for run in runs]
+    return sorted(tops, key=lambda k: -score[k])[:n]
 
 
 def assign(
