@@ -210,10 +210,12 @@ class Tracker:
         else:
             rms = inlier_rms
         seen_joints = model.observed_joints(markers)
-        # a joint no marker shows keeps its value: it does not drift on its last velocity; nor
-        # does one that markers show again: the value it held unseen (a proposal's guess, or
-        # where it was left) is no position to take a velocity from
-        state.previous = np.where(seen_joints & (state.unseen == 0), state.joints, joints)
+        # a joint no marker shows keeps its value: it does not drift on its last velocity; one
+        # that markers show again after n frames unseen moves on at its mean velocity since it
+        # was last seen, 1 / (n + 1) of its change (the value it held, where it was left or a
+        # proposal's guess, is no position of the frame before)
+        catch_up = (joints - state.joints) / (state.unseen + 1)
+        state.previous = np.where(seen_joints, joints - catch_up, joints)
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
             state.anchor = joints
@@ -274,6 +276,7 @@ class Tracker:
         state.previous = joints.copy()
         state.uv = self.model.pixels(joints[None])[0]
         state.lost = 0
+        state.swept = None  # the joints the new labels do not show are swept at once
         state.shift = np.zeros(2)
         state.missed[start.markers] = 0
         state.unseen[self.model.observed_joints(start.markers)] = 0
@@ -362,7 +365,8 @@ class Tracker:
         if state.swept is None:
             state.swept = np.full(len(unseen), 1000)
         state.swept += 1
-        due = unseen & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY, _SWEEP_EVERY))
+        due = (state.unseen >= _SWEEP_EVERY) & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY,
+                                                                          _SWEEP_EVERY))
         if not np.any(due) or not np.isfinite(state.disk_m):
             return predicted
         state.swept[due] = 0
@@ -395,6 +399,9 @@ class Tracker:
             if count.max() < _SWEEP_MARKERS:
                 continue
             ranking = count + np.sum(np.where(shows, np.minimum(contrast / 255.0, 1.0), 0.0), axis=1) / (own.sum() + 1)
+            # the disks of the markers labelled in the last frame are theirs (a bucket swept
+            # past the arm would find its markers on the arm's)
+            held = state.uv[state.missed == 0] + state.shift
             best, best_found = None, _SWEEP_MARKERS - 1
             for k in _peaks(ranking, count >= _SWEEP_MARKERS, _SWEEP_CHECKED):
                 seeds = np.flatnonzero(visible[k])
@@ -403,6 +410,7 @@ class Tracker:
                                  min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
                 found = refine_and_accept(gray, view.uv[k, own][seeds] + state.shift, r[:, None, None] ** 2 * np.eye(2),
                                           detect)
+                found = found.select(~_near_any(found.xy, held, np.full(len(found), 2.0 * np.median(r))))
                 n_found = int(np.sum(_near_any(view.uv[k, own][seeds] + state.shift, found.xy, 0.5 * np.maximum(r, 2.0))))
                 if n_found > best_found:
                     best, best_found = k, n_found
