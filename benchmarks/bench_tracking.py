@@ -59,7 +59,11 @@ from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.looks import random_look
 from mocap.synthetic.render import CameraRenderer, RenderOptions
+from mocap.synthetic.session import marker_sizes
 from mocap.tracking import CameraModel, track_frames
+
+
+WIDE_PX = 3.0  # px: disks at least this wide across their narrowest way are also counted apart
 
 
 def decode_floor(path: Path) -> tuple[float, int]:
@@ -87,9 +91,17 @@ def score(truth, tracks):
     centre than its own, or 5 px or more from it, or its marker is not in view at all),
     centre errors (px) of the right labels of wholly visible markers. A right label of a
     partly covered marker counts neither way."""
+    errors, wrong, _ = judged(truth, tracks)
+    whole = max(int(np.sum(truth.score >= 1.0)), 1)
+    return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
+
+
+def judged(truth, tracks) -> tuple[list[float], int, set]:
+    """`score`'s judgement of each label: the centre errors of the right labels of wholly
+    visible markers, the count of wrong labels, and the (frame, marker) pairs labelled right."""
     true_xy = {(int(f), m): (xy, s) for f, m, xy, s in zip(truth.frame, truth.marker, truth.xy, truth.score)}
     by_frame = {int(f): (truth.xy[truth.frame == f], truth.marker[truth.frame == f]) for f in np.unique(truth.frame)}
-    errors, wrong = [], 0
+    errors, wrong, right = [], 0, set()
     for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy):
         own, cover = true_xy.get((int(f), m), (None, 0.0))
         e = np.inf if own is None else float(np.linalg.norm(xy - own))
@@ -99,8 +111,30 @@ def score(truth, tracks):
             wrong += 1
         elif cover >= 1.0:
             errors.append(e)
-    whole = max(int(np.sum(truth.score >= 1.0)), 1)
-    return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
+            right.add((int(f), m))
+    return errors, wrong, right
+
+
+def disk_widths(session, field, truth, diameter_m: float) -> np.ndarray:
+    """(N,) the width (px) of each truth row's disk image across its narrowest way: the
+    disk's diameter at its distance times the cosine of its face's turn from the line of
+    sight (a disk of 2 px radius turned 80 degrees is 0.7 px wide). Lens distortion is left out."""
+    machine = session.machine
+    frames = np.unique(truth.frame)
+    times = field.times(frames)
+    poses = machine.link_poses(session.plan.joints(times), session.plan.world_from_base(times))
+    on_link = poses[:, machine.marker_links]  # (F, M, 4, 4) world_from_link
+    centre = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], machine.marker_positions) + on_link[..., :3, 3]
+    normal = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], session.normals)
+    cams = field.cam_from_world(times)[:, None]  # (F, 1, 4, 4)
+    p = np.einsum("fmij,fmj->fmi", np.broadcast_to(cams[..., :3, :3], on_link[..., :3, :3].shape), centre) + cams[..., :3, 3]
+    n = np.einsum("fmij,fmj->fmi", np.broadcast_to(cams[..., :3, :3], on_link[..., :3, :3].shape), normal)
+    facing = np.abs(np.sum(n * p, axis=-1)) / np.linalg.norm(p, axis=-1)
+    width = field.camera.matrix[0, 0] * diameter_m * facing / p[..., 2]
+    row = np.searchsorted(frames, truth.frame)
+    column = np.searchsorted(np.asarray(machine.marker_names), truth.marker, sorter=np.argsort(machine.marker_names))
+    column = np.argsort(machine.marker_names)[column]
+    return width[row, column]
 
 
 def found_again(truth, tracks, end: int) -> int | None:
@@ -145,7 +179,7 @@ def track_looks(args) -> int:
     """Tracking over `args.looks` random looks; see the module's docstring."""
     machine = load_machine(args.machine)
     width, height = (int(v) for v in args.size.lower().split("x"))
-    header = (f"{'look':>4} {'camera':>6} {'size':>9} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} "
+    header = (f"{'look':>4} {'camera':>6} {'size':>9} {'visible':>7} {'labelled':>8} {'>=3 px':>8} {'wrong':>7} {'median px':>9} "
               f"{'p95 px':>7} {'found again':>11}  look")
     print(header)
     print("-" * (len(header) + 40))
@@ -189,13 +223,18 @@ def track_looks(args) -> int:
                 truth = truth.select((truth.frame >= first) & (truth.frame <= frames[-1])
                                      & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
                 whole = int(np.sum(truth.score >= 1.0))
+                seen = truth.select(truth.score >= 1.0)
+                wide = disk_widths(session, field, seen, look.disk_ratio * marker_sizes(session.reach)[1]) >= WIDE_PX
                 if tracks is None:
-                    labelled, wrong, errors, again = 0.0, 0.0, np.zeros(0), None
+                    labelled, wrong, errors, again, right = 0.0, 0.0, np.zeros(0), None, set()
                 else:
                     labelled, wrong, errors = score(truth, tracks)
+                    right = judged(truth, tracks)[2]
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
-                look_rows.append((whole, labelled, wrong, errors, again))
-                print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wrong:>7.3%} "
+                wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
+                look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
+                wide_share = wide_right / max(int(wide.sum()), 1)
+                print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wide_share:>8.2%} {wrong:>7.3%} "
                       f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
                       f"{np.percentile(errors, 95) if len(errors) else np.nan:>7.3f} "
                       f"{'never' if again is None else again:>11}  {look.name if c == 0 else ''}")
@@ -211,6 +250,9 @@ def track_looks(args) -> int:
     print(f"all {len(results)} looks x {args.cameras} cameras: {labelled:.2%} of {visible} visible markers labelled, "
           f"{wrong:.3%} wrong (mean over cameras), centre error median {np.median(errors):.3f} px, "
           f"95th percentile {np.percentile(errors, 95):.3f} px")
+    wide = sum(r[5] for _, rows in results for r in rows)
+    print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
+          f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
     again = [r[4] for _, rows in results for r in rows]
     known = [a for a in again if a is not None]

@@ -138,9 +138,11 @@ def test_field_calibration_fits_the_markers_within_the_tolerance():
     """Field conditions (every marker coordinate off by up to 5 %, 2 % wild pixels, 15 %
     occlusion, 0.8 px): with the tolerance stated, the markers are fitted within it, the
     errors stay near the bound that counts the model's error, and few good observations are
-    taken for outliers; without it, model error is taken for outliers."""
+    taken for outliers; without it (tried on the first 10 scenes: the slow part), model error
+    is taken for outliers."""
     ratios, false_with, false_without, caught, wild = [], 0, 0, 0, 0
     for seed in range(20):
+        compared = seed < 10
         scene = random_scene(np.random.default_rng(900 + seed), SceneOptions(**{**SceneOptions.field().__dict__, "cameras": (2, 4)}))
         obs, truly = scene.observations(), scene.outlier[scene.tracks.frame == 0]
         templates = [template_camera(c.name, c.size) for c in scene.cameras]
@@ -149,12 +151,14 @@ def test_field_calibration_fits_the_markers_within_the_tolerance():
         except DegenerateError:
             continue  # occlusion left a view that cannot fix its camera: refused, not answered
         dropped = np.array([r.outlier for r in result.residuals])
-        false_with += int((dropped & ~truly).sum())
+        false_with += int((dropped & ~truly).sum()) if compared else 0
         caught += int((dropped & truly).sum())
         wild += int(truly.sum())
         bound = calibration_centre_sd(scene.machine, list(scene.cameras), scene.joints[0], scene.observations(inliers_only=True),
                                       0.8, marker_sd=0.05 * np.abs(scene.machine.marker_positions) / np.sqrt(3))
         ratios.append(np.median([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)] / bound))
+        if not compared:
+            continue
         try:
             plain = calibrate(scene.model, obs, templates)
             false_without += sum(r.outlier and not t for r, t in zip(plain.residuals, truly))
