@@ -20,7 +20,9 @@ tracked from the true calibration without a labels file; in every camera the pic
 wholly covered (a flat grey board before the lens) for `--hide` frames from a third of the
 way in, and "found again" is the frames from the cover's end to the first frame in which
 at least half of the wholly visible markers are labelled right. Labelled share (the
-covered frames not counted as visible; a label in them is wrong), wrong labels, centre
+covered frames not counted as visible; a label in them is wrong), also of those whose disk
+is at least 3 px across its narrowest way (`>=3 px`: a disk turned far from the camera is a
+sliver), wrong labels, centre
 errors and found again per look and camera and overall, and the worst look printed with
 its settings.
 
