@@ -8,7 +8,9 @@ fit the joint values to the assigned pixels (robust Gauss-Newton), drop assignme
 disowns, refine a disk again from where the fit puts each marker no disk was found near (the
 prediction of a swing speeding up is a pixel or two off), then assign again against the
 fitted projection with a tight gate: a marker that comes back after an occlusion is picked
-up there. A blob is labelled only if it passes the
+up there. A joint no labelled marker has shown for a few frames is swept over its range
+(`Tracker._sweep`), and one seen again moves on at its mean velocity since it was last seen.
+A blob is labelled only if it passes the
 disk tests and lies where the model puts a marker. When too few markers are found the
 joints coast on the prediction with widening windows; after a longer loss the whole frame
 is searched again (`propose.propose_labels`).
@@ -371,6 +373,7 @@ class Tracker:
             return predicted
         state.swept[due] = 0
         moves = machine.marker_moves & (machine.tags < 0)  # (J, M), disks only
+        detect = replace(self.options.detect, min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
         integral = None
         for j in np.flatnonzero(due):
             own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
@@ -406,8 +409,6 @@ class Tracker:
             for k in _peaks(ranking, count >= _SWEEP_MARKERS, _SWEEP_CHECKED):
                 seeds = np.flatnonzero(visible[k])
                 r = radius[k, seeds]
-                detect = replace(self.options.detect,
-                                 min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
                 found = refine_and_accept(gray, view.uv[k, own][seeds] + state.shift, r[:, None, None] ** 2 * np.eye(2),
                                           detect)
                 found = found.select(~_near_any(found.xy, held, np.full(len(found), 2.0 * np.median(r))))
