@@ -384,9 +384,11 @@ class Tracker:
                 low, high = predicted[j] - np.pi, predicted[j] + np.pi
             coarse = np.tile(predicted, (64, 1))
             coarse[:, j] = np.linspace(low, high, 64)
-            uv = model.pixels(coarse)[:, own]
-            speed = np.nanmax(np.linalg.norm(np.diff(uv, axis=0), axis=-1)) / (coarse[1, j] - coarse[0, j])
-            if not np.isfinite(speed) or speed <= 0:
+            moved = np.linalg.norm(np.diff(model.pixels(coarse)[:, own], axis=0), axis=-1)
+            if not np.any(np.isfinite(moved)):
+                continue  # its markers behind the camera all along
+            speed = np.nanmax(moved) / (coarse[1, j] - coarse[0, j])
+            if speed <= 0:
                 continue
             steps = int(min(np.ceil((high - low) * speed / (0.5 * max(np.nanmedian(state.radius), 1.0))), 4000)) + 1
             samples = np.tile(predicted, (steps, 1))
