@@ -1,0 +1,42 @@
+"""Tracking machines nobody designed: random diggers (`random_digger`: random proportions,
+link frames, joint senses and limits, two markers on each moving link), rendered and tracked
+from the true calibration without a labels file."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mocap.synthetic.machines import random_digger
+from mocap.synthetic.render import CameraRenderer, RenderOptions
+from mocap.synthetic.session import make_session
+from mocap.tracking import CameraModel, track_frames
+
+
+@pytest.mark.parametrize("seed", [6, 11])
+def test_random_diggers_are_tracked_against_their_truth(seed):
+    """Every wholly visible marker labelled in 40 frames, none wrong, centres within
+    hundredths of a pixel (uncompressed 960x540 frames, the default look). Seed 11's
+    generator once painted the bucket's two markers 6 cm apart, their squares overlapping:
+    each centre was dragged 2 px by the other's disk (no painter would; they are now kept a
+    square and a half apart)."""
+    machine = random_digger(np.random.default_rng(seed))
+    session = make_session(machine, "random", n_cameras=1, n_cycles=1, seed=seed, size=(960, 540))
+    field = session.cameras[0]
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(seed))
+    frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)) for f, image in renderer.frames(np.arange(40))]
+    model = CameraModel(machine, field.camera)
+    tracks, _ = track_frames(model, iter(frames), session.plan.joints(field.times(np.array([0])))[0], None, field.fps)
+
+    truth = session.tracks.of_camera(field.name)
+    truth = truth.select(truth.frame < 40)
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), np.inf))
+                      for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
+    whole = truth.select(truth.score >= 1.0)
+    assert len(whole) >= 5 * 40
+    labelled = set(zip(tracks.frame.tolist(), tracks.marker.tolist()))
+    assert all((int(f), m) in labelled for f, m in zip(whole.frame, whole.marker))
+    assert np.all(error < 1.0)  # no wrong label, no centre dragged by a neighbour's disk
+    assert np.median(error) < 0.05 and np.percentile(error, 95) < 0.1
