@@ -32,6 +32,14 @@ its settings.
 (the swing: where motion blur smears the markers and a rolling shutter moves them most)
 instead of the first ones, tracked from the true joints at the first of them. `--readout
 SHARE` gives every look that rolling shutter (0: a global shutter), to compare the same looks.
+With `--diggers N`: machines nobody designed, N random diggers
+(`mocap.synthetic.machines.random_digger`, seeds 1..N) filmed by `--cameras` cameras in the
+default look, the first `--frames` frames rendered (not encoded) at `--size` (960x540) and
+tracked from the true calibration without a labels file; a camera whose first frame cannot
+be labelled (too few markers in view) is counted apart.
+
+    python benchmarks/bench_tracking.py --diggers 12 [--cameras 3] [--frames 120]
+
 `--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
 the settings that change the render) and tracks the kept clips on later runs: for comparing
 tracking code on the same clips (a change to the renderer is not in the key: use a new DIR).
@@ -60,6 +68,7 @@ from mocap.synthetic import make_session
 from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.looks import random_look
+from mocap.synthetic.machines import random_digger
 from mocap.synthetic.render import CameraRenderer, RenderOptions
 from mocap.synthetic.session import marker_sizes
 from mocap.tracking import CameraModel, track_frames
@@ -266,6 +275,50 @@ def track_looks(args) -> int:
     return 0
 
 
+def track_diggers(args) -> int:
+    """Tracking machines nobody designed: `args.diggers` random diggers (seeds 1..N), each
+    filmed by `args.cameras` cameras in the default look, the first `args.frames` frames
+    rendered (not encoded) and tracked from the true calibration without a labels file."""
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    print(f"{'seed':>4} {'camera':>6} {'markers':>7} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
+    counts, started, refused, errors, wrongs = [0, 0], 0, 0, [], []
+    for seed in range(1, args.diggers + 1):
+        machine = random_digger(np.random.default_rng(seed))
+        session = make_session(machine, "random digger", n_cameras=args.cameras, n_cycles=1, seed=seed,
+                               size=(width, height))
+        for c, field in enumerate(session.cameras):
+            renderer = CameraRenderer(session, c, RenderOptions(), np.random.default_rng(seed))
+            frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+                      for f, image in renderer.frames(np.arange(min(args.frames, field.frames)))]
+            truth = session.tracks.of_camera(field.name)
+            truth = truth.select(truth.frame < len(frames))
+            whole = int(np.sum(truth.score >= 1.0))
+            try:
+                tracks, _ = track_frames(CameraModel(machine, field.camera), iter(frames),
+                                         session.plan.joints(field.times(np.array([0])))[0], None, field.fps)
+            except ValueError as exc:  # the first frame could not be labelled
+                shown = int(np.sum((truth.frame == 0) & (truth.score >= 1.0)))
+                print(f"{seed:>4} {field.name:>6}: {exc} ({shown} wholly visible)")
+                refused += 1
+                continue
+            labelled, wrong, error = score(truth, tracks)
+            started += 1
+            counts[0] += whole
+            counts[1] += round(labelled * whole)
+            errors.append(error)
+            wrongs.append(wrong)
+            print(f"{seed:>4} {field.name:>6} {len(machine.marker_names):>7} {whole:>7} {labelled:>8.2%} {wrong:>7.3%} "
+                  f"{np.median(error) if len(error) else np.nan:>9.3f} "
+                  f"{np.percentile(error, 95) if len(error) else np.nan:>7.3f}")
+    error = np.concatenate(errors + [np.zeros(0)])
+    print(f"{started} cameras tracked, {refused} refused at the first frame; of the tracked: "
+          f"{counts[1] / max(counts[0], 1):.2%} of {counts[0]} visible markers labelled, "
+          f"{np.mean(wrongs) if wrongs else np.nan:.3%} wrong (mean over cameras), centre error median "
+          f"{np.median(error) if len(error) else np.nan:.3f} px, 95th percentile "
+          f"{np.percentile(error, 95) if len(error) else np.nan:.3f} px")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="1920x1080")
@@ -285,7 +338,13 @@ def main() -> int:
                         help="with --looks: track look K of the series alone (the same clips as in the whole run)")
     parser.add_argument("--fast", action="store_true",
                         help="with --looks: the frames in which the markers move most instead of the first ones")
+    parser.add_argument("--diggers", type=int, default=0,
+                        help="track this many random diggers (machines nobody designed) instead")
     args = parser.parse_args()
+    if args.diggers:
+        if args.size == "1920x1080":
+            args.size = "960x540"
+        return track_diggers(args)
     if args.looks:
         if args.size == "1920x1080":
             args.size = "960x540"
