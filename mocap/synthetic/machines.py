@@ -26,8 +26,8 @@ from mocap.errors import DegenerateError
 from mocap.io.machine_toml import machine_from_dict
 from mocap.io.tracks_csv import Tracks
 from mocap.machine import Machine
-from mocap.synthetic.session import marker_sizes
 from mocap.synthetic.scenes import look_at_camera
+from mocap.synthetic.session import marker_sizes
 
 IMAGE_SIZES = ((1280, 720), (1920, 1080), (2560, 1440), (3840, 2160))
 _WORDS = ("alder", "birch", "cedar", "dogwood", "elm", "fir", "ginkgo", "hazel", "ivy", "juniper")
@@ -121,15 +121,15 @@ def random_digger_document(rng: np.random.Generator) -> dict:
                for k, p in enumerate(_base_markers(rng, boom * np.array([0.35, 0.25, 0.12])))]
     apart = 1.5 * marker_sizes(float(lengths.sum()))[1]  # painted squares do not overlap
     for k in range(3):
-        first = None
+        first_share = first_side = None
         for m in range(2):
             share = rng.uniform(0.3, 0.9)
             side = np.array([0.0, rng.choice([-1.0, 1.0]) * 0.05 * boom, 0.0])
-            if first is not None and np.linalg.norm(ends[k] * share + side - ends[k] * first - first_side) < apart:
+            if first_share is not None and np.linalg.norm(ends[k] * (share - first_share) + side - first_side) < apart:
                 # the second slid along the link from the first, towards the end where there is room
                 step = apart / lengths[k]
-                share = first + step if first + step <= 0.95 else first - step
-            first, first_side = share, side
+                share = first_share + step if first_share + step <= 0.95 else first_share - step
+            first_share, first_side = share, side
             at = ends[k] * share + side
             markers.append({"name": f"M{k + 1}{m + 1}", "link": names[k + 2], "position": at.round(4).tolist()})
     tilt = deg(rng.uniform(-20.0, 20.0))
