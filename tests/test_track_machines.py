@@ -12,6 +12,7 @@ from mocap.synthetic.machines import random_digger
 from mocap.synthetic.render import CameraRenderer, RenderOptions
 from mocap.synthetic.session import make_session
 from mocap.tracking import CameraModel, track_frames
+from mocap.tracking.run import TooFewMarkersError
 
 
 @pytest.mark.parametrize("seed", [6, 11])
@@ -40,3 +41,17 @@ def test_random_diggers_are_tracked_against_their_truth(seed):
     assert all((int(f), m) in labelled for f, m in zip(whole.frame, whole.marker))
     assert np.all(error < 1.0)  # no wrong label, no centre dragged by a neighbour's disk
     assert np.median(error) < 0.05 and np.percentile(error, 95) < 0.1
+
+
+def test_a_camera_that_sees_too_few_markers_is_told_so():
+    """Seed 2's camera sees one of the digger's eleven disks at the start joints (the rest face
+    away): no labelling of the first frame could fix four joints from it, and the error says
+    how many it sees and how many a fit needs, not that the detections went unexplained."""
+    machine = random_digger(np.random.default_rng(2))
+    session = make_session(machine, "random", n_cameras=1, n_cycles=1, seed=2, size=(960, 540))
+    field = session.cameras[0]
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(2))
+    frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)) for f, image in renderer.frames(np.arange(1))]
+    with pytest.raises(TooFewMarkersError, match="the camera sees 1 of the model's 11 disk markers, and a fit needs 5"):
+        track_frames(CameraModel(machine, field.camera), iter(frames),
+                     session.plan.joints(field.times(np.array([0])))[0], None, field.fps)

@@ -13,13 +13,18 @@ from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
-from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions
+from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions, disks_in_view
 
 log = logging.getLogger(__name__)
 
 _MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to 16 x lost_frames
 UNPLACED_MIN_FRAMES = 10
 _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
+
+
+class TooFewMarkersError(ValueError):
+    """The camera sees too few of the model's markers at the start joints to fit them:
+    no labelling of the first frame can help."""
 
 
 @dataclass(frozen=True)
@@ -130,7 +135,15 @@ def track_frames(
         if tracker is None:
             first = label_first_frame(model, gray, start, labelled, options, finder)
             if first is None:
-                raise ValueError(f"frame {index}: the model explains too few of the detected disks")
+                view = model.view(np.asarray(start, dtype=float)[None])
+                shown = int(np.sum(disks_in_view(model, view, options.occlusion)))
+                if shown < options.min_markers:
+                    raise TooFewMarkersError(
+                        f"frame {index}: at the starting joint values (the calibration's) the camera sees {shown} of "
+                        f"the model's {int(np.sum(model.machine.tags < 0))} disk markers, and a fit needs "
+                        f"{options.min_markers}")
+                raise ValueError(f"frame {index}: the model explains too few of the detected disks "
+                                 f"({shown} of its markers in view)")
             tracker = Tracker(model, first, options)
             # the first frame tracked again from its own labels: the tracker takes the disks
             # where the model puts markers that the full-frame detection refused

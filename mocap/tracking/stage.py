@@ -17,7 +17,8 @@ from mocap.io.video import Video
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
 from mocap.tracking.preview import write_preview
-from mocap.tracking.run import TrackSummary, frame_rows, label_first_frame, track_frames, track_tags
+from mocap.tracking.run import (TooFewMarkersError, TrackSummary, frame_rows, label_first_frame, track_frames,
+                                track_tags)
 from mocap.tracking.tracker import TrackOptions
 
 log = logging.getLogger(__name__)
@@ -112,6 +113,9 @@ def run_track(request: TrackRequest) -> TrackReport:
     try:
         tracks, summary = track_frames(model, _progress(frames, request, video, camera.name), start, labelled, fps,
                                        options)
+    except TooFewMarkersError as exc:
+        raise InputError(f"{exc}; check the calibration, or film the machine from where more of its markers show",
+                         path=request.video) from None
     except ValueError as exc:
         raise InputError(f"{exc}; digitise the markers of the first frame and pass them with --labels", path=request.video) from None
     return _finish(request, video, camera.name, tracks, summary, machine)

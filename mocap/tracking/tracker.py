@@ -285,14 +285,8 @@ class Tracker:
         state.shape[start.markers] = start.detections.shape
 
     def _visible(self, view: View) -> np.ndarray:
-        """(M,) the disks the model shows (markers that carry tags are found by their ids)."""
-        disks = self.model.machine.tags < 0
-        if self.options.occlusion:
-            return view.visible[0] & disks
-        uv = view.uv[0]
-        w, h = self.model.camera.size
-        inside = np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
-        return inside & (uv[:, 1] <= h - 1) & disks
+        """(M,) the disks the model shows (`disks_in_view`)."""
+        return disks_in_view(self.model, view, self.options.occlusion)
 
     def _expected_radius(self, scale: np.ndarray) -> np.ndarray:
         """(M,) radii (px) to expect: a marker's last one while it is followed, else the
@@ -373,7 +367,8 @@ class Tracker:
             return predicted
         state.swept[due] = 0
         moves = machine.marker_moves & (machine.tags < 0)  # (J, M), disks only
-        detect = replace(self.options.detect, min_contrast=self.options.near_contrast * self.options.detect.min_contrast)
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         integral = None
         for j in np.flatnonzero(due):
             own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
@@ -399,7 +394,7 @@ class Tracker:
                 integral = cv2.integral(gray, sdepth=cv2.CV_64F)
             radius = np.maximum(view.scale[:, own] * state.disk_m, 1.0)
             contrast = _box_contrast(integral, view.uv[:, own], radius)
-            shows = visible & (contrast > _SWEEP_CONTRAST * self.options.detect.min_contrast)
+            shows = visible & (contrast > _SWEEP_CONTRAST * options.detect.min_contrast)
             count = np.sum(shows, axis=1)
             if count.max() < _SWEEP_MARKERS:
                 continue
@@ -411,10 +406,11 @@ class Tracker:
             for k in _peaks(ranking, count >= _SWEEP_MARKERS, _SWEEP_CHECKED):
                 seeds = np.flatnonzero(visible[k])
                 r = radius[k, seeds]
-                found = refine_and_accept(gray, view.uv[k, own][seeds] + state.shift, r[:, None, None] ** 2 * np.eye(2),
-                                          detect)
+                found = refine_and_accept(gray, view.uv[k, own][seeds] + state.shift,
+                                          r[:, None, None] ** 2 * np.eye(2), detect)
                 found = found.select(~_near_any(found.xy, held, np.full(len(found), 2.0 * np.median(r))))
-                n_found = int(np.sum(_near_any(view.uv[k, own][seeds] + state.shift, found.xy, 0.5 * np.maximum(r, 2.0))))
+                at = view.uv[k, own][seeds] + state.shift
+                n_found = int(np.sum(_near_any(at, found.xy, 0.5 * np.maximum(r, 2.0))))
                 if n_found > best_found:
                     best, best_found = k, n_found
             if best is not None:
@@ -534,6 +530,19 @@ class Tracker:
         _, first = np.unique(np.round(xy * 4), axis=0, return_index=True)
         extra = refine_and_accept(gray, xy[first], shape[first], detect)
         return unique(concatenate([found, extra]))
+
+
+def disks_in_view(model: CameraModel, view: View, occlusion: bool = True) -> np.ndarray:
+    """(M,) bool: the disks the model shows in the first frame of `view` (markers that carry
+    tags are found by their ids): in the image, facing the camera and, with `occlusion`,
+    not hidden behind a link's box."""
+    disks = model.machine.tags < 0
+    if occlusion:
+        return view.visible[0] & disks
+    uv = view.uv[0]
+    w, h = model.camera.size
+    inside = np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+    return inside & (uv[:, 1] <= h - 1) & disks
 
 
 def _box_contrast(integral: np.ndarray, uv: np.ndarray, radius: np.ndarray) -> np.ndarray:
