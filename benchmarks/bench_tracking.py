@@ -100,16 +100,8 @@ def score(truth, tracks):
     """Labelled fraction of the wholly visible markers (true score 1: all of the square in
     view), wrong-label fraction (the detection lies nearer another visible marker's true
     centre than its own, or 5 px or more from it, or its marker is not in view at all),
-    centre errors (px) of the right labels of wholly visible markers. A right label of a
-    partly covered marker counts neither way."""
-    errors, wrong, _ = judged(truth, tracks)
-    whole = max(int(np.sum(truth.score >= 1.0)), 1)
-    return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors)
-
-
-def judged(truth, tracks) -> tuple[list[float], int, set]:
-    """`score`'s judgement of each label: the centre errors of the right labels of wholly
-    visible markers, the count of wrong labels, and the (frame, marker) pairs labelled right."""
+    centre errors (px) of the right labels of wholly visible markers, and the (frame,
+    marker) pairs of those labels. A right label of a partly covered marker counts neither way."""
     true_xy = {(int(f), m): (xy, s) for f, m, xy, s in zip(truth.frame, truth.marker, truth.xy, truth.score)}
     by_frame = {int(f): (truth.xy[truth.frame == f], truth.marker[truth.frame == f]) for f in np.unique(truth.frame)}
     errors, wrong, right = [], 0, set()
@@ -123,7 +115,8 @@ def judged(truth, tracks) -> tuple[list[float], int, set]:
         elif cover >= 1.0:
             errors.append(e)
             right.add((int(f), m))
-    return errors, wrong, right
+    whole = max(int(np.sum(truth.score >= 1.0)), 1)
+    return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors), right
 
 
 def disk_widths(session, field, truth, diameter_m: float) -> np.ndarray:
@@ -133,19 +126,15 @@ def disk_widths(session, field, truth, diameter_m: float) -> np.ndarray:
     machine = session.machine
     frames = np.unique(truth.frame)
     times = field.times(frames)
-    poses = machine.link_poses(session.plan.joints(times), session.plan.world_from_base(times))
-    on_link = poses[:, machine.marker_links]  # (F, M, 4, 4) world_from_link
-    centre = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], machine.marker_positions) + on_link[..., :3, 3]
-    normal = np.einsum("fmij,mj->fmi", on_link[..., :3, :3], session.normals)
-    cams = field.cam_from_world(times)[:, None]  # (F, 1, 4, 4)
-    p = np.einsum("fmij,fmj->fmi", np.broadcast_to(cams[..., :3, :3], on_link[..., :3, :3].shape), centre) + cams[..., :3, 3]
-    n = np.einsum("fmij,fmj->fmi", np.broadcast_to(cams[..., :3, :3], on_link[..., :3, :3].shape), normal)
-    facing = np.abs(np.sum(n * p, axis=-1)) / np.linalg.norm(p, axis=-1)
-    width = field.camera.matrix[0, 0] * diameter_m * facing / p[..., 2]
-    row = np.searchsorted(frames, truth.frame)
-    column = np.searchsorted(np.asarray(machine.marker_names), truth.marker, sorter=np.argsort(machine.marker_names))
-    column = np.argsort(machine.marker_names)[column]
-    return width[row, column]
+    joints, world_from_base = session.plan.joints(times), session.plan.world_from_base(times)
+    cams = field.cam_from_world(times)  # (F, 4, 4)
+    rotation = cams[:, None, :3, :3] @ machine.link_poses(joints, world_from_base)[:, machine.marker_links, :3, :3]
+    centre = np.einsum("fij,fmj->fmi", cams[:, :3, :3], machine.markers(joints, world_from_base)) + cams[:, None, :3, 3]
+    normal = np.einsum("fmij,mj->fmi", rotation, session.normals)  # in the camera frame
+    facing = np.abs(np.sum(normal * centre, axis=-1)) / np.linalg.norm(centre, axis=-1)
+    width = field.camera.matrix[0, 0] * diameter_m * facing / centre[..., 2]
+    column = {name: i for i, name in enumerate(machine.marker_names)}
+    return width[np.searchsorted(frames, truth.frame), [column[m] for m in truth.marker]]
 
 
 def found_again(truth, tracks, end: int) -> int | None:
@@ -239,8 +228,7 @@ def track_looks(args) -> int:
                 if tracks is None:
                     labelled, wrong, errors, again, right = 0.0, 0.0, np.zeros(0), None, set()
                 else:
-                    labelled, wrong, errors = score(truth, tracks)
-                    right = judged(truth, tracks)[2]
+                    labelled, wrong, errors, right = score(truth, tracks)
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
                 wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
                 look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
@@ -281,7 +269,7 @@ def track_diggers(args) -> int:
     rendered (not encoded) and tracked from the true calibration without a labels file."""
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"{'seed':>4} {'camera':>6} {'markers':>7} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
-    counts, started, refused, errors, wrongs = [0, 0], 0, 0, [], []
+    visible, started, refused, errors, wrongs = 0, 0, 0, [], []
     for seed in range(1, args.diggers + 1):
         machine = random_digger(np.random.default_rng(seed))
         session = make_session(machine, "random digger", n_cameras=args.cameras, n_cycles=1, seed=seed,
@@ -301,10 +289,9 @@ def track_diggers(args) -> int:
                 print(f"{seed:>4} {field.name:>6}: {exc} ({shown} wholly visible)")
                 refused += 1
                 continue
-            labelled, wrong, error = score(truth, tracks)
+            labelled, wrong, error, _ = score(truth, tracks)
             started += 1
-            counts[0] += whole
-            counts[1] += round(labelled * whole)
+            visible += whole
             errors.append(error)
             wrongs.append(wrong)
             print(f"{seed:>4} {field.name:>6} {len(machine.marker_names):>7} {whole:>7} {labelled:>8.2%} {wrong:>7.3%} "
@@ -312,7 +299,7 @@ def track_diggers(args) -> int:
                   f"{np.percentile(error, 95) if len(error) else np.nan:>7.3f}")
     error = np.concatenate(errors + [np.zeros(0)])
     print(f"{started} cameras tracked, {refused} refused at the first frame; of the tracked: "
-          f"{counts[1] / max(counts[0], 1):.2%} of {counts[0]} visible markers labelled, "
+          f"{len(error) / max(visible, 1):.2%} of {visible} visible markers labelled, "
           f"{np.mean(wrongs) if wrongs else np.nan:.3%} wrong (mean over cameras), centre error median "
           f"{np.median(error) if len(error) else np.nan:.3f} px, 95th percentile "
           f"{np.percentile(error, 95) if len(error) else np.nan:.3f} px")
@@ -380,7 +367,7 @@ def main() -> int:
                 tooks.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - cpu0)
             floor, grey, took, cpu = min(floors), min(greys), min(tooks), min(cpus)
-            labelled, wrong, errors = score(truth.of_camera(camera.name), tracks)
+            labelled, wrong, errors, _ = score(truth.of_camera(camera.name), tracks)
             all_errors.append(errors)
             print(f"{camera.name:>7} {count:>6} {floor:>8.2f} {grey:>6.2f} {took:>8.2f} {cpu:>6.2f} {took / floor:>6.2f} "
                   f"{took / grey:>6.2f} {labelled:>8.2%} "

@@ -39,6 +39,7 @@ _SWEEP_SLOW = 60  # ... and 4 times as many after this many frames unseen
 _SWEEP_MARKERS = 2  # markers a swept step must show
 _SWEEP_CONTRAST = 0.25  # share of `DetectOptions.min_contrast` a marker's box contrast must reach
 _SWEEP_CHECKED = 4  # the best steps whose markers are refined
+_NEVER = 1000  # frames since a joint was last swept, for one never swept
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,10 @@ class TrackState:
     anchor: np.ndarray | None = None  # (J,) the joints of the last frame fitted after a fitted one
     shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
     swept: np.ndarray | None = None  # (J,) int, frames since each joint's range was last swept (`Tracker._sweep`)
+
+    def __post_init__(self) -> None:
+        if self.swept is None:  # never swept: at once when due
+            self.swept = np.full(len(self.joints), _NEVER)
 
     @property
     def radius(self) -> np.ndarray:
@@ -278,7 +283,7 @@ class Tracker:
         state.previous = joints.copy()
         state.uv = self.model.pixels(joints[None])[0]
         state.lost = 0
-        state.swept = None  # the joints the new labels do not show are swept at once
+        state.swept[:] = _NEVER  # the joints the new labels do not show are swept at once
         state.shift = np.zeros(2)
         state.missed[start.markers] = 0
         state.unseen[self.model.observed_joints(start.markers)] = 0
@@ -358,8 +363,6 @@ class Tracker:
         state, model = self.state, self.model
         machine = model.machine
         unseen = state.unseen > 0
-        if state.swept is None:
-            state.swept = np.full(len(unseen), 1000)
         state.swept += 1
         due = (state.unseen >= _SWEEP_EVERY) & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY,
                                                                           _SWEEP_EVERY))
@@ -370,6 +373,9 @@ class Tracker:
         options = self.options
         detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         integral = None
+        # the disks of the markers labelled in the last frame are theirs (a bucket swept past
+        # the arm would find its markers on the arm's); a swept joint moves none of them
+        held = state.uv[state.missed == 0] + state.shift
         for j in np.flatnonzero(due):
             own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
             if np.sum(own) < _SWEEP_MARKERS:
@@ -399,9 +405,6 @@ class Tracker:
             if count.max() < _SWEEP_MARKERS:
                 continue
             ranking = count + np.sum(np.where(shows, np.minimum(contrast / 255.0, 1.0), 0.0), axis=1) / (own.sum() + 1)
-            # the disks of the markers labelled in the last frame are theirs (a bucket swept
-            # past the arm would find its markers on the arm's)
-            held = state.uv[state.missed == 0] + state.shift
             best, best_found = None, _SWEEP_MARKERS - 1
             for k in _peaks(ranking, count >= _SWEEP_MARKERS, _SWEEP_CHECKED):
                 seeds = np.flatnonzero(visible[k])
