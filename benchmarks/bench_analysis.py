@@ -22,7 +22,9 @@ the image) seeing every marker in view (no part of the machine hides one) plus 0
 pixel noise, with the true cameras (the same fit as table 1's).
 Table (5) (`--only seeds`): redirections and scales over many planned truth sessions of 12
 cycles (seeds `--seeds A-B` of each machine, no cameras, no fit): pooled precision and
-recall, and how many sessions fall below 0.9 in either.
+recall, how many sessions fall below 0.9 in either, and for the redirections found with
+the right kind (temporary or kept) the error of their lift (a share of the machine's
+reach) and turn (deg).
 Table (4b) (`--only machines-truth`): table 4's first 10 machines of each kind on the
 truth motion alone (no cameras, no fit).
 Table (3): a 2-hour session (216,000 frames at 30 fps, about 290 cycles) built by
@@ -203,6 +205,7 @@ def other_machines(n: int, root: Path) -> None:
                           ("Bobcat 225, backhoe digs", (BACKHOE,))):
         scores = {label: [] for label in MOTIONS}
         other = {label: [] for label in MOTIONS}
+        lifts = {label: [] for label in MOTIONS}
         refused, fit_refused, machines = 0, 0, 0
         for seed in range(n):
             machine = bobcat if kind.startswith("Bobcat") else random_digger(np.random.default_rng(seed))
@@ -226,15 +229,17 @@ def other_machines(n: int, root: Path) -> None:
                 a = analyze(tip_series(m))
                 scores[label].append(score_analysis(a.table, truth))
                 other[label].append(np.mean(a.table["class"] == "other") if len(a) else 1.0)
+                lifts[label].append(np.abs(scores[label][-1].lift_errors) / plan_reach(plan))
         for label in MOTIONS:
             rows.append(machine_row(kind, label, machines, refused, fit_refused if label == "fitted" else 0,
-                                    scores[label], other[label]))
+                                    scores[label], other[label], lifts[label]))
     table(f"(4) machines nobody designed: {n} sessions of 12 cycles each (truth motion; with "
           f"{NOISE_TIP:.1%} of the reach and {NOISE_ANGLE_DEG} deg of white noise; and as `mocap fit` gives it "
           f"from 2-3 random cameras with {PIXEL_NOISE} px of pixel noise)",
           ["machines, digs", "motion", "sessions", "refused by the planner", "refused by the fit", "true", "found",
            "missed", "extra", "start med", "start p95", "end med", "end p95", "class acc", "share other",
-           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], rows)
+           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)", "lift err med (reach)",
+           "lift err p90"], rows)
 
 
 def machines_truth(n: int) -> None:
@@ -244,7 +249,7 @@ def machines_truth(n: int) -> None:
     bobcat = load_machine("bobcat_225")
     for kind, classes in (("random digger, shovel digs", CLASSES), ("random digger, backhoe digs", (BACKHOE,)),
                           ("Bobcat 225, backhoe digs", (BACKHOE,))):
-        scores, other, refused = [], [], 0
+        scores, other, refused, lifts = [], [], 0, []
         for seed in range(n):
             machine = bobcat if kind.startswith("Bobcat") else random_digger(np.random.default_rng(seed))
             try:
@@ -256,19 +261,24 @@ def machines_truth(n: int) -> None:
             a = analyze(tip_series(motion))
             scores.append(score_analysis(a.table, truth))
             other.append(np.mean(a.table["class"] == "other") if len(a) else 1.0)
-        rows.append(machine_row(kind, "truth", len(scores), refused, 0, scores, other))
+            lifts.append(np.abs(scores[-1].lift_errors) / plan_reach(plan))
+        rows.append(machine_row(kind, "truth", len(scores), refused, 0, scores, other, lifts))
     table(f"(4b) machines nobody designed, the first {n} of each kind, truth motion only",
           ["machines, digs", "motion", "sessions", "refused by the planner", "refused by the fit", "true", "found",
            "missed", "extra", "start med", "start p95", "end med", "end p95", "class acc", "share other",
-           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)"], rows)
+           "redir P", "redir R", "scale <=5%", "scale <=5% (no redirection)", "lift err med (reach)",
+           "lift err p90"], rows)
 
 
 def machine_row(kind: str, label: str, machines: int, refused: int, fit_refused: int, scores: list,
-                other: list) -> list:
-    """One row of table (4): the sessions' scores pooled."""
+                other: list, lifts: list) -> list:
+    """One row of table (4): the sessions' scores pooled; `lifts` the sessions' lift errors
+    of the redirections found with the right kind, as shares of the machine's reach."""
     counts, bounds, class_acc, redirections, scales = pool(scores)
+    lifts = np.concatenate(lifts) if lifts else np.zeros(0)
+    spread = (float(np.median(lifts)), float(np.percentile(lifts, 90))) if len(lifts) else (np.nan, np.nan)
     return [kind, label, machines, refused, fit_refused, *counts, *bounds, class_acc, float(np.mean(other)),
-            *redirections, *scales]
+            *redirections, *scales, *spread]
 
 
 def pool(scores: list) -> tuple:
@@ -355,20 +365,25 @@ def seed_sweep(first: int, last: int) -> None:
     rows = []
     for name in ("hitachi_ex3500", "bobcat_225"):
         machine = load_machine(name)
-        scores, below = [], 0
+        scores, below, lifts = [], 0, []
         for seed in range(first, last + 1):
-            motion, truth = planned_truth(machine, plan_session(machine, 12, np.random.default_rng(seed)))
+            plan = plan_session(machine, 12, np.random.default_rng(seed))
+            motion, truth = planned_truth(machine, plan)
             score = score_analysis(analyze(tip_series(motion)).table, truth)
             r = score.row()
             below += int(r["redir_precision"] < 0.9 or r["redir_recall"] < 0.9)
             scores.append(score)
+            lifts.append(np.abs(score.lift_errors) / plan_reach(plan))
         counts, _, class_acc, redirections, scales = pool(scores)
         tp, fp, fn = (sum(getattr(s, k) for s in scores) for k in ("redirect_tp", "redirect_fp", "redirect_fn"))
+        lifts, turns = np.concatenate(lifts), np.abs(np.concatenate([s.turn_errors for s in scores]))
         rows.append([name, f"{first}-{last}", len(scores), counts[0], class_acc, tp + fn, fp, fn, *redirections,
-                     below, *scales])
+                     below, *scales, len(lifts), float(np.median(lifts)), float(np.percentile(lifts, 90)),
+                     float(np.median(turns)), float(np.percentile(turns, 90))])
     table(f"(5) redirections over planned truth sessions, seeds {first}-{last} of each machine",
           ["machine", "seeds", "sessions", "digs", "class acc", "true redirections", "false", "missed", "redir P",
-           "redir R", "sessions with P or R < 0.9", "scale <=5%", "scale <=5% (no redirection)"], rows)
+           "redir R", "sessions with P or R < 0.9", "scale <=5%", "scale <=5% (no redirection)",
+           "right kind", "lift err med (reach)", "lift err p90", "turn err med (deg)", "turn err p90"], rows)
 
 
 def main() -> int:

@@ -111,6 +111,30 @@ def test_vertical_scale_of_digs_with_a_kept_lift():
     assert len(errors) >= 4 and np.all(errors <= 0.05), errors
 
 
+def test_redirection_lift_reported_against_the_class_template():
+    # the truth's operator lifts and lowers the tip by 1.5-3 % of the reach; the lift
+    # reported is the height that lets the class template fit the dig best (a temporary
+    # one judged over its window too), not the event fitted to the height about a quintic
+    # in time, which the floor push's bend into the rise bends too (its median here was
+    # 0.4 % of the reach, its 90th percentile 3.2 %, its worst 8 %: a kept lift read as a
+    # lower; this fit's are 0.5, 1.6 and 3.5 %; over table 5's 120 sessions its median is
+    # 0.3-0.5 % against 0.75-0.8 %)
+    errors = []
+    for name, seed in SESSIONS:
+        a, truth = analysed(name, seed, 12)
+        machine, _, _ = truth_session(name, seed, 12)
+        reach = float(np.linalg.norm(PlanarChain.from_machine(machine).offsets, axis=1).sum())
+        score = score_analysis(a.table, truth)
+        errors.append(np.abs(score.lift_errors) / reach)
+        found = a.table["redirection"] != "none"
+        words = a.table["redirection_kind"][found]
+        lift = a.table["redirection_lift_m"][found]
+        assert all(("lift" in w) <= (v > 0) and ("lower" in w) <= (v < 0) for w, v in zip(words, lift))
+    errors = np.concatenate(errors)
+    # half the smallest lift at the median, less than the smallest lift itself at the 90th
+    assert len(errors) >= 12 and np.median(errors) < 0.0075 and np.percentile(errors, 90) < 0.02, errors
+
+
 def test_scale_fit_recovers_exact_stretches():
     s = np.linspace(0, 1, 64)
     template = np.column_stack([4 * s, 3 * s**2, np.radians(60 * s - 20)])

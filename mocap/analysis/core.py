@@ -69,7 +69,8 @@ def analyze(series: TipSeries, rules: ClassRules = ClassRules(), options: Segmen
     for _ in range(LIFT_ROUNDS):  # the redirection's lift taken out of the path, its arc length taken again
         general, after, window = general_paths(channels, fit_lifts(channels, labels, templates, scales))
         templates, scales = build_templates(general, labels, starts, after, window)
-    dev = replace(dev, scale_x=scales[:, 0], scale_z=scales[:, 1])
+    lift = fit_lifts(channels, labels, templates, scales, whole=True)
+    dev = replace(dev.with_lifts(lift), scale_x=scales[:, 0], scale_z=scales[:, 1])
     distance = dtw_matrix(paths.path)
     grouping = group_digs(distance)
     aspect = dev.scale_z / dev.scale_x

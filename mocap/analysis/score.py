@@ -5,14 +5,15 @@ factors are relative to a class template whose size is the class's typical size,
 the truth's are relative to the class's general shape at its drawn sizes' middle
 (`mocap.synthetic.paths.stretch`): they are compared after dividing out one factor per
 class (the median of estimated / true, in logarithms: one dig far off does not move its
-classmates' errors). Scale errors are also given for the digs
+classmates' errors). The redirection's lift (m) and turn (deg) are compared where the
+truth has them, for the redirections found with the right kind. Scale errors are also given for the digs
 without an operator's redirection alone: a kept lift and a taller dig look alike in the
 path, and their split is only as good as the event's fit.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,6 +37,8 @@ class AnalysisScore:
     redirect_kind_correct: int
     scale_errors: np.ndarray
     scale_redirected: np.ndarray | None = None
+    lift_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    turn_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def matched(self) -> int:
@@ -87,6 +90,10 @@ def score_analysis(found: dict, truth: dict, tolerance_s: float = 3.0) -> Analys
     t_class, f_class = np.asarray(truth["class"]).astype(str), np.asarray(found["class"]).astype(str)
     t_red, f_red = np.asarray(truth["redirection"]).astype(str), np.asarray(found["redirection"]).astype(str)
     t_has, f_has = t_red[ti] != "none", f_red[fj] != "none"
+    both = t_has & f_has & (t_red[ti] == f_red[fj])  # found, and of the right kind
+    lift_errors, turn_errors = (
+        _numbers(found[c])[fj][both] - _numbers(truth[c])[ti][both] if c in truth and c in found else np.zeros(0)
+        for c in ("redirection_lift_m", "redirection_angle_deg"))
     scale_errors, scale_redirected = [], []
     for axis in ("scale_x", "scale_z"):
         ratio = _numbers(found[axis])[fj] / _numbers(truth[axis])[ti]
@@ -102,9 +109,10 @@ def score_analysis(found: dict, truth: dict, tolerance_s: float = 3.0) -> Analys
         class_correct=int((t_class[ti] == f_class[fj]).sum()),
         redirect_tp=int((t_has & f_has).sum()), redirect_fp=int((~t_has & f_has).sum()),
         redirect_fn=int((t_has & ~f_has).sum()),
-        redirect_kind_correct=int((t_has & f_has & (t_red[ti] == f_red[fj])).sum()),
+        redirect_kind_correct=int(both.sum()),
         scale_errors=np.concatenate(scale_errors) if scale_errors else np.zeros(0),
         scale_redirected=np.concatenate(scale_redirected) if scale_redirected else np.zeros(0, bool),
+        lift_errors=lift_errors, turn_errors=turn_errors,
     )
 
 
@@ -139,5 +147,7 @@ def planned_truth(machine, plan, fps: float = 30.0):
         "redirection": np.array([c.redirection for c in cycles], dtype=object),
         "scale_x": np.array([c.stretch[0] for c in cycles]), "scale_z": np.array([c.stretch[1] for c in cycles]),
         "dig_start_time": np.array([c.dig_start for c in cycles]), "dig_end_time": np.array([c.dig_end for c in cycles]),
+        "redirection_lift_m": np.array([c.lift for c in cycles]),
+        "redirection_angle_deg": np.degrees([c.turn for c in cycles]),
     }
     return motion, truth

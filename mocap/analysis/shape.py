@@ -30,7 +30,7 @@ Shapes: K digs, N arc-length samples, T frames of one dig, G event candidates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
@@ -66,7 +66,8 @@ class Template:
 class Deviations:
     """Per dig (K,): scale_x, scale_z; reactive_m, reactive_deg (RMS); redirection
     ('none', 'temporary', 'kept'), its time (s, NaN without), angle change (rad), lift (m),
-    kind in words, and its centre and half-width as shares of the dig's time (NaN without)."""
+    kind in words, and its centre and half-width as shares of the dig's time (NaN without);
+    whether the tip moved back within it; the dig's path length (m)."""
 
     scale_x: np.ndarray
     scale_z: np.ndarray
@@ -79,6 +80,24 @@ class Deviations:
     redirection_kind: np.ndarray
     redirection_centre: np.ndarray
     redirection_width: np.ndarray
+    redirection_reversal: np.ndarray
+    length: np.ndarray
+
+    def with_lifts(self, lift: np.ndarray) -> Deviations:
+        """The same with each redirection's lift (K,) m (as `fit_lifts` finds it against the
+        class template), its kind's words said again."""
+        lift = np.where(self.redirection != "none", lift, np.nan)
+        words = np.array([_kind_words(*v) if v[0] != "none" else "" for v in zip(
+            self.redirection, self.redirection_angle, lift, self.length, self.redirection_reversal)], dtype=object)
+        return replace(self, redirection_lift=lift, redirection_kind=words)
+
+
+def _kind_words(kind: str, angle: float, lift: float, length: float, reversal: bool) -> str:
+    """A redirection in words: lift or lower (beyond 1.5 % of the dig's length), the angle
+    change, reversal, temporary or kept."""
+    words = ["lift" if lift > 0 else "lower"] if abs(lift) > 0.015 * length else []
+    words.append(f"bucket angle {np.degrees(angle):+.0f} deg")
+    return ", ".join(words + (["reversal"] if reversal else []) + [kind])
 
 
 def _arc(r: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -202,7 +221,7 @@ class DigChannels:
     arc and shift every sample along it), bucket angle (rad); its redirection's shape in
     time `event` (0 to 1, a step when kept, a pulse when temporary, low-passed like the
     path; zeros without one), `late` 1 after it and `inside` 1 within it, widened by the
-    margin either side (the low-pass spreads it)."""
+    margin either side (the low-pass spreads it); `kept` whether the event is a step."""
 
     r: np.ndarray
     z: np.ndarray
@@ -210,6 +229,7 @@ class DigChannels:
     event: np.ndarray
     late: np.ndarray
     inside: np.ndarray
+    kept: bool = False
 
 
 def dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: Deviations | None = None,
@@ -224,16 +244,17 @@ def dig_channels(series: TipSeries, starts: np.ndarray, ends: np.ndarray, dev: D
     for k, (a, b) in enumerate(zip(starts, ends)):
         m = b - a + 1
         event, late, inside = np.zeros(m), np.zeros(m), np.zeros(m)
+        kept = dev is not None and dev.redirection[k] == "kept"
         if dev is not None and dev.redirection[k] != "none":
             tau = np.arange(-pad, m + pad) / max(b - a, 1)
             centre, width = dev.redirection_centre[k], dev.redirection_width[k]
             shape = event_shape(tau, np.array([centre]), np.array([width]),
-                                np.array([dev.redirection[k] == "kept"]))[0]
+                                np.array([kept]))[0]
             event = sosfiltfilt(sos, np.where(tau < 0, 0.0, shape))[pad:pad + m]
             wide = width + margin_s / max(series.time[b] - series.time[a], 1e-9)
             tau = tau[pad:pad + m]
             late, inside = (tau >= centre + wide).astype(float), (np.abs(tau - centre) < wide).astype(float)
-        out.append(DigChannels(reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1], event, late, inside))
+        out.append(DigChannels(reach[a:b + 1], height[a:b + 1], series.angle[a:b + 1], event, late, inside, kept))
     return out
 
 
@@ -257,7 +278,8 @@ def general_paths(channels: list[DigChannels], lift: np.ndarray | None = None,
 
 
 def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[str, Template], scales: np.ndarray,
-              n: int = N_SAMPLES, span: float = 0.15, steps: int = 31, iterations: int = 3) -> np.ndarray:
+              n: int = N_SAMPLES, span: float = 0.15, steps: int = 31, iterations: int = 3,
+              whole: bool = False) -> np.ndarray:
     """The lift (K,) m of each dig's redirection (0 without one): the height of its event's
     own shape in time (a step when kept, a pulse when temporary) that, taken out of the
     tip's height before the arc length is taken, lets its class template (N, 2), scaled by
@@ -265,7 +287,11 @@ def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[s
     kept lift and a taller dig are nearly alike (a lift along a steep rise lies almost along
     the path), so the lift is not fitted there as a column: the whole path is taken again
     for each of `steps` heights over +-`span` of the dig's length, and a parabola through
-    the best three gives the minimum. `scales` (K, 2) the digs' current stretch."""
+    the best three gives the minimum. `scales` (K, 2) the digs' current stretch. With
+    `whole`, a temporary event's lift is judged over the whole path, its window included: a
+    pulse leaves no trace outside its window but the arc's lengthening, so that is where it
+    is measured (the height reported); the scales, which leave the window out, are taken
+    without it."""
     s = np.linspace(0.0, 1.0, n)
     lift = np.zeros(len(channels))
     grid = np.linspace(-span, span, steps)
@@ -283,7 +309,7 @@ def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[s
             arc = np.concatenate([np.zeros((len(z), 1)), np.cumsum(step, axis=1)], axis=1)
             arc /= np.maximum(arc[:, -1:], 1e-12)
             path = np.stack([_interp_rows(s, arc, r) - dig.r[0], _interp_rows(s, arc, z) - z[:, :1]], axis=-1)
-            weight = 1.0 - _interp_rows(s, arc, inside)
+            weight = np.ones_like(path[..., 0]) if whole and not dig.kept else 1.0 - _interp_rows(s, arc, inside)
             stretch = np.clip(fit_scales(path, template, weight), 0.05, 20.0)
         sse = (weight[..., None] * (path - stretch[:, None, :] * template[None]) ** 2).sum(axis=(1, 2))
         g = int(np.clip(np.argmin(sse), 1, len(grid) - 2))
@@ -344,8 +370,10 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
     what = np.full(k, "", dtype=object)
     when, d_angle, lift = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.nan)
     at, half = np.full(k, np.nan), np.full(k, np.nan)
+    back, lengths = np.zeros(k, bool), np.zeros(k)
     for i, (a, b) in enumerate(zip(starts, ends)):
         r, z, angle = series.raw_reach[a:b + 1], series.raw_height[a:b + 1], series.raw_angle[a:b + 1]
+        lengths[i] = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
         if len(r) > 15:  # the three channels low-passed in one call (a call's set-up costs more than its filtering)
             low = sosfiltfilt(sos, np.stack([r, z, angle]), padlen=min(len(r) - 1, 3 * 6))
             reactive_m[i] = np.sqrt(((r - low[0]) ** 2 + (z - low[1]) ** 2).mean())
@@ -368,16 +396,10 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
         d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
-        length = np.hypot(np.diff(series.reach[a:b + 1]), np.diff(series.height[a:b + 1])).sum()
-        words = []
-        if abs(lift[i]) > 0.015 * length:
-            words.append("lift" if lift[i] > 0 else "lower")
-        words.append(f"bucket angle {np.degrees(d_angle[i]):+.0f} deg")
         window = (tau > centre[g] - width[g]) & (tau < centre[g] + width[g])
         chord = np.array([series.reach[b] - series.reach[a], series.height[b] - series.height[a]])
         forward = np.diff(series.reach[a:b + 1]) * chord[0] + np.diff(series.height[a:b + 1]) * chord[1]
-        if np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(tau), 1)):
-            words.append("reversal")
-        words.append(kind[i])
-        what[i] = ", ".join(words)
-    return Deviations(scales[:, 0], scales[:, 1], reactive_m, reactive_deg, kind, when, d_angle, lift, what, at, half)
+        back[i] = np.any(forward[window[1:]] < -1e-3 * np.linalg.norm(chord) / max(len(tau), 1))
+        what[i] = _kind_words(kind[i], d_angle[i], lift[i], lengths[i], back[i])
+    return Deviations(scales[:, 0], scales[:, 1], reactive_m, reactive_deg, kind, when, d_angle, lift, what, at, half,
+                      back, lengths)

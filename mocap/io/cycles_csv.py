@@ -4,7 +4,7 @@ Readers need each cycle's first and last frame: columns ``start_frame,end_frame`
 (reference-camera frames, inclusive), and optionally ``cycle`` (its number or name),
 ``class`` and the frames where the phases begin (`PHASE_COLUMNS`: dig, swing loaded, dump,
 swing back; empty or negative where not seen). The synthetic truth writes all of `COLUMNS`
-(class, scaling, dig start and end, times); `mocap analyze` writes its own table
+(class, scaling, dig start and end, times, the redirection's lift and turn); `mocap analyze` writes its own table
 (`save_cycle_table`); other columns are ignored by `load_cycles`.
 """
 
@@ -23,7 +23,8 @@ from mocap.io.text import csv_rows, read_text
 REQUIRED = ("start_frame", "end_frame")
 PHASE_COLUMNS = ("dig_start_frame", "dig_end_frame", "dump_start_frame", "swing_back_start_frame")
 COLUMNS = ("cycle", "class", "scaling", "scale_x", "scale_z", "redirection", "start_frame", "end_frame",
-           "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time")
+           "dig_start_frame", "dig_end_frame", "start_time", "end_time", "dig_start_time", "dig_end_time",
+           "redirection_lift_m", "redirection_angle_deg")
 
 
 @dataclass(frozen=True)

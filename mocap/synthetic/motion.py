@@ -59,7 +59,9 @@ class Cycle:
     """One dig cycle's truth; times in seconds on the reference clock. `scale` (sx, sz) the
     operator's scaling of this dig's own shape; `stretch` (sx, sz) the dig's size against its
     class's general shape (`paths.stretch`: the scaling and the dig's own push and rise),
-    what an analysis can measure and truth/cycles.csv's scale_x, scale_z."""
+    what an analysis can measure and truth/cycles.csv's scale_x, scale_z; `lift` (m) and
+    `turn` (rad) the operator's redirection's change of the tip's height and bucket angle
+    (0 without one)."""
 
     index: int
     label: str
@@ -71,6 +73,8 @@ class Cycle:
     dig_end: float
     end: float
     stretch: tuple[float, float] = (1.0, 1.0)
+    lift: float = 0.0
+    turn: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -240,7 +244,8 @@ def plan_session(
                             "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),
-                            start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach))))
+                            start, dig_start, dig_end, end, stretch(dig, nominal_shape(label, toe, pile.slope, reach)),
+                            *((0.0, 0.0) if redirection is None else (float(redirection.dz), float(redirection.dangle)))))
         t, state = end, carry
     segments.append(_Segment(t, t + 4.0 * pace, state, carry))
     swing_t += [t, t + 4.0 * pace]

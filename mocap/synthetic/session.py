@@ -290,14 +290,15 @@ def summary(session: SyntheticSession) -> str:
 
 def save_session_cycles(session: SyntheticSession, path: Path) -> None:
     """truth/cycles.csv: one row per dig cycle; frames are the reference camera's; scale_x,
-    scale_z the dig's stretch against its class's general shape (`Cycle.stretch`)."""
+    scale_z the dig's stretch against its class's general shape (`Cycle.stretch`); the
+    redirection's lift (m) and turn (deg), 0 without one."""
     fps = session.cameras[0].fps
     rows = []
     for c in session.plan.cycles:
         times = (c.start, c.end, c.dig_start, c.dig_end)
         frames = [int(round(t * fps)) for t in times]
         rows.append((c.index, c.label, c.scaling, f"{c.stretch[0]:.4f}", f"{c.stretch[1]:.4f}", c.redirection,
-                     *frames, *(f"{t:.4f}" for t in times)))
+                     *frames, *(f"{t:.4f}" for t in times), f"{c.lift:.4f}", f"{np.degrees(c.turn):.3f}"))
     save_cycles(rows, path)
 
 
