@@ -214,18 +214,6 @@ def _events(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return event_shape(tau, c, w, kept), kept, c, w
 
 
-def _finer_turn(tau: np.ndarray, angle: np.ndarray, base: np.ndarray, centre: float, kept: bool) -> tuple[float, float]:
-    """The turn (rad) and centre of an event found at `centre` on the grid, fitted again to
-    the angle about `base` over centres within a grid step at a fifth of it and half-widths
-    0.05-0.16: the turn and time reported. (The grid's own place and width stay the lift's
-    and the window's: refined, they moved the scales by a factor or two either way.)"""
-    c, w = (v.ravel() for v in np.meshgrid(centre + np.arange(-0.025, 0.0251, 0.005), np.arange(0.05, 0.1651, 0.01),
-                                           indexing="ij"))
-    [(sse, amp, _)] = _fit_events((angle,), base, event_shape(tau, c, w, np.full(len(c), kept)))
-    h = int(np.argmin(sse))
-    return float(amp[h]), float(c[h])
-
-
 @dataclass(frozen=True)
 class DigChannels:
     """One dig's frames (T,) as its general shape and scale are taken from: the tip's reach
@@ -408,8 +396,6 @@ def deviations(series: TipSeries, starts: np.ndarray, ends: np.ndarray,
         kind[i] = "kept" if kept[g] else "temporary"
         when[i] = series.time[a] + centre[g] * (series.time[b] - series.time[a])
         d_angle[i], lift[i], at[i], half[i] = amp[g], amp_z[g], centre[g], width[g]
-        d_angle[i], fine_centre = _finer_turn(tau, series.angle[a:b + 1], base, centre[g], kept[g])
-        when[i] = series.time[a] + fine_centre * (series.time[b] - series.time[a])
         window = (tau > centre[g] - width[g]) & (tau < centre[g] + width[g])
         chord = np.array([series.reach[b] - series.reach[a], series.height[b] - series.height[a]])
         forward = np.diff(series.reach[a:b + 1]) * chord[0] + np.diff(series.height[a:b + 1]) * chord[1]
