@@ -78,6 +78,28 @@ def test_kinematic_fit_of_random_machines_keeps_no_wrong_minimum():
         assert ratio < 1.6, f"scene {seed}: tip RMSE {ratio:.2f} x the bound"
 
 
+def test_long_sessions_of_random_machines_keep_no_wrong_stretch():
+    """3,000 frames: a stretch of frames whose robust residual is low enough to pass for a few
+    wild pixels, on a wrong minimum, is mended from its neighbours (before: 3 of these 10 scenes
+    at 3.4-24 times the bound, up to 217 frames beyond 5 SDs)."""
+    for seed in range(10):
+        scene = random_scene(np.random.default_rng(seed), SceneOptions(noise_px=NOISE_PX), n_frames=3000)
+        machine = scene.machine
+        if not machine.point_names or machine.n_joints == 0:
+            continue
+        pixels = scene.pixels()
+        fit = fit_joints(machine, list(scene.cameras), pixels)
+        tip = point_quantities(machine, np.nan_to_num(fit.joints), fit.covariance)
+        error = np.linalg.norm(tip.points[:, 0] - machine.points(scene.joints)[:, 0], axis=1)
+        bound = fit_point_sd(machine, list(scene.cameras), scene.joints, np.isfinite(pixels[..., 0]), NOISE_PX)[:, 0]
+        shown = np.isfinite(bound)
+        ratio = np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2))
+        assert ratio < 1.3, f"scene {seed}: tip RMSE {ratio:.2f} x the bound"
+        beyond = int((error[shown] > 5 * tip.points_sd[shown, 0]).sum())
+        # one camera may leave a frame two solutions explain equally (reported by the fit's stage)
+        assert beyond <= (0 if len(scene.cameras) > 1 else 3), f"scene {seed}: {beyond} frames beyond 5 SDs"
+
+
 def test_one_camera_fit_of_random_machines_ends_no_worse_than_at_the_truth():
     for seed in range(20):
         scene = random_scene(np.random.default_rng(300 + seed), SceneOptions(noise_px=NOISE_PX, cameras=(1, 1)), n_frames=40)

@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 _BEHIND_PX = 1e5  # stand-in pixel for a grid candidate behind a camera
 _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved stays finite
 _CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
+NEIGHBOUR_RATIO = 1.5  # a frame whose cost per observation is this much above a neighbour's is fitted from it
+PREFERRED_CHI2 = 4.0  # a chi-square this much lower: the pixels prefer that solution (95 %, 1 dof)
 _SAME_PX2 = 0.1  # a restart this close (px^2, by the normal matrix) to a known solution has found it
 
 
@@ -195,6 +197,10 @@ def fit_joints(
     noise = options.noise_px or problem.noise(pixels, state)
     if problem.marker_sd is not None:  # residuals weighed by the tolerance are pixels at the nominal noise, or more
         noise = max(noise, problem.noise_px)
+    # a wrong minimum whose residual is not far enough above the noise to be suspect (a few
+    # markers off, taken for wild pixels by the robust loss), or a stretch of them, mended from
+    # its neighbours' solutions where the pixels prefer theirs (not where they cannot tell)
+    problem.propagate(pixels, state, problem.above_a_neighbour(pixels, state), margin=PREFERRED_CHI2 * noise**2)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
         log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
@@ -374,6 +380,16 @@ class _Problem(KinematicModel):
             frames = np.unique(np.clip(np.r_[mended - 1, mended, mended + 1], 0, n_frames - 1))
         return improved
 
+    def above_a_neighbour(self, pixels: np.ndarray, state: FrameState) -> np.ndarray:
+        """The frames whose cost per observation is above `NEIGHBOUR_RATIO` times a
+        neighbour's: where a wrong minimum ends, and one frame in ten of a right fit."""
+        n_obs = np.maximum(np.isfinite(pixels[..., 0]).sum((0, 2)), 1)
+        per_obs = state.cost / n_obs
+        above = np.zeros(len(per_obs), dtype=bool)
+        above[1:] |= per_obs[1:] > NEIGHBOUR_RATIO * per_obs[:-1]
+        above[:-1] |= per_obs[:-1] > NEIGHBOUR_RATIO * per_obs[1:]
+        return np.nonzero(above)[0]
+
     def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, n_obs: np.ndarray) -> np.ndarray:
         """One pass of `repair` over `frames` (sorted), n_obs (F,) observations per frame;
         the frames that improved."""
@@ -452,11 +468,12 @@ class _Problem(KinematicModel):
                 starts.append(FrameState(joints, own.rotation, own.translation, own.cost))
         self._keep_best(pixels, state, frames, starts)
 
-    def propagate(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray) -> None:
+    def propagate(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, margin: float = 0.0) -> None:
         """Fit `frames` again from each neighbour's solution (the frames before and after)
-        and keep any improvement; the neighbours of a frame that improved are fitted again
-        from it in turn, until nothing improves: a wrong stretch is mended from its ends
-        inward, however long, at two restarts per frame and pass."""
+        and keep any improvement of the cost by more than `margin` (px²); the neighbours of a
+        frame that improved are fitted again from it in turn, until nothing improves: a wrong
+        stretch is mended from its ends inward, however long, at two restarts per frame and
+        pass."""
         n_frames = pixels.shape[1]
         todo = np.unique(frames)
         for _ in range(n_frames):
@@ -467,7 +484,7 @@ class _Problem(KinematicModel):
                 source = np.clip(todo + shift, 0, n_frames - 1)
                 own = state.take(todo)
                 fitted = self.levenberg_marquardt(np.moveaxis(pixels[:, todo], 1, 0), state.take(source), own)
-                better = fitted.cost < own.cost
+                better = fitted.cost < own.cost - margin
                 state.put(todo, fitted, better)
                 improved.append(todo[better])
             improved = np.concatenate(improved)
