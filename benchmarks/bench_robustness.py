@@ -41,6 +41,13 @@ runs without surveyed cameras: the one-frame calibration (frame 0), `refine` ove
 scene's frames, then the per-frame fit; the tip's RMS error over the bound with the true
 cameras, beside the same fit with the true cameras and with the cameras refined from the truth
 (what the scene's frames can fix of the cameras at best).
+
+With `--long N`, N clean scenes of `LONG_FRAMES` frames are fitted with the true cameras:
+the tip's RMS error over the bound and the frames whose tip lies beyond 5 of its stated SDs
+(a stretch of frames on a wrong minimum), beside the peer, a plain per-frame least squares
+warm-started from the frame before (the first from the truth), and both fits' times.
+
+    .venv/bin/python benchmarks/bench_robustness.py --scenes 0 --long 40 --jobs 2
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ from scipy.optimize import least_squares
 
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
 from mocap.calibration.problem import Layout, Problem
+from mocap.camera import project
 from mocap.errors import InputError
 from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
@@ -79,6 +87,7 @@ FIELD_KEYS = [*FIELD_CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambigu
               "triangulation", "triangulation_at_bound"]
 FRAMES = 40
 REFINED_FRAMES = 120  # a session's refinement sees many frames; 40 leave the cameras a few tenths of the bound
+LONG_FRAMES = 3000  # a session's length at which a wrong stretch of frames has room to form
 PLACEABLE = 0.2  # a camera whose bound is below this share of its distance can be placed
 
 
@@ -254,6 +263,55 @@ def refined_scene(seed: int) -> dict:
     return out
 
 
+def naive_per_frame_fit(machine, cameras, pixels: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """The peer of the fit: plain least squares (scipy, no robust loss, no restart) frame by
+    frame, each frame started from the previous frame's solution, the first from `start`."""
+    joints = np.empty((pixels.shape[1], machine.n_joints))
+    q = start
+    for f in range(pixels.shape[1]):
+        seen = np.isfinite(pixels[:, f, :, 0])
+        if seen.any():
+            def residuals(x, seen=seen, f=f):
+                return (project(cameras, machine.markers(x[None])[0])[seen] - pixels[:, f][seen]).ravel()
+            q = least_squares(residuals, q, x_scale="jac").x
+        joints[f] = q
+    return joints
+
+
+def long_session(seed: int) -> dict:
+    """A clean scene of `LONG_FRAMES` frames fitted with the true cameras: the tip's RMS error
+    over the bound, the frames whose tip lies beyond 5 of its stated SDs (a wrong stretch),
+    the fit's time; beside the peer, a per-frame least squares warm-started from the frame before."""
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng, SceneOptions(), n_frames=LONG_FRAMES)
+    machine, cameras, pixels = scene.machine, list(scene.cameras), scene.pixels()
+    out = dict(seed=seed, joints=machine.n_joints, cameras=len(cameras), markers=len(machine.marker_names))
+    if not (machine.n_joints and machine.point_names):
+        return out
+    bound = fit_point_sd(machine, cameras, scene.joints, np.isfinite(pixels[..., 0]), scene.options.noise_px, None)[:, 0]
+    shown = np.isfinite(bound)
+    if not shown.any():
+        return out
+    truth = machine.points(scene.joints)[:, 0]
+
+    def ratio(joints) -> float:
+        error = np.linalg.norm(machine.points(np.nan_to_num(joints))[:, 0] - truth, axis=1)
+        return float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
+
+    started = time.perf_counter()
+    fit = fit_joints(scene.model, cameras, pixels)
+    out["long_fit_seconds"] = time.perf_counter() - started
+    out["long_fit"] = ratio(fit.joints)
+    tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance)
+    error = np.linalg.norm(tip.points[:, 0] - truth, axis=1)
+    out["long_frames_beyond_5sd"] = int((error[shown] > 5 * tip.points_sd[shown, 0]).sum())
+    started = time.perf_counter()
+    naive = naive_per_frame_fit(machine, cameras, pixels, scene.joints[0])
+    out["long_naive_seconds"] = time.perf_counter() - started
+    out["long_naive"] = ratio(naive)
+    return out
+
+
 def distribution(rows: list[dict], key: str) -> list:
     values = np.array([r[key] for r in rows if key in r], dtype=float)
     values = values[~np.isnan(values)]  # a frame whose fit states no SD (nothing seen) has no ratio
@@ -307,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", help="also write every scene's figures to this file (JSON lines)")
     parser.add_argument("--refined", type=int, default=0, metavar="N",
                         help="also N clean scenes through calibrate, refine and fit (default 0)")
+    parser.add_argument("--long", type=int, default=0, metavar="N",
+                        help=f"also N clean scenes of {LONG_FRAMES} frames fitted with the true cameras (default 0)")
     args = parser.parse_args(argv)
     logging.getLogger("mocap").setLevel(logging.ERROR)  # the warnings are counted in the table instead
     kinds = [k for k in ((False, "Clean scenes", CLEAN_KEYS), (True, "Field scenes", FIELD_KEYS))
@@ -341,6 +401,26 @@ def main(argv: list[str] | None = None) -> int:
         worst = sorted((r for r in rows if "fit_refined" in r), key=lambda r: -r["fit_refined"])[:3]
         print("  worst refined: " + "; ".join(f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) "
                                                f"{r['fit_refined']:.2f}" for r in worst))
+        print(f"  wall time {time.perf_counter() - started:.0f} s ({args.jobs} process(es))")
+    if args.long:
+        started = time.perf_counter()
+        with multiprocessing.Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
+            rows = list((pool.map if pool else map)(long_session, range(args.first, args.first + args.long)))
+        everything += rows
+        table(f"Sessions of {LONG_FRAMES} frames, true cameras: {len(rows)} clean scenes, tip error / bound",
+              ["stage", "scenes", "median", "90 %", "99 %", "worst"],
+              [distribution(rows, k) for k in ("long_fit", "long_naive", "long_frames_beyond_5sd")])
+        fitted = [r for r in rows if "long_fit" in r]
+        print(f"  scenes with a frame beyond 5 SDs: {sum(r['long_frames_beyond_5sd'] > 0 for r in fitted)} of "
+              f"{len(fitted)}; beyond 1.3 times the bound: ours {sum(r['long_fit'] > 1.3 for r in fitted)}, "
+              f"peer {sum(r['long_naive'] > 1.3 for r in fitted)}")
+        print(f"  fit time per session, median: ours {np.median([r['long_fit_seconds'] for r in fitted]):.2f} s, peer "
+              f"{np.median([r['long_naive_seconds'] for r in fitted]):.1f} s (ratio peer / ours "
+              f"{np.median([r['long_naive_seconds'] / r['long_fit_seconds'] for r in fitted]):.0f})")
+        worst = sorted(fitted, key=lambda r: -r["long_fit"])[:3]
+        print("  worst: " + "; ".join(f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) "
+                                      f"{r['long_fit']:.2f} ({r['long_frames_beyond_5sd']} frames beyond 5 SDs)"
+                                      for r in worst))
         print(f"  wall time {time.perf_counter() - started:.0f} s ({args.jobs} process(es))")
     if args.rows:
         with open(args.rows, "w") as out:
