@@ -58,3 +58,24 @@ def test_the_fit_command_reports_the_second_solution(tmp_path, capsys):
                  "--out", str(tmp_path / "motion.csv"), "--tolerance", "5%"]) == 0
     report = capsys.readouterr().out
     assert "frames checked have a second solution that explains the pixels as well (tip up to" in report
+
+
+def test_a_stretch_on_the_mirror_between_frames_on_the_truth_takes_the_continuous_solution():
+    """The pixels cannot tell the two apart, but a machine moving smoothly cannot have jumped
+    to the mirror and back: the stretch (started there) is carried on from its neighbours."""
+    scene = _scene(ONE_CAMERA_MIRROR, SceneOptions.field())
+    options = FitOptions(tolerance=Tolerance(0.05))
+    pixels, cameras = scene.pixels(), list(scene.cameras)
+    at_truth = fit_joints(scene.model, cameras, pixels, initial=scene.joints, options=options)
+    mirror = second_solutions(scene.model, cameras, pixels, at_truth, options)
+    stretch = np.arange(22, 30)
+    assert mirror.ambiguous[stretch].all()
+    start = scene.joints.copy()
+    start[stretch] = mirror.alternative[stretch]
+    fit = fit_joints(scene.model, cameras, pixels, initial=start, options=options)
+    truth = scene.machine.points(scene.joints)[:, 0]
+    sd = point_quantities(scene.model, fit.joints, fit.covariance).points_sd[:, 0]
+    error = np.linalg.norm(scene.model.points(fit.joints)[:, 0] - truth, axis=1)
+    started_there = np.linalg.norm(scene.model.points(mirror.alternative[stretch])[:, 0] - truth[stretch], axis=1)
+    assert np.all(started_there > 5 * sd[stretch])  # the start was the far solution
+    assert np.all(error[stretch] < 5 * sd[stretch]), error[stretch] / sd[stretch]

@@ -39,6 +39,9 @@ _EPS_INFO = 1e-6  # px^2 per unit^2 added to the normal equations: unobserved st
 _CONVERGED = 1e-7  # relative change of a frame's cost below which it has converged
 NEIGHBOUR_RATIO = 1.5  # a frame whose cost per observation is this much above a neighbour's is fitted from it
 PREFERRED_CHI2 = 4.0  # a chi-square this much lower: the pixels prefer that solution (95 %, 1 dof)
+FAR_SDS = 5.0  # a solution this many SDs (Mahalanobis) from another is a different one
+DETOUR_FRAMES = 32  # the longest stretch of frames on another solution that `mend_detours` mends
+_SAME_JOINT = 0.01  # rad or m: joints a frame does not see are the same solution only this close
 _SAME_PX2 = 0.1  # a restart this close (px^2, by the normal matrix) to a known solution has found it
 
 
@@ -201,6 +204,7 @@ def fit_joints(
     # markers off, taken for wild pixels by the robust loss), or a stretch of them, mended from
     # its neighbours' solutions where the pixels prefer theirs (not where they cannot tell)
     problem.propagate(pixels, state, problem.above_a_neighbour(pixels, state), margin=PREFERRED_CHI2 * noise**2)
+    problem.mend_detours(pixels, state, noise)
     unexplained = problem.misfit(pixels, state, noise)
     if unexplained.any():
         log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
@@ -389,6 +393,70 @@ class _Problem(KinematicModel):
         above[1:] |= per_obs[1:] > NEIGHBOUR_RATIO * per_obs[:-1]
         above[:-1] |= per_obs[:-1] > NEIGHBOUR_RATIO * per_obs[1:]
         return np.nonzero(above)[0]
+
+    def mend_detours(self, pixels: np.ndarray, state: FrameState, noise: float) -> None:
+        """A stretch of at most `DETOUR_FRAMES` frames whose solution jumps away from the frame
+        before's and comes back, where the solution carried on from the frame before explains
+        every frame as well (a chi-square within `PREFERRED_CHI2`: the pixels cannot tell them
+        apart), takes the carried one: a mirror solution that a machine moving smoothly cannot
+        have reached and left. The frame it comes back to must lead back to the carried path
+        (fitted from its solution, the stretch's last frame comes to the carried one: a path
+        carried from a lone wrong frame comes back only by a jump of its own). Forward, then
+        backward in time; the shortest stretch first; a stretch whose frame before was mended
+        is not one."""
+        n_frames = pixels.shape[1]
+        if n_frames < 3 or state.rotation is not None or self.machine.n_joints == 0:
+            return
+        tie, by_frame, mended = PREFERRED_CHI2 * noise**2, np.moveaxis(pixels, 1, 0), 0
+        for step in (1, -1):
+            later = np.arange(1, n_frames) if step == 1 else np.arange(n_frames - 1)
+            jumped = later[self._far(state.joints[later - step], state.take(later), noise)]
+            if not len(jumped):
+                continue
+            carried = self.levenberg_marquardt(by_frame[jumped], state.take(jumped - step))
+            opened = self._far(carried.joints, state.take(jumped), noise) & (carried.cost < state.cost[jumped] + tie)
+            starts = jumped[opened]
+            path = [carried.take(np.nonzero(opened)[0])]  # path[k]: every detour's k-th frame carried on
+            alive, found = np.ones(len(starts), bool), []
+            for k in range(1, DETOUR_FRAMES + 1):
+                frames = starts + k * step
+                alive &= (frames >= 0) & (frames < n_frames)
+                if not alive.any():
+                    break
+                index = np.nonzero(alive)[0]
+                fitted = self.levenberg_marquardt(by_frame[frames[index]], path[-1].take(index))
+                ahead = path[-1].take(np.arange(len(starts)))
+                ahead.put(index, fitted, np.ones(len(index), bool))
+                path.append(ahead)
+                own = state.take(frames[index])
+                back = ~self._far(fitted.joints, own, noise)
+                found += [(k, d) for d in index[back]]
+                alive[index[back | (fitted.cost >= own.cost + tie)]] = False
+            if found:  # the frame it comes back to must lead back to the carried path's last frame
+                k, d = np.array(found).T
+                ends, last = starts[d] + k * step, FrameState.concatenate([path[k - 1].take([d]) for k, d in found])
+                led = self.levenberg_marquardt(by_frame[ends - step], state.take(ends))
+                found = [f for f, near in zip(found, ~self._far(led.joints, last, noise)) if near]
+            changed = np.zeros(n_frames, bool)
+            for k, d in found:  # shortest first
+                if changed[starts[d] - step]:
+                    continue
+                rows = starts[d] + step * np.arange(k)
+                state.put(rows, FrameState.concatenate([p.take([d]) for p in path[:k]]), np.ones(k, bool))
+                changed[rows] = True
+            mended += int(changed.sum())
+        if mended:
+            log.info("%d frame(s) on a solution the frames around them do not have, which their pixels cannot "
+                     "tell from the continuous one, take the continuous one", mended)
+
+    def _far(self, joints: np.ndarray, own: FrameState, noise: float) -> np.ndarray:
+        """(N,) joints (N, J) further than `FAR_SDS` from `own`'s solutions by their
+        information (and `_SAME_JOINT` for joints they do not see)."""
+        gap = joints - own.joints
+        gap = np.where(self.wrap, np.mod(gap + np.pi, 2 * np.pi) - np.pi, gap)
+        n_joints = gap.shape[1]
+        information = own.hessian[:, :n_joints, :n_joints] / noise**2 + np.eye(n_joints) / _SAME_JOINT**2
+        return np.einsum("ni,nij,nj->n", gap, information, gap) > FAR_SDS**2
 
     def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, n_obs: np.ndarray) -> np.ndarray:
         """One pass of `repair` over `frames` (sorted), n_obs (F,) observations per frame;
