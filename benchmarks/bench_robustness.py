@@ -126,6 +126,11 @@ def model_sd(scene) -> np.ndarray | None:
     return tolerance * np.abs(scene.machine.marker_positions) / np.sqrt(3) if tolerance else None
 
 
+def rms_over_bound(error: np.ndarray, bound: np.ndarray) -> float:
+    """RMS error over RMS bound (SD) of the same points or frames."""
+    return float(np.sqrt(np.mean(error**2) / np.mean(bound**2)))
+
+
 def at_bound(covariance: np.ndarray, rng) -> float:
     """What an estimator exactly at the bound would score: the median over cameras of one
     draw of each centre's error from its bound covariance (C, 3, 3), over its bound. A
@@ -185,7 +190,7 @@ def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
         def tip_ratio(fit, shared=0.0) -> tuple[float, float]:
             tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance + shared)
             error = np.linalg.norm(tip.points[:, 0] - truth, axis=1)
-            return (float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2))),
+            return (rms_over_bound(error[shown], bound[shown]),
                     float(np.max(error[shown] / tip.points_sd[shown, 0])))
 
         fit_options = FitOptions(tolerance=Tolerance(options.tolerance) if field else None)
@@ -216,7 +221,7 @@ def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
         error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth, axis=1)
         ok = np.isfinite(bound) & np.isfinite(error)
         if ok.any():
-            out["triangulation"] = float(np.sqrt(np.mean(error[ok] ** 2) / np.mean(bound[ok] ** 2)))
+            out["triangulation"] = rms_over_bound(error[ok], bound[ok])
             values, vectors = np.linalg.eigh(covariance[ok])  # one draw of each point's error at the bound
             draws = np.einsum("nij,nj->ni", vectors, np.sqrt(np.maximum(values, 0))
                               * np.random.default_rng(seed + 11).normal(size=values.shape))
@@ -244,7 +249,7 @@ def refined_scene(seed: int) -> dict:
     def tip_ratio(cameras_used) -> float:
         fit = fit_joints(scene.model, cameras_used, pixels)
         error = np.linalg.norm(machine.points(np.nan_to_num(fit.joints))[:, 0] - truth, axis=1)
-        return float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
+        return rms_over_bound(error[shown], bound[shown])
 
     try:
         templates = [template_camera(c.name, c.size) for c in cameras]
@@ -296,7 +301,7 @@ def long_session(seed: int) -> dict:
 
     def ratio(joints) -> float:
         error = np.linalg.norm(machine.points(np.nan_to_num(joints))[:, 0] - truth, axis=1)
-        return float(np.sqrt(np.mean(error[shown] ** 2) / np.mean(bound[shown] ** 2)))
+        return rms_over_bound(error[shown], bound[shown])
 
     started = time.perf_counter()
     fit = fit_joints(scene.model, cameras, pixels)

@@ -6,7 +6,8 @@ cannot tell the two apart, however good the fit. No optimiser fixes that, and th
 standard deviation of the fit (a local curvature) does not show it. Such frames are found
 by fitting every frame (up to `most` of them spread over a long session) again with each
 joint started across its range and looking for a solution as good as the fit's (a
-chi-square difference below `CHI2_SAME`) lying many standard deviations away; the stage
+chi-square difference below `PREFERRED_CHI2`) lying `FAR_SDS` standard deviations away (the
+fit's own thresholds, by which it mends a stretch on a mirror solution); the stage
 says so in its report and the benchmark counts them. All the restarts are solved in one
 compiled call, and a restart that comes back to the fit's own solution stops there.
 
@@ -21,11 +22,9 @@ import numpy as np
 
 from mocap.camera import Camera
 from mocap.machine import Machine
-from mocap.reconstruct.kinfit import FitOptions, JointFit, refit
+from mocap.reconstruct.kinfit import FAR_SDS, PREFERRED_CHI2, FitOptions, JointFit, refit
 from mocap.reconstruct.kinmodel import FrameState
 
-CHI2_SAME = 4.0  # a chi-square difference below this: the pixels do not prefer either solution (95 %, 1 dof)
-FAR_SDS = 5.0  # the second solution lies at least this many of the fit's SDs away (Mahalanobis)
 LEVELS = 4  # starts per joint across its range
 
 
@@ -79,7 +78,7 @@ def second_solutions(machine: Machine, cameras: list[Camera], pixels: np.ndarray
     own_chi2 = np.tile(_chi2_of_fit(fit)[frames], n_starts)
     gap = other.joints - fit.joints[repeated]
     distance = np.einsum("fp,fpq,fq->f", gap, fit.information[repeated], gap)
-    same = (other_chi2 < own_chi2 + CHI2_SAME) & (distance > FAR_SDS**2)
+    same = (other_chi2 < own_chi2 + PREFERRED_CHI2) & (distance > FAR_SDS**2)
     # of each frame's far solutions, the nearest: the one the data least exclude
     distance = np.where(same, distance, np.inf).reshape(n_starts, len(frames))
     nearest = np.argmin(distance, axis=0)

@@ -410,11 +410,12 @@ class _Problem(KinematicModel):
         tie, by_frame, mended = PREFERRED_CHI2 * noise**2, np.moveaxis(pixels, 1, 0), 0
         for step in (1, -1):
             later = np.arange(1, n_frames) if step == 1 else np.arange(n_frames - 1)
-            jumped = later[self._far(state.joints[later - step], state.take(later), noise)]
+            jumped = later[self._far(state.joints[later - step], state.joints[later], state.hessian[later], noise)]
             if not len(jumped):
                 continue
             carried = self.levenberg_marquardt(by_frame[jumped], state.take(jumped - step))
-            opened = self._far(carried.joints, state.take(jumped), noise) & (carried.cost < state.cost[jumped] + tie)
+            opened = (self._far(carried.joints, state.joints[jumped], state.hessian[jumped], noise)
+                      & (carried.cost < state.cost[jumped] + tie))
             starts = jumped[opened]
             path = [carried.take(np.nonzero(opened)[0])]  # path[k]: every detour's k-th frame carried on
             alive, found = np.ones(len(starts), bool), []
@@ -428,15 +429,15 @@ class _Problem(KinematicModel):
                 ahead = path[-1].take(np.arange(len(starts)))
                 ahead.put(index, fitted, np.ones(len(index), bool))
                 path.append(ahead)
-                own = state.take(frames[index])
-                back = ~self._far(fitted.joints, own, noise)
+                at = frames[index]
+                back = ~self._far(fitted.joints, state.joints[at], state.hessian[at], noise)
                 found += [(k, d) for d in index[back]]
-                alive[index[back | (fitted.cost >= own.cost + tie)]] = False
+                alive[index[back | (fitted.cost >= state.cost[at] + tie)]] = False
             if found:  # the frame it comes back to must lead back to the carried path's last frame
                 k, d = np.array(found).T
                 ends, last = starts[d] + k * step, FrameState.concatenate([path[k - 1].take([d]) for k, d in found])
                 led = self.levenberg_marquardt(by_frame[ends - step], state.take(ends))
-                found = [f for f, near in zip(found, ~self._far(led.joints, last, noise)) if near]
+                found = [f for f, near in zip(found, ~self._far(led.joints, last.joints, last.hessian, noise)) if near]
             changed = np.zeros(n_frames, bool)
             for k, d in found:  # shortest first
                 if changed[starts[d] - step]:
@@ -449,13 +450,13 @@ class _Problem(KinematicModel):
             log.info("%d frame(s) on a solution the frames around them do not have, which their pixels cannot "
                      "tell from the continuous one, take the continuous one", mended)
 
-    def _far(self, joints: np.ndarray, own: FrameState, noise: float) -> np.ndarray:
-        """(N,) joints (N, J) further than `FAR_SDS` from `own`'s solutions by their
-        information (and `_SAME_JOINT` for joints they do not see)."""
-        gap = joints - own.joints
+    def _far(self, joints: np.ndarray, own: np.ndarray, hessian: np.ndarray, noise: float) -> np.ndarray:
+        """(N,) joints (N, J) further than `FAR_SDS` from the solutions `own` (N, J) by their
+        normal matrices (N, P, P) in px² (and `_SAME_JOINT` for joints they do not see)."""
+        gap = joints - own
         gap = np.where(self.wrap, np.mod(gap + np.pi, 2 * np.pi) - np.pi, gap)
         n_joints = gap.shape[1]
-        information = own.hessian[:, :n_joints, :n_joints] / noise**2 + np.eye(n_joints) / _SAME_JOINT**2
+        information = hessian[:, :n_joints, :n_joints] / noise**2 + np.eye(n_joints) / _SAME_JOINT**2
         return np.einsum("ni,nij,nj->n", gap, information, gap) > FAR_SDS**2
 
     def _repair_pass(self, pixels: np.ndarray, state: FrameState, frames: np.ndarray, n_obs: np.ndarray) -> np.ndarray:
