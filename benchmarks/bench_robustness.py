@@ -74,7 +74,7 @@ from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets, tape_sd
 from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
-from mocap.reconstruct.triangulate import triangulate
+from mocap.reconstruct.triangulate import triangulate_tracks
 from mocap.reconstruct.uncertainty import point_quantities
 from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_covariance
 from mocap.synthetic.machines import SceneOptions, random_scene
@@ -213,7 +213,7 @@ def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
         if shown.any() and not ambiguity.ambiguous.any():
             out["fit_unambiguous"] = out["fit"]
     if len(cameras) >= 2:
-        result = triangulate(cameras, on_clock(scene) if field else scene.pixels())
+        result = triangulate_tracks(cameras, on_clock(scene) if field else scene.pixels())
         truth = machine.markers(scene.joints).reshape(-1, 3)
         seen = np.isfinite(pixels_without_wild(scene)[..., 0]).reshape(len(cameras), -1)
         covariance = triangulation_covariance(cameras, truth, seen, noise)

@@ -25,7 +25,7 @@ RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of u
 
 # Predictions of a pixel from its neighbours, exact for a steady motion: {frame offset:
 # weight}. Midpoints of f-k and f+k, then one-sided extrapolations for the ends of a track.
-_PREDICTORS = (
+PREDICTORS = (
     {-1: 0.5, 1: 0.5}, {-2: 0.5, 2: 0.5}, {-3: 0.5, 3: 0.5},
     {1: 2.0, 2: -1.0}, {-1: 2.0, -2: -1.0}, {1: 1.5, 3: -0.5}, {-1: 1.5, -3: -0.5},
 )
@@ -63,10 +63,10 @@ def _deviations(pixels: np.ndarray, values: np.ndarray, todo: np.ndarray):
     by its noise gain, and in pixels (compiled: mocap.reconstruct.outliers_kernel)."""
     from mocap.reconstruct.outliers_kernel import deviations
 
-    n_terms = max(len(w) for w in _PREDICTORS)
-    offsets = np.zeros((len(_PREDICTORS), n_terms), np.int64)
-    weights = np.zeros((len(_PREDICTORS), n_terms))
-    for k, predictor in enumerate(_PREDICTORS):
+    n_terms = max(len(w) for w in PREDICTORS)
+    offsets = np.zeros((len(PREDICTORS), n_terms), np.int64)
+    weights = np.zeros((len(PREDICTORS), n_terms))
+    for k, predictor in enumerate(PREDICTORS):
         offsets[k, : len(predictor)] = list(predictor)
         weights[k, : len(predictor)] = list(predictor.values())
     gains = np.sqrt(1.0 + (weights**2).sum(1))  # noise of pixel minus prediction

@@ -21,7 +21,7 @@ from mocap.machine import Machine, Tolerance
 from mocap.progress import progress
 from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
-from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
+from mocap.reconstruct.triangulate import TRACK_FRAMES, TriangulateOptions, triangulate_tracks
 
 if TYPE_CHECKING:  # the fit and the refinement are imported by the stages that use them
     from mocap.reconstruct.kinfit import FitOptions
@@ -101,11 +101,16 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
                          "cameras", path=calibration_path)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     cameras = list(calibration.cameras)
-    rows = []
-    for start in progress(range(0, len(clock.frame), _CHUNK_FRAMES), desc="triangulate", unit="chunk"):
-        part = triangulate(cameras, clock.pixels[:, start : start + _CHUNK_FRAMES], options)
-        f, m = np.nonzero(np.isfinite(part.xyz[..., 0]))
-        rows.append((clock.frame[start + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m], part.views[f, m]))
+    rows, contradicted, n_frames = [], 0, len(clock.frame)
+    for start in progress(range(0, n_frames, _CHUNK_FRAMES), desc="triangulate", unit="chunk"):
+        # each chunk with the frames its edges' tracks predict from; the points of its own frames kept
+        first, stop = max(start - TRACK_FRAMES, 0), min(start + _CHUNK_FRAMES + TRACK_FRAMES, n_frames)
+        part = triangulate_tracks(cameras, clock.pixels[:, first:stop], options)
+        own = np.arange(start - first, min(start + _CHUNK_FRAMES, n_frames) - first)
+        f, m = np.nonzero(np.isfinite(part.xyz[own, :, 0]))
+        f = own[f]
+        rows.append((clock.frame[first + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m], part.views[f, m]))
+        contradicted += int(part.contradicted[own].sum())
     if not sum(len(r[0]) for r in rows):
         raise InputError(
             "no marker is seen by two cameras at the same time; check the time offsets and "
@@ -126,6 +131,7 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
         f"{len(points)} points in {_count_distinct(points.frame)} frames written to {out}; "
         f"median reprojection error {np.median(points.error_px):.2f} px; "
         f"{seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
+        + (f"; {contradicted} view(s) dropped that the markers' 3-D tracks contradict" if contradicted else "")
         + _dropped(clock)
     )
 

@@ -7,6 +7,11 @@ views a point whose worst view is off by more than `max_error_px` is re-triangul
 leaving each view out in turn (all candidates in one batch); the view whose removal fits
 the rest best is dropped, repeatedly while at least three views remain.
 
+One frame cannot tell every wrong view: a wild pixel along the epipolar line of the only
+other view, or of one of two others, leaves views that agree. `triangulate_tracks` also
+asks each marker's 3-D track: a view far from what the point's neighbours in time predict,
+where another view is near it, is dropped (the point too, where fewer than two views stay).
+
 Shapes: C cameras, N points (any leading shape, e.g. F frames by M markers).
 """
 
@@ -18,9 +23,14 @@ import cv2
 import numpy as np
 
 from mocap.camera import Camera, project_cam
-from mocap.reconstruct.outliers import noise_from_fits
+from mocap.reconstruct.outliers import PREDICTORS, noise_from_fits
 
 _EPS = 1e-9
+# a 3-D track's predictions: the 2-D tracks' ones, and lines from f+2, f+3 (f-2, f-3) for a
+# track's end whose next frame is missing (its uncertainty is counted, so a long lever is fair)
+TRACK_PREDICTORS = (*PREDICTORS, {2: 3.0, 3: -2.0}, {-2: 3.0, -3: -2.0})
+SMOOTH_SHARE = 0.5  # a marker's 3-D track is judged only where this share of its points is on it
+TRACK_FRAMES = max(abs(o) for p in TRACK_PREDICTORS for o in p)  # frames either side a 3-D track predicts from
 
 
 @dataclass(frozen=True)
@@ -46,17 +56,22 @@ class TriangulateOptions:
 class Triangulation:
     """xyz (*, 3) world metres, NaN where fewer than `min_views` views; error_px (*) RMS
     reprojection error over the used views; views (*) number of used views; used (C, *)
-    which views were used (False where not seen or dropped as an outlier)."""
+    which views were used (False where not seen or dropped as an outlier); contradicted (*)
+    how many of a point's views its marker's 3-D track contradicted (`triangulate_tracks`;
+    None where the tracks were not asked)."""
 
     xyz: np.ndarray
     error_px: np.ndarray
     views: np.ndarray
     used: np.ndarray
+    contradicted: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shape = np.shape(self.error_px)
         if np.shape(self.xyz) != shape + (3,) or np.shape(self.views) != shape or np.shape(self.used)[1:] != shape:
             raise ValueError("Triangulation needs xyz (*, 3), views (*) and used (C, *) for error_px (*)")
+        if self.contradicted is not None and np.shape(self.contradicted) != shape:
+            raise ValueError("Triangulation's contradicted must have the shape of error_px (*)")
 
 
 def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateOptions | None = None) -> Triangulation:
@@ -76,14 +91,7 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     if pixels.ndim < 2 or pixels.shape[0] != len(cameras) or pixels.shape[-1] != 2:
         raise ValueError(f"pixels must have shape (C={len(cameras)}, *, 2), got {pixels.shape}")
     shape = pixels.shape[1:-1]
-    flat = pixels.reshape(len(cameras), -1, 2)
-    seen = np.isfinite(flat).all(-1)
-    solvable = np.nonzero(seen.sum(0) >= 2)[0]  # the others are left untouched: no point
-    xyz = np.full((flat.shape[1], 3), np.nan)
-    error_px = np.full(flat.shape[1], np.nan)
-    used = seen.copy()
-    if len(solvable):
-        xyz[solvable], error_px[solvable], used[:, solvable] = _triangulate_points(cameras, flat[:, solvable], options)
+    xyz, error_px, used, *_ = _triangulate_flat(cameras, pixels.reshape(len(cameras), -1, 2), options)
     return Triangulation(
         xyz.reshape(shape + (3,)),
         error_px.reshape(shape),
@@ -92,14 +100,151 @@ def triangulate(cameras: list[Camera], pixels: np.ndarray, options: TriangulateO
     )
 
 
-def _triangulate_points(cameras: list[Camera], flat: np.ndarray, options: TriangulateOptions):
+def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
+                       options: TriangulateOptions | None = None, floor_px: float = 3.0) -> Triangulation:
+    """Triangulate markers' tracks: pixels (C, F, M, 2) of consecutive frames. Each point as
+    `triangulate` does; then each point is compared with what its marker's 3-D track
+    predicts (the points of frames f-3 … f+3, the predictions `TRACK_PREDICTORS`, each
+    with its uncertainty from its points' normal matrices). A point within `sigmas` SDs of a
+    prediction is on its track; for the others each seen view is compared with the
+    predictions projected into it: a used view far from every one (beyond `sigmas` SDs of
+    the pixel noise plus the prediction's uncertainty, and beyond `floor_px`), where another
+    seen view is near one, is dropped and the point triangulated again from the views near
+    one (a view dropped before but near one is taken back); with fewer than two of them the
+    point is dropped. A marker with fewer than `SMOOTH_SHARE` of its points on its track is
+    not judged (frames too far apart in time). A point with one prediction (a track's end, a gap) is judged only
+    where two views are near it; with none it is left as `triangulate` made it. A point
+    judged so is judged again from predictions without the points so judged (a wrong
+    neighbour spoils the predictions it is in), and changed only if that says so too.
+    Returns a Triangulation over (F, M)."""
+    options = options or TriangulateOptions()
+    pixels = np.asarray(pixels, dtype=float)
+    if pixels.ndim != 4 or pixels.shape[0] != len(cameras) or pixels.shape[-1] != 2:
+        raise ValueError(f"pixels must have shape (C={len(cameras)}, F, M, 2), got {pixels.shape}")
+    n_cams, shape = len(cameras), pixels.shape[1:3]
+    flat = pixels.reshape(n_cams, -1, 2)
+    xyz, error_px, used, noise, normal = _triangulate_flat(cameras, flat, options)
+    seen = np.isfinite(flat).all(-1)
+    covariance = np.full(normal.shape, np.nan)
+    solved = np.isfinite(xyz).all(-1)
+    covariance[solved] = noise**2 * np.linalg.inv(normal[solved])
+    on_track, predictions = _on_the_track(xyz.reshape(shape + (3,)), covariance.reshape(shape + (3, 3)), options.sigmas)
+    asked = (solved & (predictions >= 1)).reshape(shape)
+    # a marker whose points are mostly off their track moves too far between frames to be judged
+    smooth = (on_track.reshape(shape) & asked).sum(0) >= SMOOTH_SHARE * asked.sum(0)
+    redo = solved & ~on_track & (predictions >= 1) & np.broadcast_to(smooth, shape).reshape(-1)
+    for second in (False, True):  # judged again without the points judged wrong: a wrong neighbour spoils predictions
+        if not redo.any():
+            break
+        base = np.where(redo[:, None], np.nan, xyz) if second else xyz
+        near, predictions = _near_the_track(cameras, flat, base.reshape(shape + (3,)), covariance.reshape(shape + (3, 3)),
+                                            np.nonzero(redo)[0], noise, options.sigmas, floor_px)
+        near_views = (seen & near).sum(0)
+        # one prediction could be spoiled by a wrong neighbour: it judges only where two views agree with it
+        judged = (predictions >= 2) | ((predictions == 1) & (near_views >= 2))
+        contradicted = judged & used & ~near
+        redo &= contradicted.any(0) & (near_views >= 1)
+    dropped = np.zeros(flat.shape[1], int)
+    redo = np.nonzero(redo)[0]
+    if len(redo):
+        dropped[redo] = contradicted[:, redo].sum(0)
+        keep = (seen & near)[:, redo]
+        again = np.where(keep[..., None], flat[:, redo], np.nan)
+        xyz[redo], error_px[redo], used[:, redo], *_ = _triangulate_flat(cameras, again, options, noise)
+    return Triangulation(
+        xyz.reshape(shape + (3,)), error_px.reshape(shape), used.sum(0).reshape(shape),
+        used.reshape((n_cams,) + shape), dropped.reshape(shape),
+    )
+
+
+def _predictions(xyz: np.ndarray, covariance: np.ndarray):
+    """Each of `TRACK_PREDICTORS`' predictions (N, 3) of points xyz (F, M, 3), N = F M, from
+    their neighbours in time, with its covariance (N, 3, 3) from the neighbours' (F, M, 3,
+    3), and whether it exists (N,)."""
+    n = xyz.shape[0] * xyz.shape[1]
+    for predictor in TRACK_PREDICTORS:
+        guess, spread = np.zeros(xyz.shape), np.zeros(covariance.shape)
+        for offset, weight in predictor.items():
+            guess += weight * _shifted(xyz, offset)
+            spread += weight**2 * _shifted(covariance, offset)
+        guess, spread = guess.reshape(n, 3), spread.reshape(n, 3, 3)
+        yield guess, spread, ~np.isnan(guess[:, 0])  # a point's covariance is NaN where it is
+
+
+def _on_the_track(xyz: np.ndarray, covariance: np.ndarray, sigmas: float):
+    """Whether each point (N,) of xyz (F, M, 3) lies within `sigmas` SDs (its own
+    covariance (F, M, 3, 3) and the prediction's) of some prediction of its track, and how
+    many predictions it has (N,)."""
+    points, own = xyz.reshape(-1, 3), covariance.reshape(-1, 3, 3)
+    on, count = np.zeros(len(points), bool), np.zeros(len(points), int)
+    solved = ~np.isnan(points[:, 0])
+    for guess, spread, valid in _predictions(xyz, covariance):
+        count += valid
+        ask = np.nonzero(valid & solved & ~on)[0]  # one prediction near is enough
+        gap = points[ask] - guess[ask]
+        d2 = np.einsum("ni,ni->n", gap, np.linalg.solve(own[ask] + spread[ask], gap[..., None])[..., 0])
+        on[ask] = d2 <= sigmas**2
+    return on, count
+
+
+def _near_the_track(cameras, flat, xyz, covariance, among, noise, sigmas, floor_px):
+    """For the views (C, N) of points `among` (K,) of xyz (F, M, 3), N = F M: whether each
+    seen view is near some prediction of its marker's 3-D track (within `sigmas` SDs of
+    the pixel noise plus the prediction's uncertainty, or within `floor_px`; False for the
+    other points), and each point's number of predictions (N,)."""
+    n_cams, n = flat.shape[:2]
+    seen = np.isfinite(flat[:, among]).all(-1)
+    near, count = np.zeros((n_cams, n), bool), np.zeros(n, int)
+    for guess, spread, valid in _predictions(xyz, covariance):
+        count += valid
+        guess, spread, valid = guess[among], spread[among], valid[among]
+        residual, jac = _residuals(cameras, flat[:, among], seen & valid, np.where(valid[:, None], guess, 0.0))
+        residual, jac = residual.reshape(len(among), n_cams, 2), jac.reshape(len(among), n_cams, 2, 3)
+        gap = noise**2 * np.eye(2) + jac @ np.where(valid[:, None, None], spread, 0.0)[:, None] @ np.swapaxes(jac, -1, -2)
+        d2 = np.einsum("kci,kci->kc", residual, np.linalg.solve(gap, residual[..., None])[..., 0])
+        close = (d2 <= sigmas**2) | ((residual**2).sum(-1) <= floor_px**2)
+        near[:, among] |= (seen & valid[None]) & close.T
+    return near, count
+
+
+def _shifted(values: np.ndarray, offset: int) -> np.ndarray:
+    """values (F, ...) of frame f + offset at frame f, NaN beyond the ends."""
+    out = np.full(values.shape, np.nan)
+    if offset >= 0:
+        out[: len(values) - offset] = values[offset:]
+    else:
+        out[-offset:] = values[: len(values) + offset]
+    return out
+
+
+def _triangulate_flat(cameras: list[Camera], flat: np.ndarray, options: TriangulateOptions, noise: float | None = None):
+    """Points (N,) of pixels (C, N, 2) -> xyz (N, 3), error_px (N,), used (C, N), the pixel
+    noise (`noise`, or estimated from the residuals) and each point's normal matrix (N, 3,
+    3) in px²/m² (its covariance over the noise²); points seen by fewer than two views are
+    left NaN."""
+    seen = np.isfinite(flat).all(-1)
+    solvable = np.nonzero(seen.sum(0) >= 2)[0]  # the others are left untouched: no point
+    xyz = np.full((flat.shape[1], 3), np.nan)
+    error_px = np.full(flat.shape[1], np.nan)
+    normal = np.full((flat.shape[1], 3, 3), np.nan)
+    used = seen.copy()
+    if len(solvable):
+        xyz[solvable], error_px[solvable], used[:, solvable], noise, normal[solvable] = _triangulate_points(
+            cameras, flat[:, solvable], options, noise)
+    return xyz, error_px, used, 1.0 if noise is None else noise, normal
+
+
+def _triangulate_points(cameras: list[Camera], flat: np.ndarray, options: TriangulateOptions, noise: float | None = None):
     """Points (N,) each seen by two or more cameras, pixels (C, N, 2) -> xyz (N, 3) (NaN
-    with fewer than `min_views` views left), error_px (N,), used (C, N)."""
+    with fewer than `min_views` views left), error_px (N,), used (C, N), the pixel noise
+    (`noise`, or estimated from the first solve's residuals) and the normal matrices (N, 3,
+    3) at the solution."""
     seen = np.isfinite(flat).all(-1)
     normalised = undistort(cameras, flat)
     used = seen.copy()
     xyz, residual, jac = _solve(cameras, flat, normalised, used, options.iterations)
-    limit = options.max_error_px or options.sigmas * _noise(residual, used)
+    noise = _noise(residual, used) if noise is None else noise
+    limit = options.max_error_px or options.sigmas * noise
     for _ in range(len(cameras) - 2):
         error = np.where(used, np.linalg.norm(residual, axis=-1), 0.0)
         suspect = np.nonzero((used.sum(0) >= 3) & (error.max(0) > limit))[0]
@@ -122,7 +267,8 @@ def _triangulate_points(cameras: list[Camera], flat: np.ndarray, options: Triang
     views = used.sum(0)
     enough = views >= options.min_views
     error_px = np.where(enough, np.sqrt(squared / np.maximum(views, 1)), np.nan)
-    return np.where(enough[:, None], xyz, np.nan), error_px, used
+    normal = np.swapaxes(jac, 1, 2) @ jac + _EPS * np.eye(3)
+    return np.where(enough[:, None], xyz, np.nan), error_px, used, noise, normal
 
 
 def _noise(residual: np.ndarray, used: np.ndarray) -> float:
