@@ -33,8 +33,16 @@ tolerance, as before);
 `fit_unambiguous` the same over the scenes where the fit finds no second solution that
 explains the pixels as well (`mocap.reconstruct.ambiguity`; the others are reported by the
 fit itself, not hidden); `fit_sds` the worst frame's tip error in its stated SDs.
+`triangulation` the markers' RMS error over the RMS bound of their good views, as `mocap
+triangulate` makes them (each marker's 3-D track asked, `triangulate_tracks`), and
+`triangulation_per_frame` the same per frame alone (`triangulate`);
 `triangulation_at_bound` what an estimator exactly at the triangulation bound would score
-(one draw of every point's error from its bound covariance).
+(one draw of every point's error from its bound covariance). `--triangulation-only` skips
+the calibration and the fit; `--wild` and `--occlusion` set the field scenes' shares of
+wild pixels and hidden markers:
+
+    .venv/bin/python benchmarks/bench_robustness.py --kind field --scenes 1600 --triangulation-only --jobs 2
+    .venv/bin/python benchmarks/bench_robustness.py --kind field --scenes 600 --triangulation-only --wild 0.06 --occlusion 0.3
 
 With `--refined N`, N clean scenes of `REFINED_FRAMES` frames go through the chain a user
 runs without surveyed cameras: the one-frame calibration (frame 0), `refine` over the
@@ -67,14 +75,14 @@ from scipy.optimize import least_squares
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
 from mocap.calibration.problem import Layout, Problem
 from mocap.camera import project
-from mocap.errors import InputError
+from mocap.errors import DegenerateError, InputError
 from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets, tape_sd
 from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
-from mocap.reconstruct.triangulate import triangulate_tracks
+from mocap.reconstruct.triangulate import triangulate, triangulate_tracks
 from mocap.reconstruct.uncertainty import point_quantities
 from mocap.synthetic.bounds import calibration_centre_covariance, fit_point_sd, triangulation_covariance
 from mocap.synthetic.machines import SceneOptions, random_scene
@@ -82,9 +90,10 @@ from mocap.synthetic.machines import SceneOptions, random_scene
 FIELD = SceneOptions.field()
 CALIBRATION_KEYS = ["calibration", "calibration_at_bound", "calibration_worst_camera", "calibration_unflagged"]
 FIELD_CALIBRATION_KEYS = [*CALIBRATION_KEYS, "calibration_stated_prior", "calibration_exact_model"]
-CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", "triangulation", "triangulation_at_bound"]
+TRIANGULATION_KEYS = ["triangulation", "triangulation_per_frame", "triangulation_at_bound"]
+CLEAN_KEYS = [*CALIBRATION_KEYS, "fit", "fit_unambiguous", "fit_sds", *TRIANGULATION_KEYS]
 FIELD_KEYS = [*FIELD_CALIBRATION_KEYS, "naive_calibration", "fit", "fit_unambiguous", "fit_sds", "fit_weighted_only",
-              "triangulation", "triangulation_at_bound"]
+              *TRIANGULATION_KEYS]
 FRAMES = 40
 REFINED_FRAMES = 120  # a session's refinement sees many frames; 40 leave the cameras a few tenths of the bound
 LONG_FRAMES = 3000  # a session's length at which a wrong stretch of frames has room to form
@@ -141,14 +150,20 @@ def at_bound(covariance: np.ndarray, rng) -> float:
     return float(np.median(np.linalg.norm(draws, axis=1) / np.sqrt(np.trace(covariance, axis1=1, axis2=2))))
 
 
-def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
+def one_scene(seed: int, field: bool, stages: str = "all", field_options: SceneOptions = FIELD) -> dict:
+    """One scene's rows; `stages`: all, calibration or triangulation."""
     rng = np.random.default_rng(seed)
-    options = FIELD if field else SceneOptions()
-    scene = random_scene(rng, options, n_frames=FRAMES)
+    options = field_options if field else SceneOptions()
+    try:
+        scene = random_scene(rng, options, n_frames=FRAMES)
+    except DegenerateError:  # much occlusion (`--occlusion`) can leave no scene a camera fixes
+        return dict(seed=seed, joints=0, cameras=0, markers=0, skipped=True)
     machine, cameras = scene.machine, list(scene.cameras)
     out = dict(seed=seed, joints=machine.n_joints, cameras=len(cameras), markers=len(machine.marker_names))
     sd = model_sd(scene)
     noise = options.noise_px
+    if stages == "triangulation":
+        return {**out, **triangulation_rows(scene, seed, field, noise)}
     templates = [template_camera(c.name, c.size) for c in cameras]
     calibration_options = CalibrationOptions(tolerance=Tolerance(options.tolerance) if field else None)
     try:
@@ -178,7 +193,7 @@ def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
                                            / np.sqrt(np.trace(other, axis1=1, axis2=2))))
     except InputError as exc:
         out["refused"] = str(exc).split(";")[0][:90]
-    if calibration_only:
+    if stages == "calibration":
         return out
     if machine.n_joints and machine.point_names:
         pixels = on_clock(scene) if field else scene.pixels()
@@ -212,21 +227,37 @@ def one_scene(seed: int, field: bool, calibration_only: bool = False) -> dict:
         out["fit_ambiguous"] = bool(ambiguity.ambiguous.any())
         if shown.any() and not ambiguity.ambiguous.any():
             out["fit_unambiguous"] = out["fit"]
-    if len(cameras) >= 2:
-        result = triangulate_tracks(cameras, on_clock(scene) if field else scene.pixels())
-        truth = machine.markers(scene.joints).reshape(-1, 3)
-        seen = np.isfinite(pixels_without_wild(scene)[..., 0]).reshape(len(cameras), -1)
-        covariance = triangulation_covariance(cameras, truth, seen, noise)
-        bound = np.sqrt(np.trace(covariance, axis1=1, axis2=2))
+    return {**out, **triangulation_rows(scene, seed, field, noise)}
+
+
+def triangulation_rows(scene, seed: int, field: bool, noise: float) -> dict:
+    """The markers' RMS error over the bound of the good views, as `mocap triangulate` does
+    it (the tracks asked) and per frame alone, what an estimator at the bound scores, and
+    the share of the points the good views fix that were dropped."""
+    cameras, out = list(scene.cameras), {}
+    if len(cameras) < 2:
+        return out
+    pixels = on_clock(scene) if field else scene.pixels()
+    truth = scene.machine.markers(scene.joints).reshape(-1, 3)
+    seen = np.isfinite(pixels_without_wild(scene)[..., 0]).reshape(len(cameras), -1)
+    covariance = triangulation_covariance(cameras, truth, seen, noise)
+    bound = np.sqrt(np.trace(covariance, axis1=1, axis2=2))
+    wild = np.isfinite(pixels[..., 0]).reshape(len(cameras), -1) & ~seen
+    for key, result in (("triangulation", triangulate_tracks(cameras, pixels)),
+                        ("triangulation_per_frame", triangulate(cameras, pixels))):
         error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth, axis=1)
         ok = np.isfinite(bound) & np.isfinite(error)
-        if ok.any():
-            out["triangulation"] = rms_over_bound(error[ok], bound[ok])
+        if not ok.any():
+            return out
+        out[key] = rms_over_bound(error[ok], bound[ok])
+        out[key + "_wild_kept"] = int((result.used.reshape(len(cameras), -1) & wild & np.isfinite(error)).sum())
+        if key == "triangulation":
             values, vectors = np.linalg.eigh(covariance[ok])  # one draw of each point's error at the bound
             draws = np.einsum("nij,nj->ni", vectors, np.sqrt(np.maximum(values, 0))
                               * np.random.default_rng(seed + 11).normal(size=values.shape))
             out["triangulation_at_bound"] = float(np.sqrt(np.mean((draws**2).sum(1)) / np.mean(bound[ok] ** 2)))
             out["lost_points"] = float(1 - ok.sum() / max(np.isfinite(bound).sum(), 1))
+            out["contradicted"] = int(result.contradicted.sum())
     return out
 
 
@@ -334,30 +365,40 @@ def table(title: str, header: list[str], rows: list[list]) -> None:
 
 
 def report(name: str, rows: list[dict], keys: list[str]) -> None:
+    """The stages the rows hold (`--calibration-only` and `--triangulation-only` hold one)."""
+    if any(r.get("skipped") for r in rows):
+        print(f"\n{name}: {sum(r.get('skipped', False) for r in rows)} seeds drew no scene a camera fixes (skipped)")
+        rows = [r for r in rows if not r.get("skipped")]
     table(f"{name}: {len(rows)} scenes, error / bound", ["stage", "scenes", "median", "90 %", "99 %", "worst"],
-          [distribution(rows, k) for k in keys])
-    refused = [r for r in rows if "refused" in r]
-    placeable = [r for r in refused if r.get("bound_over_distance", np.inf) < PLACEABLE]
-    print(f"  calibration refused (one clear error, no answer): {len(refused)}, of which {len(placeable)} wrongly "
-          f"(every camera's own bound below {PLACEABLE} of its distance: an estimator could place it)")
-    for r in placeable + [r for r in refused if r not in placeable][:max(0, 5 - len(placeable))]:
-        print(f"    seed {r['seed']}: {r['cameras']} camera(s), {r['markers']} markers, worst bound / distance "
-              f"{r.get('bound_over_distance', np.nan):.2f}: {r['refused']}")
-    print(f"  good observations dropped as outliers by calibrate: {sum(r.get('dropped_good', 0) for r in rows)}")
-    print(f"  calibrations returned with a warning (a camera hardly fixed or doubtful): "
-          f"{sum(r.get('flagged', 0) > 0 for r in rows)}")
-    print(f"  frames left unexplained by the fit: {sum(r.get('unexplained', 0) for r in rows)}")
-    print(f"  fits the fit itself calls ambiguous (a second solution as good, far away): "
-          f"{sum(r.get('fit_ambiguous', False) for r in rows)} of {sum('fit_ambiguous' in r for r in rows)}")
+          [d for d in (distribution(rows, k) for k in keys) if d[1]])
+    if any("calibration" in r or "refused" in r for r in rows):
+        refused = [r for r in rows if "refused" in r]
+        placeable = [r for r in refused if r.get("bound_over_distance", np.inf) < PLACEABLE]
+        print(f"  calibration refused (one clear error, no answer): {len(refused)}, of which {len(placeable)} wrongly "
+              f"(every camera's own bound below {PLACEABLE} of its distance: an estimator could place it)")
+        for r in placeable + [r for r in refused if r not in placeable][:max(0, 5 - len(placeable))]:
+            print(f"    seed {r['seed']}: {r['cameras']} camera(s), {r['markers']} markers, worst bound / distance "
+                  f"{r.get('bound_over_distance', np.nan):.2f}: {r['refused']}")
+        print(f"  good observations dropped as outliers by calibrate: {sum(r.get('dropped_good', 0) for r in rows)}")
+        print(f"  calibrations returned with a warning (a camera hardly fixed or doubtful): "
+              f"{sum(r.get('flagged', 0) > 0 for r in rows)}")
+    if any("fit_ambiguous" in r for r in rows):
+        print(f"  frames left unexplained by the fit: {sum(r.get('unexplained', 0) for r in rows)}")
+        print(f"  fits the fit itself calls ambiguous (a second solution as good, far away): "
+              f"{sum(r.get('fit_ambiguous', False) for r in rows)} of {sum('fit_ambiguous' in r for r in rows)}")
     if any("fit_sds" in r for r in rows):
         print(f"  fit: scenes with a frame's tip beyond 5 of its stated SDs: {sum(r.get('fit_sds', 0) > 5 for r in rows)}")
     if any("lost_points" in r for r in rows):
         print(f"  triangulation: share of the points seen twice that were dropped, median "
-              f"{100 * np.median([r['lost_points'] for r in rows if 'lost_points' in r]):.1f} %")
-    for key in ("calibration", "fit", "triangulation"):
+              f"{100 * np.median([r['lost_points'] for r in rows if 'lost_points' in r]):.1f} %; views the "
+              f"markers' 3-D tracks contradicted {sum(r.get('contradicted', 0) for r in rows)}; wild views kept "
+              f"{sum(r.get('triangulation_wild_kept', 0) for r in rows)} (per frame alone "
+              f"{sum(r.get('triangulation_per_frame_wild_kept', 0) for r in rows)})")
+    for key in ("calibration", "fit", "triangulation", "triangulation_per_frame"):
         worst = sorted((r for r in rows if key in r), key=lambda r: -r[key])[:3]
-        print(f"  worst {key}: " + "; ".join(
-            f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) {r[key]:.1f}" for r in worst))
+        if worst:
+            print(f"  worst {key}: " + "; ".join(
+                f"seed {r['seed']} ({r['joints']} joints, {r['cameras']} cameras) {r[key]:.1f}" for r in worst))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -367,12 +408,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first", type=int, default=0, help="the first scene's seed (default 0)")
     parser.add_argument("--jobs", type=int, default=1, help="processes to run scenes in (default 1)")
     parser.add_argument("--calibration-only", action="store_true", help="only the one-frame calibration (quicker)")
+    parser.add_argument("--triangulation-only", action="store_true", help="only the triangulation (a minute for 1,000)")
+    parser.add_argument("--wild", type=float, default=FIELD.outliers,
+                        help=f"field scenes' share of wild pixels (default {FIELD.outliers:g})")
+    parser.add_argument("--occlusion", type=float, default=FIELD.occlusion,
+                        help=f"field scenes' share of hidden markers (default {FIELD.occlusion:g})")
     parser.add_argument("--rows", help="also write every scene's figures to this file (JSON lines)")
     parser.add_argument("--refined", type=int, default=0, metavar="N",
                         help="also N clean scenes through calibrate, refine and fit (default 0)")
     parser.add_argument("--long", type=int, default=0, metavar="N",
                         help=f"also N clean scenes of {LONG_FRAMES} frames fitted with the true cameras (default 0)")
     args = parser.parse_args(argv)
+    if args.calibration_only and args.triangulation_only:
+        parser.error("--calibration-only and --triangulation-only: choose one")
+    stages = "calibration" if args.calibration_only else "triangulation" if args.triangulation_only else "all"
+    field_options = replace(FIELD, outliers=args.wild, occlusion=args.occlusion)
     logging.getLogger("mocap").setLevel(logging.ERROR)  # the warnings are counted in the table instead
     kinds = [k for k in ((False, "Clean scenes", CLEAN_KEYS), (True, "Field scenes", FIELD_KEYS))
              if args.scenes and args.kind in ("both", "field" if k[0] else "clean")]
@@ -381,12 +431,13 @@ def main(argv: list[str] | None = None) -> int:
         started = time.perf_counter()
         seeds = [seed + (10**6 if field else 0) for seed in range(args.first, args.first + args.scenes)]
         with multiprocessing.Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
-            rows = (pool.starmap if pool else itertools.starmap)(one_scene, [(seed, field, args.calibration_only) for seed in seeds])
+            rows = (pool.starmap if pool else itertools.starmap)(
+                one_scene, [(seed, field, stages, field_options) for seed in seeds])
             rows = list(rows)
         everything += rows
         report(name, rows, keys)
         print(f"  wall time {time.perf_counter() - started:.0f} s ({args.jobs} process(es))")
-        if field:
+        if field and stages != "triangulation":
             ours = np.array([r.get("calibration", np.inf) for r in rows])
             naive = np.array([r.get("naive_calibration", np.inf) for r in rows])
             both = np.isfinite(ours) & np.isfinite(naive)
