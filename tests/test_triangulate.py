@@ -12,8 +12,8 @@ from mocap.io.cameras_toml import Calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points
 from mocap.io.tracks_csv import Tracks, save_tracks
-from mocap.reconstruct.timing import resample, tracks_on_reference_clock
 from mocap.reconstruct.outliers import track_outliers
+from mocap.reconstruct.timing import resample, tracks_on_reference_clock
 from mocap.reconstruct.triangulate import (
     TriangulateOptions, _solve, _solve_numpy, triangulate, triangulate_tracks, undistort,
 )
@@ -87,32 +87,46 @@ def test_drops_a_wrong_view(machine):
     assert np.mean(d2[one_wrong]) < 3.6
 
 
-def test_a_wild_view_that_one_frame_cannot_tell_is_dropped_by_the_track(machine):
-    """A wild pixel along the epipolar line of another view: with that view alone the two
-    agree exactly, with a third leave-one-out may drop the good third. The camera's own
-    track has a gap around it (no 2-D judgement); the marker's 3-D track tells (cameras
-    50-100 degrees apart: two opposite cameras alone would leave the neighbours' depth, and
-    so the track's prediction, too vague to tell)."""
-    rng = np.random.default_rng(8)
-    cameras = ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0), spread_deg=100.0)
-    n_frames = 90
-    world = machine.markers(random_motion(machine, n_frames, rng))
-    pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (3,) + world.shape[:-1] + (2,))
-    frames = rng.choice(np.arange(4, n_frames - 4, 3), 24, replace=False)
+def wide_rig(seed):
+    """Three cameras 50-100 degrees apart (two opposite cameras alone would leave a
+    point's depth, and so a track's prediction, too vague to tell a wild view)."""
+    rng = np.random.default_rng(seed)
+    return ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 60.0), rng, fov_deg=(40.0, 60.0), spread_deg=100.0), rng
+
+
+def wild_along_epipolar_lines(cameras, world, pixels, frames, rng):
+    """Put a wild pixel into one camera at each of `frames`, a random marker's, along the
+    epipolar line of another camera's (noise-free) pixel, the wild camera's track with a
+    gap around it; every other frame's third view hidden. Returns (wild (C, F, M), marker
+    of each frame, whether only two views see it)."""
+    n_cams = len(cameras)
     marks = rng.integers(0, world.shape[1], len(frames))
-    wild_cam, other = rng.integers(0, 3, len(frames)), rng.integers(1, 3, len(frames))
-    other = (wild_cam + other) % 3
+    wild_cam = rng.integers(0, n_cams, len(frames))
+    other = (wild_cam + rng.integers(1, n_cams, len(frames))) % n_cams
     two_views = np.arange(len(frames)) % 2 == 0
     for f, m, a, b, two in zip(frames, marks, wild_cam, other, two_views):
         ray = world[f, m] - cameras[b].center
         moved = world[f, m] + rng.choice([-1, 1]) * rng.uniform(1.0, 3.0) * ray / np.linalg.norm(ray)
         pixels[a, f, m] = cameras[a].project(moved[None])[0]
-        pixels[b, f, m] = cameras[b].project(world[f, m][None])[0]  # the noise-free pixel: the two agree exactly
+        pixels[b, f, m] = cameras[b].project(world[f, m][None])[0]  # the two agree exactly
         pixels[a, [f - 1, f + 1, f - 3, f + 3], m] = np.nan  # the wild camera's track has a gap around it
         if two:
             pixels[3 - a - b, f, m] = np.nan
     wild = np.zeros(pixels.shape[:3], bool)
     wild[wild_cam, frames, marks] = True
+    return wild, marks, two_views
+
+
+def test_a_wild_view_that_one_frame_cannot_tell_is_dropped_by_the_track(machine):
+    """A wild pixel along the epipolar line of another view: with that view alone the two
+    agree exactly, with a third leave-one-out may drop the good third. The camera's own
+    track has a gap around it (no 2-D judgement); the marker's 3-D track tells."""
+    cameras, rng = wide_rig(8)
+    n_frames = 90
+    world = machine.markers(random_motion(machine, n_frames, rng))
+    pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (3,) + world.shape[:-1] + (2,))
+    frames = rng.choice(np.arange(4, n_frames - 4, 3), 24, replace=False)
+    wild, marks, two_views = wild_along_epipolar_lines(cameras, world, pixels, frames, rng)
     assert not any(track_outliers(pixels[c])[wild[c]].any() for c in range(3))  # its 2-D track cannot tell
 
     alone = triangulate(cameras, pixels)
@@ -128,6 +142,33 @@ def test_a_wild_view_that_one_frame_cannot_tell_is_dropped_by_the_track(machine)
     solved = np.isfinite(result.xyz[..., 0])
     d2 = cramer_rao_mahalanobis(cameras, world, result.used, np.nan_to_num(result.xyz - world))[solved]
     assert np.mean(d2) < 3.5  # chi-square with 3 dof: at the bound
+
+
+def test_cli_triangulates_in_chunks_as_in_one(tmp_path, machine, monkeypatch, capsys):
+    """`mocap triangulate` asks the tracks chunk by chunk; each chunk brings the frames its
+    edges' predictions need, so that the points are those of one call over all frames."""
+    from mocap.reconstruct import stage
+
+    cameras, rng = wide_rig(9)
+    world = machine.markers(random_motion(machine, 40, rng))
+    pixels = np.stack([c.project(world) for c in cameras]) + rng.normal(0, NOISE, (3,) + world.shape[:-1] + (2,))
+    wild, _, _ = wild_along_epipolar_lines(cameras, world, pixels, np.array([6, 7, 13, 14, 20, 27, 28, 34]), rng)
+    c, f, m = np.nonzero(np.isfinite(pixels[..., 0]))
+    names = np.array([cam.name for cam in cameras])
+    tracks = Tracks.from_rows(names[c], f, np.array(machine.marker_names)[m], pixels[c, f, m])
+    save_calibration(Calibration(tuple(cameras), tuple({"fps": 30.0, "time_offset": 0.0} for _ in cameras)),
+                     tmp_path / "cameras.toml")
+    save_tracks(tracks, tmp_path / "tracks.csv")
+    monkeypatch.setattr(stage, "_CHUNK_FRAMES", 7)  # wild pixels at the chunks' first and last frames
+    out = tmp_path / "points.csv"
+    assert cli.main(["triangulate", str(tmp_path / "cameras.toml"), str(tmp_path / "tracks.csv"), "--out", str(out)]) == 0
+    points = load_points(out)
+    clock = tracks_on_reference_clock(tracks, names, machine.marker_names, np.full(3, 30.0), np.zeros(3))
+    whole = triangulate_tracks(cameras, clock.pixels)
+    f, m = np.nonzero(np.isfinite(whole.xyz[..., 0]))
+    assert len(points) == len(f) and whole.contradicted.sum() == wild.sum()
+    np.testing.assert_allclose(points.xyz, whole.xyz[f, m], atol=1e-4)  # the chunks' noise estimates differ a little
+    assert f"; {wild.sum()} view(s) dropped that the markers' 3-D tracks contradict" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("distorted", [True, False])
