@@ -131,6 +131,14 @@ def test_triangulation_of_random_machines_reaches_the_bound():
         assert ratio < 1.5, f"scene {seed}: triangulation RMSE {ratio:.2f} x the bound"
 
 
+def good_pixels(scene) -> np.ndarray:
+    """The scene's pixels (C, F, M, 2) with its wild ones NaN: what the bound counts."""
+    good, names, rows = scene.pixels(), [c.name for c in scene.cameras], scene.outlier
+    good[[names.index(c) for c in scene.tracks.camera[rows]], scene.tracks.frame[rows],
+         scene.machine.marker_index(scene.tracks.marker[rows])] = np.nan
+    return good
+
+
 def test_field_triangulation_drops_wild_pixels_even_with_two_views():
     """2 % wild pixels (10-100 px), 15 % occlusion, 0.8 px noise: pixels their own tracks
     contradict are dropped before triangulating, views that disagree after; the points stay
@@ -142,11 +150,7 @@ def test_field_triangulation_drops_wild_pixels_even_with_two_views():
         clock = tracks_on_reference_clock(scene.tracks, names, scene.machine.marker_names, np.full(len(names), 30.0), np.zeros(len(names)))
         assert clock.dropped <= scene.outlier.sum() + 0.01 * len(scene.tracks)  # few good pixels lost
         result = triangulate(list(scene.cameras), clock.pixels)
-        good = scene.pixels()
-        wild = np.zeros(good.shape[:3], bool)
-        rows = scene.outlier
-        wild[[names.index(c) for c in scene.tracks.camera[rows]], scene.tracks.frame[rows], scene.machine.marker_index(scene.tracks.marker[rows])] = True
-        good[wild] = np.nan
+        good = good_pixels(scene)
         truth = scene.machine.markers(scene.joints).reshape(-1, 3)
         bound = triangulation_sd(list(scene.cameras), truth, np.isfinite(good[..., 0]).reshape(len(names), -1), 0.8)
         error = np.linalg.norm(result.xyz.reshape(-1, 3) - truth, axis=1)
@@ -170,11 +174,7 @@ def test_field_triangulation_asks_the_markers_3d_tracks():
         names, cameras = [c.name for c in scene.cameras], list(scene.cameras)
         pixels = tracks_on_reference_clock(scene.tracks, names, scene.machine.marker_names, np.full(len(names), 30.0),
                                            np.zeros(len(names))).pixels
-        good = scene.pixels()
-        wild = np.zeros(good.shape[:3], bool)
-        rows = scene.outlier
-        wild[[names.index(c) for c in scene.tracks.camera[rows]], scene.tracks.frame[rows], scene.machine.marker_index(scene.tracks.marker[rows])] = True
-        good[wild] = np.nan
+        good = good_pixels(scene)
         truth = scene.machine.markers(scene.joints).reshape(-1, 3)
         bound = triangulation_sd(cameras, truth, np.isfinite(good[..., 0]).reshape(len(names), -1), 0.8)
         tracked = triangulate_tracks(cameras, pixels)
