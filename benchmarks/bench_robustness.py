@@ -408,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first", type=int, default=0, help="the first scene's seed (default 0)")
     parser.add_argument("--jobs", type=int, default=1, help="processes to run scenes in (default 1)")
     parser.add_argument("--calibration-only", action="store_true", help="only the one-frame calibration (quicker)")
-    parser.add_argument("--triangulation-only", action="store_true", help="only the triangulation (a minute for 1,000)")
+    parser.add_argument("--triangulation-only", action="store_true", help="only the triangulation (seconds for 1,000 scenes)")
     parser.add_argument("--wild", type=float, default=FIELD.outliers,
                         help=f"field scenes' share of wild pixels (default {FIELD.outliers:g})")
     parser.add_argument("--occlusion", type=float, default=FIELD.occlusion,

@@ -112,11 +112,12 @@ def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
     seen view is near one, is dropped and the point triangulated again from the views near
     one (a view dropped before but near one is taken back); with fewer than two of them the
     point is dropped. A marker with fewer than `SMOOTH_SHARE` of its points on its track is
-    not judged (frames too far apart in time). A point with one prediction (a track's end, a gap) is judged only
-    where two views are near it; with none it is left as `triangulate` made it. A point
-    judged so is judged again from predictions without the points so judged (a wrong
-    neighbour spoils the predictions it is in), and changed only if that says so too.
-    Returns a Triangulation over (F, M)."""
+    not judged (frames too far apart in time). A point with one prediction (a track's end,
+    a gap) is judged only where two views are near it; with none it is left as
+    `triangulate` made it. A point judged so is judged again from predictions without the
+    points so judged (a wrong neighbour spoils the predictions it is in), and changed only
+    if that says so too. Returns a Triangulation over (F, M); its `contradicted` counts
+    the views dropped so."""
     options = options or TriangulateOptions()
     pixels = np.asarray(pixels, dtype=float)
     if pixels.ndim != 4 or pixels.shape[0] != len(cameras) or pixels.shape[-1] != 2:
