@@ -26,9 +26,14 @@ from mocap.camera import Camera, project_cam
 from mocap.reconstruct.outliers import PREDICTORS, noise_from_fits
 
 _EPS = 1e-9
-# a 3-D track's predictions: the 2-D tracks' ones, and lines from f+2, f+3 (f-2, f-3) for a
-# track's end whose next frame is missing (its uncertainty is counted, so a long lever is fair)
-TRACK_PREDICTORS = (*PREDICTORS, {2: 3.0, 3: -2.0}, {-2: 3.0, -3: -2.0})
+# a 3-D track's predictions: the 2-D tracks' ones; points between f-a and f+b, a != b, for a
+# gap beside the frame; and lines from f+2, f+3 (f-2, f-3) for a track's end whose next frame
+# is missing (each prediction's uncertainty is counted, so a long lever is fair)
+TRACK_PREDICTORS = (
+    *PREDICTORS,
+    *({-a: b / (a + b), b: a / (a + b)} for a in (1, 2, 3) for b in (1, 2, 3) if a != b),
+    {2: 3.0, 3: -2.0}, {-2: 3.0, -3: -2.0},
+)
 SMOOTH_SHARE = 0.5  # a marker's 3-D track is judged only where this share of its points is on it
 TRACK_FRAMES = max(abs(o) for p in TRACK_PREDICTORS for o in p)  # frames either side a 3-D track predicts from
 
