@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
+from mocap.analysis.features import OTHER
 from mocap.analysis.series import TipSeries
 
 N_SAMPLES = 64
@@ -291,7 +292,10 @@ def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[s
     `whole`, a temporary event's lift is judged over the whole path, its window included: a
     pulse leaves no trace outside its window but the arc's lengthening, so that is where it
     is measured (the height reported); the scales, which leave the window out, are taken
-    without it."""
+    without it. A dig of no shovel class (`other`: a backhoe's) has its lift judged over
+    the whole path always: the window is left out for a shovel dig's floor push, which
+    bends into the rise there and differs from dig to dig more than a stretch follows; a
+    backhoe dig has none, and its window is most of what tells a lift from a taller dig."""
     s = np.linspace(0.0, 1.0, n)
     lift = np.zeros(len(channels))
     grid = np.linspace(-span, span, steps)
@@ -309,7 +313,8 @@ def fit_lifts(channels: list[DigChannels], labels: np.ndarray, templates: dict[s
             arc = np.concatenate([np.zeros((len(z), 1)), np.cumsum(step, axis=1)], axis=1)
             arc /= np.maximum(arc[:, -1:], 1e-12)
             path = np.stack([_interp_rows(s, arc, r) - dig.r[0], _interp_rows(s, arc, z) - z[:, :1]], axis=-1)
-            weight = np.ones_like(path[..., 0]) if whole and not dig.kept else 1.0 - _interp_rows(s, arc, inside)
+            everywhere = (whole and not dig.kept) or labels[k] == OTHER
+            weight = np.ones_like(path[..., 0]) if everywhere else 1.0 - _interp_rows(s, arc, inside)
             stretch = np.clip(fit_scales(path, template, weight), 0.05, 20.0)
         sse = (weight[..., None] * (path - stretch[:, None, :] * template[None]) ** 2).sum(axis=(1, 2))
         g = int(np.clip(np.argmin(sse), 1, len(grid) - 2))
