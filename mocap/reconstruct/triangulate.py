@@ -134,28 +134,28 @@ def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
     covariance = np.full(normal.shape, np.nan)
     solved = np.isfinite(xyz).all(-1)
     covariance[solved] = noise**2 * np.linalg.inv(normal[solved])
-    on_track, predictions = _on_the_track(xyz.reshape(shape + (3,)), covariance.reshape(shape + (3, 3)), options.sigmas)
-    asked = (solved & (predictions >= 1)).reshape(shape)
+    points, spread = xyz.reshape(shape + (3,)), covariance.reshape(shape + (3, 3))
+    on_track, predicted = _on_the_track(points, spread, options.sigmas)
     # a marker whose points are mostly off their track moves too far between frames to be judged
-    smooth = (on_track.reshape(shape) & asked).sum(0) >= SMOOTH_SHARE * asked.sum(0)
-    redo = solved & ~on_track & (predictions >= 1) & np.broadcast_to(smooth, shape).reshape(-1)
+    smooth = on_track.reshape(shape).sum(0) >= SMOOTH_SHARE * predicted.reshape(shape).sum(0)
+    redo = np.nonzero(predicted & ~on_track & np.broadcast_to(smooth, shape).reshape(-1))[0]
     for second in (False, True):  # judged again without the points judged wrong: a wrong neighbour spoils predictions
-        if not redo.any():
+        if not len(redo):
             break
-        base = np.where(redo[:, None], np.nan, xyz) if second else xyz
-        near, predictions = _near_the_track(cameras, flat, base.reshape(shape + (3,)), covariance.reshape(shape + (3, 3)),
-                                            np.nonzero(redo)[0], noise, options.sigmas, floor_px)
-        near_views = (seen & near).sum(0)
+        base = points.copy()
+        if second:
+            base.reshape(-1, 3)[redo] = np.nan
+        near, count = _near_the_track(cameras, flat[:, redo], base, spread, redo, noise, options.sigmas, floor_px)
+        near_views = (seen[:, redo] & near).sum(0)
         # one prediction could be spoiled by a wrong neighbour: it judges only where two views agree with it
-        judged = (predictions >= 2) | ((predictions == 1) & (near_views >= 2))
-        contradicted = judged & used & ~near
-        redo &= contradicted.any(0) & (near_views >= 1)
+        judged = (count >= 2) | ((count == 1) & (near_views >= 2))
+        contradicted = judged & used[:, redo] & ~near
+        keep = contradicted.any(0) & (near_views >= 1)
+        redo, near, contradicted = redo[keep], near[:, keep], contradicted[:, keep]
     dropped = np.zeros(flat.shape[1], int)
-    redo = np.nonzero(redo)[0]
     if len(redo):
-        dropped[redo] = contradicted[:, redo].sum(0)
-        keep = (seen & near)[:, redo]
-        again = np.where(keep[..., None], flat[:, redo], np.nan)
+        dropped[redo] = contradicted.sum(0)
+        again = np.where((seen[:, redo] & near)[..., None], flat[:, redo], np.nan)
         xyz[redo], error_px[redo], used[:, redo], *_ = _triangulate_flat(cameras, again, options, noise)
     return Triangulation(
         xyz.reshape(shape + (3,)), error_px.reshape(shape), used.sum(0).reshape(shape),
@@ -163,64 +163,59 @@ def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
     )
 
 
-def _predictions(xyz: np.ndarray, covariance: np.ndarray):
-    """Each of `TRACK_PREDICTORS`' predictions (N, 3) of points xyz (F, M, 3), N = F M, from
-    their neighbours in time, with its covariance (N, 3, 3) from the neighbours' (F, M, 3,
-    3), and whether it exists (N,)."""
-    n = xyz.shape[0] * xyz.shape[1]
-    for predictor in TRACK_PREDICTORS:
-        guess, spread = np.zeros(xyz.shape), np.zeros(covariance.shape)
-        for offset, weight in predictor.items():
-            guess += weight * _shifted(xyz, offset)
-            spread += weight**2 * _shifted(covariance, offset)
-        guess, spread = guess.reshape(n, 3), spread.reshape(n, 3, 3)
-        yield guess, spread, ~np.isnan(guess[:, 0])  # a point's covariance is NaN where it is
+def _prediction(xyz: np.ndarray, covariance: np.ndarray, predictor: dict[int, float], at: np.ndarray):
+    """A predictor's ({frame offset: weight}, `TRACK_PREDICTORS`) prediction (K, 3) of the
+    points `at` (K,) (indices into N = F M) of xyz (F, M, 3) from their neighbours in time,
+    with its covariance (K, 3, 3) from the neighbours' (F, M, 3, 3), and whether it exists
+    (K,)."""
+    n_frames, n_markers = xyz.shape[:2]
+    points, spreads = xyz.reshape(-1, 3), covariance.reshape(-1, 3, 3)
+    frame = at // n_markers
+    guess, spread, valid = np.zeros((len(at), 3)), np.zeros((len(at), 3, 3)), np.ones(len(at), bool)
+    for offset, weight in predictor.items():
+        inside = (frame + offset >= 0) & (frame + offset < n_frames)
+        valid &= inside
+        other = np.where(inside, at + offset * n_markers, at)
+        guess += weight * points[other]
+        spread += weight**2 * spreads[other]
+    return guess, spread, valid & ~np.isnan(guess[:, 0])  # a point's covariance is NaN where it is
 
 
 def _on_the_track(xyz: np.ndarray, covariance: np.ndarray, sigmas: float):
     """Whether each point (N,) of xyz (F, M, 3) lies within `sigmas` SDs (its own
-    covariance (F, M, 3, 3) and the prediction's) of some prediction of its track, and how
-    many predictions it has (N,)."""
+    covariance (F, M, 3, 3) and the prediction's) of some prediction of its track, and
+    whether it has one (N,)."""
     points, own = xyz.reshape(-1, 3), covariance.reshape(-1, 3, 3)
-    on, count = np.zeros(len(points), bool), np.zeros(len(points), int)
+    on, predicted = np.zeros(len(points), bool), np.zeros(len(points), bool)
     solved = ~np.isnan(points[:, 0])
-    for guess, spread, valid in _predictions(xyz, covariance):
-        count += valid
-        ask = np.nonzero(valid & solved & ~on)[0]  # one prediction near is enough
-        gap = points[ask] - guess[ask]
-        d2 = np.einsum("ni,ni->n", gap, np.linalg.solve(own[ask] + spread[ask], gap[..., None])[..., 0])
+    for predictor in TRACK_PREDICTORS:
+        ask = np.nonzero(solved & ~on)[0]  # one prediction near is enough
+        guess, spread, valid = _prediction(xyz, covariance, predictor, ask)
+        predicted[ask] |= valid
+        ask, gap, spread = ask[valid], points[ask[valid]] - guess[valid], spread[valid]
+        d2 = np.einsum("ni,ni->n", gap, np.linalg.solve(own[ask] + spread, gap[..., None])[..., 0])
         on[ask] = d2 <= sigmas**2
-    return on, count
+    return on, predicted
 
 
-def _near_the_track(cameras, flat, xyz, covariance, among, noise, sigmas, floor_px):
-    """For the views (C, N) of points `among` (K,) of xyz (F, M, 3), N = F M: whether each
-    seen view is near some prediction of its marker's 3-D track (within `sigmas` SDs of
-    the pixel noise plus the prediction's uncertainty, or within `floor_px`; False for the
-    other points), and each point's number of predictions (N,)."""
-    n_cams, n = flat.shape[:2]
-    seen = np.isfinite(flat[:, among]).all(-1)
-    near, count = np.zeros((n_cams, n), bool), np.zeros(n, int)
-    for guess, spread, valid in _predictions(xyz, covariance):
+def _near_the_track(cameras, flat, xyz, covariance, at, noise, sigmas, floor_px):
+    """For the views (C, K) of the points `at` (K,) (indices into N = F M) of xyz (F, M, 3),
+    pixels `flat` (C, K, 2): whether each seen view is near some prediction of its marker's
+    3-D track (within `sigmas` SDs of the pixel noise plus the prediction's uncertainty, or
+    within `floor_px`), and each point's number of predictions (K,)."""
+    n_cams = len(cameras)
+    seen = np.isfinite(flat).all(-1)
+    near, count = np.zeros((n_cams, len(at)), bool), np.zeros(len(at), int)
+    for predictor in TRACK_PREDICTORS:
+        guess, spread, valid = _prediction(xyz, covariance, predictor, at)
         count += valid
-        guess, spread, valid = guess[among], spread[among], valid[among]
-        residual, jac = _residuals(cameras, flat[:, among], seen & valid, np.where(valid[:, None], guess, 0.0))
-        residual, jac = residual.reshape(len(among), n_cams, 2), jac.reshape(len(among), n_cams, 2, 3)
+        residual, jac = _residuals(cameras, flat, seen & valid, np.where(valid[:, None], guess, 0.0))
+        residual, jac = residual.reshape(len(at), n_cams, 2), jac.reshape(len(at), n_cams, 2, 3)
         gap = noise**2 * np.eye(2) + jac @ np.where(valid[:, None, None], spread, 0.0)[:, None] @ np.swapaxes(jac, -1, -2)
         d2 = np.einsum("kci,kci->kc", residual, np.linalg.solve(gap, residual[..., None])[..., 0])
         close = (d2 <= sigmas**2) | ((residual**2).sum(-1) <= floor_px**2)
-        near[:, among] |= (seen & valid[None]) & close.T
+        near |= (seen & valid[None]) & close.T
     return near, count
-
-
-def _shifted(values: np.ndarray, offset: int) -> np.ndarray:
-    """values (F, ...) of frame f + offset at frame f, NaN beyond the ends."""
-    out = np.full(values.shape, np.nan)
-    if offset >= 0:
-        out[: len(values) - offset] = values[offset:]
-    else:
-        out[-offset:] = values[: len(values) + offset]
-    return out
 
 
 def _triangulate_flat(cameras: list[Camera], flat: np.ndarray, options: TriangulateOptions, noise: float | None = None):
