@@ -11,6 +11,11 @@ Gauss-Newton, no view dropped) through each calibration, and the RMS error of th
 distance between adjacent corners against the board's square.
 
     python benchmarks/bench_lenses.py [--scenes 5] [--frames 60]
+    python benchmarks/bench_lenses.py --save-corners tests/data/opencv_stereo   # the tests' real corners
+
+`--save-corners DIR` writes the sample pairs' detected corners (`corners.csv`, tracks
+format: cameras `left` and `right`, frame = pair, marker = corner C00-C53) and the board's
+model (`board.toml`, unit squares) instead: the real-lens data the tests run on.
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ from mocap.calibration import CalibrationOptions, Observations, calibrate  # noq
 from mocap.calibration.solve import template_camera  # noqa: E402
 from mocap.camera import Camera  # noqa: E402
 from mocap.geometry import Rigid, rotvec_to_matrix  # noqa: E402
+from mocap.io.machine_toml import save_machine  # noqa: E402
+from mocap.io.tracks_csv import Tracks, save_tracks  # noqa: E402
 from mocap.reconstruct.refine import RefineOptions, refine  # noqa: E402
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate  # noqa: E402
 from mocap.synthetic.lens_scene import board_scene, chessboard  # noqa: E402
@@ -149,12 +156,31 @@ def real() -> float | None:
     return e_ours / e_peer
 
 
+def save_corners(folder: Path) -> None:
+    """The sample pairs' corners as tracks and the board as a machine model, in `folder`."""
+    if not (SAMPLES / "left01.jpg").exists():
+        raise SystemExit(f"{SAMPLES}/left01.jpg not found (apt-get install opencv-doc)")
+    pixels, size = sample_pairs()
+    board = chessboard(*BOARD, square=1.0)
+    c, k, m = np.nonzero(np.isfinite(pixels[..., 0]))
+    folder.mkdir(parents=True, exist_ok=True)
+    save_tracks(Tracks.from_rows(np.array(["left", "right"])[c], k, np.array(board.marker_names)[m],
+                                 np.round(pixels[c, k, m], 4)), folder / "corners.csv")
+    save_machine(board, folder / "board.toml")
+    print(f"{folder}: {pixels.shape[1]} pairs of {size[0]}x{size[1]} images, {len(c)} corners")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--save-corners", type=Path, metavar="DIR",
+                        help="write the sample pairs' corners and the board's model to DIR, and stop")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
+    if args.save_corners:
+        save_corners(args.save_corners)
+        return
     synthetic(args.scenes, args.frames)
     real()
 
