@@ -258,9 +258,47 @@ def _calibrated(machine, observations, layout, templates, x0, options, guess, ma
         if _robust_cost(again, options) < _robust_cost(result, options):
             log.info("a new start explains the pixels better: kept")
             result = again
+    if result.sigma_px > options.noise_px:
+        result = _without_worst(machine, observations, layout, templates, result, options, marker_sd)
     if marker_sd is not None:  # the offsets can absorb perspective: a weak camera may slide to the orthographic limit
         doubts.refuse_unfixed(result)
     return replace(result, warnings=doubts.warnings(result))
+
+
+def _without_worst(machine, observations, layout, templates, result, options, marker_sd,
+                   tries: int = 3) -> CalibrationResult:
+    """Residuals still above the stated noise after every start: a wrong answer or a wild
+    pixel the outlier rule let through (judged against a noise that the wild pixel itself,
+    drawing its neighbours off, had raised). The fit without each of the `tries` worst-fitted
+    observations in turn; one that this fit predicts beyond the outlier rule (5 sigma and
+    4 px) is named an outlier where the fit explains all the pixels better (robust cost)."""
+    error = np.array([-1.0 if r.outlier else np.linalg.norm(r.residual) for r in result.residuals])
+    for k in np.argsort(-error)[:tries]:
+        if error[k] <= 4.0:
+            break
+        kept = np.ones(len(observations), dtype=bool)
+        kept[k] = False
+        x = np.r_[result.parameters, () if result.marker_offsets is None else result.marker_offsets.ravel()]
+        try:
+            again = _fit(machine, observations.select(kept), layout, templates, x, options, marker_sd)
+        except (InputError, np.linalg.LinAlgError):  # the others alone do not fix the cameras
+            continue
+        x = np.r_[again.parameters, () if again.marker_offsets is None else again.marker_offsets.ravel()]
+        left_out = Problem(machine, observations.select(~kept), layout, templates, marker_sd, again.sigma_px)
+        residual = left_out.residuals(x)[:2]
+        rule = max(4.0, 5.0 * again.sigma_px)
+        if np.linalg.norm(residual) <= rule:
+            continue
+        residuals = np.empty(len(observations), dtype=object)
+        residuals[kept] = again.residuals
+        residuals[k] = replace(result.residuals[k], residual=residual, outlier=True)
+        merged = replace(again, residuals=tuple(residuals))
+        if _robust_cost(merged, options, rule) < _robust_cost(result, options, rule):
+            log.info("camera %s, marker %s: %.1f px from the fit of the others, whose residuals fall to %.2f px "
+                     "(from %.2f): an outlier", residuals[k].camera, residuals[k].marker, np.linalg.norm(residual),
+                     again.sigma_px, result.sigma_px)
+            result = merged
+    return result
 
 
 def _chained_start(machine, observations, templates, options, layout, x0) -> np.ndarray | None:
@@ -423,9 +461,12 @@ def _replaced_cameras(result: CalibrationResult, observations: Observations, tem
     return cameras
 
 
-def _robust_cost(result: CalibrationResult, options: CalibrationOptions) -> float:
-    """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale."""
-    e = np.array([np.linalg.norm(r.residual) for r in result.residuals]) / options.f_scale_px
+def _robust_cost(result: CalibrationResult, options: CalibrationOptions, cap_px: float = np.inf) -> float:
+    """Soft-L1 cost of every observation's residual (outliers too) at the robust loss' scale;
+    a residual beyond `cap_px` counts as one at `cap_px` (an outlier costs the same however
+    wild: with every residual so capped, a fit that leaves one observation beyond the cap is
+    preferred exactly where the others' gain outweighs it, the outlier rule's own test)."""
+    e = np.minimum([np.linalg.norm(r.residual) for r in result.residuals], cap_px) / options.f_scale_px
     return float(np.sum(2.0 * (np.sqrt(1.0 + e**2) - 1.0)))
 
 
@@ -525,23 +566,29 @@ def _fit(machine, observations, layout, templates, x0, options, marker_sd=None, 
         if marker_sd is not None:  # the noise again, without the outliers
             problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options, _least_squares,
                                             bounds)
-        back = _readmitted(problem, problem_of(observations.select(~inlier), problem.prior_px), final, free, options)
+        over = _readmitted(problem, problem_of(observations.select(~inlier), problem.prior_px), final, free, options)
         # a wild pixel's pull on the robust fit can make its neighbours look wild too
-        if back.any() and _pixel_rms(final.fun, problem) <= _max_rms(options, templates):
-            before = problem, final, inlier.copy()
-            inlier[np.flatnonzero(~inlier)[back]] = True
-            problem = problem_of(observations.select(inlier), problem.prior_px)
-            final = _least_squares(problem, final.x, bounds)
-            if marker_sd is not None:
-                problem, final = _weighed_prior(problem_of, observations.select(inlier), final, options,
-                                                _least_squares, bounds)
-                # a wild pixel whose marker only one camera sees is predicted loosely (its offset
-                # free within the prior); taken back, it can draw a weak camera along its valley
-                whole = problem_of(observations)
-                if _posterior(whole, final.x, options) > _posterior(whole, before[1].x, options):
-                    problem, final, inlier = before
-            if not np.array_equal(inlier, before[2]):
-                log.info("%d observation(s) named outliers agree with the fit without them: kept", back.sum())
+        if (over <= 1.0).any() and _pixel_rms(final.fun, problem) <= _max_rms(options, templates):
+            before = inlier.copy()
+            back = np.flatnonzero(~inlier)[np.argsort(over)][: np.sum(over <= 1.0)]  # the best predicted first
+            whole = problem_of(observations)
+            # with the offsets, each one taken back alone and kept only where the posterior of all
+            # the pixels prefers it: a wild pixel whose marker few cameras see is predicted loosely
+            # (its offset free within the prior); taken back, it can draw a weak camera along its
+            # valley, and taken back with a good one, the good one's gain hid its cost
+            for group in [back] if marker_sd is None else back[:, None]:
+                trial = inlier.copy()
+                trial[group] = True
+                p = problem_of(observations.select(trial), problem.prior_px)
+                f = _least_squares(p, final.x, bounds)
+                if marker_sd is not None:
+                    p, f = _weighed_prior(problem_of, observations.select(trial), f, options, _least_squares, bounds)
+                    if _posterior(whole, f.x, options) > _posterior(whole, final.x, options):
+                        continue
+                problem, final, inlier = p, f, trial
+            if not np.array_equal(inlier, before):
+                log.info("%d observation(s) named outliers agree with the fit without them: kept",
+                         np.sum(inlier & ~before))
     rms = _pixel_rms(final.fun, problem)
     if rms > _max_rms(options, templates):
         raise ConvergenceError(
@@ -663,22 +710,23 @@ def _max_rms(options: CalibrationOptions, templates) -> float:
 
 
 def _readmitted(problem: Problem, dropped: Problem, final, free: np.ndarray, options: CalibrationOptions) -> np.ndarray:
-    """(D,) bool: the dropped observations (the problem `dropped`, at the prior weight of
-    `problem`) that the fit `final` of the others predicts within the outlier rule: each
-    residual over sqrt(1 + its leverage) (the variance of a pixel the fit did not see is the
-    noise plus the fit's own uncertainty projected), against the threshold that the kept
-    observations' standardised residuals give (to first order the statistic by which it was
-    dropped, sqrt(1 - leverage) for a fitted residual, without the wild pixels' pull)."""
+    """(D,) how far the fit `final` of the others predicts each dropped observation (the
+    problem `dropped`, at the prior weight of `problem`), over the outlier rule's threshold
+    (at most 1: within the rule, to be taken back): each residual over sqrt(1 + its
+    leverage) (the variance of a pixel the fit did not see is the noise plus the fit's own
+    uncertainty projected), against the threshold that the kept observations' standardised
+    residuals give (to first order the statistic by which it was dropped, sqrt(1 - leverage)
+    for a fitted residual, without the wild pixels' pull)."""
     n = dropped.n_pixel_rows
     if not n:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0)
     kept, _ = noise.standardised_errors(final.fun, final.jac, problem.n_pixel_rows)
     jacobian = dropped.jacobian(final.x)[:n][:, free]
     covariance = identify.inverse_information(final.jac.T @ final.jac)
     leverage = np.einsum("ij,jk,ik->i", jacobian, covariance, jacobian).reshape(-1, 2).mean(axis=1)
     errors = np.linalg.norm(dropped.residuals(final.x)[:n].reshape(-1, 2), axis=1) / np.sqrt(1.0 + leverage)
     threshold = options.outlier_px if options.outlier_px is not None else max(4.0, 5.0 * noise.robust_sigma(kept))
-    return errors <= threshold
+    return errors / threshold
 
 
 def _drop_while_identifiable(machine, names, observations, layout, suspect, errors) -> np.ndarray:
