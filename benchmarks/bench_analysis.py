@@ -1,6 +1,7 @@
 """Dig-cycle analysis benchmarks: accuracy against the synthetic truth and speed.
 
     OMP_NUM_THREADS=1 python benchmarks/bench_analysis.py [--quick] [--only accuracy|machines|long]
+    OMP_NUM_THREADS=1 python benchmarks/bench_analysis.py --only accuracy --accuracy-seeds 10-29   # table 1, 40 sessions
 
 Table (1): synthetic sessions of 12 cycles with all three classes, operator redirections
 and scaling (`mocap synth --no-video`), analysed on the truth motion and on the motion
@@ -117,9 +118,9 @@ def fitted_motion(machine: str | Path, cameras: Path, tracks: Path, folder: Path
     return folder / "fitted.csv" if code == 0 else None
 
 
-def accuracy(root: Path, quick: bool) -> None:
+def accuracy(root: Path, sessions: list[tuple[str, int]]) -> None:
     rows, backwards, pooled = [], [], {"truth": [], "fitted": []}
-    for name, seed in SESSIONS[:2] if quick else SESSIONS:
+    for name, seed in sessions:
         folder = root / f"{name}_{seed}"
         assert cli.main(["synth", "--machine", name, "--cycles", "12", "--seed", str(seed), "--no-video",
                          "--out", str(folder)]) == 0
@@ -393,12 +394,18 @@ def main() -> int:
     parser.add_argument("--only", choices=("accuracy", "machines", "long", "seeds", "machines-truth"),
                         help="one part only (seeds: table 5, machines-truth: table 4b, run only when asked)")
     parser.add_argument("--seeds", default="1-60", help="table 5's seeds, A-B (default 1-60)")
+    parser.add_argument("--accuracy-seeds", metavar="A-B",
+                        help="table 1 on seeds A-B of each machine instead of its six sessions")
     args = parser.parse_args()
+    sessions = SESSIONS[:2] if args.quick else SESSIONS
+    if args.accuracy_seeds:
+        first, _, last = args.accuracy_seeds.partition("-")
+        sessions = [(name, seed) for name in dict(SESSIONS) for seed in range(int(first), int(last or first) + 1)]
     if os.environ.get("OMP_NUM_THREADS") != "1":
         print("note: set OMP_NUM_THREADS=1 for one-thread figures")
     with tempfile.TemporaryDirectory() as tmp:
         if args.only in (None, "accuracy"):
-            accuracy(Path(tmp), args.quick)
+            accuracy(Path(tmp), sessions)
         if args.only in (None, "machines"):
             other_machines(5 if args.quick else 30, Path(tmp))
         if args.only in (None, "long") and not args.quick:

@@ -270,23 +270,22 @@ def _without_worst(machine, observations, layout, templates, result, options, ma
     """Residuals still above the stated noise after every start: a wrong answer or a wild
     pixel the outlier rule let through (judged against a noise that the wild pixel itself,
     drawing its neighbours off, had raised). The fit without each of the `tries` worst-fitted
-    observations in turn; one that this fit predicts beyond the outlier rule (5 sigma and
-    4 px) is named an outlier where the fit explains all the pixels better (robust cost)."""
+    observations in turn; one that this fit predicts beyond the outlier rule (`outlier_px`,
+    else 5 sigma and 4 px) is named an outlier where the fit explains all the pixels better
+    (robust cost)."""
     error = np.array([-1.0 if r.outlier else np.linalg.norm(r.residual) for r in result.residuals])
     for k in np.argsort(-error)[:tries]:
         if error[k] <= 4.0:
             break
         kept = np.ones(len(observations), dtype=bool)
         kept[k] = False
-        x = np.r_[result.parameters, () if result.marker_offsets is None else result.marker_offsets.ravel()]
         try:
-            again = _fit(machine, observations.select(kept), layout, templates, x, options, marker_sd)
+            again = _fit(machine, observations.select(kept), layout, templates, _vector(result), options, marker_sd)
         except (InputError, np.linalg.LinAlgError):  # the others alone do not fix the cameras
             continue
-        x = np.r_[again.parameters, () if again.marker_offsets is None else again.marker_offsets.ravel()]
         left_out = Problem(machine, observations.select(~kept), layout, templates, marker_sd, again.sigma_px)
-        residual = left_out.residuals(x)[:2]
-        rule = max(4.0, 5.0 * again.sigma_px)
+        residual = left_out.residuals(_vector(again))[:2]
+        rule = options.outlier_px if options.outlier_px is not None else max(4.0, 5.0 * again.sigma_px)
         if np.linalg.norm(residual) <= rule:
             continue
         residuals = np.empty(len(observations), dtype=object)
@@ -299,6 +298,11 @@ def _without_worst(machine, observations, layout, templates, result, options, ma
                      again.sigma_px, result.sigma_px)
             result = merged
     return result
+
+
+def _vector(result: CalibrationResult) -> np.ndarray:
+    """The fit's whole parameter vector (P,): cameras and joints, then the markers' offsets."""
+    return np.r_[result.parameters, () if result.marker_offsets is None else result.marker_offsets.ravel()]
 
 
 def _chained_start(machine, observations, templates, options, layout, x0) -> np.ndarray | None:
