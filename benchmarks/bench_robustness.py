@@ -120,7 +120,7 @@ def naive_calibration(scene, rng) -> np.ndarray:
 
 def from_truth(out: dict, scene, templates, options, ours, bound) -> None:
     """The same calibration started from the truth: where it ends in another minimum that
-    explains the frame better (a lower robust cost per observation), ours kept a wrong one;
+    explains the frame better (a lower residual SD), ours kept a wrong one;
     where it ends as far from the truth as ours, the error is the estimator's own."""
     guess = Guess({c.name: c.to_paper() for c in scene.cameras}, scene.joints[0])
     try:
