@@ -3,6 +3,11 @@ import os
 # The replay tests stream to a port where no viewer listens, on purpose; keep the Rerun
 # SDK's own connection-retry log lines (printed when the process exits) out of the output.
 os.environ.setdefault("RUST_LOG", "off")
+# The suite runs on every core at once (pytest-xdist): a BLAS that also starts a thread per
+# core in each worker oversubscribes them, and OpenBLAS's spinning threads then make a small
+# SVD tens of times slower. One BLAS thread per worker (and per command the tests start).
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_name, "1")
 
 import numpy as np
 import pytest
