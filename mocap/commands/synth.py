@@ -7,7 +7,7 @@ import logging
 from dataclasses import replace
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_output_folder
 
