@@ -10,11 +10,9 @@ import argparse
 import importlib
 import logging
 import sys
-import warnings
 
 from mocap.commands import COMMANDS
-from mocap.errors import InputError
-
+from mocap.errors import InputError, one_line
 
 
 class UsageError(Exception):
@@ -50,37 +48,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser(command if command in COMMANDS else "").parse_args(argv)
     except UsageError as exc:
-        print(_one_line(str(exc)), file=sys.stderr)
+        print(one_line(str(exc)), file=sys.stderr)
         return 2
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    _quiet_libraries(args.verbose)
+    from mocap.progress import quiet_libraries  # the video library with it, only once a command runs
+
+    quiet_libraries(args.verbose)
     try:
         return int(args.run(args) or 0)
     except InputError as exc:
-        print(_one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
+        print(one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"mocap {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-def _one_line(message: str) -> str:
-    """A message as one line: line breaks (from a file's own text, say) become spaces."""
-    return " ".join(message.split())
-
-
-def _quiet_libraries(verbose: bool) -> None:
-    """The video library's own log lines (FFmpeg's "moov atom not found" beside our error)
-    are silenced: a video that cannot be read is reported once, by us. So are numpy's
-    warnings on empty or all-NaN slices (a frame nobody saw), unless --verbose."""
-    import av.logging
-
-    av.logging.set_level(av.logging.DEBUG if verbose else None)
-    if not verbose:
-        warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 
 if __name__ == "__main__":
