@@ -310,9 +310,32 @@ class Session:
 
         self.folder = Folder.open(path)
 
+    @classmethod
+    def create(cls, path: str | Path, machine: str | Path, cameras, calibration_frame: int = 0) -> Session:
+        """Write `path`/session.toml: `machine` a shipped model's name or a TOML path, `cameras`
+        (name, video path, fps) in order (the first is the reference clock)."""
+        from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
+
+        root = Path(path)
+        root.mkdir(parents=True, exist_ok=True)
+        machine = str(Path(machine).resolve()) if Path(machine).suffix == ".toml" else str(machine)
+        config = SessionConfig(machine, tuple(SessionCamera(str(n), str(v), float(f)) for n, v, f in cameras),
+                               {"calibration_frame": int(calibration_frame)})
+        save_session_config(config, root / "session.toml")
+        return cls(root)
+
     @property
     def root(self) -> Path:
         return self.folder.root
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return self.folder.camera_names
+
+    def write_cameras(self, cameras: Calibration, refined: bool = False) -> None:
+        """Write the session's calibration (calibration/cameras.toml, or refined.toml)."""
+        path = self.folder.refined_calibration_path if refined else self.folder.calibration_path
+        Cameras.of(cameras).write(path)
 
     def _steps(self, refine: bool = False, view: bool = True, labels: str | Path | None = None) -> dict:
         from mocap.pipeline import RunOptions, session_steps
