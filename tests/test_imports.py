@@ -21,7 +21,7 @@ LAYERS = {
     # core types and geometry, beside each other, below everything
     "mocap.errors": 0, "mocap.geometry": 0, "mocap.camera": 0, "mocap.camera_kernel": 0, "mocap.machine": 0,
     "mocap.shapes": 0, "mocap.visibility": 0, "mocap.ik": 0, "mocap.disk_kernel": 0, "mocap.progress": 0,
-    "mocap.calibration.guess": 0, "mocap.batch.summary": 0, "mocap.export.marker_table": 0,
+    "mocap.core": 0,
     # formats: read and write the core types
     "mocap.io": 1,
     # the stages: compute from core types, read and write through io
@@ -119,15 +119,15 @@ def test_only_the_entry_point_imports_the_command_line():
     assert commands == ["mocap.cli"]
 
 
-def test_no_import_cycle():
-    """Tarjan's strongly connected components of the import graph: each a single module."""
+def cycles_of(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Tarjan's strongly connected components of more than one node."""
     index, low, stack, on_stack, cycles = {}, {}, [], set(), []
 
     def connect(v: str) -> None:
         index[v] = low[v] = len(index)
         stack.append(v)
         on_stack.add(v)
-        for w in GRAPH.get(v, ()):
+        for w in graph.get(v, ()):
             if w not in index:
                 connect(w)
                 low[v] = min(low[v], low[w])
@@ -144,10 +144,30 @@ def test_no_import_cycle():
             if len(component) > 1:
                 cycles.append(sorted(component))
 
-    for v in sorted(GRAPH):
+    for v in sorted(graph):
         if v not in index:
             connect(v)
-    assert cycles == []
+    return cycles
+
+
+def test_no_import_cycle():
+    assert cycles_of(GRAPH) == []
+
+
+# packages that import each other though no module does in a loop: the calibration's start
+# uses the reconstruction's marker tolerance (offsets.tape_sd), the refinement the
+# calibration's problem; one shared module below both would end it
+KNOWN_PACKAGE_CYCLES = [["mocap.calibration", "mocap.reconstruct"]]
+
+
+def test_no_import_cycle_between_packages():
+    def package(name: str) -> str:
+        return ".".join(name.split(".")[:2])
+
+    packages: dict[str, set[str]] = {}
+    for m, targets in GRAPH.items():
+        packages.setdefault(package(m), set()).update(package(t) for t in targets if package(t) != package(m))
+    assert cycles_of(packages) == KNOWN_PACKAGE_CYCLES
 
 
 def test_no_import_runs_up_the_layers():

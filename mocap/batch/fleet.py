@@ -11,7 +11,7 @@ import datetime
 
 import numpy as np
 
-from mocap.batch.summary import CLASSES, SessionSummary
+from mocap.core.session_summary import CLASSES, SessionSummary
 from mocap.io.cycles_csv import Cycles
 
 def machine_and_day(metadata: dict, model_name: str) -> tuple[str, str]:

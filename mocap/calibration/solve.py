@@ -16,7 +16,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from mocap.calibration import doubts, identify, initial, noise
-from mocap.calibration.guess import Guess
+from mocap.core.guess import Guess
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError

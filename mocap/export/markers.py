@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.export.marker_table import MarkerTable
+from mocap.core.marker_table import MarkerTable
 from mocap.io.motion_csv import Motion
 from mocap.io.points_csv import Points
 
