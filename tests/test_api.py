@@ -141,3 +141,41 @@ def test_import_mocap_stays_light():
              "print(sorted(m for m in ('numpy', 'scipy', 'pyarrow', 'mocap.api') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_session_stages_as_methods(tmp_path):
+    """A still cube pair filmed by two cameras: the stages one by one through `mocap.Session`
+    write the session's files; the triangulated markers land on the truth."""
+    from test_unusual_input import FPS, static_rigid_video
+
+    from mocap.synthetic.scenes import look_at_camera
+
+    machine = mocap.load_machine("cube_pair")
+    rest = machine.markers(np.zeros((1, 0)))[0]
+    rng = np.random.default_rng(4)
+    (tmp_path / "videos").mkdir()
+    labels = []
+    for name, offset in (("cam1", [12, -8, 10]), ("cam2", [-6, -14, 8])):
+        camera = look_at_camera(name, (480, 270), 430.0, rest.mean(0) + offset, rest.mean(0))
+        uv = static_rigid_video(tmp_path / "videos" / f"{name}.mp4", camera, machine, rng, frames=4)
+        labels.append(mocap.concat_tracks([mocap.read_tracks(_labels_csv(tmp_path, name, machine, uv, rng))]))
+    session = mocap.Session.create(tmp_path, "cube_pair", [(n, f"videos/{n}.mp4", FPS) for n in ("cam1", "cam2")])
+    mocap.write_tracks(mocap.concat_tracks(labels), tmp_path / "calibration" / "labels.csv")
+    assert "wrote" in session.calibrate()
+    assert session.track().count("marker positions written") == 2
+    with pytest.raises(mocap.InputError, match="no sync stage"):  # a rigid object: nothing to sync on
+        session.sync()
+    assert "points in 4 frames" in session.triangulate()
+    assert "4 frames written" in session.fit()
+    points = mocap.read_points(tmp_path / "results" / "points.csv").points
+    error = np.linalg.norm(points.xyz - rest[machine.marker_index(points.marker)], axis=1)
+    assert len(points) == 4 * 8 and np.median(error) < 0.03  # a metre-scale object 15-20 m away, 0.3 px labels
+    assert len(session.motion()) == 4
+
+
+def _labels_csv(root, name, machine, uv, rng):
+    path = root / f"{name}_labels.csv"
+    rows = "".join(f"{name},0,{m},{x + rng.normal(0, 0.3):.3f},{y + rng.normal(0, 0.3):.3f}\n"
+                   for m, (x, y) in zip(machine.marker_names, uv))
+    path.write_text("camera,frame,marker,x,y\n" + rows)
+    return path
