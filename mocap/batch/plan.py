@@ -26,7 +26,8 @@ class Stage:
     """One step of a session's chain.
 
     `args`: the `mocap` arguments (run as ``python -m mocap ARGS``), or `call`: a
-    picklable callable of no argument, run in the worker; `inputs` and `outputs`: the files
+    picklable callable of no argument, run in the worker (a report it returns goes to the
+    stage's log); `inputs` and `outputs`: the files
     (or folders) it reads and writes, whose content hashes decide whether it must run again;
     `camera`: the camera of a per-camera stage (run as its own task), None otherwise.
     """
@@ -35,7 +36,7 @@ class Stage:
     inputs: tuple[Path, ...]
     outputs: tuple[Path, ...]
     args: tuple[str, ...] = ()
-    call: Callable[[], None] | None = field(default=None, compare=False)
+    call: Callable[[], str | None] | None = field(default=None, compare=False)
     camera: str | None = None
 
     def __post_init__(self) -> None:
