@@ -244,7 +244,7 @@ def refine(machine: Machine, cameras: Calibration, tracks: Tracks, *, markers: b
 
     options = options or RefineOptions(markers=markers, distortion=distortion)
     refined = refine_cameras(machine, cameras, tracks, options)
-    return Refined(Cameras.of(refined.calibration), refined.machine, refined.report("(not written)"))
+    return Refined(Cameras.of(refined.calibration), refined.machine, refined.report(None))
 
 
 def triangulate(cameras: Calibration, tracks: Tracks, options=None) -> PointsTable:
@@ -253,7 +253,7 @@ def triangulate(cameras: Calibration, tracks: Tracks, options=None) -> PointsTab
     from mocap.reconstruct.triangulate import TriangulateOptions
 
     result = triangulate_points(cameras, tracks, options or TriangulateOptions())
-    return PointsTable(result.points, result.report("(not written)"))
+    return PointsTable(result.points, result.report(None))
 
 
 def fit(machine: Machine, cameras: Calibration, tracks: Tracks, *, smooth: bool = True, fit_options=None,
@@ -264,7 +264,7 @@ def fit(machine: Machine, cameras: Calibration, tracks: Tracks, *, smooth: bool 
     from mocap.reconstruct.stage import fit_motion
 
     fitted = fit_motion(machine, cameras, tracks, fit_options, (smooth_options or SmoothOptions()) if smooth else None)
-    return Motion(fitted.motion, machine, fitted.report("(not written)"))
+    return Motion(fitted.motion, machine, fitted.report(None))
 
 
 def analyze(machine: Machine, motion: Motion) -> Cycles:

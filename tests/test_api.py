@@ -89,6 +89,8 @@ def test_the_api_reaches_the_truth(scene, chain):
     tip_fit = motion.motion.points[:, machine.point_names.index("bucket_tip")]
     assert np.sqrt(np.mean(np.sum((tip - tip_fit) ** 2, axis=1))) < 0.1
     assert np.median(points.points.error_px) < 2 * NOISE_PX
+    assert motion.report.startswith(f"{FRAMES} frames; {FRAMES} fitted")  # kept in memory: nothing written
+    assert points.report.startswith(f"{len(points)} points in {FRAMES} frames; median reprojection error")
     table = motion.to_arrow()
     assert table.num_rows == FRAMES and table.column_names[:2] == ["frame", "time"]
     assert np.allclose(table["boom"].to_numpy(), np.degrees(motion.motion.joints[:, machine.joint_names.index("boom")]))

@@ -111,7 +111,7 @@ class Triangulation:
     def report(self, out) -> str:
         points = self.points
         return (
-            f"{len(points)} points in {_count_distinct(points.frame)} frames written to {out}; "
+            f"{len(points)} points in {_count_distinct(points.frame)} frames{_written(out)}; "
             f"median reprojection error {np.median(points.error_px):.2f} px; "
             f"{self.seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
             + (f"; {self.contradicted} view(s) dropped that the markers' 3-D tracks contradict"
@@ -190,7 +190,7 @@ class Fitted:
     def report(self, out, out_machine=None) -> str:
         result, fit = self.result, self.result.fit
         report = (
-            f"{len(result.motion)} frames written to {out}; {int(fit.valid.sum())} fitted, "
+            f"{len(result.motion)} frames{_written(out)}; {int(fit.valid.sum())} fitted, "
             f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
         )
         unexplained = int((fit.valid & ~fit.explained).sum())
@@ -309,6 +309,11 @@ def _worst(names: np.ndarray, errors: np.ndarray, count: int = 3) -> str:
     return ", ".join(f"{unique[k]} {medians[k]:.1f} px" for k in order)
 
 
+def _written(out, comma: str = "") -> str:
+    """ " written to OUT" for a report, or nothing for a result kept in memory (out None)."""
+    return "" if out is None else f"{comma} written to {out}"
+
+
 def _dropped(dropped: int) -> str:
     return f"; {dropped} pixel(s) dropped that their own tracks contradict" if dropped else ""
 
@@ -326,7 +331,7 @@ class Refinement:
         result = self.result
         report = (
             f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
-            f"{result.rms_after:.2f} px, written to {out_calibration}"
+            f"{result.rms_after:.2f} px{_written(out_calibration, ',')}"
         )
         if result.criterion:
             tried = ", ".join(f"{name} {value:.0f}" for name, value in result.criterion.items())
