@@ -10,25 +10,9 @@ import argparse
 import importlib
 import logging
 import sys
-import warnings
 
-from mocap.errors import InputError
-
-COMMANDS = {  # name: one line of help; each command's module is imported only when it runs
-    "calibrate": "calibrate cameras against the machine's markers in one frame",
-    "view": "record the 3-D replay of a dig in Rerun",
-    "synth": "write a synthetic session (videos and truth) of a machine digging",
-    "track": "detect, label and track the machine's markers in one camera's video",
-    "sync": "estimate each camera's time offset from the machine's motion",
-    "triangulate": "triangulate every marker in every frame seen by two or more cameras",
-    "fit": "fit the machine model to all cameras' marker pixels in every frame",
-    "analyze": "dig cycles, phases, classes, similarity and templates from the motion",
-    "refine": "refine cameras (and marker positions) over many frames",
-    "run": "run the whole chain on a session folder",
-    "batch": "run every session under the paths through the chain on Dask, skip what is up to date",
-    "export": "write markers (C3D, TRC), a machine model (URDF) or a session (COLMAP) for other tools",
-    "demo": "make a synthetic session, run the whole chain and score it against the truth",
-}
+from mocap.commands import COMMANDS
+from mocap.errors import InputError, one_line
 
 
 class UsageError(Exception):
@@ -64,37 +48,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser(command if command in COMMANDS else "").parse_args(argv)
     except UsageError as exc:
-        print(_one_line(str(exc)), file=sys.stderr)
+        print(one_line(str(exc)), file=sys.stderr)
         return 2
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    _quiet_libraries(args.verbose)
+    from mocap.progress import quiet_libraries  # the video library with it, only once a command runs
+
+    quiet_libraries(args.verbose)
     try:
         return int(args.run(args) or 0)
     except InputError as exc:
-        print(_one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
+        print(one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"mocap {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-def _one_line(message: str) -> str:
-    """A message as one line: line breaks (from a file's own text, say) become spaces."""
-    return " ".join(message.split())
-
-
-def _quiet_libraries(verbose: bool) -> None:
-    """The video library's own log lines (FFmpeg's "moov atom not found" beside our error)
-    are silenced: a video that cannot be read is reported once, by us. So are numpy's
-    warnings on empty or all-NaN slices (a frame nobody saw), unless --verbose."""
-    import av.logging
-
-    av.logging.set_level(av.logging.DEBUG if verbose else None)
-    if not verbose:
-        warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 
 if __name__ == "__main__":

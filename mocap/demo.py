@@ -50,11 +50,11 @@ def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
 def run_demo(options: DemoOptions) -> int:
     import numpy as np
 
-    from mocap import cli
     from mocap.analysis.score import format_analysis_score, score_files
     from mocap.evaluate import format_score, score_session
     from mocap.pipeline import RunOptions, run_session
     from mocap.session import Session
+    from mocap.synthetic.stage import SynthRequest, run_synth
 
     start = time.perf_counter()
     out = options.out
@@ -64,12 +64,8 @@ def run_demo(options: DemoOptions) -> int:
             raise InputError("exists and is not a synthetic session folder; choose another --out", path=out)
         shutil.rmtree(out)  # an earlier demo's folder: made again from scratch
     print(f"== synth: {options.machine}, {options.cameras} cameras, {options.cycles} dig cycle(s), seed {options.seed}")
-    code = cli.main([
-        "synth", "--machine", options.machine, "--cameras", str(options.cameras), "--cycles", str(options.cycles),
-        "--seed", str(options.seed), "--scale", str(options.scale), "--out", str(out),
-    ])
-    if code:
-        return code
+    print(run_synth(SynthRequest(options.machine, out, cameras=options.cameras, cycles=options.cycles,
+                                 seed=options.seed, scale=options.scale)))
     session = Session.open(out)
     digitise_first_frame(session, np.random.default_rng(options.seed))
     code = run_session(out, RunOptions(refine=True))

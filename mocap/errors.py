@@ -30,3 +30,8 @@ class DegenerateError(InputError):
 
 class ConvergenceError(InputError):
     """A fit did not reach a solution that explains the observations."""
+
+
+def one_line(message: str) -> str:
+    """A message as one line: line breaks (from a file's own text, say) become spaces."""
+    return " ".join(message.split())

@@ -3,18 +3,23 @@
     calibrate (from the calibration frame's digitised labels) -> track every camera ->
     sync -> refine (optional) -> triangulate -> fit -> analyze -> view
 
-Each stage is the same sub-command a user would type, so `mocap run` and a hand-run session
-give the same files.
+Each step calls the same stage function as its sub-command, with the command's defaults and
+its checks of the output paths, so `mocap run` and a hand-run session give the same files and
+print the same lines. `session_steps` is the chain as data (the batch runs the same steps as
+tasks); `run_session` runs it in this process.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
-from mocap.errors import InputError
+from mocap.errors import InputError, one_line
+from mocap.io.outputs import check_outputs
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
 from mocap.session import Session, mark_complete
@@ -33,12 +38,99 @@ class RunOptions:
     view: bool = True
 
 
+@dataclass(frozen=True)
+class Step:
+    """One stage of a session's chain: `name` ("track cam1"), `command` the sub-command whose
+    error line it gives, `call` a picklable callable of no argument that runs the stage and
+    returns its report, `inputs` / `outputs` the files it reads and writes, `camera` the
+    camera of a per-camera stage."""
+
+    name: str
+    command: str
+    call: Callable[[], str]
+    inputs: tuple[Path, ...]
+    outputs: tuple[Path, ...]
+    camera: str | None = None
+
+
 def labels_path(session: Session, options: RunOptions) -> Path:
     return options.labels or session.root / "calibration" / "labels.csv"
 
 
-def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, list[str]]]:
-    """The chain as (name, mocap arguments) pairs."""
+# --- the steps: each as its sub-command runs it with its defaults ------------------------------
+
+
+def calibrate_step(machine: str, labels: str, sizes: tuple, out: str, frame: int, points: str) -> str:
+    from mocap.calibration.solve import CalibrationOptions
+    from mocap.calibration.stage import CalibrateRequest, run_calibrate
+
+    check_outputs({"--out": out, "--points": points}, {"machine model": machine, "tracks": [labels]})
+    return run_calibrate(CalibrateRequest(machine=machine, tracks=(labels,), sizes=dict(sizes), out=out, frame=frame,
+                                          options=CalibrationOptions(), points_out=points, choose_lens=True))
+
+
+def track_step(video: str, machine: str, calibration: str, camera: str, labels: str, start: int, out: str) -> str:
+    from mocap.tracking.stage import TrackRequest, run_track
+
+    check_outputs({"--out": out}, {"video": video, "machine model": machine, "calibration": calibration,
+                                   "labels": labels})
+    request = TrackRequest(Path(video), machine, Path(calibration), camera, Path(out), Path(labels), None, start,
+                           whole_video=True)
+    return run_track(request).text(out)
+
+
+def sync_step(calibration: str, tracks: tuple[str, ...], machine: str, fps: tuple[str, ...], out: str) -> str:
+    from mocap.sync.stage import run_sync
+
+    check_outputs({"--out": out}, {"machine model": machine, "calibration": calibration, "tracks": list(tracks)},
+                  may_replace=("calibration",))
+    return run_sync(machine, calibration, list(tracks), out, list(fps), 10.0)
+
+
+def refine_step(machine: str, calibration: str, tracks: tuple[str, ...], out: str) -> str:
+    from mocap.reconstruct.refine import RefineOptions
+    from mocap.reconstruct.stage import run_refine
+
+    check_outputs({"--out": out}, {"machine model": machine, "calibration": calibration, "tracks": list(tracks)})
+    # the lens model chosen by the data over the whole session (one frame cannot fix it)
+    return run_refine(machine, calibration, list(tracks), out, None, RefineOptions(distortion="auto"))
+
+
+def triangulate_step(calibration: str, tracks: tuple[str, ...], out: str) -> str:
+    from mocap.reconstruct.stage import run_triangulate
+    from mocap.reconstruct.triangulate import TriangulateOptions
+
+    check_outputs({"--out": out}, {"calibration": calibration, "tracks": list(tracks)})
+    return run_triangulate(calibration, list(tracks), out, TriangulateOptions())
+
+
+def fit_step(machine: str, calibration: str, tracks: tuple[str, ...], out: str) -> str:
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.smooth import SmoothOptions
+    from mocap.reconstruct.stage import run_fit
+
+    check_outputs({"--out": out}, {"machine model": machine, "calibration": calibration, "tracks": list(tracks)})
+    return run_fit(machine, calibration, list(tracks), out, FitOptions(), SmoothOptions())
+
+
+def analyze_step(machine: str, motion: str, out: str) -> str:
+    from mocap.analysis.stage import run_analyze
+
+    return run_analyze(machine, motion, out)
+
+
+def view_step(root: str, calibration: str) -> str:
+    from mocap.viewer.inputs import ReplayFiles
+    from mocap.viewer.stage import run_view
+
+    return run_view(ReplayFiles(calibration=Path(calibration)), Path(root))
+
+
+# --- the chain ----------------------------------------------------------------------------------
+
+
+def session_steps(session: Session, options: RunOptions) -> list[Step]:
+    """The chain of `mocap run` on the session (refine and view as `options` say)."""
     config = session.config()
     machine = str(session.machine_path())
     labels = labels_path(session, options)
@@ -59,47 +151,51 @@ def stage_commands(session: Session, options: RunOptions) -> list[tuple[str, lis
         video = session.video_path(camera.name)
         if not video.exists():
             raise InputError("video not found; check session.toml", path=video)
-        width, height = Video(video).info.size
-        sizes += ["--size", f"{camera.name}={width}x{height}"]
+        sizes.append((camera.name, tuple(Video(video).info.size)))
     calibration = str(session.calibration_path)
-    frame = str(config.options.get("calibration_frame", 0))
-    tracks = [str(session.tracks_path(c)) for c in cameras]
-    commands = [(
-        "calibrate",
-        ["calibrate", machine, str(labels), *sizes, "--out", calibration, "--frame", frame,
-         "--points", str(session.reference_points_path)],
-    )]
+    frame = int(config.options.get("calibration_frame", 0))
+    tracks = tuple(str(session.tracks_path(c)) for c in cameras)
+    model, machine_file = session.machine(), Path(machine)
+    steps = [Step("calibrate", "calibrate",
+                  partial(calibrate_step, machine, str(labels), tuple(sizes), calibration, frame,
+                          str(session.reference_points_path)),
+                  (machine_file, labels), (Path(calibration), session.reference_points_path))]
     for camera in cameras:
-        commands.append((
-            f"track {camera}",
-            ["track", str(session.video_path(camera)), "--machine", machine, "--calibration", calibration,
-             "--camera", camera, "--labels", str(labels), "--start", frame, "--whole-video", "--out", str(session.tracks_path(camera))],
-        ))
-    fps = [f"{c.name}={c.fps}" for c in config.cameras]
-    fps_args = [arg for value in fps for arg in ("--fps", value)]
+        video, out = session.video_path(camera), session.tracks_path(camera)
+        steps.append(Step(f"track {camera}", "track",
+                          partial(track_step, str(video), machine, calibration, camera, str(labels), frame, str(out)),
+                          (video, machine_file, Path(calibration), labels), (out,), camera))
+    fps = tuple(f"{c.name}={c.fps}" for c in config.cameras)
+    track_files = tuple(map(Path, tracks))
     final = calibration
-    if len(cameras) > 1 and session.machine().n_joints > 0:  # a rigid object has no joints to sync on
-        commands.append(("sync", ["sync", calibration, *tracks, "--machine", machine, *fps_args, "--out", calibration]))
+    if len(cameras) > 1 and model.n_joints > 0:  # a rigid object has no joints to sync on
+        steps.append(Step("sync", "sync", partial(sync_step, calibration, tracks, machine, fps, calibration),
+                          (Path(calibration), *track_files, machine_file), (Path(calibration),)))
     if options.refine:
         final = str(session.refined_calibration_path)
-        # the lens model chosen by the data over the whole session (one frame cannot fix it)
-        commands.append(("refine", ["refine", machine, calibration, *tracks, "--distortion", "auto", "--out", final]))
+        steps.append(Step("refine", "refine", partial(refine_step, machine, calibration, tracks, final),
+                          (machine_file, Path(calibration), *track_files), (Path(final),)))
     if len(cameras) > 1:
-        commands.append(("triangulate", ["triangulate", final, *tracks, "--out", str(session.points_path)]))
-    commands.append(("fit", ["fit", machine, final, *tracks, "--out", str(session.motion_path)]))
-    model = session.machine()
+        steps.append(Step("triangulate", "triangulate", partial(triangulate_step, final, tracks, str(session.points_path)),
+                          (Path(final), *track_files), (session.points_path,)))
+    steps.append(Step("fit", "fit", partial(fit_step, machine, final, tracks, str(session.motion_path)),
+                      (machine_file, Path(final), *track_files), (session.motion_path,)))
     if model.bucket_angle is not None and "bucket_tip" in model.point_names:  # a digging machine
-        commands.append(("analyze", ["analyze", machine, str(session.motion_path), "--out", str(session.results_dir)]))
+        steps.append(Step("analyze", "analyze",
+                          partial(analyze_step, machine, str(session.motion_path), str(session.results_dir)),
+                          (machine_file, session.motion_path), (session.results_dir,)))
     if options.view:
-        commands.append(("view", ["view", str(session.root), "--calibration", final]))
-    return commands
+        # the recording is made of the session's files: the model, cameras, videos, results
+        reads = [machine_file, Path(final), session.points_path, session.motion_path]
+        reads += [p for c in cameras for p in (session.tracks_path(c), session.video_path(c))]
+        steps.append(Step("view", "view", partial(view_step, str(session.root), final), tuple(reads),
+                          (session.recording_path,)))
+    return steps
 
 
 def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
-    """Run every stage on the session folder `root`; stops at the first failing stage (whose
-    own message has gone to stderr) and returns its exit status."""
-    from mocap import cli  # the stages are the sub-commands
-
+    """Run every stage on the session folder `root`, printing each stage's report; stops at
+    the first failing stage (its one line on stderr) and returns its exit status (2)."""
     session = Session.open(root)
     if not session.root.is_dir():
         raise InputError("not a folder; give the session folder (with session.toml)", path=root)
@@ -107,18 +203,21 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
         raise InputError("the synthetic session is incomplete (its writing was interrupted); run "
                          "`mocap synth` again with the same --out to finish it", path=root)
     session.results_complete_path.unlink(missing_ok=True)
-    refined, calibration = str(session.refined_calibration_path), str(session.calibration_path)
-    fallback = False
-    for name, args in stage_commands(session, options):
-        if fallback:  # the refinement was refused: the stages after it use the one-frame calibration
-            args = [calibration if arg == refined else arg for arg in args]
-        print(f"== {name}", flush=True)
-        code = cli.main(args)
-        if code != 0 and name == "refine":
+    steps = session_steps(session, options)
+    done: set[str] = set()
+    while steps:
+        step = steps.pop(0)
+        print(f"== {step.name}", flush=True)
+        try:
+            print(step.call(), flush=True)
+        except InputError as exc:
+            print(one_line(f"mocap {step.command}: error: {exc}"), file=sys.stderr, flush=True)
+            if step.command != "refine":
+                return 2
             print("refinement refused: carrying on with the one-frame calibration", file=sys.stderr, flush=True)
             session.refined_calibration_path.unlink(missing_ok=True)  # a stale one from an earlier run
-            fallback = True
-        elif code != 0:
-            return code
+            # the stages after it use the one-frame calibration
+            steps = [s for s in session_steps(session, replace(options, refine=False)) if s.name not in done]
+        done.add(step.name)
     mark_complete(session.results_complete_path, "mocap run")
     return 0

@@ -21,6 +21,7 @@ from mocap.io.cycles_csv import load_cycles
 from mocap.io.motion_csv import load_motion
 from mocap.io.session_toml import load_session_config, save_session_config
 from mocap.io.tracks_csv import load_tracks, save_tracks
+from mocap.pipeline import sync_step, triangulate_step
 from mocap.session import Session
 
 pytest.importorskip("distributed")
@@ -50,24 +51,33 @@ def truth_cycles(root: Path) -> None:
     shutil.copyfile(root / "truth" / "cycles.csv", root / ANALYSIS_DIR / "cycles.csv")
 
 
-def chain(root: Path, fit_args=()) -> list[Stage]:
+def fit_gap(machine: str, calibration: str, tracks: tuple, out: str, max_gap) -> str:
+    """`mocap fit` with --max-gap: a stage whose argument a test changes."""
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.smooth import SmoothOptions
+    from mocap.reconstruct.stage import run_fit
+
+    return run_fit(machine, calibration, list(tracks), out, FitOptions(), SmoothOptions(max_gap_s=float(max_gap)))
+
+
+def chain(root: Path, max_gap=2.0) -> list[Stage]:
     session = Session.open(root)
     config = session.config()
     calibration = root / "calibration" / "cameras.toml"
     tracks = [session.tracks_path(c) for c in session.camera_names]
     machine = str(session.machine_path())
-    fps = [a for c in config.cameras for a in ("--fps", f"{c.name}={c.fps}")]
-    made = {calibration, *tracks}
+    fps = tuple(f"{c.name}={c.fps}" for c in config.cameras)
+    names = tuple(map(str, tracks))
     return [
         Stage("prepare", (root / "truth" / "cameras.toml",), (calibration,), call=partial(forget_offsets, root)),
         *[Stage(f"tracks {c}", (root / "truth" / "tracks.csv", calibration), (session.tracks_path(c),),
                 call=partial(camera_tracks, root, c), camera=c) for c in session.camera_names],
-        stage_from_command("sync", ["sync", str(calibration), *map(str, tracks), "--machine", machine, *fps,
-                                    "--out", str(calibration)], made),
-        stage_from_command("triangulate", ["triangulate", str(calibration), *map(str, tracks),
-                                           "--out", str(session.points_path)], made),
-        stage_from_command("fit", ["fit", machine, str(calibration), *map(str, tracks), *fit_args,
-                                   "--out", str(session.motion_path)], made),
+        Stage("sync", (calibration, *tracks), (calibration,),
+              call=partial(sync_step, str(calibration), names, machine, fps, str(calibration))),
+        Stage("triangulate", (calibration, *tracks), (session.points_path,),
+              call=partial(triangulate_step, str(calibration), names, str(session.points_path))),
+        Stage("fit", (calibration, *tracks), (session.motion_path,),
+              call=partial(fit_gap, machine, str(calibration), names, str(session.motion_path), max_gap)),
         Stage("analysis", (root / "truth" / "cycles.csv", session.motion_path), (root / ANALYSIS_DIR,),
               call=partial(truth_cycles, root)),
     ]
@@ -159,7 +169,7 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
 
         # changed arguments (the default made explicit) re-run fit only: its output is the same, so the analysis is skipped
         run_batch([roots[0]], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path),
-                  chain_for=partial(chain, fit_args=("--max-gap", "2")))
+                  chain_for=partial(chain, max_gap=2))
         row = read_fleet(tmp_path)["s1"]
         assert row["stages_run"] == "1", row
 
@@ -195,22 +205,21 @@ def test_stage_and_option_guards(tmp_path, capsys):
     assert "workers must be at least 1" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("in_process", [True, False])
-def test_a_failing_command_gives_its_one_line(tmp_path, in_process):
+def test_a_failing_stage_gives_its_one_line(tmp_path):
+    """A stage of `mocap` arguments (run as that command) and a callable stage fail with the
+    command's one line; their reports and errors go to the stage's log."""
     from mocap.batch import run
 
     missing = tmp_path / "nothing.toml"
     stages = [Stage("fit", (), (tmp_path / "m.csv",), args=("fit", "hitachi_ex3500", missing, missing, "--out", tmp_path / "m.csv")),
-              Stage("refine", (), (tmp_path / "r.toml",), args=("refine", "--no-such-option"))]
-    if not in_process:
-        assert run._IN_PROCESS.acquire(blocking=False)  # the process is busy: stages run in a child
-    try:
-        assert run.execute(stages[0], tmp_path) == f"mocap fit: error: {missing}: file not found; check the calibration path"
-        assert run.execute(stages[1], tmp_path).startswith("mocap refine: error: the following arguments are required")
-    finally:
-        if not in_process:
-            run._IN_PROCESS.release()
-    assert "file not found" in (tmp_path / "batch" / "logs" / "fit.log").read_text()
+              Stage("refine", (), (tmp_path / "r.toml",), args=("refine", "--no-such-option")),
+              Stage("triangulate", (), (tmp_path / "p.csv",),
+                    call=partial(triangulate_step, str(missing), (str(missing),), str(tmp_path / "p.csv")))]
+    assert run.execute(stages[0], tmp_path) == f"mocap fit: error: {missing}: file not found; check the calibration path"
+    assert run.execute(stages[1], tmp_path).startswith("mocap refine: error: the following arguments are required")
+    assert run.execute(stages[2], tmp_path) == f"{missing}: file not found; check the calibration path"
+    logs = tmp_path / "batch" / "logs"
+    assert "file not found" in (logs / "fit.log").read_text() and "file not found" in (logs / "triangulate.log").read_text()
 
 
 def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):

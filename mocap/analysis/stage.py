@@ -13,7 +13,7 @@ from mocap.analysis.series import tip_series
 from mocap.analysis.templates import templates_table
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
-from mocap.io.cycles_csv import load_cycles, save_cycle_table
+from mocap.io.cycles_csv import Cycles, load_cycles, save_cycle_table
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.templates_toml import save_templates
@@ -42,17 +42,29 @@ def run_analyze(machine_path: str | Path, motion_path: str | Path, out: str | Pa
     for name in (CYCLES, REPORT, TEMPLATES):
         if (out / name).resolve() in {Path(motion_path).resolve(), Path(cycles_path or motion_path).resolve()}:
             raise InputError(f"--out would overwrite the input {name}; choose another folder", path=out)
+    analysis = analyze_motion(motion, load_cycles(cycles_path) if cycles_path is not None else None, cycles_path)
+    write_analysis(analysis, machine, out, f"Dig cycles of {machine.name}: {Path(motion_path).name}")
+    return summary(analysis, out)
+
+
+def analyze_motion(motion, cycles: Cycles | None = None, cycles_path=None) -> Analysis:
+    """The dig cycles of a motion (mocap.io.motion_csv.Motion); with `cycles`, only the digs
+    inside those cycles (`cycles_path` names them in messages)."""
     series = tip_series(motion)
     analysis = analyze(series)
-    if cycles_path is not None:
-        given = load_cycles(cycles_path)
-        check_cycles_within(Path(cycles_path), np.concatenate([given.start, given.end]), series.frame)
+    if cycles is not None:
+        check_cycles_within(Path(cycles_path or "cycles"), np.concatenate([cycles.start, cycles.end]), series.frame)
         dig = analysis.table["dig_start_frame"]
-        analysis = analysis.take(((dig[:, None] >= given.start) & (dig[:, None] <= given.end)).any(axis=1))
+        analysis = analysis.take(((dig[:, None] >= cycles.start) & (dig[:, None] <= cycles.end)).any(axis=1))
+    return analysis
+
+
+def write_analysis(analysis: Analysis, machine, out: str | Path, title: str) -> None:
+    """cycles.csv, report.html and templates.toml into the folder `out`."""
+    out = Path(out)
     save_cycle_table(analysis.table, out / CYCLES)
-    write_text(out / REPORT, render_report(analysis, f"Dig cycles of {machine.name}: {Path(motion_path).name}"))
+    write_text(out / REPORT, render_report(analysis, title))
     save_templates(templates_table(analysis, machine), out / TEMPLATES)
-    return summary(analysis, out)
 
 
 def summary(analysis: Analysis, out: Path) -> str:

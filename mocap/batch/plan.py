@@ -1,7 +1,8 @@
 """What a batch does to each session: the session folders under the given paths, and each
 session's chain as a list of stages, each with the files it reads and writes.
 
-A stage is a `mocap` sub-command (its argument list) or a Python callable; a stage with a
+A stage is a Python callable (the default chain's: `mocap run`'s stage functions) or a
+`mocap` sub-command (its argument list, run as a child process); a stage with a
 `camera` runs as its own task beside the session's other camera stages (tracking), every
 other stage in the session's own task, in order.
 """
@@ -13,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mocap.errors import InputError
-from mocap.pipeline import RunOptions, stage_commands
+from mocap.pipeline import RunOptions, session_steps
 from mocap.session import Session
 
 _OUTPUT_FLAGS = ("--out", "--points")  # the flags whose value a stage writes
@@ -24,8 +25,9 @@ ANALYSIS_DIR = Path("results")  # where `mocap run`'s analyze stage writes cycle
 class Stage:
     """One step of a session's chain.
 
-    `args`: the `mocap` arguments (run as ``python -m mocap.cli ARGS``), or `call`: a
-    picklable callable of no argument, run in the worker; `inputs` and `outputs`: the files
+    `args`: the `mocap` arguments (run as ``python -m mocap ARGS``), or `call`: a
+    picklable callable of no argument, run in the worker (a report it returns goes to the
+    stage's log); `inputs` and `outputs`: the files
     (or folders) it reads and writes, whose content hashes decide whether it must run again;
     `camera`: the camera of a per-camera stage (run as its own task), None otherwise.
     """
@@ -34,7 +36,7 @@ class Stage:
     inputs: tuple[Path, ...]
     outputs: tuple[Path, ...]
     args: tuple[str, ...] = ()
-    call: Callable[[], None] | None = field(default=None, compare=False)
+    call: Callable[[], str | None] | None = field(default=None, compare=False)
     camera: str | None = None
 
     def __post_init__(self) -> None:
@@ -75,23 +77,17 @@ def stage_from_command(name: str, args: list[str], made: set[Path]) -> Stage:
 
 
 def default_chain(root: Path, options: RunOptions = RunOptions(view=False), analyze: bool = True) -> list[Stage]:
-    """`mocap run`'s stages on the session (refine and view as in `options`); its analyze
-    stage (a digging machine's: ``results/cycles.csv`` …) only with `analyze`."""
-    session = Session.open(root)
+    """`mocap run`'s stages on the session (refine and view as in `options`), each calling
+    its stage function; its analyze stage (a digging machine's: ``results/cycles.csv`` …)
+    only with `analyze`."""
     made: set[Path] = set()
     stages = []
-    for name, args in stage_commands(session, options):
-        if name == "analyze" and not analyze:
+    for step in session_steps(Session.open(root), options):
+        if step.name == "analyze" and not analyze:
             continue
-        if name != "view":
-            stages.append(stage_from_command(name, args, made))
-            continue
-        # view writes the recording from the session's files: the model, cameras, videos, results
-        reads = [session.machine_path(), Path(args[args.index("--calibration") + 1]), session.points_path,
-                 session.motion_path]
-        reads += [p for c in session.camera_names for p in (session.tracks_path(c), session.video_path(c))]
-        inputs = tuple(p for p in reads if p in made or p.is_file())
-        stages.append(Stage(name, inputs, (session.recording_path,), args=tuple(args)))
+        inputs = tuple(dict.fromkeys(p for p in step.inputs if p in made or p.is_file()))  # once each, in order
+        made.update(step.outputs)
+        stages.append(Stage(step.name, inputs, step.outputs, call=step.call, camera=step.camera))
     return stages
 
 

@@ -8,14 +8,11 @@ failing stage ends its session's chain with its error; it never raises into the 
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import io
 import logging
 import os
 import subprocess
 import sys
-import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -24,7 +21,8 @@ from pathlib import Path
 import mocap
 from mocap.batch.manifest import Manifest
 from mocap.batch.plan import Stage
-from mocap.errors import InputError
+from mocap.errors import InputError, one_line
+from mocap.progress import quiet_libraries
 
 log = logging.getLogger(__name__)
 
@@ -94,58 +92,36 @@ def up_to_date(stage: Stage, manifest: Manifest, inputs: dict, overwritten) -> b
     return True
 
 
-_IN_PROCESS = threading.Lock()  # one in-process stage at a time: it owns stdout and stderr
-
-
 def execute(stage: Stage, root: Path) -> str:
-    """Run one stage; its output goes to batch/logs/<stage>.log. Returns '' or the error.
+    """Run one stage; its report goes to batch/logs/<stage>.log. Returns '' or the error.
 
-    A `mocap` stage runs inside the worker's process (its modules stay imported from one
-    stage to the next) unless another stage already does there; then in a child process.
+    A callable stage runs inside the worker's process (its modules stay imported from one
+    stage to the next); a stage of `mocap` arguments runs as that command in a child process.
     """
-    if stage.call is not None:
-        try:
-            stage.call()
-        except InputError as exc:  # the one line a command would print
-            return str(exc)
-        except Exception as exc:  # a failed stage is reported, the batch goes on
-            return f"{type(exc).__name__}: {exc}"
-        return ""
     log_path = root / LOG_DIR / f"{stage.name.replace(' ', '_')}.log"
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    if _IN_PROCESS.acquire(blocking=False):
-        try:
-            code, errors = _in_process(stage.args, log_path)
-        finally:
-            _IN_PROCESS.release()
-    else:
+    if stage.call is None:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
         code, errors = _child_process(stage.args, log_path)
-    if code == 0:
-        return ""
-    lines = [line for line in errors.splitlines() if line.strip()]
-    return lines[-1] if lines else f"exit status {code}"
-
-
-def _in_process(args, log_path: Path) -> tuple[int, str]:
-    from mocap import cli
-
-    errors = io.StringIO()
-    root_logger = logging.getLogger()
-    with open(log_path, "w", encoding="utf-8") as out:
-        handler = logging.StreamHandler(errors)  # the stage's log lines (and cli's basicConfig does nothing)
-        root_logger.addHandler(handler)
-        try:
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(errors):
-                code = cli.main(list(args))
-        except SystemExit as exc:  # argparse's refusal of the arguments
-            code = exc.code if isinstance(exc.code, int) else 2
-        except Exception as exc:  # a bug in a stage: its traceback in the log, the batch goes on
-            errors.write(traceback.format_exc() + f"{type(exc).__name__}: {exc}\n")
-            code = 1
-        finally:
-            root_logger.removeHandler(handler)
-        out.write(errors.getvalue())
-    return code, errors.getvalue()
+        if code == 0:
+            return ""
+        lines = [line for line in errors.splitlines() if line.strip()]
+        return lines[-1] if lines else f"exit status {code}"
+    quiet_libraries()
+    report = ""
+    try:
+        report = stage.call()
+    except InputError as exc:  # the one line a command would print
+        error = one_line(str(exc))
+    except Exception as exc:  # a failed stage is reported, the batch goes on; its traceback in the log
+        error = f"{type(exc).__name__}: {exc}"
+        report = traceback.format_exc()
+    else:
+        error = ""
+    if isinstance(report, str) and (report or error):
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(log_path, "w", encoding="utf-8") as out:
+            out.write("".join(f"{text}\n" for text in (report, error) if text))
+    return error
 
 
 def _child_process(args, log_path: Path) -> tuple[int, str]:
@@ -153,7 +129,7 @@ def _child_process(args, log_path: Path) -> tuple[int, str]:
     package_root = str(Path(mocap.__file__).resolve().parents[1])  # this worker's mocap, for the stage too
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH", "")) if p)
     with open(log_path, "w", encoding="utf-8") as out:
-        done = subprocess.run([sys.executable, "-m", "mocap.cli", *args], stdout=out, stderr=subprocess.PIPE,
+        done = subprocess.run([sys.executable, "-m", "mocap", *args], stdout=out, stderr=subprocess.PIPE,
                               text=True, env=env, stdin=subprocess.DEVNULL)
         out.write(done.stderr)
     return done.returncode, done.stderr

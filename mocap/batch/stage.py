@@ -135,9 +135,9 @@ def session_labels(sessions: list[Path]) -> dict[Path, str]:
 
 
 def analyze_available() -> bool:
-    from mocap.cli import COMMANDS
+    from importlib.util import find_spec
 
-    return "analyze" in COMMANDS
+    return find_spec("mocap.analysis.stage") is not None
 
 
 def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Stage]] | None = None) -> tuple[str, int]:

@@ -9,13 +9,14 @@ returns the parameters with their standard deviations.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from mocap.calibration import doubts, identify, initial, noise
+from mocap.core.guess import Guess
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
 from mocap.camera import Camera, PaperCamera, default_principal_point, intrinsic_matrix
 from mocap.errors import ConvergenceError, DegenerateError, InputError
@@ -65,14 +66,6 @@ class CalibrationOptions:
             raise InputError(f"noise_px must be positive, got {self.noise_px}")
         if not self.f_scale_px > 0:
             raise InputError(f"f_scale_px must be positive, got {self.f_scale_px}")
-
-
-@dataclass(frozen=True)
-class Guess:
-    """A user's initial guess: per camera name the paper's parameters; joints (J,) rad / m."""
-
-    cameras: dict = field(default_factory=dict)
-    joints: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

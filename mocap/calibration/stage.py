@@ -38,38 +38,87 @@ class CalibrateRequest:
     intrinsics: str | None = None  # a file of known intrinsics, used and kept
 
 
+@dataclass(frozen=True)
+class Calibrated:
+    """`calibrate_cameras`' result: the fit at the calibration frame and the report's notes."""
+
+    result: object  # mocap.calibration.solve's result
+    frame: int
+    notes: str = ""  # the lens model chosen, the intrinsics kept
+
+    @property
+    def calibration(self):
+        """The cameras (mocap.io.cameras_toml.Calibration), with the joints and the frame."""
+        return report.to_calibration(self.result, self.frame)
+
+    @property
+    def reference_points(self):
+        """The markers' 3-D positions at the calibration frame (mocap.io.points_csv.Points)."""
+        return report.reference_points(self.result, self.frame)
+
+    def report(self, out, points_out) -> str:
+        return report.format_report(self.result, self.frame) + self.notes + f"\nwrote {out} and {points_out}"
+
+
 def run_calibrate(request: CalibrateRequest) -> str:
     machine = load_machine(request.machine)
     tracks = load_tracks(list(request.tracks))
-    frame, rows = _frame_rows(tracks, request)
+    if request.method == "dlt":
+        return _run_dlt_request(machine, tracks, request)
+    guess = (lambda: load_guess(request.guess, machine)) if request.guess else None
+    known = load_intrinsics(request.intrinsics) if request.intrinsics is not None else None
+    calibrated = calibrate_cameras(machine, tracks, request.sizes, request.frame, request.options,
+                                   request.choose_lens, known, request.intrinsics, guess, request.tracks[0],
+                                   ", ".join(request.tracks))
+    save_calibration(calibrated.calibration, request.out)
+    points_out = request.points_out or str(Path(request.out).with_name("reference_points.csv"))
+    save_points(calibrated.reference_points, points_out)
+    return calibrated.report(request.out, points_out)
+
+
+def _templates(tracks: Tracks, sizes: dict, frame: int | None, known: dict | None, intrinsics_path, where,
+               tracks_where):
+    """The calibration frame, its rows and the cameras' templates (known intrinsics put in)."""
+    frame, rows = _frame_rows(tracks, frame, where)
     names = list(rows.cameras)
-    strange = sorted(name for name in request.sizes if name is not None and name not in tracks.cameras)
+    strange = sorted(name for name in sizes if name is not None and name not in tracks.cameras)
     if strange:
         raise InputError(f"--size names camera(s) {strange} that the tracks lack (they have "
                          f"{list(tracks.cameras)}); check the NAME in --size NAME=WxH")
-    templates = [template_camera(n, _size(request.sizes, n)) for n in names]
-    options, choose_lens = request.options, request.choose_lens
-    if request.intrinsics is not None:
-        given = load_intrinsics(request.intrinsics)
-        templates = with_known_intrinsics(templates, given, request.intrinsics)
-        known = frozenset(names) & frozenset(given)
+    templates = [template_camera(n, _size(sizes, n)) for n in names]
+    if known is not None:
+        templates = with_known_intrinsics(templates, known, intrinsics_path)
+    check_in_images(rows, {t.name: t.size for t in templates}, tracks_where, "--size")
+    return frame, rows, templates
+
+
+def calibrate_cameras(machine, tracks: Tracks, sizes: dict, frame: int | None = None,
+                      options: CalibrationOptions = CalibrationOptions(), choose_lens: bool = False,
+                      known_intrinsics: dict | None = None, intrinsics_path=None, guess=None,
+                      where=None, tracks_where=None) -> Calibrated:
+    """Model-based calibration of every camera in `tracks` at `frame` (default: the first):
+    `sizes` {camera: (w, h)}, key None for every camera; `known_intrinsics` {camera:
+    intrinsics} used and kept; `guess` a Guess (or a callable giving one, read after the
+    observations are checked). The paths name the inputs in messages."""
+    frame, rows, templates = _templates(tracks, sizes, frame, known_intrinsics, intrinsics_path, where,
+                                        tracks_where)
+    names = list(rows.cameras)
+    if known_intrinsics is not None:
+        known = frozenset(names) & frozenset(known_intrinsics)
         options = replace(options, fixed_intrinsics=known)
         choose_lens = choose_lens and len(known) < len(templates)  # a lens model only for the unknown ones
-    check_in_images(rows, {t.name: t.size for t in templates}, ", ".join(request.tracks), "--size")
-    if request.method == "dlt":
-        return _run_dlt(machine, rows, templates, frame, request)
     unknown = sorted(set(rows.marker) - set(machine.marker_names))
     if unknown:
         raise InputError(
             f"marker(s) {', '.join(unknown)} at frame {frame} are not in the machine model "
             f"{machine.name!r}; check the marker names",
-            path=request.tracks[0],
+            path=where,
         )
     index = {n: i for i, n in enumerate(names)}
     observations = Observations(
         np.array([index[c] for c in rows.camera], dtype=int), machine.marker_index(rows.marker), rows.xy
     )
-    guess = load_guess(request.guess, machine) if request.guess else None
+    guess = guess() if callable(guess) else guess
     chosen = ""
     if choose_lens:
         result, criterion = calibrate_choosing_lens(machine, observations, templates, options, guess)
@@ -79,29 +128,32 @@ def run_calibrate(request: CalibrateRequest) -> str:
     else:
         result = calibrate(machine, observations, templates, options, guess)
     if options.fixed_intrinsics:
-        chosen += f"\nintrinsics of {', '.join(sorted(options.fixed_intrinsics))} kept as given in {request.intrinsics}"
-    save_calibration(report.to_calibration(result, frame), request.out)
-    points_out = request.points_out or str(Path(request.out).with_name("reference_points.csv"))
-    save_points(report.reference_points(result, frame), points_out)
-    return report.format_report(result, frame) + chosen + f"\nwrote {request.out} and {points_out}"
+        chosen += f"\nintrinsics of {', '.join(sorted(options.fixed_intrinsics))} kept as given in {intrinsics_path}"
+    return Calibrated(result, frame, chosen)
 
 
-def _frame_rows(tracks: Tracks, request: CalibrateRequest) -> tuple[int, Tracks]:
+def _run_dlt_request(machine, tracks: Tracks, request: CalibrateRequest) -> str:
+    frame, rows, templates = _templates(tracks, request.sizes, request.frame, None, None, request.tracks[0],
+                                        ", ".join(request.tracks))
+    return _run_dlt(machine, rows, templates, frame, request)
+
+
+def _frame_rows(tracks: Tracks, frame: int | None, where) -> tuple[int, Tracks]:
     if not len(tracks):
-        raise InputError("no observations", path=request.tracks[0])
-    frame = int(tracks.frame.min()) if request.frame is None else int(request.frame)
+        raise InputError("no observations", path=where)
+    frame = int(tracks.frame.min()) if frame is None else int(frame)
     rows = tracks.of_frame(frame)
     if not len(rows):
         raise InputError(
             f"no observations at frame {frame}; frames present run {tracks.frame.min()}..{tracks.frame.max()}",
-            path=request.tracks[0],
+            path=where,
         )
     pairs = list(zip(rows.camera, rows.marker))
     if len(set(pairs)) != len(pairs):
         dup = next(p for p in pairs if pairs.count(p) > 1)
         raise InputError(
             f"marker {dup[1]!r} appears twice for camera {dup[0]!r} at frame {frame}",
-            path=request.tracks[0],
+            path=where,
         )
     return frame, rows
 

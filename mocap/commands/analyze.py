@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 
 EXAMPLE = """example:
   mocap analyze calibrations/machines/hitachi_ex3500.toml results/motion.csv --out results/"""

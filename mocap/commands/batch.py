@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 
 EXAMPLE = """examples:
   mocap batch sessions/ --workers 2 --out fleet/          # an embedded local cluster of 2 workers

@@ -6,7 +6,7 @@ import argparse
 import re
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.commands.arguments import DISTORTION_CHOICES, TOLERANCE_HELP, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs

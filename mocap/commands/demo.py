@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.demo import DemoOptions, run_demo
 
 

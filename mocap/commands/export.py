@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 
 EXAMPLE = """examples:
   mocap export c3d SESSION_DIR --out dig.c3d          # markers and named points, mm, for Nexus / Mokka

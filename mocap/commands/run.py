@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 
 EXAMPLE = """example:
   mocap run SESSION_DIR          # needs SESSION_DIR/calibration/labels.csv (the first frame's markers)"""

@@ -3,17 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import logging
-from dataclasses import replace
 from pathlib import Path
 
-from mocap.cli import COMMANDS
-from mocap.errors import InputError
-from mocap.io.outputs import check_output_folder
-
-log = logging.getLogger(__name__)
-
-MAX_CYCLES = 100  # about an hour of digging
+from mocap.commands import COMMANDS
 CODECS = ("h264", "mp4v")  # mocap.synthetic.encode's, named here so that --help needs no video library
 
 
@@ -58,83 +50,15 @@ def add_parser(subparsers) -> None:
     p.set_defaults(run=run)
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080") from None
-    if w < 64 or h < 64 or w > 7680 or h > 4320:
-        raise InputError(f"--size {text!r}: from 64x64 to 7680x4320 pixels")
-    return w, h
-
-
-def parse_classes(text: str) -> tuple[str, ...]:
-    from mocap.synthetic import CLASSES
-
-    picks = [v.strip() for v in text.split(",") if v.strip()]
-    if not picks or any(v not in ("1", "2", "3") for v in picks):
-        raise InputError(f"--classes {text!r}: expected a comma list of 1, 2, 3")
-    return tuple(CLASSES[int(v) - 1] for v in dict.fromkeys(picks))
-
-
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
+    from mocap.synthetic.stage import SynthRequest, run_synth
 
-    from mocap.io.machine_toml import load_machine, resolve_machine_path
-    from mocap.session import Session, mark_complete
-    from mocap.synthetic import SessionOptions, make_session, summary, write_truth
-    from mocap.synthetic.effects import EffectOptions
-    from mocap.synthetic.looks import Look, random_look
-    from mocap.synthetic.render import RenderOptions, render_videos
-
-    machine_path = resolve_machine_path(args.machine)
-    machine = load_machine(machine_path)
-    if not 1 <= args.cameras <= 8:
-        raise InputError(f"--cameras {args.cameras}: give 1 to 8 cameras")
-    if not 1 <= args.cycles <= MAX_CYCLES:
-        raise InputError(f"--cycles {args.cycles}: give 1 to {MAX_CYCLES} dig cycles")
-    if args.hold < 0.5:
-        raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
-    check_output_folder(args.out)
-    session = Session.open(args.out)
-    if args.out.exists() and any(args.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
-        raise InputError("the output folder exists and is not empty; choose a new folder", path=args.out)
-    if not 0.05 <= args.scale <= 4.0:
-        raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
-    width, height = parse_size(args.size)
-    look = random_look(np.random.default_rng([args.seed, 2])) if args.look == "random" else Look()
-    if args.rolling_shutter is not None:
-        if not 0.0 <= args.rolling_shutter <= 0.9:
-            raise InputError(f"--rolling-shutter {args.rolling_shutter}: give a share of the frame interval, 0..0.9")
-        look = replace(look, readout=args.rolling_shutter)
-    scale = args.scale * look.scale
-    size = (max(16, round(width * scale)), max(16, round(height * scale)))
-    try:
-        if args.clean:
-            effects = EffectOptions.none()
-        elif args.look == "random":
-            effects = EffectOptions(look.noise, look.blur, look.exposure, look.dust)
-        else:
-            effects = EffectOptions(args.noise, args.blur, args.exposure, args.dust)
-    except ValueError as exc:
-        raise InputError(f"{exc}; noise and exposure take 0..50, blur and dust 0..0.9") from None
-    options = SessionOptions(
-        n_cameras=args.cameras, n_cycles=args.cycles, seed=args.seed, size=size,
-        distortion=args.distortion or look.distortion, shake_deg=args.shake or look.shake_deg, bounce=args.bounce,
-        reactive=args.reactive,
-        redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
-        readout=look.readout,
+    request = SynthRequest(
+        machine=args.machine, out=args.out, cameras=args.cameras, cycles=args.cycles, seed=args.seed,
+        size=args.size, classes=args.classes, distortion=args.distortion, shake=args.shake, bounce=args.bounce,
+        reactive=args.reactive, redirect=args.redirect, hold=args.hold, scale=args.scale, codec=args.codec,
+        noise=args.noise, blur=args.blur, exposure=args.exposure, dust=args.dust, clean=args.clean,
+        rolling_shutter=args.rolling_shutter, look=args.look, no_video=args.no_video,
     )
-    session = make_session(machine, str(args.machine), options)
-    args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over
-    write_truth(session, args.out, machine_path, look)
-    log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
-    if not args.no_video:
-        paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects, look=look))
-        log.info("wrote %d videos", len(paths))
-    mark_complete(Session.open(args.out).complete_path, "mocap synth")
-    print(summary(session))
-    if args.look == "random":
-        print(f"look: {look.name}")
-    print(f"wrote {args.out}" + ("" if args.no_video else f" with {args.codec} videos"))
+    print(run_synth(request))
     return 0

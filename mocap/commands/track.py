@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
 
@@ -82,20 +82,7 @@ def run(args) -> int:
         args.start, args.stop, options, args.whole_video, Path(args.preview) if args.preview else None,
     )
     report = run_track(request)
-    if report.summary is None:
-        print(f"proposed labels of frame {int(report.labels.frame[0])} ({len(report.labels)} markers), "
-              f"written to {args.propose_labels}; check them, then run with --labels")
-        for k in range(len(report.labels)):
-            print(f"  {report.labels.marker[k]:>8}  x {report.labels.xy[k, 0]:9.2f}  y {report.labels.xy[k, 1]:9.2f}")
-        return 0
-    s = report.summary
-    fitted = f"{s.fitted} with a model fit, " if s.fitted else ""  # tags alone need no fit
-    print(f"{report.camera}: {s.frames} frames, {fitted}{s.labelled} marker "
-          f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
-    if s.unplaced:
-        print(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
-    if args.preview:
-        print(f"labels drawn on the video in {args.preview}")
+    print(report.text(args.out, args.propose_labels, args.preview))
     if report.broken_at is not None:
         print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
               "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)

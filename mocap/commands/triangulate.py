@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
 

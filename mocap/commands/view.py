@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from mocap.cli import COMMANDS
+from mocap.commands import COMMANDS
 from mocap.errors import InputError
-from mocap.io.outputs import check_outputs
 
 EXAMPLES = """examples:
   mocap view SESSION_DIR                       # writes SESSION_DIR/results/session.rrd
@@ -46,10 +45,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from mocap.io.video import probe_video
-    from mocap.session import Session
-    from mocap.viewer import Sinks, run_replay
-    from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
+    from mocap.viewer import Sinks
+    from mocap.viewer.inputs import ReplayFiles
+    from mocap.viewer.stage import run_view
 
     files = ReplayFiles(
         machine=args.machine,
@@ -60,30 +58,7 @@ def run(args) -> int:
         videos=parse_videos(args.video),
         cycles=args.cycles,
     )
-    asked = list(files.videos.values())
-    files = with_session(files, args.session)
-    sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
-    if not sinks.any:
-        if args.session is None:
-            raise InputError("nowhere to send the replay; pass --save FILE.rrd, --connect, --serve or --spawn")
-        sinks = Sinks(save=Session.open(args.session).recording_path)
-    if sinks.save is not None and sinks.save.suffix != ".rrd":
-        raise InputError(f"--save {sinks.save}: a Rerun recording is a .rrd file; name it FILE.rrd")
-    check_outputs({"--save": sinks.save}, {
-        "machine model": files.machine, "calibration": files.calibration, "motion": files.motion,
-        "points": files.points, "tracks": list(files.tracks), "video": list(files.videos.values()),
-        "cycles": files.cycles,
-    })
-    replay = load_replay(files)
-    for path in asked:  # the videos asked for must be videos; a session's may be absent or unplayable
-        if not path.is_file():
-            raise InputError("video file not found; check --video NAME=PATH", path=path)
-        probe_video(path)
-    summary = run_replay(replay, sinks)
-    where = f" to {sinks.save}" if sinks.save is not None else ""
-    videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
-    trails = f"{summary.trails} trail(s)"
-    print(f"replay of {summary.frames} frames, {summary.cameras} cameras{videos}, {trails}{where}")
+    print(run_view(files, args.session, Sinks(args.save, args.connect, args.serve, args.spawn)))
     return 0
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.export.markers import MarkerTable
+from mocap.core.marker_table import MarkerTable
 from mocap.io.atomic import atomic_path
 
 _UNITS_TO_METRES = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.batch.fleet import CLASSES, SessionSummary
+from mocap.core.session_summary import CLASSES, SessionSummary
 from mocap.io.atomic import atomic_path
 
 COLUMNS = ("session", "machine", "day", "status", "error", "stages_run", "stages_skipped", "stage_seconds",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.calibration.solve import Guess
+from mocap.core.guess import Guess
 from mocap.camera import PaperCamera
 from mocap.errors import InputError
 from mocap.io.cameras_toml import joints_from_table, numbers

@@ -117,9 +117,9 @@ def _joint_scale(machine: Machine) -> np.ndarray:
     return np.array([np.degrees(1.0) if j.type == REVOLUTE else 1.0 for j in machine.joints])
 
 
-def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
-    """Write the motion CSV (joint values converted to degrees / metres), or Parquet with
-    the same columns for a ``.parquet`` path."""
+def motion_columns(motion: Motion, machine: Machine) -> dict[str, np.ndarray]:
+    """The motion file's columns in order, {name: (F,) array} (joint values in degrees /
+    metres; `frame` integers, the rest floats)."""
     scale = _joint_scale(machine)
     header = ["frame", "time", *motion.joint_names]
     columns = [motion.frame, motion.time, *(motion.joints * scale).T]
@@ -139,14 +139,18 @@ def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
         columns.append(np.degrees(motion.bucket_angle_sd))
     header += list(motion.extra)
     columns += [np.asarray(v, dtype=float) for v in motion.extra.values()]
-
-    if is_parquet(path):
-        columnar.write_parquet({h: np.asarray(c, dtype=float) for h, c in zip(header, columns)}
-                               | {"frame": np.asarray(motion.frame, dtype=np.int64)}, path)
-        return
     values = {h: np.asarray(c, dtype=float) for h, c in zip(header, columns)}
-    columnar.write_csv(values | {"frame": np.asarray(motion.frame, dtype=np.int64)}, path,
-                       dict.fromkeys(header, 6))
+    return values | {"frame": np.asarray(motion.frame, dtype=np.int64)}
+
+
+def save_motion(motion: Motion, machine: Machine, path: str | Path) -> None:
+    """Write the motion CSV (joint values converted to degrees / metres), or Parquet with
+    the same columns for a ``.parquet`` path."""
+    values = motion_columns(motion, machine)
+    if is_parquet(path):
+        columnar.write_parquet(values, path)
+        return
+    columnar.write_csv(values, path, dict.fromkeys([h for h in values if h != "frame"], 6))
 
 
 def _is_number(text: str) -> bool:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.export.markers import MarkerTable
+from mocap.core.marker_table import MarkerTable
 from mocap.io.atomic import atomic_path
 from mocap.io.text import read_text
 

@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -38,8 +38,16 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
     markers that do not match."""
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
+    markers = check_inputs(calibration, tracks, machine, calibration_path, ", ".join(map(str, tracks_paths)))
+    return calibration, tracks, markers
+
+
+def check_inputs(calibration: Calibration, tracks: Tracks, machine: Machine | None = None,
+                 calibration_path=None, tracks_where=None) -> tuple[str, ...]:
+    """The marker names the tracks are resampled to (the model's, else the tracks'); raises
+    InputError for cameras or markers that do not match. The paths name the inputs in messages."""
     if not len(tracks):
-        raise InputError("no observations in the tracks file(s)", path=", ".join(map(str, tracks_paths)))
+        raise InputError("no observations in the tracks file(s)", path=tracks_where)
     unknown = sorted(set(tracks.cameras) - set(calibration.names))
     if unknown:
         raise InputError(
@@ -47,19 +55,17 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
             f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
             path=calibration_path,
         )
-    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, tracks_where)
     if machine is None:
-        markers = tracks.markers
-    else:
-        strange = sorted(set(tracks.markers) - set(machine.marker_names))
-        if strange:
-            raise InputError(
-                f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
-                f"model {machine.name!r}; check the model or the tracks' marker names",
-                path=", ".join(map(str, tracks_paths)),
-            )
-        markers = machine.marker_names
-    return calibration, tracks, markers
+        return tracks.markers
+    strange = sorted(set(tracks.markers) - set(machine.marker_names))
+    if strange:
+        raise InputError(
+            f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
+            f"model {machine.name!r}; check the model or the tracks' marker names",
+            path=tracks_where,
+        )
+    return machine.marker_names
 
 
 def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
@@ -93,9 +99,42 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
 MAX_NOISE_PX = 5.0  # tracks that lie further than this from any consistent answer: refused
 
 
+@dataclass(frozen=True)
+class Triangulation:
+    """`triangulate`'s result: the points and what the report says of them."""
+
+    points: Points
+    seen: int  # marker-frames seen by any camera
+    contradicted: int  # views dropped that the markers' 3-D tracks contradict
+    dropped: int  # pixels dropped that their own tracks contradict
+
+    def report(self, out) -> str:
+        points = self.points
+        return (
+            f"{len(points)} points in {_count_distinct(points.frame)} frames{_written(out)}; "
+            f"median reprojection error {np.median(points.error_px):.2f} px; "
+            f"{self.seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
+            + (f"; {self.contradicted} view(s) dropped that the markers' 3-D tracks contradict"
+               if self.contradicted else "")
+            + _dropped(self.dropped)
+        )
+
+
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions,
                     max_noise_px: float = MAX_NOISE_PX) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
+    result = triangulate(calibration, tracks, options, max_noise_px, markers, calibration_path)
+    save_points(result.points, out)
+    return result.report(out)
+
+
+def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOptions = TriangulateOptions(),
+                max_noise_px: float = MAX_NOISE_PX, markers=None, calibration_path=None) -> Triangulation:
+    """Every marker in every reference frame seen by `options.min_views` cameras or more.
+    `markers`: the names to triangulate (default: the tracks'); `calibration_path` names
+    the calibration in messages."""
+    if markers is None:
+        markers = check_inputs(calibration, tracks, None, calibration_path)
     if options.min_views > len(calibration.cameras):
         raise InputError(f"--min-views {options.min_views}: the calibration has only {len(calibration.cameras)} "
                          "cameras", path=calibration_path)
@@ -125,15 +164,8 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
             f"the cameras' views of the markers disagree by {noise:.1f} px (the pixel noise they imply; most: "
             f"{worst}): the calibration, the time offsets or the labels do not match the tracks; nothing "
             f"written (check them, or raise --max-noise-px {max_noise_px:g})", path=calibration_path)
-    save_points(points, out)
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
-    return (
-        f"{len(points)} points in {_count_distinct(points.frame)} frames written to {out}; "
-        f"median reprojection error {np.median(points.error_px):.2f} px; "
-        f"{seen - len(points)} marker-frames seen by fewer than 2 cameras or by two that disagree"
-        + (f"; {contradicted} view(s) dropped that the markers' 3-D tracks contradict" if contradicted else "")
-        + _dropped(clock)
-    )
+    return Triangulation(points, seen, contradicted, clock.dropped)
 
 
 def _count_distinct(values: np.ndarray) -> int:
@@ -144,18 +176,70 @@ def _count_distinct(values: np.ndarray) -> int:
     return len(np.unique(values))
 
 
+@dataclass(frozen=True)
+class Fitted:
+    """`fit_motion`'s result: the motion, the model it was fitted with (its markers moved by
+    the estimated offsets, if any) and the figures of the report."""
+
+    motion: object  # mocap.io.motion_csv.Motion
+    machine: Machine
+    result: object  # mocap.reconstruct.motion.MotionResult
+    ambiguity: str  # the report's sentence on second solutions ("" if none)
+    dropped: int  # pixels dropped that their own tracks contradict
+
+    def report(self, out, out_machine=None) -> str:
+        result, fit = self.result, self.result.fit
+        report = (
+            f"{len(result.motion)} frames{_written(out)}; {int(fit.valid.sum())} fitted, "
+            f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
+        )
+        unexplained = int((fit.valid & ~fit.explained).sum())
+        if unexplained:
+            report += (f"; {unexplained} frame(s) that no joint values explain within the noise (column "
+                       "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
+        if result.smoothed is not None:
+            report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
+        if result.offsets is not None:  # the fit is of the model with its markers moved by them
+            report += _offsets(result.offsets)
+            if out_machine is not None:
+                report += f"; the model with its markers there written to {out_machine}"
+        check = result.base_check
+        if check is not None and check.moves:
+            report += (f"; the base moves: a base pose per frame leaves {check.moving_noise_px:.2f} px of noise where "
+                       f"the fixed base leaves {check.fixed_noise_px:.2f} px ({check.frames} frames tried; the machine "
+                       "bounces, or the cameras moved since the calibration), so it was fitted per frame (columns "
+                       "base_*; --fixed-base keeps it fixed)")
+        return report + self.ambiguity + _dropped(self.dropped)
+
+
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
             smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX, out_machine=None,
             choose_base: bool = True) -> str:
     """Fit the machine to the tracks and write the motion; the report line. With
     `choose_base` a fixed base (fit_options) is fitted per frame when the data say it moves."""
-    from mocap.reconstruct.motion import reconstruct_motion
-
     machine = load_machine(machine_path)
     if out_machine is not None and not fit_options.tolerance_of(machine):
         raise InputError("--out-machine needs the markers' tolerance (--tolerance, or `tolerance` in the model file): "
                          "without it the markers are taken as exact and not moved", path=machine_path)
-    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
+    calibration, tracks = load_calibration(calibration_path), load_tracks(tracks_paths)
+    fitted = fit_motion(machine, calibration, tracks, fit_options, smooth_options, max_noise_px, choose_base,
+                        calibration_path, ", ".join(map(str, tracks_paths)))
+    save_motion(fitted.motion, machine, out)
+    if fitted.result.offsets is not None and out_machine is not None:
+        save_machine(fitted.machine, out_machine)
+    return fitted.report(out, out_machine)
+
+
+def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_options: FitOptions | None = None,
+               smooth_options: SmoothOptions | None = None, max_noise_px: float = MAX_NOISE_PX,
+               choose_base: bool = True, calibration_path=None, tracks_where=None) -> Fitted:
+    """The machine's motion from every camera's tracks: the per-frame fit, smoothed unless
+    `smooth_options` is None. The paths name the inputs in messages."""
+    from mocap.reconstruct.kinfit import FitOptions
+    from mocap.reconstruct.motion import reconstruct_motion
+
+    fit_options = FitOptions() if fit_options is None else fit_options
+    markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     if machine.n_joints == 0 and not fit_options.base_motion:
         log.info("%s is rigid (no joints): fitting its pose per frame", machine.name)
@@ -175,33 +259,16 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
             f"the tracks lie {fit.noise_px:.1f} px (the pixel noise they imply) from the best pose of the model "
             f"{machine.name!r} (most: {_worst(labels, length[seen])}): the machine model, the labels or the "
             f"calibration do not match the tracks; nothing written (check them, or raise --max-noise-px "
-            f"{max_noise_px:g})", path=", ".join(map(str, tracks_paths)))
-    save_motion(result.motion, machine, out)
-    report = (
-        f"{len(result.motion)} frames written to {out}; {int(fit.valid.sum())} fitted, "
-        f"median residual {np.nanmedian(fit.rms_px):.2f} px, pixel noise {fit.noise_px:.2f} px"
-    )
-    unexplained = int((fit.valid & ~fit.explained).sum())
-    if unexplained:
-        report += (f"; {unexplained} frame(s) that no joint values explain within the noise (column "
-                   "unexplained: wrong labels, a wrong model or calibration there; the smoother skips them)")
-    if result.smoothed is not None:
-        report += f"; {int(result.smoothed.filled.sum())} frames filled by the smoother"
+            f"{max_noise_px:g})", path=tracks_where)
+    fitted_machine = machine
     if result.offsets is not None:  # the fit is of the model with its markers moved by them
-        report += _offsets(result.offsets)
-        machine = result.offsets.apply(machine)
-        if out_machine is not None:
-            save_machine(machine, out_machine)
-            report += f"; the model with its markers there written to {out_machine}"
+        fitted_machine = result.offsets.apply(machine)
         fit_options = replace(fit_options, tolerance=Tolerance())
     check = result.base_check
     if check is not None and check.moves:
         fit_options = replace(fit_options, base_motion=True)
-        report += (f"; the base moves: a base pose per frame leaves {check.moving_noise_px:.2f} px of noise where the "
-                   f"fixed base leaves {check.fixed_noise_px:.2f} px ({check.frames} frames tried; the machine "
-                   "bounces, or the cameras moved since the calibration), so it was fitted per frame (columns "
-                   "base_*; --fixed-base keeps it fixed)")
-    return report + _ambiguity(machine, list(calibration.cameras), clock.pixels, fit, fit_options) + _dropped(clock)
+    ambiguity = _ambiguity(fitted_machine, list(calibration.cameras), clock.pixels, fit, fit_options)
+    return Fitted(result.motion, fitted_machine, result, ambiguity, clock.dropped)
 
 
 def _offsets(offsets) -> str:
@@ -242,40 +309,73 @@ def _worst(names: np.ndarray, errors: np.ndarray, count: int = 3) -> str:
     return ", ".join(f"{unique[k]} {medians[k]:.1f} px" for k in order)
 
 
-def _dropped(clock: Resampled) -> str:
-    return f"; {clock.dropped} pixel(s) dropped that their own tracks contradict" if clock.dropped else ""
+def _written(out, comma: str = "") -> str:
+    """ " written to OUT" for a report, or nothing for a result kept in memory (out None)."""
+    return "" if out is None else f"{comma} written to {out}"
+
+
+def _dropped(dropped: int) -> str:
+    return f"; {dropped} pixel(s) dropped that their own tracks contradict" if dropped else ""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """`refine_cameras`' result: the refined calibration and model, and the refinement's figures."""
+
+    calibration: Calibration
+    machine: Machine
+    result: object  # mocap.reconstruct.refine.RefineResult
+    fixed_intrinsics: frozenset
+
+    def report(self, out_calibration, out_machine=None, before: Machine | None = None) -> str:
+        result = self.result
+        report = (
+            f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
+            f"{result.rms_after:.2f} px{_written(out_calibration, ',')}"
+        )
+        if result.criterion:
+            tried = ", ".join(f"{name} {value:.0f}" for name, value in result.criterion.items())
+            report += f"; lens distortion chosen by the data: {result.distortion} (BIC {tried})"
+        elif result.distortion != "none":
+            report += f"; lens distortion {result.distortion} freed"
+        if self.fixed_intrinsics:
+            report += f"; intrinsics of {', '.join(sorted(self.fixed_intrinsics))} kept as given"
+        if out_machine is not None and before is not None:
+            moved = np.linalg.norm(self.machine.marker_positions - before.marker_positions, axis=1)
+            report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
+        return report
 
 
 def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, out_machine,
                options: RefineOptions, intrinsics_path=None) -> str:
-    from mocap.reconstruct.refine import refine
-
     machine = load_machine(machine_path)
-    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, machine)
+    calibration, tracks = load_calibration(calibration_path), load_tracks(tracks_paths)
+    check_inputs(calibration, tracks, machine, calibration_path, ", ".join(map(str, tracks_paths)))
+    known = load_intrinsics(intrinsics_path) if intrinsics_path is not None else None
+    refined = refine_cameras(machine, calibration, tracks, options, known, intrinsics_path, calibration_path,
+                             ", ".join(map(str, tracks_paths)))
+    save_calibration(refined.calibration, out_calibration)
+    if out_machine is not None:
+        save_machine(refined.machine, out_machine)
+    return refined.report(out_calibration, out_machine, machine)
+
+
+def refine_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, options: RefineOptions | None = None,
+                   known_intrinsics: dict | None = None, intrinsics_path=None, calibration_path=None,
+                   tracks_where=None) -> Refinement:
+    """Bundle adjustment of the cameras (and, with `options.markers`, the marker positions)
+    over the session's frames; `known_intrinsics` {camera: intrinsics} are used and kept."""
+    from mocap.reconstruct.refine import RefineOptions, refine
+
+    options = RefineOptions() if options is None else options
+    markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
     cameras = list(calibration.cameras)
-    if intrinsics_path is not None:  # known intrinsics: used and kept
-        known = load_intrinsics(intrinsics_path)
-        cameras = with_known_intrinsics(cameras, known, intrinsics_path)
-        options = replace(options, fixed_intrinsics=frozenset(c.name for c in cameras if c.name in known))
+    if known_intrinsics is not None:  # known intrinsics: used and kept
+        cameras = with_known_intrinsics(cameras, known_intrinsics, intrinsics_path)
+        options = replace(options, fixed_intrinsics=frozenset(c.name for c in cameras if c.name in known_intrinsics))
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     result = refine(machine, cameras, clock.pixels, options)
     refined = Calibration(result.cameras, calibration.extras, {
         **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),
     })
-    save_calibration(refined, out_calibration)
-    report = (
-        f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
-        f"{result.rms_after:.2f} px, written to {out_calibration}"
-    )
-    if result.criterion:
-        tried = ", ".join(f"{name} {value:.0f}" for name, value in result.criterion.items())
-        report += f"; lens distortion chosen by the data: {result.distortion} (BIC {tried})"
-    elif result.distortion != "none":
-        report += f"; lens distortion {result.distortion} freed"
-    if options.fixed_intrinsics:
-        report += f"; intrinsics of {', '.join(sorted(options.fixed_intrinsics))} kept as given"
-    if out_machine is not None:
-        save_machine(result.machine, out_machine)
-        moved = np.linalg.norm(result.machine.marker_positions - machine.marker_positions, axis=1)
-        report += f"; markers moved by up to {moved.max():.3f} m, model written to {out_machine}"
-    return report
+    return Refinement(refined, result.machine, result, frozenset(options.fixed_intrinsics))

@@ -10,6 +10,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
+from mocap.machine import Machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
 from mocap.sync.align import joint_curves, pose_curves, synchronise, window_frames
 
@@ -20,7 +21,20 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     machine = load_machine(machine_path)
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
-    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, ", ".join(map(str, tracks_paths)))
+    synced, report = sync_cameras(machine, calibration, tracks, fps_values, max_offset, machine_path, calibration_path,
+                                  ", ".join(map(str, tracks_paths)))
+    save_calibration(synced, out)
+    return report
+
+
+def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps_values=(), max_offset: float = 10.0,
+                 machine_path=None, calibration_path=None, tracks_where=None) -> tuple[Calibration, str]:
+    """The calibration with each camera's time_offset (s) and fps, found by aligning each
+    camera's own joint-value curves with the reference camera's; and the report. `fps_values`
+    "NAME=FPS" strings (default: the calibration's fps, else the tracks' time column)."""
+    if not max_offset > 0:
+        raise InputError(f"--max-offset {max_offset}: must be positive")
+    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, tracks_where)
     unknown = sorted(set(tracks.cameras) - set(calibration.names))
     if unknown:
         raise InputError(f"tracks name camera(s) {unknown} that the calibration lacks (it has "
@@ -29,12 +43,12 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     strange = sorted(set(tracks.markers) - set(machine.marker_names))
     if strange:
         raise InputError(f"marker(s) {strange[:5]} are not in the machine model {machine.name!r}; check the "
-                         "model or the tracks' marker names", path=", ".join(map(str, tracks_paths)))
+                         "model or the tracks' marker names", path=tracks_where)
     present = tracks.cameras
     missing = [name for name in calibration.names if name not in present]
     if missing:
-        raise InputError(f"no tracks of camera {missing[0]!r} in {', '.join(map(str, tracks_paths))}; give its tracks CSV")
-    fps = frame_rates(calibration, tracks, parse_fps(fps_values, calibration.names))
+        raise InputError(f"no tracks of camera {missing[0]!r} in {tracks_where}; give its tracks CSV")
+    fps = frame_rates(calibration, tracks, parse_fps(list(fps_values), calibration.names))
     spans = []
     for camera in calibration.cameras:
         frame = tracks.frame[tracks.rows_of_camera(camera.name)]
@@ -57,8 +71,7 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     synced: Calibration = calibration
     for k in range(len(calibration.cameras)):
         synced = synced.with_extras(k, time_offset=float(result.offsets[k]), fps=float(fps[k]))
-    save_calibration(synced, out)
-    return "\n".join(
+    return synced, "\n".join(
         f"{name}: time_offset {result.offsets[k]:+.4f} s ({result.offsets[k] * fps[0]:+.3f} frames), "
         f"fps {fps[k]:g}, residual {result.residual[k]:.3f}"
         for k, name in enumerate(calibration.names)

@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.io.cameras_toml import load_calibration
+from mocap.io.cameras_toml import Calibration, load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks, save_tracks
 from mocap.io.video import Video
+from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
 from mocap.tracking.preview import write_preview
@@ -54,13 +55,43 @@ class TrackReport:
     summary: TrackSummary | None
     labels: Tracks
     broken_at: int | None
+    tracks: Tracks | None = None  # every frame's (None when only labels were proposed)
+
+    def text(self, out, propose_labels=None, preview=None) -> str:
+        """What `mocap track` prints of it."""
+        if self.summary is None:
+            lines = [f"proposed labels of frame {int(self.labels.frame[0])} ({len(self.labels)} markers), "
+                     f"written to {propose_labels}; check them, then run with --labels"]
+            lines += [f"  {self.labels.marker[k]:>8}  x {self.labels.xy[k, 0]:9.2f}  y {self.labels.xy[k, 1]:9.2f}"
+                      for k in range(len(self.labels))]
+            return "\n".join(lines)
+        s = self.summary
+        fitted = f"{s.fitted} with a model fit, " if s.fitted else ""  # tags alone need no fit
+        lines = [f"{self.camera}: {s.frames} frames, {fitted}{s.labelled} marker "
+                 f"positions written to {out}" + (f", {s.restarts} re-acquisitions" if s.restarts else "")]
+        if s.unplaced:
+            lines.append(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
+        if preview:
+            lines.append(f"labels drawn on the video in {preview}")
+        return "\n".join(lines)
 
 
 def run_track(request: TrackRequest) -> TrackReport:
     machine = load_machine(request.machine)
     video = Video(request.video)
+    calibration = load_calibration(request.calibration) if request.calibration is not None else None
+    labels = load_tracks(request.labels) if request.labels is not None else None
+    return track_video(request, machine, calibration, labels, video)
+
+
+def track_video(request: TrackRequest, machine: Machine, calibration: Calibration | None = None,
+                labels: Tracks | None = None, video: Video | None = None) -> TrackReport:
+    """Label and track the markers of `machine` in the video `request.video` through the
+    camera of `calibration`; `labels` the first frame's marker pixels (else fitted or the
+    tags). The tracks are written to `request.out` when it is given (and returned)."""
+    video = Video(request.video) if video is None else video
     disks = [name for name, tag in zip(machine.marker_names, machine.tags) if tag < 0]
-    if request.calibration is None:
+    if calibration is None:
         if disks:
             raise InputError(
                 f"--calibration is required: {len(disks)} of the model's markers ({', '.join(disks[:6])}"
@@ -69,7 +100,6 @@ def run_track(request: TrackRequest) -> TrackReport:
                 path=request.machine,
             )
         return _run_tags(request, machine, video, request.camera or request.video.stem, video.info.fps)
-    calibration = load_calibration(request.calibration)
     name = _camera_name(request, calibration.names)
     index = calibration.names.index(name)
     camera = calibration.cameras[index]
@@ -87,8 +117,7 @@ def run_track(request: TrackRequest) -> TrackReport:
         start = machine.clip_to_limits(np.zeros(machine.n_joints))
     model = CameraModel(machine, camera, solid=machine.n_joints > 0)
     labelled = None
-    if request.labels is not None:
-        labels = load_tracks(request.labels)
+    if labels is not None:
         check_in_images(labels.of_camera(camera.name), {camera.name: camera.size}, request.labels)
         labelled = _first_frame_pixels(labels, machine, camera.name, request.start, request.labels)
     options = request.options
@@ -154,11 +183,12 @@ def _finish(request: TrackRequest, video: Video, camera: str, tracks: Tracks, su
         raise InputError(
             f"the video breaks at frame {video.broken_at} of {video.info.frame_count} (truncated or "
             "corrupt); nothing written: repair or re-copy the video", path=request.video)
-    save_tracks(tracks, request.out)
+    if request.out is not None:
+        save_tracks(tracks, request.out)
     if request.preview is not None:
         write_preview(video, tracks, request.preview, request.start, request.stop)
     first = tracks.select(tracks.frame == tracks.frame.min())
-    return TrackReport(camera, summary, first, video.broken_at)
+    return TrackReport(camera, summary, first, video.broken_at, tracks)
 
 
 def _camera_name(request: TrackRequest, names: list[str]) -> str:
