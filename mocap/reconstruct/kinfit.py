@@ -222,6 +222,25 @@ def refit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, starts: n
     return problem.levenberg_marquardt(np.moveaxis(pixels, 1, 0), start, known)
 
 
+class FrameFitter:
+    """Frames fitted as they come (`mocap live`): Levenberg-Marquardt alone of each batch of
+    frames from given starts (the frame before's solution), by the same compiled kernel as
+    `fit_joints`, the model and cameras prepared once."""
+
+    def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None):
+        self._problem = _Problem(machine, tuple(cameras), options or FitOptions())
+
+    @property
+    def n_params(self) -> int:
+        return self._problem.n_params
+
+    def fit(self, pixels: np.ndarray, starts: np.ndarray) -> FrameState:
+        """pixels (C, F, M, 2) from starts (F, J): joints, cost, normal matrix (px²), residuals."""
+        machine = self._problem.machine
+        start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), None, None, np.zeros(len(starts)))
+        return self._problem.levenberg_marquardt(np.moveaxis(np.asarray(pixels, dtype=float), 1, 0), start)
+
+
 def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     if values.shape == (width,):
