@@ -71,9 +71,10 @@ def free_port() -> int:
 
 
 def test_live_rows_follow_the_truth_with_a_camera_ending_early_and_a_feed(short_session, tmp_path, capsys):
-    """Played in real time: a row per reference frame, the bucket tip within a few cm of the
-    truth (the cameras are 46 and 75 m away: 0.1 px is 0.5 cm at the far one), the rows carrying
-    on from cam1 alone once cam2 has ended; the feed's JSON lines are the file's rows."""
+    """Played in real time, the base's pose fitted too (the machine bounces): a row per
+    reference frame, the bucket tip within a few cm of the truth (the cameras are 46 and 75 m
+    away: 0.1 px is 0.5 cm at the far one), the rows carrying on from cam1 alone once cam2 has
+    ended; the feed's JSON lines are the file's rows."""
     root, session = short_session
     port = free_port()
     lines: list[str] = []
@@ -91,7 +92,8 @@ def test_live_rows_follow_the_truth_with_a_camera_ending_early_and_a_feed(short_
     reader = threading.Thread(target=read_feed)
     reader.start()
     out = tmp_path / "poses.csv"
-    assert cli.main(live(root, "--realtime", "--out", str(out), "--feed", f"tcp://127.0.0.1:{port}")) == 0
+    assert cli.main(live(root, "--realtime", "--base-motion", "--out", str(out), "--feed",
+                         f"tcp://127.0.0.1:{port}")) == 0
     reader.join()
     summary = capsys.readouterr().out.strip().splitlines()[0]
     match = SUMMARY.match(summary)
@@ -107,7 +109,8 @@ def test_live_rows_follow_the_truth_with_a_camera_ending_early_and_a_feed(short_
     assert all(used[f] == "cam1" for f in used if f < 25 or f > 78)
     assert np.mean([used[f] == "cam1;cam2" for f in used if 32 <= f <= 70]) > 0.9
     error = tip_error(rows, session)
-    assert np.median(error) < 0.05 and np.percentile(error, 90) < 0.15, np.percentile(error, [50, 90, 100])
+    # measured 0.7 / 1.3 / 3.7 cm (median, 90 %, most): with a fixed base the bouncing puts it at 5-9 cm
+    assert np.median(error) < 0.02 and np.percentile(error, 90) < 0.05, np.percentile(error, [50, 90, 100])
     latency = np.array([float(r["latency_ms"]) for r in rows])
     assert np.all(latency > 0) and np.percentile(latency, 50) == pytest.approx(float(match.group(8)), abs=1)
     # the feed: the same rows as the file, from when the reader connected on

@@ -50,6 +50,9 @@ def add_parser(sub) -> None:
     p.add_argument("--lag", type=int, default=1, metavar="FRAMES",
                    help="the smoother's fixed lag in reference frames, part of the latency (default 1; 0: "
                    "the filter alone)")
+    p.add_argument("--base-motion", action="store_true",
+                   help="also fit the base's pose per frame (a machine that bounces or walks, cameras moved since "
+                   "the calibration): columns base_x ... as in the motion CSV; 6 more parameters a frame")
     p.add_argument("--feed", metavar="tcp://127.0.0.1:PORT",
                    help="also send each row as a JSON line to the programs connected to this loopback port")
     p.add_argument("--record", metavar="DIR", help="also write a session folder for the offline chain (mocap run)")
@@ -61,6 +64,7 @@ def run(args) -> int:
     from mocap.live.feed import parse_feed
     from mocap.live.run import LiveRequest, run_live
     from mocap.live.sources import parse_source
+    from mocap.reconstruct.kinfit import FitOptions
 
     if args.view:
         raise InputError("--view is not available yet in mocap live; replay the poses afterwards with mocap view, "
@@ -78,7 +82,7 @@ def run(args) -> int:
     request = LiveRequest(
         args.machine, Path(args.calibration), sources, Path(args.out), realtime=args.realtime,
         duration=args.duration, lag=args.lag, feed=parse_feed(args.feed) if args.feed else None,
-        record=Path(args.record) if args.record else None,
+        record=Path(args.record) if args.record else None, fit_options=FitOptions(base_motion=args.base_motion),
     )
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -4,7 +4,8 @@ Columns: ``frame,time,latency_ms,cameras`` (the cameras whose pixels the row use
 ``;``-separated), then the motion CSV's (mocap.io.motion_csv): the joints (degrees or
 metres), ``<point>_x/_y/_z`` (m), ``bucket_angle_deg``, ``<joint>_sd``, ``<point>_sd``,
 ``bucket_angle_sd_deg``, and ``rms_px``, ``observations`` (2-D observations fitted) and
-``filled`` (1 where the smoother predicted the frame without a fit of its own). A CSV is
+``filled`` (1 where the smoother predicted the frame without a fit of its own); with
+``--base-motion`` the base's pose and SDs as in the motion CSV (``base_x`` ...). A CSV is
 appended and flushed row by row (a reader may follow it); a ``.parquet`` path is written
 whole, atomically, when the run ends.
 """
@@ -18,15 +19,19 @@ import numpy as np
 
 from mocap.io import columnar
 from mocap.io.columnar import is_parquet
+from mocap.io.motion_csv import base_columns
 from mocap.live.pose import Pose
 from mocap.machine import REVOLUTE, Machine
 
 
-def header(machine: Machine) -> list[str]:
+def header(machine: Machine, base_motion: bool = False) -> list[str]:
     names = ["frame", "time", "latency_ms", "cameras", *machine.joint_names]
     names += [f"{p}_{a}" for p in machine.point_names for a in "xyz"]
     names += ["bucket_angle_deg", *(f"{j}_sd" for j in machine.joint_names), *(f"{p}_sd" for p in machine.point_names)]
-    return names + ["bucket_angle_sd_deg", "rms_px", "observations", "filled"]
+    names += ["bucket_angle_sd_deg", "rms_px", "observations", "filled"]
+    if base_motion:
+        names += list(base_columns(np.eye(4)[None], np.zeros((1, 6, 6))))
+    return names
 
 
 def row(machine: Machine, frame: int, time: float, latency_ms: float, cameras: list[str], pose: Pose,
@@ -42,14 +47,15 @@ def row(machine: Machine, frame: int, time: float, latency_ms: float, cameras: l
     values.update(zip((f"{p}_sd" for p in machine.point_names), pose.points_sd.tolist()))
     values["bucket_angle_sd_deg"] = math.degrees(pose.bucket_angle_sd)
     values.update(rms_px=float(rms_px), observations=int(observations), filled=int(pose.filled))
+    values.update(pose.base)
     return values
 
 
 class PoseWriter:
     """Rows to `path`: a CSV line each, flushed; for Parquet kept and written by `close`."""
 
-    def __init__(self, machine: Machine, path: str | Path):
-        self.path, self.columns = Path(path), header(machine)
+    def __init__(self, machine: Machine, path: str | Path, base_motion: bool = False):
+        self.path, self.columns = Path(path), header(machine, base_motion)
         self.parquet = is_parquet(path)
         self.rows: list[dict] = []
         self.file = None

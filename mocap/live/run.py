@@ -40,6 +40,9 @@ from mocap.tracking.tracker import TrackOptions
 
 log = logging.getLogger(__name__)
 
+STALL_S = 1.0  # a clock camera silent this long hands the rows' clock to the next camera
+FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (a search of the whole frame)
+
 
 @dataclass(frozen=True)
 class LiveRequest:
@@ -179,7 +182,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     feed = Feed(*request.feed) if request.feed is not None else None
     if feed is not None and announce is not None:
         announce(f"feed on {feed.url}")
-    writer = PoseWriter(machine, request.out)
+    writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
     loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop)
     for thread in [*readers, *workers]:
         thread.start()
@@ -210,16 +213,20 @@ class _Loop:
         self.workers, self.writer, self.feed, self.stop = workers, writer, feed, stop
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
-        self.smoother = FixedLagSmoother(machine, request.lag)
+        self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
         self.pending: list[tuple[int, float, float]] = []  # clock frames waiting: (frame, time, arrived)
         self.waiting: list[tuple[int, float, float, list[str], object]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
         self.rows = 0
         self.latency: list[float] = []
         self.interrupted = False
+        self.seen: list[float] = []  # when each camera last delivered labels
+        self.patient = not request.realtime and all(w.reader.spec.kind == FILE for w in workers)
 
     def run(self, clock_start: float) -> None:
         end = None if self.request.duration is None else clock_start + self.request.duration
+        # a camera counts as delivering until its first frame is due and has had time to be labelled
+        self.seen = [clock_start + (w.reader.pace or 0.0) + FIRST_FRAME_S for w in self.workers]
         labelled = self.workers[0].labelled
         while True:
             if self.stop.is_set():
@@ -236,6 +243,7 @@ class _Loop:
                 self._emit()
                 continue
             self.history[k].add(time_ref, pixels)
+            self.seen[k] = time.perf_counter()
             if k == self._clock():
                 frame = int(round(time_ref * self.fps[0]))
                 if frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
@@ -246,18 +254,24 @@ class _Loop:
             self._write(*pose_and_meta)
 
     def _clock(self) -> int:
-        """The camera whose frames make the rows: the first not finished."""
-        return next((k for k, w in enumerate(self.workers) if not w.finished.is_set()), 0)
+        """The camera whose frames make the rows: the first not finished and, unless files are
+        read as fast as they are tracked, that delivered within `STALL_S`."""
+        now = time.perf_counter()
+        for k, worker in enumerate(self.workers):
+            if worker.finished.is_set():
+                continue
+            if self.patient or now - self.seen[k] < STALL_S:
+                return k
+        return 0
 
     def _emit(self, final: bool = False) -> None:
         """Fit the waiting clock frames whose cameras are all in (or waited for long enough)."""
         now = time.perf_counter()
-        patient = not self.request.realtime and all(w.reader.spec.kind == FILE for w in self.workers)
         while self.pending:
             frame, t, arrived = self.pending[0]
             ready = final
             if not ready:
-                late = not patient and now > arrived + self.request.wait_frames / self.fps[0]
+                late = not self.patient and now > arrived + self.request.wait_frames / self.fps[0]
                 ready = late or all(h.latest >= t or w.finished.is_set()
                                     for h, w in zip(self.history, self.workers))
             if not ready:
@@ -271,6 +285,8 @@ class _Loop:
         pixels = np.stack([np.full((n_markers, 2), np.nan) if v is None else v for v in views])
         used = [c.name for c, v in zip(self.cameras, views) if v is not None and np.isfinite(v[:, 0]).any()]
         fitted = self.fit(pixels)
+        for history in self.history:
+            history.forget(t)
         self.last_frame = frame
         self.waiting.append((frame, t, arrived, used, fitted))
         pose = self.smoother.push(t, fitted)
@@ -327,15 +343,16 @@ def _recorders(request: LiveRequest, readers: list[SourceReader], cameras, fps) 
 
 def _record(request: LiveRequest, machine: Machine, calibration: Calibration, order, cameras, fps, workers) -> None:
     """The session folder for the offline chain: session.toml, calibration/cameras.toml,
-    videos/<camera>.mp4 (a file copied; a device or stream recorded as it came) and
-    tracks/<camera>.csv (the live tracker's labels)."""
+    calibration/labels.csv (each camera's first labelled frame), videos/<camera>.mp4 (a file
+    copied; a device or stream recorded as it came) and tracks/<camera>.csv (the live
+    tracker's labels)."""
     root = request.record
     root.mkdir(parents=True, exist_ok=True)
     machine_ref = request.machine
     if Path(request.machine).is_file():
         shutil.copyfile(request.machine, root / "machine.toml")
         machine_ref = "machine.toml"
-    entries = []
+    entries, first_labels = [], []
     for k, camera in enumerate(cameras):
         spec = workers[k].reader.spec
         video = f"videos/{camera.name}.mp4"
@@ -346,6 +363,9 @@ def _record(request: LiveRequest, machine: Machine, calibration: Calibration, or
         tracks = workers[k].tracks()
         if tracks is not None and len(tracks):
             save_tracks(tracks, root / "tracks" / f"{camera.name}.csv")
+            first_labels.append(tracks.select(tracks.frame == tracks.frame.min()))
+    if first_labels:  # the calibration frame's labels `mocap run` starts from: each camera's first frame
+        save_tracks(concatenate(first_labels), root / "calibration" / "labels.csv")
     chosen = Calibration(tuple(calibration.cameras[i] for i in order), tuple(calibration.extras[i] for i in order),
                          calibration.metadata)
     save_calibration(chosen, root / "calibration" / "cameras.toml")

@@ -234,10 +234,16 @@ class FrameFitter:
     def n_params(self) -> int:
         return self._problem.n_params
 
-    def fit(self, pixels: np.ndarray, starts: np.ndarray) -> FrameState:
-        """pixels (C, F, M, 2) from starts (F, J): joints, cost, normal matrix (px²), residuals."""
+    def fit(self, pixels: np.ndarray, starts: np.ndarray, base: np.ndarray | None = None) -> FrameState:
+        """pixels (C, F, M, 2) from starts (F, J) and, with base motion, base poses (F, 6)
+        (rotation vector, translation): joints, base, cost, normal matrix (px²), residuals."""
         machine = self._problem.machine
-        start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), None, None, np.zeros(len(starts)))
+        rotation = translation = None
+        if self._problem.options.base_motion:
+            base = np.zeros((len(starts), 6)) if base is None else np.asarray(base, dtype=float)
+            rotation, translation = rotvec_to_matrix(base[:, :3]), base[:, 3:].copy()
+        start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), rotation, translation,
+                           np.zeros(len(starts)))
         return self._problem.levenberg_marquardt(np.moveaxis(np.asarray(pixels, dtype=float), 1, 0), start)
 
 
