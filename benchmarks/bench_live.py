@@ -6,7 +6,7 @@ for 1 .. N of its cameras: the videos played as their cameras delivered them
 (`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`):
 rows out per second of the run, frames dropped, latency p50 / p99 /
 max (from the reference frame's arrival to its row written, the smoother's lag included),
-the process's CPU time per second of video; beside it the decode-only rate of the same
+the process's CPU time per row (all its threads: decoding, tracking, fitting); beside it the decode-only rate of the same
 streams (the tracker's own grey decoding, all the cameras' frames of that duration one
 after another: the floor); and the bucket tip's RMSE against the truth, live and by the
 offline chain (`mocap track` each camera, then `mocap fit`) over the same frames.
@@ -105,7 +105,7 @@ def main() -> None:
         truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
         print(f"{args.size}, {args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
               f"{'fixed base' if args.fixed_base else 'base pose per frame'}")
-        print(f"{'cams':>4} {'rows/s':>7} {'dropped':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'cpu/s':>6} "
+        print(f"{'cams':>4} {'rows/s':>7} {'dropped':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'cpu ms/row':>10} "
               f"{'decode fps':>10} {'need fps':>8} {'tip RMSE live':>13} {'offline':>8}")
         for n in range(1, args.cameras + 1):
             names = list(calibration.names[:n])
@@ -123,7 +123,7 @@ def main() -> None:
             read = sum(c.read for c in report.cameras)
             p50, p99 = np.percentile(report.latency_ms, [50, 99])
             print(f"{n:>4} {report.rows / args.duration:>7.1f} {f'{dropped}/{read}':>8} {p50:>7.0f} {p99:>7.0f} "
-                  f"{report.latency_ms.max():>7.0f} {cpu / args.duration:>6.2f} {decode:>10.0f} {fps.sum():>8.1f} "
+                  f"{report.latency_ms.max():>7.0f} {1000 * cpu / max(report.rows, 1):>10.1f} {decode:>10.0f} {fps.sum():>8.1f} "
                   f"{tip_rmse(frames, tips, truth):>13.3f} {offline(session, names, stops, work, frames, truth):>8.3f}",
                   flush=True)
         print("rows/s: rows written per second of the run (the reference camera delivers "

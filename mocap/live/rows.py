@@ -5,7 +5,7 @@ Columns: ``frame,time,latency_ms,cameras`` (the cameras whose pixels the row use
 metres), ``<point>_x/_y/_z`` (m), ``bucket_angle_deg``, ``<joint>_sd``, ``<point>_sd``,
 ``bucket_angle_sd_deg``, and ``rms_px``, ``observations`` (2-D observations fitted) and
 ``filled`` (1 where the smoother predicted the frame without a fit of its own); with
-``--base-motion`` the base's pose and SDs as in the motion CSV (``base_x`` ...). A CSV is
+``--base-motion`` the base's pose as in the motion CSV (``base_x`` ..., without SDs). A CSV is
 appended and flushed row by row (a reader may follow it); a ``.parquet`` path is written
 whole, atomically, when the run ends.
 """
@@ -30,7 +30,7 @@ def header(machine: Machine, base_motion: bool = False) -> list[str]:
     names += ["bucket_angle_deg", *(f"{j}_sd" for j in machine.joint_names), *(f"{p}_sd" for p in machine.point_names)]
     names += ["bucket_angle_sd_deg", "rms_px", "observations", "filled"]
     if base_motion:
-        names += list(base_columns(np.eye(4)[None], np.zeros((1, 6, 6))))
+        names += list(base_columns(np.eye(4)[None]))
     return names
 
 

@@ -18,9 +18,11 @@ import queue
 import shutil
 import threading
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from mocap.errors import InputError
@@ -174,7 +176,6 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
             raise InputError(f"--source {camera.name}: the video is {reader.size[0]}x{reader.size[1]} but the camera "
                              f"was calibrated at {camera.size[0]}x{camera.size[1]}; give the camera's own video",
                              path=reader.spec.target)
-    recorders = _recorders(request, readers, cameras, fps)
     labelled: queue.Queue = queue.Queue()
     workers = [CameraWorker(k, reader, CameraModel(machine, camera, solid=machine.n_joints > 0), start_joints,
                             fps[k], request.track_options, labelled, stop)
@@ -184,19 +185,19 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
         announce(f"feed on {feed.url}")
     writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
     loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop)
-    for thread in [*readers, *workers]:
-        thread.start()
-    try:
-        loop.run(clock_start)
-    finally:
-        stop.set()
+    with ExitStack() as recording:
+        _recorders(request, readers, cameras, fps, recording)
         for thread in [*readers, *workers]:
-            thread.join(timeout=5.0)
-        writer.close()
-        if feed is not None:
-            feed.close()
-        for close in recorders:
-            close()
+            thread.start()
+        try:
+            loop.run(clock_start)
+        finally:
+            stop.set()
+            for thread in [*readers, *workers]:
+                thread.join(timeout=5.0)
+            writer.close()
+            if feed is not None:
+                feed.close()
     if request.record is not None:
         _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
@@ -321,24 +322,18 @@ def _check_sources(request: LiveRequest, calibration: Calibration) -> np.ndarray
     return np.array(sorted(calibration.names.index(n) for n in names))
 
 
-def _recorders(request: LiveRequest, readers: list[SourceReader], cameras, fps) -> list:
+def _recorders(request: LiveRequest, readers: list[SourceReader], cameras, fps, stack: ExitStack) -> None:
     """With --record, each device or stream's frames re-encoded as they come into
-    DIR/videos/<camera>.mp4; the closers to call at the end. (Files are copied at the end.)"""
+    DIR/videos/<camera>.mp4 (closed with `stack`); files are copied at the end."""
     if request.record is None:
-        return []
+        return
     from mocap.synthetic.encode import video_writer
 
-    closers = []
     for reader, camera, rate in zip(readers, cameras, fps):
-        if reader.spec.kind == FILE:
-            continue
-        context = video_writer(request.record / "videos" / f"{camera.name}.mp4", tuple(camera.size), rate)
-        write = context.__enter__()
-        import cv2
-
-        reader.on_frame = lambda gray, write=write: write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
-        closers.append(lambda context=context: context.__exit__(None, None, None))
-    return closers
+        if reader.spec.kind != FILE:
+            write = stack.enter_context(video_writer(request.record / "videos" / f"{camera.name}.mp4",
+                                                     tuple(camera.size), rate))
+            reader.on_frame = lambda gray, write=write: write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
 
 
 def _record(request: LiveRequest, machine: Machine, calibration: Calibration, order, cameras, fps, workers) -> None:
