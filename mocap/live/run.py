@@ -8,7 +8,9 @@ reference camera's frame at that time. A row waits for every other running camer
 at or after its time (to interpolate between the two either side), at most `wait_frames`
 reference intervals after its frame arrived (files read as fast as possible wait for as
 long as it takes); a camera that has not delivered by then is left out of that row
-(column `cameras`). Ctrl-C (`stop`) ends the run with every row so far written.
+(column `cameras`). A frame that is still waiting for its fit `BEHIND_S` after it arrived
+(the process has too little CPU) gets no row and is counted: the rows never fall further
+behind. Ctrl-C (`stop`) ends the run with every row so far written.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from mocap.tracking.tracker import TrackOptions
 log = logging.getLogger(__name__)
 
 STALL_S = 1.0  # a clock camera silent this long hands the rows' clock to the next camera
+BEHIND_S = 0.5  # a clock frame this long waiting for the fit (the process is starved of CPU) is skipped
 FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (a search of the whole frame)
 
 
@@ -85,6 +88,7 @@ class LiveReport:
     latency_ms: np.ndarray
     lag_ms: float
     interrupted: bool
+    skipped: int = 0
     feed: str | None = None
 
     def summary(self, out) -> str:
@@ -97,7 +101,8 @@ class LiveReport:
         else:
             latency = "latency -"
         return (f"{self.rows} rows to {out}; {counts}; {latency} (the smoother's lag of {self.lag_ms:.0f} ms "
-                f"included)" + ("; interrupted" if self.interrupted else ""))
+                f"included)" + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
+                                "CPU)" if self.skipped else "") + ("; interrupted" if self.interrupted else ""))
 
 
 class CameraWorker(threading.Thread):
@@ -203,7 +208,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
                    for c, r, w in zip(cameras, readers, workers))
     return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
-                      feed.url if feed is not None else None)
+                      loop.skipped, feed.url if feed is not None else None)
 
 
 class _Loop:
@@ -218,7 +223,7 @@ class _Loop:
         self.pending: list[tuple[int, float, float]] = []  # clock frames waiting: (frame, time, arrived)
         self.waiting: list[tuple[int, float, float, list[str], object]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
-        self.rows = 0
+        self.rows = self.skipped = 0
         self.latency: list[float] = []
         self.interrupted = False
         self.seen: list[float] = []  # when each camera last delivered labels
@@ -278,6 +283,9 @@ class _Loop:
             if not ready:
                 return
             self.pending.pop(0)
+            if not self.patient and now - arrived > BEHIND_S:
+                self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
+                continue
             self._fit(frame, t, arrived)
 
     def _fit(self, frame: int, t: float, arrived: float) -> None:
