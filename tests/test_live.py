@@ -180,3 +180,18 @@ def test_bad_live_arguments_exit_2(short_session, tmp_path, capsys, extra, messa
     assert cli.main(live(root, "--out", str(tmp_path / "p.csv"), *extra)) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_camera_s_pixels_on_the_reference_clock():
+    """Between two frames interpolated, past the last one extrapolated at its velocity (up to an
+    interval), a marker seen in one frame only taken from it within half an interval, nothing
+    from a frame further away."""
+    from mocap.live.pose import CameraHistory
+
+    history = CameraHistory(30.0)
+    for f, (u, other) in enumerate([(10.0, np.nan), (11.0, np.nan), (12.0, 1.0)]):
+        history.add(f / 30, np.array([[u, 5.0], [other, other]]))
+    assert np.allclose(history.pixels_at(1.5 / 30), [[11.5, 5.0], [1.0, 1.0]])
+    assert np.allclose(history.pixels_at(2.5 / 30), [[12.5, 5.0], [1.0, 1.0]])
+    assert np.allclose(history.pixels_at(1.2 / 30), [[11.2, 5.0], [np.nan, np.nan]], equal_nan=True)
+    assert history.pixels_at(3.5 / 30) is None

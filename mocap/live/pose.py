@@ -54,24 +54,30 @@ class CameraHistory:
         return self.frames[-1][0] if self.frames else -np.inf
 
     def pixels_at(self, time: float) -> np.ndarray | None:
-        """(M, 2) the markers at `time`: interpolated between the frames either side (a marker
-        seen in only one of them taken from it if that frame is within half an interval), or the
-        nearest frame within half an interval; None if no frame is near."""
+        """(M, 2) the markers at `time`: interpolated between the frames either side, or (the
+        later frame not in yet) extrapolated from the last two frames at their velocity, up to
+        one interval ahead; a marker in only one of the two taken from it if that frame is
+        within half an interval; None if no frame is near."""
         if not self.frames:
             return None
         interval = 1.0 / self.fps
         times = np.array([t for t, _ in self.frames])
         before = np.flatnonzero(times <= time)
         after = np.flatnonzero(times >= time)
-        a = self.frames[before[-1]] if len(before) else None
-        b = self.frames[after[0]] if len(after) else None
-        if a is not None and b is not None and b[0] - a[0] <= 1.5 * interval:
-            share = 0.0 if b[0] == a[0] else (time - a[0]) / (b[0] - a[0])
-            both = a[1] + share * (b[1] - a[1])
-            near = a if share <= 0.5 else b
-            return np.where(np.isfinite(both), both, near[1] if abs(near[0] - time) <= 0.5 * interval else np.nan)
-        near = min((f for f in (a, b) if f is not None), key=lambda f: abs(f[0] - time))
-        return near[1] if abs(near[0] - time) <= 0.5 * interval else None
+        if len(before) and len(after):
+            a, b = self.frames[before[-1]], self.frames[after[0]]
+        elif len(before) >= 2 and time - times[before[-1]] <= interval:
+            a, b = self.frames[before[-2]], self.frames[before[-1]]
+        else:
+            a = b = self.frames[before[-1] if len(before) else after[0]]
+        if b[0] - a[0] > 1.5 * interval:  # a frame missed between them: the nearer alone
+            a = b = min((a, b), key=lambda f: abs(f[0] - time))
+        share = 0.0 if b[0] == a[0] else (time - a[0]) / (b[0] - a[0])
+        both = a[1] + share * (b[1] - a[1])
+        near = min((a, b), key=lambda f: abs(f[0] - time))
+        alone = near[1] if abs(near[0] - time) <= 0.5 * interval else np.full_like(near[1], np.nan)
+        pixels = np.where(np.isfinite(both), both, alone) if a is not b else alone
+        return pixels if np.isfinite(pixels).any() else None
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import shutil
 import threading
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -164,6 +164,9 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     `announce(text)` is told where the feed listens, once it does."""
     stop = stop or threading.Event()
     machine = load_machine(request.machine)
+    if machine.n_joints == 0:  # a rigid object: its pose per frame, and no link box hides its markers (`mocap fit`)
+        request = replace(request, fit_options=replace(request.fit_options, base_motion=True),
+                          track_options=replace(request.track_options, occlusion=False))
     calibration = load_calibration(request.calibration)
     order = _check_sources(request, calibration)
     cameras = [calibration.cameras[i] for i in order]
