@@ -127,12 +127,17 @@ def test_live_rows_follow_the_truth_with_a_camera_ending_early_and_a_feed(short_
 def test_streaming_tracker_labels_as_mocap_track_and_the_recorded_session(short_session, tmp_path):
     """Read as fast as tracked (no frame dropped), the labels `mocap live --record` keeps for
     each camera are those of `mocap track` on the same video; the session folder names the
-    cameras, videos and calibration for the offline chain."""
+    cameras, videos and calibration for the offline chain; a .parquet output has every row."""
     from mocap.session import Session
 
     root, session = short_session
     record = tmp_path / "session"
-    assert cli.main(live(root, "--out", str(tmp_path / "poses.csv"), "--record", str(record))) == 0
+    assert cli.main(live(root, "--out", str(tmp_path / "poses.parquet"), "--record", str(record))) == 0
+    import pyarrow.parquet as pq
+
+    poses = pq.read_table(tmp_path / "poses.parquet")  # read as fast as tracked: a row per reference frame
+    assert poses.column("frame").to_pylist() == list(range(FRAMES[0]))
+    assert set(poses.column("cameras").to_pylist()) == {"cam1", "cam1;cam2"}
     for name in ("cam1", "cam2"):
         assert cli.main(["track", str(root / f"{name}.mp4"), "--machine", "hitachi_ex3500", "--calibration",
                          str(root / "cameras.toml"), "--camera", name, "--out", str(tmp_path / f"{name}.csv")]) == 0
