@@ -179,12 +179,28 @@ def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):
     (["--feed", "udp://127.0.0.1:7400"], "expected tcp://127.0.0.1:PORT"),
     (["--view"], "--view is not available yet"),
     (["--duration", "0"], "positive number of seconds"),
+    (["--lag", "-1"], "give 0 or more frames"),
+    (["--source", "cam3=no/such/video.mp4"], "video file not found"),
+    (["--source", "cam1=7"], "--source cam1 is given twice"),
+    (["--record", "{file}"], "--record names a file"),
 ])
 def test_bad_live_arguments_exit_2(short_session, tmp_path, capsys, extra, message):
     root, _ = short_session
+    (tmp_path / "a_file").write_text("")
+    extra = [e.format(file=tmp_path / "a_file") for e in extra]
     assert cli.main(live(root, "--out", str(tmp_path / "p.csv"), *extra)) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_feed_port_in_use_exits_2(short_session, tmp_path, capsys):
+    root, _ = short_session
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        assert cli.main(live(root, "--out", str(tmp_path / "p.csv"), "--feed", f"tcp://127.0.0.1:{port}")) == 2
+    assert "cannot listen there" in capsys.readouterr().err
 
 
 def test_a_camera_s_pixels_on_the_reference_clock():
