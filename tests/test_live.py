@@ -216,3 +216,18 @@ def test_a_camera_s_pixels_on_the_reference_clock():
     assert np.allclose(history.pixels_at(2.5 / 30), [[12.5, 5.0], [1.0, 1.0]])
     assert np.allclose(history.pixels_at(1.2 / 30), [[11.2, 5.0], [np.nan, np.nan]], equal_nan=True)
     assert history.pixels_at(3.5 / 30) is None
+
+
+def test_a_stream_that_ends_is_reopened_and_the_rows_carry_on(short_session, tmp_path, capsys):
+    """cam2 as a stream URL (file://, read as it comes and timed by its arrival) ends after its
+    45 frames: it is reopened (counted in the summary) and read again, while cam1's rows go on."""
+    root, _ = short_session
+    out = tmp_path / "poses.csv"
+    argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
+            "--source", f"cam2=file://{root / 'cam2.mp4'}", "--realtime", "--duration", "3", "--out", str(out)]
+    assert cli.main(argv) == 0
+    summary = capsys.readouterr().out
+    reopened = re.search(r"cam2 in (\d+) out \d+ dropped \d+ reconnected (\d+)x", summary)
+    assert reopened and int(reopened.group(2)) >= 1 and int(reopened.group(1)) > FRAMES[1], summary
+    frames = [int(r["frame"]) for r in read_rows(out)]
+    assert len(frames) >= 0.7 * 90 and max(frames) >= 80
