@@ -222,6 +222,31 @@ def refit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, starts: n
     return problem.levenberg_marquardt(np.moveaxis(pixels, 1, 0), start, known)
 
 
+class FrameFitter:
+    """Frames fitted as they come (`mocap live`): Levenberg-Marquardt alone of each batch of
+    frames from given starts (the frame before's solution), by the same compiled kernel as
+    `fit_joints`, the model and cameras prepared once."""
+
+    def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None):
+        self._problem = _Problem(machine, tuple(cameras), options or FitOptions())
+
+    @property
+    def n_params(self) -> int:
+        return self._problem.n_params
+
+    def fit(self, pixels: np.ndarray, starts: np.ndarray, base: np.ndarray | None = None) -> FrameState:
+        """pixels (C, F, M, 2) from starts (F, J) and, with base motion, base poses (F, 6)
+        (rotation vector, translation): joints, base, cost, normal matrix (px²), residuals."""
+        machine = self._problem.machine
+        rotation = translation = None
+        if self._problem.options.base_motion:
+            base = np.zeros((len(starts), 6)) if base is None else np.asarray(base, dtype=float)
+            rotation, translation = rotvec_to_matrix(base[:, :3]), base[:, 3:].copy()
+        start = FrameState(machine.clip_to_limits(np.asarray(starts, dtype=float)), rotation, translation,
+                           np.zeros(len(starts)))
+        return self._problem.levenberg_marquardt(np.moveaxis(np.asarray(pixels, dtype=float), 1, 0), start)
+
+
 def _broadcast(values, n_frames: int, width: int, name: str) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     if values.shape == (width,):

@@ -4,6 +4,7 @@ the tracks CSV (DESIGN.md). Frames come from any iterable of ``(index, grey imag
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,8 +107,12 @@ def track_frames(
     labelled: np.ndarray | None = None,
     fps: float = 0.0,
     options: TrackOptions | None = None,
+    on_frame: Callable[[int, Tracks], None] | None = None,
 ) -> tuple[Tracks, TrackSummary]:
     """Label and track markers through `frames` (iterable of (index, grey (H, W))).
+
+    `on_frame(index, rows)`, if given, is called with each frame's rows as soon as they are
+    known (`mocap live` tracks a stream this way, frame by frame).
 
     `start` (J,) joint values near the first frame's (the calibration's); `labelled`
     (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
@@ -121,7 +126,7 @@ def track_frames(
     camera = model.camera.name
     rows: list[Tracks] = []
     if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
-        return track_tags(model.machine, frames, camera, fps)
+        return track_tags(model.machine, frames, camera, fps, on_frame)
     tracker = None
     finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
     n_frames = n_fitted = restarts = searched = 0
@@ -194,25 +199,32 @@ def track_frames(
         if result.fitted:
             in_view += tracker.state.visible
             placed[result.markers] += tracker.state.visible[result.markers]
+        known = len(rows)
         disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
         if np.any(disks):
             rows.append(frame_rows(camera, index, fps, names, _select(result, disks)))
         if tags is not None:
             rows.append(tag_rows(camera, index, fps, names, tags))
+        if on_frame is not None:
+            on_frame(index, _concatenate(rows[known:]))
     tracks = _concatenate(rows)
     unplaced = (in_view >= UNPLACED_MIN_FRAMES) & (placed < 0.1 * in_view)
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts,
                                 tuple(np.asarray(names, dtype=object)[unplaced].tolist()))
 
 
-def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0) -> tuple[Tracks, TrackSummary]:
+def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0,
+               on_frame: Callable[[int, Tracks], None] | None = None) -> tuple[Tracks, TrackSummary]:
     """The tracks of a machine whose markers all carry tags: each frame's tags by their ids
-    (no camera model needed). `frames` iterable of (index, grey (H, W))."""
+    (no camera model needed). `frames` iterable of (index, grey (H, W)); `on_frame` as in
+    `track_frames`."""
     rows, n_frames = [], 0
     finder = TagFinder(machine.tag_dictionary)
     for index, gray in frames:
         n_frames += 1
         rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray, finder)))
+        if on_frame is not None:
+            on_frame(index, rows[-1])
     tracks = _concatenate(rows)
     return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
 

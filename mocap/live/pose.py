@@ -1,0 +1,260 @@
+"""The pose of each reference frame as it comes: every camera's labelled pixels placed on
+the reference clock, the machine model fitted from the frame before (the batched kernel of
+`mocap fit`), and a fixed-lag smoother that gives the row of the frame `lag` frames back.
+
+No file or thread here: arrays in, arrays out (`mocap.live.run` wires them to the sources).
+Shapes: C cameras, M markers, J joints, P parameters (the joints, then with base motion the
+base's rotation vector and translation), W frames in the smoother's window.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from mocap.camera import Camera
+from mocap.geometry import matrix_to_rotvec
+from mocap.io.motion_csv import base_columns
+from mocap.machine import Machine
+from mocap.reconstruct.kinfit import FitOptions, FrameFitter, fit_joints
+from mocap.reconstruct.kinmodel import base_matrices
+from mocap.reconstruct.smooth import SmoothOptions, smooth
+from mocap.reconstruct.uncertainty import point_quantities
+
+log = logging.getLogger(__name__)
+
+_RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median of a 2-D residual's length over its per-axis SD
+_NOISE_FRAMES = 90  # frames whose residuals give the pixel noise
+_RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above the typical one is fitted from the grid
+_PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
+_PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
+_FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
+
+
+class CameraHistory:
+    """A camera's last labelled frames: (time on the reference clock, pixels (M, 2))."""
+
+    def __init__(self, fps: float, depth: int = 256):
+        self.fps = fps
+        self.frames: deque[tuple[float, np.ndarray]] = deque(maxlen=depth)
+
+    def add(self, time: float, pixels: np.ndarray) -> None:
+        self.frames.append((time, pixels))
+
+    def forget(self, before: float) -> None:
+        """Drop the frames older than `before` but the last of them (the one before a time asked)."""
+        while len(self.frames) > 1 and self.frames[1][0] <= before:
+            self.frames.popleft()
+
+    @property
+    def latest(self) -> float:
+        return self.frames[-1][0] if self.frames else -np.inf
+
+    def pixels_at(self, time: float) -> np.ndarray | None:
+        """(M, 2) the markers at `time`: interpolated between the frames either side, or (the
+        later frame not in yet) extrapolated from the last two frames at their velocity, up to
+        one interval ahead; a marker in only one of the two taken from it if that frame is
+        within half an interval; None if no frame is near."""
+        if not self.frames:
+            return None
+        interval = 1.0 / self.fps
+        times = np.array([t for t, _ in self.frames])
+        before = np.flatnonzero(times <= time)
+        after = np.flatnonzero(times >= time)
+        if len(before) and len(after):
+            a, b = self.frames[before[-1]], self.frames[after[0]]
+        elif len(before) >= 2 and time - times[before[-1]] <= interval:
+            a, b = self.frames[before[-2]], self.frames[before[-1]]
+        else:
+            a = b = self.frames[before[-1] if len(before) else after[0]]
+        if b[0] - a[0] > 1.5 * interval:  # a frame missed between them: the nearer alone
+            a = b = min((a, b), key=lambda f: abs(f[0] - time))
+        share = 0.0 if b[0] == a[0] else (time - a[0]) / (b[0] - a[0])
+        both = a[1] + share * (b[1] - a[1])
+        near = min((a, b), key=lambda f: abs(f[0] - time))
+        alone = near[1] if abs(near[0] - time) <= 0.5 * interval else np.full_like(near[1], np.nan)
+        pixels = np.where(np.isfinite(both), both, alone) if a is not b else alone
+        return pixels if np.isfinite(pixels).any() else None
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """One frame's fit: values (P,), information (P, P) (the normal matrix over the pixel
+    noise²), valid, rms_px, observations."""
+
+    values: np.ndarray
+    information: np.ndarray
+    valid: bool
+    rms_px: float
+    observations: int
+
+
+class WarmFit:
+    """The machine fitted frame after frame, each from the frame before's parameters moved on
+    at their last velocity (with `options.base_motion` the base's pose too); the first frame, and one that ends far worse than is typical, from
+    the whole fit's grid and restarts (`fit_joints`). The pixel noise behind the information
+    is estimated from the last frames' residuals (or `options.noise_px`)."""
+
+    def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None):
+        self.machine, self.cameras = machine, list(cameras)
+        self.options = options or FitOptions()
+        self.fitter = FrameFitter(machine, self.cameras, self.options)
+        self.last: deque[np.ndarray] = deque(maxlen=2)
+        self.lengths: deque[np.ndarray] = deque(maxlen=_NOISE_FRAMES)
+        self.per_obs: deque[float] = deque(maxlen=_NOISE_FRAMES)
+
+    @property
+    def noise_px(self) -> float:
+        if self.options.noise_px:
+            return self.options.noise_px
+        if not self.lengths:
+            return 1.0
+        return max(float(np.median(np.concatenate(self.lengths))) / _RAYLEIGH_MEDIAN, 0.05)
+
+    def __call__(self, pixels: np.ndarray) -> FrameFit:
+        """pixels (C, M, 2), NaN where not seen."""
+        n_joints, n_params = self.machine.n_joints, self.fitter.n_params
+        seen = np.isfinite(pixels[..., 0])
+        n_obs = int(seen.sum())
+        if 2 * n_obs < n_params:
+            self.last.clear()
+            return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs)
+        frame = pixels[:, None]
+        if not self.last:
+            state = self._from_grid(frame)
+        else:
+            start = self.last[-1] if len(self.last) < 2 else 2 * self.last[-1] - self.last[-2]
+            state = self.fitter.fit(frame, start[None, :n_joints], start[None, n_joints:])
+            per_obs = state.cost[0] / n_obs
+            if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
+                again = self._from_grid(frame)
+                if again.cost[0] < state.cost[0]:
+                    state = again
+        residual = state.residual[0].reshape(-1, 2)[seen.reshape(-1)]
+        length = np.hypot(residual[:, 0], residual[:, 1])
+        weight = state.weight[0].reshape(-1, 2)[seen.reshape(-1), 0]
+        self.lengths.append(length)
+        self.per_obs.append(float(state.cost[0] / n_obs))
+        values = state.joints[0].copy()
+        if state.rotation is not None:
+            values = np.r_[values, matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]]
+        self.last.append(values)
+        rms = float(np.sqrt(np.sum(weight * length**2) / max(np.sum(weight), 1e-12)))
+        return FrameFit(values, state.hessian[0] / self.noise_px**2, True, rms, n_obs)
+
+    def _from_grid(self, frame: np.ndarray):
+        """The frame (C, 1, M, 2) fitted as `mocap fit` fits a frame without a start."""
+        fit = fit_joints(self.machine, self.cameras, frame, options=self.options)
+        base = None if fit.base is None else np.nan_to_num(fit.base)
+        return self.fitter.fit(frame, np.nan_to_num(fit.joints), base)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A row's pose: joints (J,) and their SDs, named points (N, 3) and SDs (N,), bucket
+    angle and SD (rad); `filled` when the smoother predicted it (no fit of its own); `base`
+    the motion CSV's base columns with base motion (`base_columns`, without their SDs), else
+    empty."""
+
+    joints: np.ndarray
+    joints_sd: np.ndarray
+    points: np.ndarray
+    points_sd: np.ndarray
+    bucket_angle: float
+    bucket_angle_sd: float
+    filled: bool
+    base: dict
+
+
+class FixedLagSmoother:
+    """The Rauch-Tung-Striebel smoother of `mocap fit` (`mocap.reconstruct.smooth`) over a
+    sliding window of the last `window` frames; a frame's pose is given `lag` frames after it
+    came (lag 0: the filter's estimate, from the frames before only). The process noise is
+    estimated as `mocap fit` does from the last `_PROCESS_NOISE_FRAMES` frames, every
+    `_PROCESS_NOISE_EVERY` frames once they span `window` frames (before: little smoothing)."""
+
+    def __init__(self, machine: Machine, lag: int, window: int = 60, options: SmoothOptions | None = None,
+                 base_motion: bool = False):
+        if lag < 0 or window <= lag:
+            raise ValueError(f"need 0 <= lag < window, got lag {lag}, window {window}")
+        self.machine, self.lag, self.window = machine, lag, window
+        self.options = options or SmoothOptions()
+        self.time: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.values: deque[np.ndarray] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.information: deque[np.ndarray] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.valid: deque[bool] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.base_motion = base_motion
+        self.wrap = np.r_[machine.wraps, np.zeros(6 * base_motion, bool)]
+        self.process_noise = np.full(len(self.wrap), _FIRST_PROCESS_NOISE)
+        self.count = 0
+        self.pending = 0  # frames pushed whose pose is not given yet
+
+    def push(self, time: float, fit: FrameFit) -> Pose | None:
+        """Add a frame; the pose of the frame `lag` back once there is one."""
+        self.time.append(time)
+        self.values.append(fit.values)
+        self.information.append(fit.information)
+        self.valid.append(fit.valid)
+        self.count += 1
+        self.pending += 1
+        if self.count % _PROCESS_NOISE_EVERY == 0 and self.count >= self.window:
+            self._estimate_process_noise()
+        if self.pending <= self.lag:
+            return None
+        self.pending -= 1
+        return self._pose(len(self.time) - 1 - self.lag)
+
+    def flush(self) -> list[Pose]:
+        """The poses not yet given (the last `lag` frames), from the frames there are."""
+        out = [self._pose(len(self.time) - k) for k in range(self.pending, 0, -1)]
+        self.pending = 0
+        return out
+
+    def _arrays(self, frames: int):
+        """The last `frames` frames' time (W,), values (W, P), information (W, P, P), valid (W,)."""
+        first = max(len(self.time) - frames, 0)
+        return tuple(np.array([x[k] for k in range(first, len(x))])
+                     for x in (self.time, self.values, self.information, self.valid))
+
+    def _estimate_process_noise(self) -> None:
+        time, values, information, valid = self._arrays(_PROCESS_NOISE_FRAMES)
+        if valid.sum() < 3:
+            return
+        result = smooth(time, values, information, valid, self.wrap, replace(self.options, process_noise=None))
+        self.process_noise = np.maximum(result.process_noise, 1e-6)
+
+    def _pose(self, at: int) -> Pose:
+        time, values, information, valid = self._arrays(self.window)
+        at -= len(self.time) - len(time)
+        machine, n_joints, n_params = self.machine, self.machine.n_joints, len(self.wrap)
+        if not valid[: at + 1 + self.lag].any():
+            nan = np.full(n_params, np.nan)
+            return _pose(machine, nan, np.full((n_params, n_params), np.nan), True, self.base_motion)
+        result = smooth(time, values, information, valid, self.wrap,
+                        replace(self.options, process_noise=self.process_noise))
+        values = result.values[at].copy()
+        limits = machine.joint_limits
+        span = limits[:, 1] - limits[:, 0]
+        joints = values[:n_joints]
+        wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(machine.wraps, span, 1.0))
+        values[:n_joints] = np.where(machine.wraps, wrapped, joints)
+        return _pose(machine, values, result.covariance[at], bool(result.filled[at]), self.base_motion)
+
+
+def _pose(machine: Machine, values: np.ndarray, covariance: np.ndarray, filled: bool, base_motion: bool) -> Pose:
+    """The row's quantities of parameters (P,) with covariance (P, P)."""
+    n_joints = machine.n_joints
+    quantities = point_quantities(machine, values[None], covariance[None], base_motion)
+    sd = np.sqrt(np.abs(np.diagonal(covariance)))[:n_joints]
+    base = {}
+    if base_motion:
+        columns = base_columns(base_matrices(np.nan_to_num(values[None, n_joints:])))  # SDs: 4 ms a row more
+        base = {name: float(value[0]) if np.isfinite(values[n_joints:]).all() else np.nan
+                for name, value in columns.items()}
+    return Pose(values[:n_joints], sd, quantities.points[0], quantities.points_sd[0],
+                float(quantities.bucket_angle[0]),
+                float(quantities.bucket_angle_sd[0]) if quantities.bucket_angle_sd is not None else np.nan, filled,
+                base)

@@ -1,0 +1,379 @@
+"""`mocap live`: sources -> the tracker of `mocap track`, frame by frame, one thread per
+camera -> the warm-started fit and the fixed-lag smoother on the main thread -> rows to the
+poses file and the feed.
+
+The rows follow the clock camera: the reference camera (the calibration's first among the
+sources), or while it has ended, the first camera still delivering; a row's frame is the
+reference camera's frame at that time. A row waits for every other running camera's frame
+at or after its time (to interpolate between the two either side), at most `wait_frames`
+reference intervals after its frame arrived (files read as fast as possible wait for as
+long as it takes); a camera that has not delivered by then is left out of that row
+(column `cameras`). A frame that is still waiting for its fit `BEHIND_S` after it arrived
+(the process has too little CPU) gets no row and is counted: the rows never fall further
+behind. Ctrl-C (`stop`) ends the run with every row so far written.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import shutil
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mocap.errors import InputError
+from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
+from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
+from mocap.live.feed import Feed
+from mocap.live.pose import CameraHistory, FixedLagSmoother, WarmFit
+from mocap.live.rows import PoseWriter, row
+from mocap.live.sources import FILE, SourceReader, SourceSpec
+from mocap.machine import Machine
+from mocap.reconstruct.kinfit import FitOptions
+from mocap.tracking.model import CameraModel
+from mocap.tracking.run import track_frames
+from mocap.tracking.tracker import TrackOptions
+
+log = logging.getLogger(__name__)
+
+STALL_S = 1.0  # a clock camera silent this long hands the rows' clock to the next camera
+BEHIND_S = 0.5  # a clock frame this long waiting for the fit (the process is starved of CPU) is skipped
+FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (a search of the whole frame)
+
+
+@dataclass(frozen=True)
+class LiveRequest:
+    """What `mocap live` was asked: paths as given; `lag` the smoother's lag in reference
+    frames; `duration` seconds of the run (None: until the sources end or Ctrl-C); `feed`
+    (host, port) or None; `record` a session folder to write, or None."""
+
+    machine: str
+    calibration: Path
+    sources: tuple[SourceSpec, ...]
+    out: Path
+    realtime: bool = False
+    duration: float | None = None
+    lag: int = 1
+    depth: int = 2
+    wait_frames: float = 1.5
+    feed: tuple[str, int] | None = None
+    record: Path | None = None
+    track_options: TrackOptions = field(default_factory=TrackOptions)
+    fit_options: FitOptions = field(default_factory=FitOptions)
+
+
+@dataclass(frozen=True)
+class CameraCounts:
+    """Frames `read` from the source, `out` tracked and handed to the fit, `dropped` late."""
+
+    camera: str
+    read: int
+    out: int
+    dropped: int
+    reconnects: int
+
+
+@dataclass(frozen=True)
+class LiveReport:
+    rows: int
+    cameras: tuple[CameraCounts, ...]
+    latency_ms: np.ndarray
+    lag_ms: float
+    interrupted: bool
+    skipped: int = 0
+    feed: str | None = None
+
+    def summary(self, out) -> str:
+        """The run's one summary line."""
+        counts = "; ".join(f"{c.camera} in {c.read} out {c.out} dropped {c.dropped}"
+                           + (f" reconnected {c.reconnects}x" if c.reconnects else "") for c in self.cameras)
+        if len(self.latency_ms):
+            p50, p99, worst = np.percentile(self.latency_ms, [50, 99]).tolist() + [float(self.latency_ms.max())]
+            latency = f"latency p50 {p50:.0f} ms, p99 {p99:.0f} ms, max {worst:.0f} ms"
+        else:
+            latency = "latency -"
+        return (f"{self.rows} rows to {out}; {counts}; {latency} (the smoother's lag of {self.lag_ms:.0f} ms "
+                f"included)" + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
+                                "CPU)" if self.skipped else "") + ("; interrupted" if self.interrupted else ""))
+
+
+class CameraWorker(threading.Thread):
+    """One camera's tracker (`track_frames`, the code of `mocap track`) fed frame by frame from
+    its source; each frame's labels go to `labelled` as (camera index, time, arrived,
+    pixels (M, 2)). A first frame that cannot be labelled is skipped and the next one tried."""
+
+    def __init__(self, k: int, reader: SourceReader, model: CameraModel, start: np.ndarray, fps: float,
+                 options: TrackOptions, labelled: queue.Queue, stop: threading.Event):
+        super().__init__(name=f"track {reader.spec.camera}", daemon=True)
+        self.k, self.reader, self.model, self.start_joints, self.fps = k, reader, model, start, fps
+        self.options, self.labelled, self.stop = options, labelled, stop
+        self.markers = {name: m for m, name in enumerate(model.machine.marker_names)}
+        self.out = 0
+        self.parts: list[Tracks] = []
+        self.finished = threading.Event()
+        self._meta: dict[int, tuple[float, float]] = {}
+        self._exhausted = False
+
+    def run(self) -> None:
+        try:
+            while not self._exhausted and not self.stop.is_set():
+                try:
+                    tracks, _ = track_frames(self.model, self._frames(), self.start_joints, None, self.fps, self.options,
+                                             on_frame=self._on_frame)
+                    self.parts.append(tracks)
+                except ValueError as exc:  # the first frame not labelled: try the next ones
+                    log.info("camera %s: %s; trying the next frame", self.reader.spec.camera, exc)
+        except Exception:
+            log.exception("camera %s: tracking failed; the others carry on", self.reader.spec.camera)
+        finally:
+            self.finished.set()
+
+    def _frames(self):
+        while not self.stop.is_set():
+            frame = self.reader.take()
+            if frame is None:
+                if self.reader.done:
+                    break
+                continue
+            self._meta[frame.index] = (frame.time, frame.arrived)
+            yield frame.index, frame.gray
+        self._exhausted = True
+
+    def _on_frame(self, index: int, rows: Tracks) -> None:
+        time_ref, arrived = self._meta.pop(index)
+        pixels = np.full((len(self.markers), 2), np.nan)
+        if len(rows):
+            pixels[[self.markers[m] for m in rows.marker]] = rows.xy
+        self.out += 1
+        self.labelled.put((self.k, time_ref, arrived, pixels))
+
+    def tracks(self) -> Tracks | None:
+        return concatenate(self.parts) if self.parts else None
+
+
+def run_live(request: LiveRequest, stop: threading.Event | None = None, announce=None) -> LiveReport:
+    """Run until every source has ended, `request.duration` has passed or `stop` is set.
+    `announce(text)` is told where the feed listens, once it does."""
+    stop = stop or threading.Event()
+    machine = load_machine(request.machine)
+    if machine.n_joints == 0:  # a rigid object: its pose per frame, and no link box hides its markers (`mocap fit`)
+        request = replace(request, fit_options=replace(request.fit_options, base_motion=True),
+                          track_options=replace(request.track_options, occlusion=False))
+    calibration = load_calibration(request.calibration)
+    order = _check_sources(request, calibration)
+    cameras = [calibration.cameras[i] for i in order]
+    fps = calibration.fps()[order]
+    offsets = calibration.time_offsets[order]
+    joints = calibration.joints(machine)
+    start_joints = machine.clip_to_limits(np.zeros(machine.n_joints) if joints is None else joints)
+    specs = {s.camera: s for s in request.sources}
+    clock_start = time.perf_counter() + 0.2  # the threads started first
+    readers = [SourceReader(specs[c.name], fps[k], offsets[k], clock_start, stop,
+                            (offsets[k] - offsets.min()) if request.realtime else None, request.depth)
+               for k, c in enumerate(cameras)]
+    for reader, camera in zip(readers, cameras):
+        if reader.size is not None and tuple(reader.size) != tuple(camera.size):
+            raise InputError(f"--source {camera.name}: the video is {reader.size[0]}x{reader.size[1]} but the camera "
+                             f"was calibrated at {camera.size[0]}x{camera.size[1]}; give the camera's own video",
+                             path=reader.spec.target)
+    labelled: queue.Queue = queue.Queue()
+    workers = [CameraWorker(k, reader, CameraModel(machine, camera, solid=machine.n_joints > 0), start_joints,
+                            fps[k], request.track_options, labelled, stop)
+               for k, (reader, camera) in enumerate(zip(readers, cameras))]
+    feed = Feed(*request.feed) if request.feed is not None else None
+    if feed is not None and announce is not None:
+        announce(f"feed on {feed.url}")
+    writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
+    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop)
+    with ExitStack() as recording:
+        _recorders(request, readers, cameras, fps, recording)
+        for thread in [*readers, *workers]:
+            thread.start()
+        try:
+            loop.run(clock_start)
+        finally:
+            stop.set()
+            for thread in [*readers, *workers]:
+                thread.join(timeout=5.0)
+            writer.close()
+            if feed is not None:
+                feed.close()
+    if request.record is not None:
+        _record(request, machine, calibration, order, cameras, fps, workers)
+    counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
+                   for c, r, w in zip(cameras, readers, workers))
+    return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
+                      loop.skipped, feed.url if feed is not None else None)
+
+
+class _Loop:
+    """The main thread's work: labelled frames in, rows out."""
+
+    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop):
+        self.request, self.machine, self.cameras, self.fps = request, machine, cameras, fps
+        self.workers, self.writer, self.feed, self.stop = workers, writer, feed, stop
+        self.history = [CameraHistory(f) for f in fps]
+        self.fit = WarmFit(machine, cameras, request.fit_options)
+        self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
+        self.pending: list[tuple[int, float, float]] = []  # clock frames waiting: (frame, time, arrived)
+        self.waiting: list[tuple[int, float, float, list[str], object]] = []  # fitted, awaiting the smoother
+        self.last_frame = -1
+        self.rows = self.skipped = 0
+        self.latency: list[float] = []
+        self.interrupted = False
+        self.seen: list[float] = []  # when each camera last delivered labels
+        self.patient = not request.realtime and all(w.reader.spec.kind == FILE for w in workers)
+
+    def run(self, clock_start: float) -> None:
+        end = None if self.request.duration is None else clock_start + self.request.duration
+        # a camera counts as delivering until its first frame is due and has had time to be labelled
+        self.seen = [clock_start + (w.reader.pace or 0.0) + FIRST_FRAME_S for w in self.workers]
+        labelled = self.workers[0].labelled
+        while True:
+            if self.stop.is_set():
+                self.interrupted = True
+                break
+            if end is not None and time.perf_counter() >= end:
+                break
+            try:
+                k, time_ref, arrived, pixels = labelled.get(timeout=0.05)
+            except queue.Empty:
+                if all(w.finished.is_set() for w in self.workers) and labelled.empty():
+                    self._emit(final=True)
+                    break
+                self._emit()
+                continue
+            self.history[k].add(time_ref, pixels)
+            self.seen[k] = time.perf_counter()
+            if k == self._clock():
+                frame = int(round(time_ref * self.fps[0]))
+                if frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
+                    self.pending.append((frame, frame / self.fps[0], arrived))
+            self._emit()
+        self._emit(final=True)  # the frames still waiting for a camera: with those there are
+        for pose_and_meta in self._drain():
+            self._write(*pose_and_meta)
+
+    def _clock(self) -> int:
+        """The camera whose frames make the rows: the first not finished and, unless files are
+        read as fast as they are tracked, that delivered within `STALL_S`."""
+        now = time.perf_counter()
+        for k, worker in enumerate(self.workers):
+            if worker.finished.is_set():
+                continue
+            if self.patient or now - self.seen[k] < STALL_S:
+                return k
+        return 0
+
+    def _emit(self, final: bool = False) -> None:
+        """Fit the waiting clock frames whose cameras are all in (or waited for long enough)."""
+        now = time.perf_counter()
+        while self.pending:
+            frame, t, arrived = self.pending[0]
+            ready = final
+            if not ready:
+                late = not self.patient and now > arrived + self.request.wait_frames / self.fps[0]
+                ready = late or all(h.latest >= t or w.finished.is_set()
+                                    for h, w in zip(self.history, self.workers))
+            if not ready:
+                return
+            self.pending.pop(0)
+            if not self.patient and now - arrived > BEHIND_S:
+                self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
+                continue
+            self._fit(frame, t, arrived)
+
+    def _fit(self, frame: int, t: float, arrived: float) -> None:
+        views = [h.pixels_at(t) for h in self.history]
+        n_markers = len(self.machine.marker_names)
+        pixels = np.stack([np.full((n_markers, 2), np.nan) if v is None else v for v in views])
+        used = [c.name for c, v in zip(self.cameras, views) if v is not None and np.isfinite(v[:, 0]).any()]
+        fitted = self.fit(pixels)
+        for history in self.history:
+            history.forget(t)
+        self.last_frame = frame
+        self.waiting.append((frame, t, arrived, used, fitted))
+        pose = self.smoother.push(t, fitted)
+        if pose is not None:
+            self._write(*self.waiting.pop(0), pose)
+
+    def _drain(self):
+        for pose in self.smoother.flush():
+            frame, t, arrived, used, fitted = self.waiting.pop(0)
+            yield frame, t, arrived, used, fitted, pose
+
+    def _write(self, frame, t, arrived, used, fitted, pose) -> None:
+        latency = 1000.0 * (time.perf_counter() - arrived)
+        values = row(self.machine, frame, t, latency, used, pose, fitted.rms_px, fitted.observations)
+        self.writer.write(values)
+        if self.feed is not None:
+            self.feed.send(values)
+        self.rows += 1
+        self.latency.append(latency)
+
+
+def _check_sources(request: LiveRequest, calibration: Calibration) -> np.ndarray:
+    """The calibration's indices of the sources' cameras, in the calibration's order."""
+    names = [s.camera for s in request.sources]
+    doubled = sorted({n for n in names if names.count(n) > 1})
+    if doubled:
+        raise InputError(f"--source {doubled[0]} is given twice; one source per camera")
+    unknown = [n for n in names if n not in calibration.names]
+    if unknown:
+        raise InputError(f"--source {unknown[0]}: no such camera in the calibration (it has "
+                         f"{', '.join(calibration.names)})", path=request.calibration)
+    return np.array(sorted(calibration.names.index(n) for n in names))
+
+
+def _recorders(request: LiveRequest, readers: list[SourceReader], cameras, fps, stack: ExitStack) -> None:
+    """With --record, each device or stream's frames re-encoded as they come into
+    DIR/videos/<camera>.mp4 (closed with `stack`); files are copied at the end."""
+    if request.record is None:
+        return
+    from mocap.synthetic.encode import video_writer
+
+    for reader, camera, rate in zip(readers, cameras, fps):
+        if reader.spec.kind != FILE:
+            write = stack.enter_context(video_writer(request.record / "videos" / f"{camera.name}.mp4",
+                                                     tuple(camera.size), rate))
+            reader.on_frame = lambda gray, write=write: write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+
+
+def _record(request: LiveRequest, machine: Machine, calibration: Calibration, order, cameras, fps, workers) -> None:
+    """The session folder for the offline chain: session.toml, calibration/cameras.toml,
+    calibration/labels.csv (each camera's first labelled frame), videos/<camera>.mp4 (a file
+    copied; a device or stream recorded as it came) and tracks/<camera>.csv (the live
+    tracker's labels)."""
+    root = request.record
+    root.mkdir(parents=True, exist_ok=True)
+    machine_ref = request.machine
+    if Path(request.machine).is_file():
+        shutil.copyfile(request.machine, root / "machine.toml")
+        machine_ref = "machine.toml"
+    entries, first_labels = [], []
+    for k, camera in enumerate(cameras):
+        spec = workers[k].reader.spec
+        video = f"videos/{camera.name}.mp4"
+        if spec.kind == FILE:
+            (root / "videos").mkdir(exist_ok=True)
+            shutil.copyfile(spec.target, root / video)
+        entries.append(SessionCamera(camera.name, video, float(fps[k])))
+        tracks = workers[k].tracks()
+        if tracks is not None and len(tracks):
+            save_tracks(tracks, root / "tracks" / f"{camera.name}.csv")
+            first_labels.append(tracks.select(tracks.frame == tracks.frame.min()))
+    if first_labels:  # the calibration frame's labels `mocap run` starts from: each camera's first frame
+        save_tracks(concatenate(first_labels), root / "calibration" / "labels.csv")
+    chosen = Calibration(tuple(calibration.cameras[i] for i in order), tuple(calibration.extras[i] for i in order),
+                         calibration.metadata)
+    save_calibration(chosen, root / "calibration" / "cameras.toml")
+    save_session_config(SessionConfig(machine_ref, tuple(entries), {"calibration_frame": 0},
+                                      {"recorded_by": "mocap live"}), root / "session.toml")
