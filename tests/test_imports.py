@@ -28,7 +28,7 @@ LAYERS = {
     "mocap.detect": 2, "mocap.calibration": 2, "mocap.tracking": 2, "mocap.sync": 2, "mocap.reconstruct": 2,
     "mocap.analysis": 2, "mocap.export": 2, "mocap.viewer": 2, "mocap.synthetic": 2, "mocap.session": 2,
     # orchestration: the chain of stages, the API
-    "mocap.evaluate": 3, "mocap.pipeline": 3, "mocap.batch": 3, "mocap.demo": 3, "mocap.api": 3,
+    "mocap.evaluate": 3, "mocap.pipeline": 3, "mocap.batch": 3, "mocap.demo": 3, "mocap.api": 3, "mocap.live": 3,
     # the command line
     "mocap.commands": 4, "mocap.cli": 5, "mocap.__main__": 6,
 }
