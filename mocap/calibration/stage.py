@@ -76,9 +76,12 @@ def run_calibrate(request: CalibrateRequest) -> str:
     chosen = ""
     if choose_lens:
         result, criterion = calibrate_choosing_lens(machine, observations, templates, options, guess)
-        model = next(m for m, v in criterion.items() if v == min(criterion.values()))
+        freed = {name.rsplit(".", 1)[-1] for name in result.parameter_names}
+        model = "k1k2" if "k2" in freed else "k1" if "k1" in freed else "none"
         tried = ", ".join(f"{m} {v:.0f}" for m, v in criterion.items())
-        chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}; --distortion overrides)"
+        lowest = min(criterion, key=criterion.get)
+        note = "" if lowest == model else f"; {lowest} not carried: its coefficients within their SDs"
+        chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}{note}; --distortion overrides)"
     else:
         result = calibrate(machine, observations, templates, options, guess)
     if options.fixed_intrinsics:
