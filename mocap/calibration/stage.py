@@ -63,6 +63,9 @@ class Calibrated:
 def run_calibrate(request: CalibrateRequest) -> str:
     machine = load_machine(request.machine)
     tracks = load_tracks(list(request.tracks))
+    # the sizes of the session's videos where they exist (a stated one they contradict is refused)
+    request = replace(request, sizes=_sizes_from_videos(request.sizes, video_sizes(request.tracks),
+                                                        list(tracks.cameras)))
     if request.method == "dlt":
         return _run_dlt_request(machine, tracks, request)
     guess = (lambda: load_guess(request.guess, machine)) if request.guess else None
@@ -86,6 +89,7 @@ def _templates(tracks: Tracks, sizes: dict, frame: int | None, known: dict | Non
         raise InputError(f"--size names camera(s) {strange} that the tracks lack (they have "
                          f"{list(tracks.cameras)}); check the NAME in --size NAME=WxH")
     templates = [template_camera(n, _size(sizes, n)) for n in names]
+    check_size_against_pixels(tracks, {t.name: t.size for t in templates}, tracks_where)
     if known is not None:
         templates = with_known_intrinsics(templates, known, intrinsics_path)
     check_in_images(rows, {t.name: t.size for t in templates}, tracks_where, "--size")
@@ -122,9 +126,12 @@ def calibrate_cameras(machine, tracks: Tracks, sizes: dict, frame: int | None = 
     chosen = ""
     if choose_lens:
         result, criterion = calibrate_choosing_lens(machine, observations, templates, options, guess)
-        model = next(m for m, v in criterion.items() if v == min(criterion.values()))
+        freed = {name.rsplit(".", 1)[-1] for name in result.parameter_names}
+        model = "k1k2" if "k2" in freed else "k1" if "k1" in freed else "none"
         tried = ", ".join(f"{m} {v:.0f}" for m, v in criterion.items())
-        chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}; --distortion overrides)"
+        lowest = min(criterion, key=criterion.get)
+        note = "" if lowest == model else f"; {lowest} not carried: its coefficients within their SDs"
+        chosen = f"\nlens distortion chosen by the data: {model} (BIC {tried}{note}; --distortion overrides)"
     else:
         result = calibrate(machine, observations, templates, options, guess)
     if options.fixed_intrinsics:
@@ -163,7 +170,66 @@ def _size(sizes: dict, name: str) -> tuple[int, int]:
         return sizes[name]
     if None in sizes:
         return sizes[None]
-    raise InputError(f"no --size for camera {name!r}; give --size WxH or --size {name}=WxH")
+    raise InputError(f"no --size for camera {name!r} and no session video of it to read the size from; give "
+                     f"--size WxH or --size {name}=WxH")
+
+
+def video_sizes(tracks_paths) -> dict:
+    """{camera: ((w, h), video path)} of the videos of the session the tracks files lie in
+    (a folder with session.toml, the tracks in it or in its tracks/), where they exist."""
+    from mocap.io.video import Video
+    from mocap.session import Session
+
+    for path in tracks_paths:
+        here = Path(path).resolve().parent
+        for root in (here, here.parent):
+            if not (root / "session.toml").exists():
+                continue
+            session, found = Session.open(root), {}
+            for name in session.camera_names:
+                video = session.video_path(name)
+                if video.exists():
+                    found[name] = (tuple(Video(video).info.size), video)
+            return found
+    return {}
+
+
+def _sizes_from_videos(stated: dict, videos: dict, names: list[str]) -> dict:
+    """The image sizes: stated ones, where a session video exists the same as its size
+    (refused otherwise), and the videos' where none is stated."""
+    for name in names:
+        if name in videos and (name in stated or None in stated):
+            given = stated.get(name, stated.get(None))
+            if tuple(given) != videos[name][0]:
+                w, h = videos[name][0]
+                raise InputError(f"--size {given[0]}x{given[1]} for camera {name!r}, but its video "
+                                 f"{videos[name][1]} is {w}x{h}: leave out --size (the video's is read) or "
+                                 "give the size the tracks were measured in")
+    return {**{name: size for name, (size, _) in videos.items()}, **stated}
+
+
+MIN_OBSERVATIONS_FOR_SIZE = 8  # a camera's observations before one quadrant of its image counts against the size
+
+
+def check_size_against_pixels(tracks: Tracks, sizes: dict, source: str) -> None:
+    """Refuse a stated image size that a camera's pixels (all its frames) contradict: every
+    observation in one quadrant of the image, so the image centre, where the principal point
+    is taken, lies outside all of them (the tracks were measured in another image size, e.g.
+    half of it)."""
+    for name, (width, height) in sizes.items():
+        xy = tracks.xy[tracks.camera == name]
+        if len(xy) < MIN_OBSERVATIONS_FOR_SIZE:
+            continue
+        left, top = np.all(xy[:, 0] < width / 2), np.all(xy[:, 1] < height / 2)
+        right, bottom = np.all(xy[:, 0] > width / 2), np.all(xy[:, 1] > height / 2)
+        if (left or right) and (top or bottom):
+            corner = ("top" if top else "bottom") + "-" + ("left" if left else "right")
+            low, high = xy.min(0), xy.max(0)
+            hint = (f"; the pixels fit {width // 2}x{height // 2}" if left and top else "")
+            raise InputError(
+                f"camera {name!r}: all {len(xy)} observations lie in the {corner} quadrant of the stated "
+                f"{width}x{height} image (x {low[0]:.0f}..{high[0]:.0f}, y {low[1]:.0f}..{high[1]:.0f}), far from "
+                f"its centre{hint}: give the size of the images the tracks were measured in (--size)", path=source)
 
 
 def _run_dlt(machine, rows: Tracks, templates, frame: int, request: CalibrateRequest) -> str:

@@ -27,8 +27,9 @@ def add_parser(sub) -> None:
     )
     p.add_argument("machine", help="machine model TOML (or the name of a shipped one)")
     p.add_argument("tracks", nargs="+", help="observations / tracks CSV file(s)")
-    p.add_argument("--size", action="append", required=True, metavar="[NAME=]WxH",
-                   help="image size, for every camera or per camera (repeatable)")
+    p.add_argument("--size", action="append", default=[], metavar="[NAME=]WxH",
+                   help="image size, for every camera or per camera (repeatable); default: read from the "
+                   "session's videos, when the tracks lie in a session folder")
     p.add_argument("--out", required=True, help="calibration TOML to write")
     p.add_argument("--frame", type=int, help="the calibration frame (default: the first frame)")
     p.add_argument("--per-camera", action="store_true", help="each camera with its own joint values")

@@ -43,9 +43,10 @@ def add_parser(sub) -> None:
     p.add_argument("--intrinsics", metavar="FILE", help="known intrinsics, used and kept: a calibration TOML "
                    "(ours or anipose's), an OpenCV YAML/XML (camera named after the file) or COLMAP cameras")
     p.add_argument("--loss-scale", type=float, default=2.0, metavar="PX", help="robust loss scale (default 2 px)")
-    p.add_argument("--max-median", type=float, default=1.0, metavar="PX",
+    p.add_argument("--max-median", type=float, default=None, metavar="PX",
                    help="refuse the refinement when a camera's tracks lie further than this from the refined "
-                   "cameras, median (default 1 px)")
+                   "cameras, median (default: no such gate; the tracks' noise is estimated and reported, and "
+                   "only wrong labels or a wrong sync are refused)")
     p.set_defaults(run=run)
 
 

@@ -205,11 +205,40 @@ def fit_joints(
     # its neighbours' solutions where the pixels prefer theirs (not where they cannot tell)
     problem.propagate(pixels, state, problem.above_a_neighbour(pixels, state), margin=PREFERRED_CHI2 * noise**2)
     problem.mend_detours(pixels, state, noise)
-    unexplained = problem.misfit(pixels, state, noise)
+    unexplained = problem.misfit(pixels, state, noise, floor=noise_floor(pixels))
     if unexplained.any():
         log.info("%d frame(s) that no solution explains (residuals far beyond the %.2f px noise)",
                  unexplained.sum(), noise)
     return problem.result(pixels, state, noise, unexplained)
+
+
+FLOOR_WINDOW = 3  # frames either side over which a track's bend is read (a wrong frame or three do not move it)
+
+
+def noise_floor(pixels: np.ndarray) -> np.ndarray:
+    """(C, F, M) each observation's error that pixel noise leaves out, px SD per axis: the
+    pixel quantisation (1 / sqrt(12) px where a camera's coordinates are whole pixels) and
+    the error of interpolating between frames (a camera whose clock is a fraction of a frame
+    off the reference is resampled linearly: at most an eighth of the track's second
+    difference, read as its median over the frames within FLOOR_WINDOW, so that a wrong
+    frame does not excuse itself)."""
+    import warnings
+
+    pixels = np.asarray(pixels, dtype=float)
+    n_cams, n_frames, n_markers = pixels.shape[:3]
+    bend = np.zeros((n_cams, n_frames, n_markers))
+    if n_frames >= 3:
+        second = np.full((n_cams, n_frames + 2 * FLOOR_WINDOW, n_markers), np.nan)
+        second[:, FLOOR_WINDOW + 1 : FLOOR_WINDOW + n_frames - 1] = np.linalg.norm(
+            pixels[:, :-2] - 2 * pixels[:, 1:-1] + pixels[:, 2:], axis=-1)
+        windows = np.lib.stride_tricks.sliding_window_view(second, 2 * FLOOR_WINDOW + 1, axis=1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a window with no bend known: no floor
+            bend = np.nan_to_num(np.nanmedian(windows, axis=-1))
+    seen = np.isfinite(pixels[..., 0])
+    whole = np.array([bool(s.any()) and bool(np.all(p[s] == np.round(p[s]))) for p, s in zip(pixels, seen)])
+    quantisation = np.where(whole, 1 / np.sqrt(12), 0.0)[:, None, None]
+    return np.sqrt(quantisation**2 + (bend / 8) ** 2)
 
 
 def refit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, starts: np.ndarray, options: FitOptions,
@@ -518,15 +547,18 @@ class _Problem(KinematicModel):
         return float(max(sigma / np.sqrt(max(dof_share, 0.1)), 1e-6))
 
     def misfit(self, pixels: np.ndarray, state: FrameState, noise: float, tail: float | None = None,
-               far_share: float = 0.5) -> np.ndarray:
+               far_share: float = 0.5, floor: np.ndarray | None = None) -> np.ndarray:
         """(F,) frames whose residuals the pixel noise does not explain: more than
         `far_share` of their observations beyond 4 sigma (a chance of 3e-4 each), or, with a
         `tail`, the others' chi-square beyond that quantile. With the defaults (most pixels
         far: no pose explains the frame) wild pixels, a little model error or the clock's
         interpolation during fast motion leave a frame explained; the stricter setting
-        picks the frames worth fitting again."""
+        picks the frames worth fitting again. `floor` (C, F, M) px: each observation's error
+        beyond the noise (`noise_floor`: interpolation between frames, quantisation), added
+        to the noise in quadrature."""
         seen = np.isfinite(pixels[..., 0]).transpose(1, 0, 2).reshape(pixels.shape[1], -1)
-        e2 = (state.residual.reshape(len(seen), -1, 2) ** 2).sum(-1) / noise**2
+        variance = noise**2 if floor is None else noise**2 + floor.transpose(1, 0, 2).reshape(len(seen), -1) ** 2
+        e2 = (state.residual.reshape(len(seen), -1, 2) ** 2).sum(-1) / variance
         far = seen & (e2 > 16.0)
         n_obs, n_far = seen.sum(1), far.sum(1)
         dof = 2 * (n_obs - n_far) - self.n_params

@@ -9,6 +9,12 @@ and kept if it is near any of them (a wild neighbour spoils only the predictions
 in); the threshold follows the deviations the track
 actually has (`factor` times their robust scale), never less than `floor_px`.
 
+Frames need not be a dense video: every k-th frame of one, or a board moved far between
+stills, bends a track between its frames by more than the noise. The bend is read from the
+data (`track_bends`): a track whose midpoint predictions err from its motion by more than
+`floor_px / factor` (and than noise alone makes that estimate) is not judged, whatever its
+frame numbers say.
+
 Shapes: F frames, M markers.
 """
 
@@ -21,6 +27,8 @@ import numpy as np
 from mocap.reconstruct.chi2 import upper_quantile
 
 RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of unit SD per axis
+NOISE_BEND = 2.5  # pure noise gives n points' bend estimate up to this / sqrt(n) of their noise
+BEND_PERCENTILE = 90  # a track's bend and noise read at this percentile: a motion bends it at its turns
 
 
 # Predictions of a pixel from its neighbours, exact for a steady motion: {frame offset:
@@ -38,10 +46,12 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     gain; the larger of the scale of each marker's own track and of all smooth tracks) and
     beyond `floor_px`. A pixel with fewer than two predictions is never flagged, nor any
     pixel of a track whose typical deviation exceeds `rough_px` (frames too far apart in
-    time to judge). A flagged pixel is judged again without the flagged ones: a good pixel
+    time to judge), nor of a track that bends between its frames by more than its noise
+    (`dense_tracks`: sparse frames of a video). A flagged pixel is judged again without the flagged ones: a good pixel
     whose neighbours were all wild is kept when its other neighbours agree with it."""
     pixels = np.asarray(pixels, dtype=float)
     judged, scaled, raw = _deviations(pixels, pixels, np.ones(pixels.shape[:2], bool))
+    judged &= dense_tracks(pixels, floor_px / factor)[None]
     if not judged.any():
         return np.zeros(pixels.shape[:2], bool)
     tracked = judged.any(0)
@@ -55,6 +65,40 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
         again = _deviations(np.where(flagged[..., None], np.nan, pixels), pixels, flagged)
         flagged &= ~(again[0] & ((again[1] <= limit) | (again[2] <= floor_px)))
     return flagged
+
+
+def track_bends(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per track of points (F, M, D) (consecutive frames, NaN where not seen): how far its
+    motion bends it between frames and its noise, both as the error they give the midpoint
+    of the frames either side (M,), read from the second differences over one and two
+    frames (their `BEND_PERCENTILE` percentile: a motion bends a track most at its turns):
+    noise gives both alike, a bend (acceleration a per frame squared) a / 2 and 2 a.
+    NaN where a track has no five consecutive points."""
+    points = np.asarray(points, dtype=float)
+    one, two = np.full(points.shape[:2], np.nan), np.full(points.shape[:2], np.nan)
+    if len(points) >= 5:
+        middle = points[2:-2]
+        one[2:-2] = np.sum((middle - 0.5 * (points[1:-3] + points[3:-1])) ** 2, -1)
+        two[2:-2] = np.sum((middle - 0.5 * (points[:-4] + points[4:])) ** 2, -1)
+        two[np.isnan(one)], one[np.isnan(two)] = np.nan, np.nan
+    counted = np.isfinite(one).any(0)
+    m1, m2 = np.full(points.shape[1], np.nan), np.full(points.shape[1], np.nan)
+    m1[counted], m2[counted] = (np.nanpercentile(d[:, counted], BEND_PERCENTILE, 0) for d in (one, two))
+    bend2 = np.maximum(m2 - m1, 0.0) / 15.0  # (2 a)^2 - (a / 2)^2 = 15 (a / 2)^2
+    return np.sqrt(bend2), np.sqrt(np.maximum(m1 - bend2, 0.0))
+
+
+def dense_tracks(points: np.ndarray, least: float) -> np.ndarray:
+    """(M,) whether each track of points (F, M, D) is sampled densely enough for its
+    neighbours in time to predict it: its bend between frames (`track_bends`) is within
+    `least` / 4 (the midpoint of f-2 and f+2 errs by four times it), or within what noise
+    alone gives the estimate from n points (`NOISE_BEND` / sqrt(n) of the noise: beyond it
+    once in a thousand noise tracks). A track too short to tell counts as dense."""
+    bend, noise = track_bends(points)
+    points = np.asarray(points, dtype=float)
+    counted = np.isfinite(points[2:-2, ..., 0] + points[1:-3, ..., 0] + points[3:-1, ..., 0] + points[:-4, ..., 0]
+                          + points[4:, ..., 0]).sum(0) if len(points) >= 5 else np.zeros(points.shape[1])
+    return ~(bend > np.maximum(NOISE_BEND / np.sqrt(np.maximum(counted, 1)) * noise, least / 4))
 
 
 def _deviations(pixels: np.ndarray, values: np.ndarray, todo: np.ndarray):

@@ -51,6 +51,9 @@ DEFAULT_TOLERANCE = Tolerance(0.05)  # the paper's tape measurement, when nothin
 DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
 PLAIN_EVALUATIONS = 100  # plain least-squares evaluations before the robust loss
 AUTO_MODELS = ("none", "k1", "k1k2")  # tried in turn by "auto" while the criterion falls
+LABEL_RATIO = 5.0  # a camera's median distance this many times the other cameras' contradicts them
+LABEL_FLOOR_PX = 2.0  # ... and beyond this (a worse lens or a blurrier image stays within it)
+SYNC_MIN_FRAMES = 0.5  # a camera's clock this many frames off the first's names a wrong sync
 
 
 @dataclass(frozen=True)
@@ -63,7 +66,9 @@ class RefineOptions:
     coefficients freed ("none", "k1", "k1k2", "full", or "auto": chosen by the data);
     fit_principal_point: free the principal point; base_motion: a 6-DoF base pose per frame;
     fixed_intrinsics: names of cameras whose focal length, principal point and distortion
-    are known and kept."""
+    are known and kept; max_median_px: refuse when a camera's tracks lie further than this
+    from the refined cameras, median (None: no fixed gate; only a named contradiction, wrong
+    labels or a wrong sync, is refused)."""
 
     frames: int = 120
     markers: bool = False
@@ -71,7 +76,7 @@ class RefineOptions:
     fit_focal: bool = True
     scale_px: float = 2.0
     max_evaluations: int = 100
-    max_median_px: float = 1.0
+    max_median_px: float | None = None
     distortion: str = "none"
     fit_principal_point: bool = False
     base_motion: bool = False
@@ -82,7 +87,7 @@ class RefineOptions:
             raise ValueError(f"distortion must be one of {', '.join(DISTORTION_CHOICES)}, got {self.distortion!r}")
         if self.frames < 2 or not self.scale_px > 0 or self.max_evaluations < 1:
             raise ValueError("frames >= 2, scale_px > 0 and max_evaluations >= 1 are required")
-        if not self.max_median_px > 0:
+        if self.max_median_px is not None and not self.max_median_px > 0:
             raise ValueError("max_median_px must be positive")
 
 
@@ -93,7 +98,10 @@ class RefineResult:
     rms_before / rms_after the pixel residual RMS (per coordinate) over those frames; message the solver's;
     base (K, 6) the frames' ``world_from_base`` (rotation vector, translation m) with base
     motion, else None; distortion the lens model used; criterion {model: BIC} of the models
-    tried by "auto" (empty otherwise)."""
+    tried by "auto" (empty otherwise); median_px (C,) each camera's median distance (px)
+    from its tracks to the refined cameras; noise_px the tracks' noise estimated from the
+    residuals (robust SD per coordinate, px); clock_frames (C,) each camera's clock offset
+    from the first's, frames (a fraction of a frame: cameras not genlocked)."""
 
     cameras: tuple[Camera, ...]
     machine: Machine
@@ -105,6 +113,9 @@ class RefineResult:
     base: np.ndarray | None = None
     distortion: str = "none"
     criterion: dict | None = None
+    median_px: tuple[float, ...] = ()
+    noise_px: float = float("nan")
+    clock_frames: tuple[float, ...] = ()
 
 
 def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
@@ -132,13 +143,14 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     else:  # a rigid model: its pose (calibration's, or each frame's seen by PnP), the loss scale for the noise
         joints, noise_px = np.zeros((len(frames), 0)), options.scale_px
     models = AUTO_MODELS if options.distortion == "auto" else (options.distortion,)
+    velocity = image_velocity(pixels)[:, frames]  # (C, K, M, 2): each camera's clock offset is solved for
     criterion: dict[str, float] = {}
     best = None
     start_cameras = tuple(cameras)
     for model in models:
-        problem = _Bundle(machine, start_cameras, obs, replace(options, distortion=model), noise_px, base)
+        problem = _Bundle(machine, start_cameras, obs, replace(options, distortion=model), noise_px, base, velocity)
         x0 = np.r_[np.zeros(problem.n_camera_params * n_cams), joints.ravel(), np.zeros(6 * len(frames) * options.base_motion),
-                   np.zeros(3 * n_markers * options.markers)]
+                   np.zeros(3 * n_markers * options.markers), np.zeros(n_cams)]
         if best is None:
             before = problem.pixel_rms(x0)
         solution = _solve(problem, x0, options)
@@ -154,17 +166,63 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     after = problem.pixel_rms(solution.x)
     log.info("bundle adjustment over %d frames: %.3f -> %.3f px, distortion %s (%s)", len(frames), before, after,
              model, solution.message)
-    distance = np.linalg.norm(problem.pixel_residuals(solution.x), axis=-1)  # (C, K, M), 0 where not seen
-    for camera, d, seen in zip(cameras, distance, problem.seen):
-        median = float(np.median(d[seen])) if np.any(seen) else 0.0
-        if median > options.max_median_px:
+    residual = problem.pixel_residuals(solution.x)  # (C, K, M, 2), 0 where not seen
+    distance = np.linalg.norm(residual, axis=-1)
+    medians = tuple(float(np.median(d[seen])) if np.any(seen) else 0.0 for d, seen in zip(distance, problem.seen))
+    noise = float(1.4826 * np.median(np.abs(residual[problem.seen]))) if problem.seen.any() else float("nan")
+    names = [camera.name for camera in cameras]
+    clocks = problem.clocks(solution.x)
+    contradiction = contradicting_camera(residual, problem.seen, clocks, names)
+    if contradiction:
+        raise ConvergenceError(f"{contradiction}; the calibration is left as it is")
+    for name, median in zip(names, medians):
+        if options.max_median_px is not None and median > options.max_median_px:
             raise ConvergenceError(
-                f"camera {camera.name}'s tracks lie {median:.1f} px (median) from the refined cameras, more than "
-                f"{options.max_median_px:g} px: the tracks disagree with each other (wrong labels or a bad sync?); "
-                "the calibration is left as it is (check the tracks, or raise --max-median)"
+                f"camera {name}'s tracks lie {median:.1f} px (median) from the refined cameras, more than "
+                f"--max-median {options.max_median_px:g} px; the calibration is left as it is"
             )
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
-                        criterion if len(models) > 1 else {})
+                        criterion if len(models) > 1 else {}, medians, noise,
+                        tuple(float(c) for c in clocks))
+
+
+def image_velocity(pixels: np.ndarray) -> np.ndarray:
+    """(C, F, M, 2) each track's image velocity in px per frame row: the central difference,
+    one-sided at a track's ends, NaN where a track has no neighbouring frame."""
+    ahead = np.full_like(pixels, np.nan)
+    behind = np.full_like(pixels, np.nan)
+    ahead[:, :-1] = pixels[:, 1:] - pixels[:, :-1]
+    behind[:, 1:] = pixels[:, 1:] - pixels[:, :-1]
+    central = 0.5 * (ahead + behind)
+    return np.where(np.isfinite(central), central, np.where(np.isfinite(ahead), ahead, behind))
+
+
+def contradicting_camera(residual: np.ndarray, seen: np.ndarray, clocks: np.ndarray, names: list[str]) -> str:
+    """The contradiction that the refined cameras' residuals (C, K, M, 2) and clock offsets
+    (C,) frames name, or "".
+
+    A wrong sync: a camera's clock SYNC_MIN_FRAMES or more off the first's (a fraction of a
+    frame is cameras not genlocked, solved for and kept). Wrong labels: a camera's median
+    distance is LABEL_RATIO times the other cameras' (the median over them) and beyond
+    LABEL_FLOOR_PX. Noise and a lens model a little off spread over every camera alike and
+    name nothing."""
+    distance = np.linalg.norm(residual, axis=-1)
+    medians = np.array([np.median(d[s]) if np.any(s) else 0.0 for d, s in zip(distance, seen)])
+    off = np.abs(clocks) >= SYNC_MIN_FRAMES
+    if off.any():
+        listed = ", ".join(f"{name} {clock:+.1f}" for name, clock in zip(names[1:], clocks[1:]))
+        return (f"the cameras' clocks disagree by up to {np.abs(clocks).max():.1f} frames ({listed} frames from "
+                f"{names[0]}'s, estimated from the tracks' motion): a wrong sync (run `mocap sync`, or check the "
+                "frame times)")
+    if len(names) < 2:
+        return ""
+    for c, name in enumerate(names):
+        others = float(np.median(np.delete(medians, c)))
+        if medians[c] > max(LABEL_RATIO * others, LABEL_FLOOR_PX):
+            return (f"camera {name}'s tracks lie {medians[c]:.1f} px (median) from the refined cameras, the other "
+                    f"cameras' {others:.2f} px: its labels contradict theirs (markers swapped, or a tracker on the "
+                    "wrong marker)")
+    return ""
 
 
 def _solve(problem: "_Bundle", x0: np.ndarray, options: RefineOptions) -> Solution:
@@ -208,7 +266,7 @@ class _Bundle:
     what is solved for: known intrinsics and the reference frame's base pose are held."""
 
     def __init__(self, machine: Machine, cameras: tuple[Camera, ...], pixels: np.ndarray, options: RefineOptions,
-                 noise_px: float, base: np.ndarray | None = None):
+                 noise_px: float, base: np.ndarray | None = None, velocity: np.ndarray | None = None):
         self.machine, self.cameras, self.pixels, self.options = machine, cameras, pixels, options
         self.seen = np.isfinite(pixels[..., 0])  # (C, K, M)
         self.terms = list(DISTORTION_MODELS[options.distortion])
@@ -222,7 +280,11 @@ class _Bundle:
         self.joint_start = self.n_camera_params * n_cams
         self.base_start = self.joint_start + n_frames * machine.n_joints
         self.marker_start = self.base_start + 6 * n_frames * options.base_motion
-        self.free = np.ones(self.marker_start + 3 * n_markers * options.markers, dtype=bool)
+        self.clock_start = self.marker_start + 3 * n_markers * options.markers
+        self.velocity = None if velocity is None else np.where(self.seen[..., None], np.nan_to_num(velocity), 0.0)
+        self.free = np.ones(self.clock_start + n_cams * (velocity is not None), dtype=bool)
+        if velocity is not None:  # the first camera's clock is the reference
+            self.free[self.clock_start] = False
         for c, camera in enumerate(cameras):
             if camera.name in options.fixed_intrinsics:
                 self.free[c * self.n_camera_params + 6 : (c + 1) * self.n_camera_params] = False
@@ -235,7 +297,7 @@ class _Bundle:
         camera_params = x[: self.joint_start].reshape(n_cams, self.n_camera_params)
         joints = x[self.joint_start : self.base_start].reshape(n_frames, self.machine.n_joints)
         increments = x[self.base_start : self.marker_start].reshape(n_frames, 6) if self.options.base_motion else None
-        offsets = x[self.marker_start :].reshape(n_markers, 3) if self.options.markers else None
+        offsets = x[self.marker_start : self.clock_start].reshape(n_markers, 3) if self.options.markers else None
         return camera_params, joints, increments, offsets
 
     def _base(self, increments: np.ndarray | None):
@@ -244,6 +306,11 @@ class _Bundle:
             return None, None
         rotation = rotvec_to_matrix(increments[:, :3]) @ rotvec_to_matrix(self.base0[:, :3])
         return rotation, self.base0[:, 3:] + increments[:, 3:]
+
+    def clocks(self, x: np.ndarray) -> np.ndarray:
+        """(C,) each camera's clock offset (frames) from the first's: its pixels are seen that
+        much later, predicted by its tracks' own image velocities; zeros without them."""
+        return x[self.clock_start :] if self.velocity is not None else np.zeros(len(self.cameras))
 
     def unpack(self, x: np.ndarray):
         """cameras (C), joints (K, J), machine (its markers moved), base (K, 6) or None."""
@@ -283,6 +350,8 @@ class _Bundle:
         cameras, world = self._world(x)
         out = np.stack([c.project(world) for c in cameras])  # (C, K, M, 2)
         residual = self.pixels - out
+        if self.velocity is not None:  # a clock offset: seen later by clock times the image velocity
+            residual = residual - self.clocks(x)[:, None, None, None] * self.velocity
         return np.where(self.seen[..., None], np.nan_to_num(residual, nan=1e3), 0.0)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -358,6 +427,10 @@ class _Bundle:
         row_index = np.broadcast_to(rows[..., None], column_index.shape)
         data, row_list, col_list = [values.ravel()], [row_index.ravel()], [column_index.ravel()]
         n_rows = rows.size
+        if self.velocity is not None:
+            data.append(-self.velocity.ravel())
+            row_list.append(rows.ravel())
+            col_list.append((self.clock_start + c).ravel())
         if self.options.markers:
             prior = np.arange(3 * n_markers)
             data.append(np.repeat(self.noise_px / self.prior_sd, 3))

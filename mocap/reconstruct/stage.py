@@ -331,7 +331,9 @@ class Refinement:
         result = self.result
         report = (
             f"cameras refined over {len(result.frames)} frames: residual RMS {result.rms_before:.2f} -> "
-            f"{result.rms_after:.2f} px{_written(out_calibration, ',')}"
+            f"{result.rms_after:.2f} px{_written(out_calibration, ',')}; the tracks lie "
+            + ", ".join(f"{c.name} {m:.2f}" for c, m in zip(result.cameras, result.median_px))
+            + f" px (median) from the refined cameras, noise estimated {result.noise_px:.2f} px per coordinate"
         )
         if result.criterion:
             tried = ", ".join(f"{name} {value:.0f}" for name, value in result.criterion.items())

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from mocap.camera import Camera, project_cam
-from mocap.reconstruct.outliers import PREDICTORS, noise_from_fits
+from mocap.reconstruct.outliers import PREDICTORS, dense_tracks, noise_from_fits
 
 _EPS = 1e-9
 # a 3-D track's predictions: the 2-D tracks' ones; points between f-a and f+b, a != b, for a
@@ -117,7 +117,9 @@ def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
     seen view is near one, is dropped and the point triangulated again from the views near
     one (a view dropped before but near one is taken back); with fewer than two of them the
     point is dropped. A marker with fewer than `SMOOTH_SHARE` of its points on its track is
-    not judged (frames too far apart in time). A point with one prediction (a track's end,
+    not judged (frames too far apart in time), nor one whose 2-D track in some camera bends
+    between frames by more than its noise and `floor_px / sigmas` (`dense_tracks`: every
+    k-th frame of a video, a board moved far between stills). A point with one prediction (a track's end,
     a gap) is judged only where two views are near it; with none it is left as
     `triangulate` made it. A point judged so is judged again from predictions without the
     points so judged (a wrong neighbour spoils the predictions it is in), and changed only
@@ -138,6 +140,8 @@ def triangulate_tracks(cameras: list[Camera], pixels: np.ndarray,
     on_track, predicted = _on_the_track(points, spread, options.sigmas)
     # a marker whose points are mostly off their track moves too far between frames to be judged
     smooth = on_track.reshape(shape).sum(0) >= SMOOTH_SHARE * predicted.reshape(shape).sum(0)
+    # ... and so does one whose 2-D tracks bend between frames by more than their noise (sparse frames)
+    smooth &= np.all([dense_tracks(pixels[c], floor_px / options.sigmas) for c in range(n_cams)], axis=0)
     redo = np.nonzero(predicted & ~on_track & np.broadcast_to(smooth, shape).reshape(-1))[0]
     for second in (False, True):  # judged again without the points judged wrong: a wrong neighbour spoils predictions
         if not len(redo):
