@@ -63,7 +63,7 @@ from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
-from mocap.sync.align import joint_curves, synchronise
+from mocap.clocks.align import joint_curves, synchronise
 from mocap.synthetic import make_session
 from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import video_writer

@@ -10,9 +10,6 @@ The Python API (mocap.api) is the command line's chain as functions:
 Its names are loaded on first use, so `import mocap` (and the command line's start) stays light.
 """
 
-import sys
-import types
-
 __version__ = "0.1.0"
 
 _API = (
@@ -36,25 +33,3 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted(set(globals()) | set(_API))
-
-
-class _Package(types.ModuleType):
-    """`mocap.sync` and `mocap.export` are the API's functions, though packages of the same
-    names exist (mocap/sync, mocap/export): importing one of those sets its attribute on this
-    package, which is kept aside here instead of hiding the function."""
-
-    def _api(name):
-        def get(self):
-            return __getattr__(name)
-
-        def keep_package(self, module):
-            self.__dict__[f"_{name}_package"] = module
-
-        return property(get, keep_package)
-
-    sync = _api("sync")
-    export = _api("export")
-    del _api
-
-
-sys.modules[__name__].__class__ = _Package

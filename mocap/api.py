@@ -220,7 +220,7 @@ def sync(machine: Machine, cameras: Calibration, tracks: Tracks, *, fps: dict | 
          max_offset: float = 10.0) -> Cameras:
     """The cameras with each one's time_offset and fps, from the machine's motion; `fps`
     {camera: frames per second} where the calibration and the tracks give none."""
-    from mocap.sync.stage import sync_cameras
+    from mocap.clocks.stage import sync_cameras
 
     synced, _ = sync_cameras(machine, cameras, tracks, [f"{k}={v}" for k, v in (fps or {}).items()], max_offset)
     return Cameras.of(synced)
@@ -287,7 +287,7 @@ def view(session: str | Path, save: str | Path | None = None, **files) -> str:
 def export(fmt: str, source: str | Path, out: str | Path, calibration: str | Path | None = None) -> str:
     """`mocap export`: "c3d" / "trc" (a session's markers), "urdf" (a machine model file),
     "colmap" (a session as a COLMAP model); returns the report."""
-    from mocap.export import stage
+    from mocap.interchange import stage
 
     if fmt == "urdf":
         return stage.export_urdf(source, out)

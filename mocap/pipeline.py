@@ -80,7 +80,7 @@ def track_step(video: str, machine: str, calibration: str, camera: str, labels: 
 
 
 def sync_step(calibration: str, tracks: tuple[str, ...], machine: str, fps: tuple[str, ...], out: str) -> str:
-    from mocap.sync.stage import run_sync
+    from mocap.clocks.stage import run_sync
 
     check_outputs({"--out": out}, {"machine model": machine, "calibration": calibration, "tracks": list(tracks)},
                   may_replace=("calibration",))

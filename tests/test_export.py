@@ -7,7 +7,7 @@ import pytest
 
 from mocap import cli
 from mocap.errors import InputError
-from mocap.export.markers import marker_table
+from mocap.interchange.markers import marker_table
 from mocap.io.cameras_toml import Calibration, save_calibration
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
 from mocap.io.motion_csv import Motion, save_motion

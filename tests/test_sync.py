@@ -13,7 +13,7 @@ from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
 from mocap.synthetic.scenes import observe, ring_of_cameras
-from mocap.sync.align import JointCurves, joint_curves, synchronise, window_frames
+from mocap.clocks.align import JointCurves, joint_curves, synchronise, window_frames
 
 FPS = np.array([30.0, 29.97, 25.0])
 OFFSETS = np.array([0.0, 0.437, -1.213])
@@ -137,7 +137,7 @@ def test_cli_writes_time_offsets(scene, tmp_path, capsys):
 
 
 def test_coarse_costs_of_all_offsets_equal_each_offsets_cost():
-    from mocap.sync.align import _Reference
+    from mocap.clocks.align import _Reference
 
     rng = np.random.default_rng(0)
     frames = np.arange(3000)

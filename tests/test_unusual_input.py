@@ -30,7 +30,7 @@ from mocap.io.points_csv import load_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks
 from mocap.synthetic.scenes import look_at_camera
-from mocap.sync.stage import frame_rates
+from mocap.clocks.stage import frame_rates
 
 
 @pytest.fixture(scope="module")

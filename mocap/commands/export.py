@@ -30,7 +30,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from mocap.export import stage
+    from mocap.interchange import stage
 
     if args.format == "urdf":
         print(stage.export_urdf(args.source, args.out))

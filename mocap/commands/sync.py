@@ -35,7 +35,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from mocap.sync.stage import run_sync
+    from mocap.clocks.stage import run_sync
 
     check_outputs({"--out": args.out},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks},

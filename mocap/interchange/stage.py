@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.export.markers import marker_table
-from mocap.export.reconstruction import reconstruction
+from mocap.interchange.markers import marker_table
+from mocap.interchange.reconstruction import reconstruction
 from mocap.session import Session
 
 MARKER_FORMATS = ("c3d", "trc")

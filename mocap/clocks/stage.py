@@ -12,7 +12,7 @@ from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_c
 from mocap.io.machine_toml import load_machine
 from mocap.machine import Machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.sync.align import joint_curves, pose_curves, synchronise, window_frames
+from mocap.clocks.align import joint_curves, pose_curves, synchronise, window_frames
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
