@@ -136,9 +136,7 @@ def marker_outlines(
     """Square corners (M, 4, 3) and disk outlines (M, n_points, 3) of the painted markers
     in their link frames, in the plane of each marker's face (normals (M, 3)), centred on
     the marker; `disk` and `square` are the disk's diameter and the square's side (m)."""
-    axis = np.argmax(np.abs(normals), axis=1)
-    first = np.eye(3)[(axis + 1) % 3]
-    second = np.cross(normals, first)
+    first, second = plane_axes(normals)
     centre = machine.marker_positions[:, None]
     corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * 0.5 * square
     squares = centre + corners[None, :, :1] * first[:, None] + corners[None, :, 1:] * second[:, None]
@@ -146,6 +144,16 @@ def marker_outlines(
     c, s = 0.5 * disk * np.cos(angles), 0.5 * disk * np.sin(angles)
     disks = centre + c[None, :, None] * first[:, None] + s[None, :, None] * second[:, None]
     return squares, disks
+
+
+def plane_axes(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes (M, 3) in the plane of each of `normals` (M, 3), right-handed with it:
+    the next coordinate axis after the normal's largest component, made square to it."""
+    axis = np.argmax(np.abs(normals), axis=1)
+    first = np.eye(3)[(axis + 1) % 3]
+    first = first - np.einsum("mi,mi->m", first, normals)[:, None] * normals
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    return first, np.cross(normals, first)
 
 
 def square_outline(squares: np.ndarray) -> np.ndarray:

@@ -367,6 +367,17 @@ def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor:
     image[y0:y1, x0:x1] = cv2.resize(fine, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
 
 
+def renderer_for(session: SyntheticSession, index: int, options: RenderOptions,
+                 rng: np.random.Generator) -> CameraRenderer:
+    """The renderer of camera `index`: `CameraRenderer`, or for a session whose links are
+    drawn as other solids (`SessionOptions.shapes`), `mocap.synthetic.render_meshes.MeshRenderer`."""
+    if session.solids is None:
+        return CameraRenderer(session, index, options, rng)
+    from mocap.synthetic.render_meshes import MeshRenderer  # it builds on this module
+
+    return MeshRenderer(session, index, options, rng)
+
+
 def render_videos(session: SyntheticSession, root: str | Path, options: RenderOptions | None = None) -> list[Path]:
     """Write videos/<camera>.mp4 for every camera of the session; returns the paths."""
     options = options or RenderOptions()
@@ -375,7 +386,7 @@ def render_videos(session: SyntheticSession, root: str | Path, options: RenderOp
     total = sum(c.frames for c in session.cameras)
     with progress(total=total, desc="rendering", unit="frame") as bar:
         for index, camera in enumerate(session.cameras):
-            renderer = CameraRenderer(session, index, options, rng)
+            renderer = renderer_for(session, index, options, rng)
             path = Path(root) / "videos" / f"{camera.name}.mp4"
             with video_writer(path, camera.camera.size, camera.fps, options.codec, options.threads,
                               options.look.crf) as write:

@@ -149,12 +149,15 @@ class Tracker:
             predicted = self._sweep(gray, predicted)
         view = model.view(predicted[None])
         uv = view.uv[0]
-        visible = state.visible = self._visible(view)
+        recent = state.missed <= 2
+        # the model's visibility is a prior: a marker labelled in the last frames is followed
+        # wherever it is in the image, whatever the guessed shapes say of it
+        possible = disks_in_view(model, view, occlusion=False)
+        visible = state.visible = self._visible(view) | (possible & recent)
         expected = self._expected_radius(view.scale[0])
         motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
-        recent = state.missed <= 2
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
@@ -198,7 +201,10 @@ class Tracker:
         # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
         # refinement converges from): those the model now knows and no disk was found near
         # are refined again from where the fit puts them
-        again = visible & known & ~_near_any(fitted_uv, found.xy, tight)
+        # ... and so are those the guessed shapes call hidden or turned away (`prior_hidden`): a
+        # disk where the fitted model puts one, within the tight gate, labels it
+        prior_hidden = possible & ~visible & known
+        again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if np.any(again):
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
@@ -208,6 +214,12 @@ class Tracker:
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
+        if np.any(prior_hidden):  # ranked after the markers the model shows: the disks they leave
+            free = np.ones(len(found), dtype=bool)
+            free[index] = False
+            more, more_index = assign(fitted_uv, np.where(free[:, None], found.xy, np.inf), tight, prior_hidden,
+                                      found.radius, expected)
+            markers, index = np.r_[markers, more], np.r_[index, more_index]
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
