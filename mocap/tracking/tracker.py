@@ -150,10 +150,7 @@ class Tracker:
         view = model.view(predicted[None])
         uv = view.uv[0]
         recent = state.missed <= 2
-        # the model's visibility is a prior: a marker labelled in the last frames is followed
-        # wherever it is in the image, whatever the guessed shapes say of it
-        possible = disks_in_view(model, view, occlusion=False)
-        visible = state.visible = self._visible(view) | (possible & recent)
+        visible = state.visible = self._visible(view)
         expected = self._expected_radius(view.scale[0])
         motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
         widen = 1.0 + min(state.lost, 10)
@@ -201,9 +198,10 @@ class Tracker:
         # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
         # refinement converges from): those the model now knows and no disk was found near
         # are refined again from where the fit puts them
-        # ... and so are those the guessed shapes call hidden or turned away (`prior_hidden`): a
-        # disk where the fitted model puts one, within the tight gate, labels it
-        prior_hidden = possible & ~visible & known
+        # ... and so are those the guessed shapes call hidden or turned away (the model's
+        # visibility is a prior, not a veto): a clear disk (the full-frame detection's contrast)
+        # where the fitted model puts one, within the tight gate, labels it
+        prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if np.any(again):
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
@@ -215,10 +213,12 @@ class Tracker:
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
         if np.any(prior_hidden):  # ranked after the markers the model shows: the disks they leave
-            free = np.ones(len(found), dtype=bool)
+            free = found.contrast >= options.detect.min_contrast
             free[index] = False
+            # the guessed normal is wrong for these: an ellipse's major semi-axis is the disk's
+            # radius at its depth however it is turned
             more, more_index = assign(fitted_uv, np.where(free[:, None], found.xy, np.inf), tight, prior_hidden,
-                                      found.radius, expected)
+                                      found.axes[:, 0], self._face_on_radius(joints))
             markers, index = np.r_[markers, more], np.r_[index, more_index]
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
@@ -312,6 +312,16 @@ class Tracker:
         modelled = scale * state.disk_m
         use_model = (state.missed > 2) & np.isfinite(modelled) & (modelled > 0)
         return np.where(use_model, modelled, state.radius)
+
+    def _face_on_radius(self, joints: np.ndarray) -> np.ndarray:
+        """(M,) px: each disk's radius at its depth at joint values `joints` (J,), seen face on
+        (NaN behind the camera)."""
+        camera = self.model.camera
+        world = self.model.machine.markers(joints[None])[0]
+        depth = world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2]
+        focal = 0.5 * (camera.matrix[0, 0] + camera.matrix[1, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(depth > 0, focal * self.state.disk_m / depth, np.nan)
 
     def _update_disk(self, scale: np.ndarray, markers: np.ndarray, radius: np.ndarray) -> None:
         """Refresh the disks' radius in metres from labelled radii (px), by the median."""
