@@ -20,13 +20,17 @@ MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable ma
 
 
 def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
-    """Outward normals (M, 3) in each marker's link frame: the nearest face of its box."""
+    """Outward normals (M, 3) in each marker's link frame: the model's where it states them
+    (`Machine.marker_normals`), else the nearest face of the marker's box."""
     box = boxes[machine.marker_links]  # (M, 2, 3)
     p = machine.marker_positions
     gaps = np.concatenate([p - box[:, 0], box[:, 1] - p], axis=1)  # (M, 6): -x -y -z +x +y +z
     face = np.argmin(np.abs(gaps), axis=1)
     normals = np.zeros((len(p), 3))
     normals[np.arange(len(p)), face % 3] = np.where(face < 3, -1.0, 1.0)
+    if machine.marker_normals is not None:
+        stated = np.all(np.isfinite(machine.marker_normals), axis=1)
+        normals[stated] = machine.marker_normals[stated]
     return normals
 
 
