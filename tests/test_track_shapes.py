@@ -15,6 +15,8 @@ from mocap.synthetic.meshes import Solids, machine_solids, solids_in_view
 from mocap.synthetic.render import RenderOptions, renderer_for
 from mocap.synthetic.session import make_session
 from mocap.tracking import CameraModel, track_frames
+from mocap.tracking.run import _dark_spots, label_first_frame
+from mocap.tracking.tracker import Tracker, TrackOptions
 from mocap.visibility import marker_normals, visible_markers
 
 N_FRAMES = 40
@@ -34,7 +36,7 @@ def tracked():
     tracks, summary = track_frames(model, iter(frames), session.plan.joints(field.times(np.array([0])))[0], None,
                                    field.fps)
     truth = session.tracks.of_camera(field.name)
-    return machine, session, model, truth.select(truth.frame < N_FRAMES), tracks
+    return machine, session, model, truth.select(truth.frame < N_FRAMES), tracks, frames, summary
 
 
 def test_markers_the_guessed_boxes_hide_are_labelled_where_they_show(tracked):
@@ -42,7 +44,8 @@ def test_markers_the_guessed_boxes_hide_are_labelled_where_they_show(tracked):
     centres' median error <= 0.15 px (the noise-free renderer's centres are exact to a few
     hundredths), and every marker in view in most frames labelled in >= 90 % of them, among
     them the two the tracker's boxes call hidden in every frame (before: never labelled)."""
-    machine, session, model, truth, tracks = tracked
+    machine, session, model, truth, tracks, _, summary = tracked
+    assert summary.unplaced == ()
     field = session.cameras[0]
     whole = truth.select(truth.score >= 1.0)
     column = {name: i for i, name in enumerate(machine.marker_names)}
@@ -106,7 +109,7 @@ def test_normals_stated_in_the_model_file_are_the_trackers(tracked):
     """A marker's `normal` in the machine file replaces the guessed box face's: with the drawn
     plates' normals stated, the model shows U8 and U9 (the boxes turned them away) in every
     frame they are in clear view; the file round-trips; a bad normal is refused."""
-    machine, session, _, truth, _ = tracked
+    machine, session, _, truth, *_ = tracked
     field = session.cameras[0]
     data = machine_to_dict(machine)
     for entry, normal in zip(data["markers"], session.normals):
@@ -125,3 +128,19 @@ def test_normals_stated_in_the_model_file_are_the_trackers(tracked):
     data["markers"][0]["normal"] = [0, 1]
     with pytest.raises(InputError, match="'normal' must be a list of 3 numbers"):
         machine_from_dict(data, "m.toml")
+
+
+def test_a_dark_spot_where_the_boxes_hide_a_marker_is_told(tracked):
+    """The evidence `mocap track` gives for a marker the boxes hide that it never labels: at the
+    true joints of the first frame, a disk of the marker's size lies where the model puts U8
+    and U9 (in clear view) and where it puts none of the markers the drawing hides too."""
+    machine, session, model, truth, _, frames, _ = tracked
+    field = session.cameras[0]
+    joints = session.plan.joints(field.times(np.array([0])))[0]
+    tracker = Tracker(model, label_first_frame(model, frames[0][1], joints, None, TrackOptions()))
+    hidden, spot = _dark_spots(tracker, frames[0][1], joints)
+    names = np.asarray(machine.marker_names)
+    shown = set(truth.marker[truth.frame == 0])
+    assert {"U8", "U9"} <= set(names[hidden & spot])
+    assert not set(names[hidden & spot]) - shown
+    assert set(names[hidden]) - shown  # markers the boxes and the drawing both hide: no spot on them

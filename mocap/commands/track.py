@@ -94,6 +94,8 @@ def run(args) -> int:
           f"positions written to {args.out}" + (f", {s.restarts} re-acquisitions" if s.restarts else ""))
     if s.unplaced:
         print(f"in view but seldom or never labelled: {', '.join(s.unplaced)} (see them with --preview)")
+        for name, why in zip(s.unplaced, s.why):
+            print(f"mocap track: warning: marker {name}: {why}", file=sys.stderr)
     if args.preview:
         print(f"labels drawn on the video in {args.preview}")
     if report.broken_at is not None:
