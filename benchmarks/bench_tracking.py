@@ -119,12 +119,15 @@ def score(truth, tracks):
     return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors), right
 
 
-def pair_shares(truth, right, least: float = 0.5) -> dict[str, float]:
-    """Per marker, the share of the frames in which it is wholly visible (true score 1) that it
-    is labelled right (`right` the (frame, marker) pairs of `score`), for the markers wholly
-    visible in at least `least` of the frames of `truth` (one camera's); {marker: share}."""
+def pair_shares(truth, right, clear=None, least: float = 0.5) -> dict[str, float]:
+    """Per marker, the share of the frames in which it is clearly visible (true score 1, and
+    where `clear` (N,) over the score-1 rows is given, those of its rows) that it is labelled
+    right (`right` the (frame, marker) pairs of `score`), for the markers clearly visible in at
+    least `least` of the frames of `truth` (one camera's); {marker: share}."""
     whole = truth.select(truth.score >= 1.0)
     n_frames = max(len(np.unique(truth.frame)), 1)
+    if clear is not None:
+        whole = whole.select(clear)
     shares = {}
     for m in np.unique(whole.marker):
         frames = whole.frame[whole.marker == m]
@@ -133,14 +136,14 @@ def pair_shares(truth, right, least: float = 0.5) -> dict[str, float]:
     return shares
 
 
-def worst_pair_line(pairs: list[tuple[str, str, float]]) -> str:
+def worst_pair_line(pairs: list[tuple[str, str, float]], what: str = "wholly visible") -> str:
     """'camera-marker pairs: mean, worst (which)' over (camera, marker, share) triples."""
     if not pairs:
-        return "camera-marker pairs: none wholly visible in most frames"
+        return f"camera-marker pairs: none {what} in most frames"
     shares = np.array([p[2] for p in pairs])
     k = int(np.argmin(shares))
     below = int(np.sum(shares < 0.9))
-    return (f"{len(pairs)} camera-marker pairs wholly visible in most frames: labelled in {shares.mean():.2%} of "
+    return (f"{len(pairs)} camera-marker pairs {what} in most frames: labelled in {shares.mean():.2%} of "
             f"those frames on average, worst {shares[k]:.2%} ({pairs[k][0]} {pairs[k][1]}), {below} below 90 %")
 
 
@@ -255,7 +258,7 @@ def track_looks(args) -> int:
                 else:
                     labelled, wrong, errors, right = score(truth, tracks)
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
-                pairs += [(f"look {k} {field.name}", m, v) for m, v in pair_shares(truth, right).items()]
+                pairs += [(f"look {k} {field.name}", m, v) for m, v in pair_shares(truth, right, wide).items()]
                 wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
                 look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
                 wide_share = wide_right / max(int(wide.sum()), 1)
@@ -278,7 +281,7 @@ def track_looks(args) -> int:
     wide = sum(r[5] for _, rows in results for r in rows)
     print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
           f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
-    print(worst_pair_line(pairs))
+    print(worst_pair_line(pairs, f"wholly visible and >= {WIDE_PX:g} px across"))
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
     again = [r[4] for _, rows in results for r in rows]
     known = [a for a in again if a is not None]

@@ -240,7 +240,9 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     markers = machine.markers(joints, world_from_base)
 
     # each true row's score: how much of the marker's painted square is in view (1: all)
-    outline = square_outline(marker_outlines(machine, normals, *marker_sizes(reach))[0])
+    squares, disks = marker_outlines(machine, normals, *marker_sizes(reach), n_points=16)
+    outline = square_outline(squares)
+    disk_outline = np.concatenate([outline, disks, machine.marker_positions[:, None]], axis=1)
     parts, views = [], np.zeros(markers.shape[:2], dtype=int)
     names = np.asarray(machine.marker_names, dtype=object)
     for camera in cameras:
@@ -248,8 +250,8 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
         uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own, solids)
         lens = (camera.cam_from_world(camera.times(own)), camera.camera.matrix, camera.camera.distortion,
                 camera.camera.size)
-        if solids is not None:
-            cover = np.mean(solids_in_view(machine, solids, normals, poses, *lens, outline)[1], axis=-1)
+        if solids is not None:  # a hose may cross a disk between the square's corners: its outline too
+            cover = np.mean(solids_in_view(machine, solids, normals, poses, *lens, disk_outline)[1], axis=-1)
         else:
             cover = marker_cover(machine, boxes, normals, poses, *lens, outline)
         if options.readout > 0:  # seen as at the frame's time; where: as its row is read
