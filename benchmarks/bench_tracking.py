@@ -40,6 +40,14 @@ be labelled (too few markers in view) is counted apart.
 
     python benchmarks/bench_tracking.py --diggers 12 [--cameras 3] [--frames 120]
 
+`--shapes meshes` (with `--looks` or `--diggers`) draws the links as solids the tracker does
+not assume (`mocap.synthetic.meshes`: tapered and kinked links, cab and counterweight beyond
+its guessed boxes, hoses, markers on plates turned 10-40 degrees from the boxes' faces), the
+truth's visibility computed against them. Both modes print, beside the mean, the worst
+camera-marker pair: among the markers clearly visible in at least half of a camera's frames
+(wholly in view; with `--looks` also >= 3 px across), the share of those frames in which the
+marker is labelled right, its mean, the worst pair and how many are below 90 %.
+
 `--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
 the settings that change the render) and tracks the kept clips on later runs: for comparing
 tracking code on the same clips (a change to the renderer is not in the key: use a new DIR).

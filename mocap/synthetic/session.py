@@ -242,7 +242,14 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     # each true row's score: how much of the marker's painted square is in view (1: all)
     squares, disks = marker_outlines(machine, normals, *marker_sizes(reach), n_points=16)
     outline = square_outline(squares)
-    disk_outline = np.concatenate([outline, disks, machine.marker_positions[:, None]], axis=1)
+    # with solids: a 5 x 5 grid over the square and the disk's outline (a thin hose may cross
+    # the square between its corners and edges' midpoints)
+    grid = np.linspace(0.0, 1.0, 5)
+    a, b = np.meshgrid(grid, grid, indexing="ij")
+    across = squares[:, 1] - squares[:, 0], squares[:, 3] - squares[:, 0]  # (M, 3) each
+    square_grid = (squares[:, None, 0] + a.reshape(1, -1, 1) * across[0][:, None]
+                   + b.reshape(1, -1, 1) * across[1][:, None])
+    disk_outline = np.concatenate([square_grid, disks], axis=1)
     parts, views = [], np.zeros(markers.shape[:2], dtype=int)
     names = np.asarray(machine.marker_names, dtype=object)
     for camera in cameras:
@@ -250,7 +257,7 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
         uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own, solids)
         lens = (camera.cam_from_world(camera.times(own)), camera.camera.matrix, camera.camera.distortion,
                 camera.camera.size)
-        if solids is not None:  # a hose may cross a disk between the square's corners: its outline too
+        if solids is not None:
             cover = np.mean(solids_in_view(machine, solids, normals, poses, *lens, disk_outline)[1], axis=-1)
         else:
             cover = marker_cover(machine, boxes, normals, poses, *lens, outline)
