@@ -40,6 +40,14 @@ be labelled (too few markers in view) is counted apart.
 
     python benchmarks/bench_tracking.py --diggers 12 [--cameras 3] [--frames 120]
 
+`--shapes meshes` (with `--looks` or `--diggers`) draws the links as solids the tracker does
+not assume (`mocap.synthetic.meshes`: tapered and kinked links, cab and counterweight beyond
+its guessed boxes, hoses, markers on plates turned 10-40 degrees from the boxes' faces), the
+truth's visibility computed against them. Both modes print, beside the mean, the worst
+camera-marker pair: among the markers clearly visible in at least half of a camera's frames
+(wholly in view; with `--looks` also >= 3 px across), the share of those frames in which the
+marker is labelled right, its mean, the worst pair and how many are below 90 %.
+
 `--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
 the settings that change the render) and tracks the kept clips on later runs: for comparing
 tracking code on the same clips (a change to the renderer is not in the key: use a new DIR).
@@ -69,8 +77,9 @@ from mocap.synthetic.effects import EffectOptions
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.looks import random_look
 from mocap.synthetic.machines import random_digger
-from mocap.synthetic.render import CameraRenderer, RenderOptions
-from mocap.synthetic.session import marker_sizes
+from mocap.synthetic.render import RenderOptions
+from mocap.synthetic.videos import renderer_for
+from mocap.synthetic.session import SHAPES, marker_sizes
 from mocap.tracking import CameraModel, track_frames
 
 
@@ -117,6 +126,34 @@ def score(truth, tracks):
             right.add((int(f), m))
     whole = max(int(np.sum(truth.score >= 1.0)), 1)
     return len(errors) / whole, wrong / max(len(tracks), 1), np.array(errors), right
+
+
+def pair_shares(truth, right, clear=None, least: float = 0.5) -> dict[str, float]:
+    """Per marker, the share of the frames in which it is clearly visible (true score 1, and
+    where `clear` (N,) over the score-1 rows is given, those of its rows) that it is labelled
+    right (`right` the (frame, marker) pairs of `score`), for the markers clearly visible in at
+    least `least` of the frames of `truth` (one camera's); {marker: share}."""
+    whole = truth.select(truth.score >= 1.0)
+    n_frames = max(len(np.unique(truth.frame)), 1)
+    if clear is not None:
+        whole = whole.select(clear)
+    shares = {}
+    for m in np.unique(whole.marker):
+        frames = whole.frame[whole.marker == m]
+        if len(frames) >= least * n_frames:
+            shares[str(m)] = sum((int(f), m) in right for f in frames) / len(frames)
+    return shares
+
+
+def worst_pair_line(pairs: list[tuple[str, str, float]], what: str = "wholly visible") -> str:
+    """'camera-marker pairs: mean, worst (which)' over (camera, marker, share) triples."""
+    if not pairs:
+        return f"camera-marker pairs: none {what} in most frames"
+    shares = np.array([p[2] for p in pairs])
+    k = int(np.argmin(shares))
+    below = int(np.sum(shares < 0.9))
+    return (f"{len(pairs)} camera-marker pairs {what} in most frames: labelled in {shares.mean():.2%} of "
+            f"those frames on average, worst {shares[k]:.2%} ({pairs[k][0]} {pairs[k][1]}), {below} below 90 %")
 
 
 def disk_widths(session, field, truth, diameter_m: float) -> np.ndarray:
@@ -183,7 +220,7 @@ def track_looks(args) -> int:
               f"{'p95 px':>7} {'found again':>11}  look")
     print(header)
     print("-" * (len(header) + 40))
-    results = []
+    results, pairs = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for k in ([args.look] if args.look is not None else range(args.looks)):
             look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
@@ -192,7 +229,7 @@ def track_looks(args) -> int:
             size = (round(width * look.scale / 2) * 2, round(height * look.scale / 2) * 2)
             session = make_session(machine, args.machine, n_cameras=args.cameras, n_cycles=1, seed=args.seed + k,
                                    size=size, distortion=look.distortion, shake_deg=look.shake_deg,
-                                   readout=look.readout)
+                                   readout=look.readout, shapes=args.shapes)
             options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
             rng = np.random.default_rng([args.seed, k, 1])
             look_rows = []
@@ -205,7 +242,7 @@ def track_looks(args) -> int:
                 hide = (first + len(frames) // 3, min(first + len(frames) // 3 + args.hide, frames[-1] + 1))
                 path = folder / f"{field.name}.mp4"
                 if not kept:
-                    renderer = CameraRenderer(session, c, options, rng)
+                    renderer = renderer_for(session, c, options, rng)
                     part = path.with_suffix(".part.mp4")  # renamed when whole: an interrupted render is not kept
                     with video_writer(part, size, field.fps, "h264", 0, look.crf) as write:
                         for f, image in renderer.frames(frames):
@@ -230,6 +267,7 @@ def track_looks(args) -> int:
                 else:
                     labelled, wrong, errors, right = score(truth, tracks)
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
+                pairs += [(f"look {k} {field.name}", m, v) for m, v in pair_shares(truth, right, wide).items()]
                 wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
                 look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
                 wide_share = wide_right / max(int(wide.sum()), 1)
@@ -252,6 +290,7 @@ def track_looks(args) -> int:
     wide = sum(r[5] for _, rows in results for r in rows)
     print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
           f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
+    print(worst_pair_line(pairs, f"wholly visible and >= {WIDE_PX:g} px across"))
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
     again = [r[4] for _, rows in results for r in rows]
     known = [a for a in again if a is not None]
@@ -269,13 +308,13 @@ def track_diggers(args) -> int:
     rendered (not encoded) and tracked from the true calibration without a labels file."""
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"{'seed':>4} {'camera':>6} {'markers':>7} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
-    visible, started, refused, errors, wrongs = 0, 0, 0, [], []
+    visible, started, refused, errors, wrongs, pairs = 0, 0, 0, [], [], []
     for seed in range(1, args.diggers + 1):
         machine = random_digger(np.random.default_rng(seed))
         session = make_session(machine, "random digger", n_cameras=args.cameras, n_cycles=1, seed=seed,
-                               size=(width, height))
+                               size=(width, height), shapes=args.shapes)
         for c, field in enumerate(session.cameras):
-            renderer = CameraRenderer(session, c, RenderOptions(), np.random.default_rng(seed))
+            renderer = renderer_for(session, c, RenderOptions(), np.random.default_rng(seed))
             frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
                       for f, image in renderer.frames(np.arange(min(args.frames, field.frames)))]
             truth = session.tracks.of_camera(field.name)
@@ -289,7 +328,8 @@ def track_diggers(args) -> int:
                 print(f"{seed:>4} {field.name:>6}: {exc} ({shown} wholly visible)")
                 refused += 1
                 continue
-            labelled, wrong, error, _ = score(truth, tracks)
+            labelled, wrong, error, right = score(truth, tracks)
+            pairs += [(f"seed {seed} {field.name}", m, v) for m, v in pair_shares(truth, right).items()]
             started += 1
             visible += whole
             errors.append(error)
@@ -303,6 +343,7 @@ def track_diggers(args) -> int:
           f"{np.mean(wrongs) if wrongs else np.nan:.3%} wrong (mean over cameras), centre error median "
           f"{np.median(error) if len(error) else np.nan:.3f} px, 95th percentile "
           f"{np.percentile(error, 95) if len(error) else np.nan:.3f} px")
+    print(worst_pair_line(pairs))
     return 0
 
 
@@ -325,6 +366,8 @@ def main() -> int:
                         help="with --looks: track look K of the series alone (the same clips as in the whole run)")
     parser.add_argument("--fast", action="store_true",
                         help="with --looks: the frames in which the markers move most instead of the first ones")
+    parser.add_argument("--shapes", choices=SHAPES, default="boxes",
+                        help="with --looks or --diggers: the links drawn as the tracker's boxes or as other solids")
     parser.add_argument("--diggers", type=int, default=0,
                         help="track this many random diggers (machines nobody designed) instead")
     args = parser.parse_args()

@@ -119,6 +119,7 @@ class Machine:
     marker_tags: np.ndarray | None = None  # (M,) ArUco / AprilTag id of each marker, -1 for a painted disk
     tag_dictionary: str | None = None  # the tags' OpenCV dictionary, e.g. "DICT_4X4_50"
     tolerance: Tolerance | None = None  # how far the measured marker positions may be off, if stated
+    marker_normals: np.ndarray | None = None  # (M, 3) unit disk normals in the link frames where stated, NaN rows not
 
     # --- structure -------------------------------------------------------------------
     @cached_property

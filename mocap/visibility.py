@@ -20,13 +20,17 @@ MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable ma
 
 
 def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
-    """Outward normals (M, 3) in each marker's link frame: the nearest face of its box."""
+    """Outward normals (M, 3) in each marker's link frame: the model's where it states them
+    (`Machine.marker_normals`), else the nearest face of the marker's box."""
     box = boxes[machine.marker_links]  # (M, 2, 3)
     p = machine.marker_positions
     gaps = np.concatenate([p - box[:, 0], box[:, 1] - p], axis=1)  # (M, 6): -x -y -z +x +y +z
     face = np.argmin(np.abs(gaps), axis=1)
     normals = np.zeros((len(p), 3))
     normals[np.arange(len(p)), face % 3] = np.where(face < 3, -1.0, 1.0)
+    if machine.marker_normals is not None:
+        stated = np.all(np.isfinite(machine.marker_normals), axis=1)
+        normals[stated] = machine.marker_normals[stated]
     return normals
 
 
@@ -136,9 +140,7 @@ def marker_outlines(
     """Square corners (M, 4, 3) and disk outlines (M, n_points, 3) of the painted markers
     in their link frames, in the plane of each marker's face (normals (M, 3)), centred on
     the marker; `disk` and `square` are the disk's diameter and the square's side (m)."""
-    axis = np.argmax(np.abs(normals), axis=1)
-    first = np.eye(3)[(axis + 1) % 3]
-    second = np.cross(normals, first)
+    first, second = plane_axes(normals)
     centre = machine.marker_positions[:, None]
     corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * 0.5 * square
     squares = centre + corners[None, :, :1] * first[:, None] + corners[None, :, 1:] * second[:, None]
@@ -146,6 +148,16 @@ def marker_outlines(
     c, s = 0.5 * disk * np.cos(angles), 0.5 * disk * np.sin(angles)
     disks = centre + c[None, :, None] * first[:, None] + s[None, :, None] * second[:, None]
     return squares, disks
+
+
+def plane_axes(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes (M, 3) in the plane of each of `normals` (M, 3), right-handed with it:
+    the next coordinate axis after the normal's largest component, made square to it."""
+    axis = np.argmax(np.abs(normals), axis=1)
+    first = np.eye(3)[(axis + 1) % 3]
+    first = first - np.einsum("mi,mi->m", first, normals)[:, None] * normals
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    return first, np.cross(normals, first)
 
 
 def square_outline(squares: np.ndarray) -> np.ndarray:

@@ -13,7 +13,8 @@ from mocap.io.tracks_csv import load_tracks
 from mocap.synthetic import make_session
 from mocap.synthetic.effects import CameraEffects, EffectOptions
 from mocap.synthetic.encode import frame_rate, video_writer
-from mocap.synthetic.render import BLACK, WHITE, CameraRenderer, RenderOptions, render_videos
+from mocap.synthetic.render import BLACK, WHITE, CameraRenderer, RenderOptions
+from mocap.synthetic.videos import render_videos
 from mocap.visibility import segment_hits_box
 
 

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from test_detect import background, draw_markers, finish
 from test_track import make_scene, write_video
 
-import mocap.synthetic.render as render
+import mocap.synthetic.videos as videos
 from mocap.cli import main
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path, write_text
@@ -204,7 +204,7 @@ def test_an_interrupted_synth_is_marked_incomplete_and_a_rerun_finishes_it(tmp_p
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(render, "render_videos", interrupted)  # synth imports it when it runs
+    monkeypatch.setattr(videos, "render_videos", interrupted)  # synth imports it when it runs
     assert main(argv) == 130
     assert (out / "session.toml").is_file() and not (out / "COMPLETE").exists()
     capsys.readouterr()

@@ -83,6 +83,9 @@ def run(args) -> int:
     )
     report = run_track(request)
     print(report.text(args.out, args.propose_labels, args.preview))
+    if report.summary is not None:
+        for name, why in zip(report.summary.unplaced, report.summary.why):
+            print(f"mocap track: warning: marker {name}: {why}", file=sys.stderr)
     if report.broken_at is not None:
         print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
               "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)

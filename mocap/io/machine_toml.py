@@ -18,7 +18,7 @@ _TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "ta
 _LINK_KEYS = {"name", "parent", "joint"}
 _JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
 _ITEM_KEYS = {"name", "link", "position"}
-_MARKER_KEYS = _ITEM_KEYS | {"tag"}
+_MARKER_KEYS = _ITEM_KEYS | {"tag", "normal"}
 _TAGS_KEYS = {"dictionary"}
 DEFAULT_TAG_DICTIONARY = "DICT_4X4_50"
 _BUCKET_KEYS = {"link", "direction"}
@@ -102,6 +102,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         marker_tags=tags,
         tag_dictionary=dictionary,
         tolerance=tolerance,
+        marker_normals=np.array(markers[4]).reshape(-1, 3) if np.any(np.isfinite(markers[4])) else None,
     )
 
 
@@ -222,8 +223,9 @@ def _joint(raw, path, where) -> Joint:
 
 
 def _items(raw_items, section, link_index, path, keys):
-    """Named points on links: names, link indices, positions and tag ids (-1: none)."""
-    names, links, positions, tags = [], [], [], []
+    """Named points on links: names, link indices, positions, tag ids (-1: none) and the
+    markers' stated normals (unit, link frame; NaN: not stated)."""
+    names, links, positions, tags, normals = [], [], [], [], []
     if not isinstance(raw_items, list):
         raise InputError(f"{section} must be an array of tables [[{section}]]", path=path)
     for k, raw in enumerate(raw_items):
@@ -243,7 +245,9 @@ def _items(raw_items, section, link_index, path, keys):
         links.append(link_index[link])
         positions.append(_vector(raw, "position", path, where))
         tags.append(tag)
-    return names, links, positions, tags
+        normals.append(_unit(_vector(raw, "normal", path, where), path, where, "normal") if "normal" in raw
+                       else np.full(3, np.nan))
+    return names, links, positions, tags, normals
 
 
 def _check_keys(raw: dict, allowed: set, path, where) -> None:
@@ -318,7 +322,7 @@ def machine_to_dict(machine: Machine) -> dict:
                 entry["joint"]["limits"] = np.asarray(limits).tolist()
         links.append(entry)
 
-    def items(names, link_ids, positions, tags=None):
+    def items(names, link_ids, positions, tags=None, normals=None):
         out = [
             {"name": n, "link": machine.links[l].name, "position": p.tolist()}
             for n, l, p in zip(names, link_ids, positions)
@@ -326,6 +330,9 @@ def machine_to_dict(machine: Machine) -> dict:
         for entry, tag in zip(out, tags if tags is not None else []):
             if tag >= 0:
                 entry["tag"] = int(tag)
+        for entry, normal in zip(out, normals if normals is not None else []):
+            if np.all(np.isfinite(normal)):
+                entry["normal"] = normal.tolist()
         return out
 
     data = {"name": machine.name, "source": machine.source, "links": links}
@@ -333,7 +340,8 @@ def machine_to_dict(machine: Machine) -> dict:
         data["tolerance"] = str(machine.tolerance) if machine.tolerance.metres else machine.tolerance.fraction
     if machine.tag_dictionary is not None and np.any(machine.tags >= 0):
         data["tags"] = {"dictionary": machine.tag_dictionary}
-    data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions, machine.tags)
+    data["markers"] = items(machine.marker_names, machine.marker_links, machine.marker_positions, machine.tags,
+                            machine.marker_normals)
     if machine.point_names:
         data["points"] = items(machine.point_names, machine.point_links, machine.point_positions)
     if machine.bucket_angle is not None:

@@ -113,7 +113,7 @@ def _point_jacobian(machine: Machine, values: np.ndarray, base_motion: bool):
         return np.zeros((n, 0, 3)), np.zeros((n, 0, 3, values.shape[1]))
     points_machine = replace(machine, marker_names=tuple(f"point{k}" for k in range(len(links))),
                              marker_links=np.array(links, dtype=int), marker_positions=np.array(positions, dtype=float),
-                             marker_tags=None)
+                             marker_tags=None, marker_normals=None)
     n_joints = points_machine.n_joints
     problem = KinematicModel(points_machine, (), base_motion)
     rotation = translation = None

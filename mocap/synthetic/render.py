@@ -18,19 +18,16 @@ Shapes: F frames, L links, M markers, N outline points.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from mocap.camera import project_cam
-from mocap.progress import progress
 from mocap.shapes import BOX_FACES, box_corners
 from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
 from mocap.synthetic.effects import CameraEffects, EffectOptions, Weather
-from mocap.synthetic.encode import CODECS, video_writer
+from mocap.synthetic.encode import CODECS
 from mocap.synthetic.looks import Look
 from mocap.synthetic.session import SyntheticSession, marker_sizes
 from mocap.synthetic.shutter import instants, row_weights
@@ -40,8 +37,6 @@ MAX_SMEAR_SAMPLES = 6
 MAX_ROLLING_SAMPLES = 12  # instants a rolling shutter's frame is composed of, at most
 STILL_PX = 0.02  # a frame whose markers move less than this over its rows' exposures is drawn once
 BEND_PX = 0.01  # the most a marker's path leaves the straight line between two instants composed by rows
-
-log = logging.getLogger(__name__)
 
 WHITE, BLACK = (235, 235, 235), (18, 18, 18)
 EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit])  # of `box_corners`
@@ -365,23 +360,3 @@ def draw_marker(image: np.ndarray, square: np.ndarray, disk: np.ndarray, factor:
         pts = ((outline - origin + 0.5) * factor - 0.5) * 256  # fine-grid pixels, 8 fraction bits
         cv2.fillPoly(fine, [np.round(pts).astype(np.int32)], colour, lineType=cv2.LINE_8, shift=8)
     image[y0:y1, x0:x1] = cv2.resize(fine, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
-
-
-def render_videos(session: SyntheticSession, root: str | Path, options: RenderOptions | None = None) -> list[Path]:
-    """Write videos/<camera>.mp4 for every camera of the session; returns the paths."""
-    options = options or RenderOptions()
-    rng = np.random.default_rng([session.options.seed, 1])
-    paths = []
-    total = sum(c.frames for c in session.cameras)
-    with progress(total=total, desc="rendering", unit="frame") as bar:
-        for index, camera in enumerate(session.cameras):
-            renderer = CameraRenderer(session, index, options, rng)
-            path = Path(root) / "videos" / f"{camera.name}.mp4"
-            with video_writer(path, camera.camera.size, camera.fps, options.codec, options.threads,
-                              options.look.crf) as write:
-                for _, image in renderer.frames():
-                    write(image)
-                    bar.update(1)
-            log.info("wrote %s (%d frames)", path, camera.frames)
-            paths.append(path)
-    return paths

@@ -30,17 +30,24 @@ from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
 from mocap.machine import Machine
 from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
+from mocap.synthetic.meshes import Solids, machine_solids, solids_in_view
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
 from mocap.synthetic.shutter import rolling_pixels
 from mocap.visibility import marker_cover, marker_normals, marker_outlines, square_outline, visible_markers
 
 
+SHAPES = ("boxes", "meshes")  # how the links are drawn (`SessionOptions.shapes`)
+
+
 @dataclass(frozen=True)
 class SessionOptions:
     """What `make_session` varies. Angles in degrees, sizes in pixels; `readout` the cameras'
     rolling shutter: their rows are read one after another over that share of the frame
-    interval, the middle row at the frame's time (0: a global shutter)."""
+    interval, the middle row at the frame's time (0: a global shutter); `shapes` the links'
+    solids: "boxes" (the boxes `mocap.shapes.link_boxes` guesses, as the tracker does) or
+    "meshes" (tapered, kinked links, cab, counterweight, hoses, markers on slanted plates:
+    `mocap.synthetic.meshes`)."""
 
     n_cameras: int = 3
     n_cycles: int = 4
@@ -54,8 +61,11 @@ class SessionOptions:
     classes: tuple[str, ...] = CLASSES
     hold: float = 2.0
     readout: float = 0.0
+    shapes: str = "boxes"
 
     def __post_init__(self) -> None:
+        if self.shapes not in SHAPES:
+            raise ValueError(f"shapes must be one of {SHAPES}, got {self.shapes!r}")
         if not 1 <= self.n_cameras <= 8:
             raise ValueError(f"n_cameras must be 1..8, got {self.n_cameras}")
         if self.n_cycles < 1:
@@ -90,6 +100,7 @@ class SyntheticSession:
     views: np.ndarray
     boxes: np.ndarray
     normals: np.ndarray
+    solids: Solids | None = None  # the links' drawn shapes when they are not `boxes`
 
     @property
     def calibration(self) -> Calibration:
@@ -134,7 +145,7 @@ class SyntheticSession:
     def observe(self, camera: FieldCamera, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """True marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) of
         `camera` at its `frames` (F,) (fractional frames allowed)."""
-        return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames)
+        return observe_camera(self.machine, self.plan, self.boxes, self.normals, camera, frames, self.solids)
 
     def pixels_at(self, camera: FieldCamera, at: np.ndarray) -> np.ndarray:
         """Pixels (F, M, 2) of each marker m of `camera` at its own fractional frame `at` (F, M)."""
@@ -148,12 +159,17 @@ def marker_sizes(reach: float) -> tuple[float, float]:
 
 
 def observe_camera(machine: Machine, plan: DigMotion, boxes: np.ndarray, normals: np.ndarray,
-                   camera: FieldCamera, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) at `frames`."""
+                   camera: FieldCamera, frames: np.ndarray,
+                   solids: Solids | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker pixels (F, M, 2), visibility (F, M) and link poses (F, L, 4, 4) at `frames`
+    (hidden by `solids` where given, else by the links' `boxes`)."""
     times = camera.times(frames)
     poses = machine.link_poses(plan.joints(times), plan.world_from_base(times))
-    uv, seen = visible_markers(machine, boxes, normals, poses, camera.cam_from_world(times),
-                               camera.camera.matrix, camera.camera.distortion, camera.camera.size)
+    lens = (camera.cam_from_world(times), camera.camera.matrix, camera.camera.distortion, camera.camera.size)
+    if solids is not None:
+        uv, seen = solids_in_view(machine, solids, normals, poses, *lens, machine.marker_positions[:, None])
+        return uv[:, :, 0], seen[..., 0], poses
+    uv, seen = visible_markers(machine, boxes, normals, poses, *lens)
     return uv, seen, poses
 
 
@@ -208,6 +224,9 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
                             plan.duration, rng, size=options.size, distortion=options.distortion,
                             shake_deg=options.shake_deg)
     normals = marker_normals(machine, boxes)
+    solids = None
+    if options.shapes == "meshes":
+        solids, normals = machine_solids(machine, np.random.default_rng([options.seed, 9]), marker_sizes(reach)[1])
 
     reference = cameras[0]
     frames = np.arange(reference.frames)
@@ -221,24 +240,37 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     markers = machine.markers(joints, world_from_base)
 
     # each true row's score: how much of the marker's painted square is in view (1: all)
-    outline = square_outline(marker_outlines(machine, normals, *marker_sizes(reach))[0])
+    squares, disks = marker_outlines(machine, normals, *marker_sizes(reach), n_points=16)
+    outline = square_outline(squares)
+    # with solids: a 5 x 5 grid over the square and the disk's outline (a thin hose may cross
+    # the square between its corners and edges' midpoints)
+    grid = np.linspace(0.0, 1.0, 5)
+    a, b = np.meshgrid(grid, grid, indexing="ij")
+    across = squares[:, 1] - squares[:, 0], squares[:, 3] - squares[:, 0]  # (M, 3) each
+    square_grid = (squares[:, None, 0] + a.reshape(1, -1, 1) * across[0][:, None]
+                   + b.reshape(1, -1, 1) * across[1][:, None])
+    disk_outline = np.concatenate([square_grid, disks], axis=1)
     parts, views = [], np.zeros(markers.shape[:2], dtype=int)
     names = np.asarray(machine.marker_names, dtype=object)
     for camera in cameras:
         own = np.arange(camera.frames)
-        uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own)
-        cover = marker_cover(machine, boxes, normals, poses, camera.cam_from_world(camera.times(own)),
-                             camera.camera.matrix, camera.camera.distortion, camera.camera.size, outline)
+        uv, seen, poses = observe_camera(machine, plan, boxes, normals, camera, own, solids)
+        lens = (camera.cam_from_world(camera.times(own)), camera.camera.matrix, camera.camera.distortion,
+                camera.camera.size)
+        if solids is not None:
+            cover = np.mean(solids_in_view(machine, solids, normals, poses, *lens, disk_outline)[1], axis=-1)
+        else:
+            cover = marker_cover(machine, boxes, normals, poses, *lens, outline)
         if options.readout > 0:  # seen as at the frame's time; where: as its row is read
             uv = rolling_marker_pixels(machine, plan, camera, own, options.readout)
         f, m = np.nonzero(seen)
         parts.append(Tracks.from_rows(np.full(len(f), camera.name, dtype=object), own[f], names[m], uv[f, m],
                                       time=camera.times(own[f]), score=cover[f, m]))
         at_reference = (times - camera.time_offset) * camera.fps  # this camera's (fractional) frames
-        _, seen_ref, _ = observe_camera(machine, plan, boxes, normals, camera, at_reference)
+        _, seen_ref, _ = observe_camera(machine, plan, boxes, normals, camera, at_reference, solids)
         views += seen_ref
     return SyntheticSession(machine, machine_ref or machine.name, options, plan, tuple(cameras), motion,
-                            concatenate(parts), markers, views, boxes, normals)
+                            concatenate(parts), markers, views, boxes, normals, solids)
 
 
 def write_truth(session: SyntheticSession, root: str | Path, machine_path: Path | None = None, look=None) -> None:

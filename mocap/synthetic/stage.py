@@ -72,7 +72,8 @@ def run_synth(request: SynthRequest) -> str:
     from mocap.synthetic import SessionOptions, make_session, summary, write_truth
     from mocap.synthetic.effects import EffectOptions
     from mocap.synthetic.looks import Look, random_look
-    from mocap.synthetic.render import RenderOptions, render_videos
+    from mocap.synthetic.render import RenderOptions
+    from mocap.synthetic.videos import render_videos
 
     machine_path = resolve_machine_path(request.machine)
     machine = load_machine(machine_path)

@@ -21,6 +21,7 @@ log = logging.getLogger(__name__)
 _MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to 16 x lost_frames
 UNPLACED_MIN_FRAMES = 10
 _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
+_DARK_EVERY = 8  # fitted frames between looks at the markers the boxes hide (`TrackSummary.why`)
 
 
 class TooFewMarkersError(ValueError):
@@ -33,13 +34,18 @@ class TrackSummary:
     """`frames` read, `fitted` frames with a model fit, `labelled` rows written,
     `restarts` full-frame relabellings after a loss, `unplaced` the disk markers the fitted
     model showed in view in at least `UNPLACED_MIN_FRAMES` frames but that were labelled in
-    under a tenth of them (not found, or refused: look at them in a preview)."""
+    under a tenth of them (not found, or refused: look at them in a preview), and the disk
+    markers the model's boxes call hidden or turned away but where a disk of their size lay
+    where the fit put them in most of the frames looked at (every `_DARK_EVERY`th fitted one, at
+    least 3) while they were labelled in under a tenth of them; `why` says for each of
+    `unplaced` why it was not labelled."""
 
     frames: int
     fitted: int
     labelled: int
     restarts: int
     unplaced: tuple[str, ...] = ()
+    why: tuple[str, ...] = ()
 
 
 def label_first_frame(
@@ -132,6 +138,9 @@ def track_frames(
     n_frames = n_fitted = restarts = searched = 0
     in_view = np.zeros(len(names), dtype=int)  # frames the fitted model showed each disk marker
     placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
+    looked = np.zeros(len(names), dtype=int)  # frames a marker the boxes hide was looked at
+    dark = np.zeros(len(names), dtype=int)  # and of those, frames a dark spot lay where the fit put it
+    hidden_placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     blank_disks = 0  # while lost: disks the last failed full-frame search had (or fewest since)
     for index, gray in frames:
@@ -199,6 +208,11 @@ def track_frames(
         if result.fitted:
             in_view += tracker.state.visible
             placed[result.markers] += tracker.state.visible[result.markers]
+            if n_fitted % _DARK_EVERY == 0:
+                hidden, spot = _dark_spots(tracker, gray, result.joints)
+                looked += hidden
+                dark += hidden & spot
+                hidden_placed[result.markers] += hidden[result.markers]
         known = len(rows)
         disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
         if np.any(disks):
@@ -209,8 +223,40 @@ def track_frames(
             on_frame(index, _concatenate(rows[known:]))
     tracks = _concatenate(rows)
     unplaced = (in_view >= UNPLACED_MIN_FRAMES) & (placed < 0.1 * in_view)
+    spotted = (looked >= 3) & (dark >= 0.5 * looked) & (hidden_placed < 0.1 * looked) & ~unplaced
+    why = [f"the model shows it in {in_view[m]} fitted frames but no disk passing the tests lay where the fit put "
+           f"it in {in_view[m] - placed[m]} of them (covered, worn paint, or its position in the model is off)"
+           for m in np.flatnonzero(unplaced)]
+    why += [f"the model's link boxes call it hidden or turned away, yet a disk of its size lay where the fit put it "
+            f"in {dark[m]} of {looked[m]} frames looked at and was not taken (fainter than the detection's "
+            f"--min-contrast?): state its `normal` in the machine file" for m in np.flatnonzero(spotted)]
+    order = np.r_[np.flatnonzero(unplaced), np.flatnonzero(spotted)]
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts,
-                                tuple(np.asarray(names, dtype=object)[unplaced].tolist()))
+                                tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why))
+
+
+def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) the disk markers in the image that the model's boxes hide or turn away at the fitted
+    `joints`, and (M,) whether a disk refined from where the fit puts it as the tracker refines
+    one there (`Tracker._search_fitted`), of the marker's size face on (its ellipse's major
+    semi-axis), lies within the tight gate of that place."""
+    model, options = tracker.model, tracker.options
+    view = model.view(joints[None])
+    hidden = disks_in_view(model, view, occlusion=False) & ~disks_in_view(model, view, options.occlusion)
+    spot = np.zeros_like(hidden)
+    if not np.any(hidden) or not np.isfinite(tracker.state.disk_m):
+        return hidden, spot
+    markers = np.flatnonzero(hidden)
+    face_on = np.maximum(np.nan_to_num(tracker._face_on_radius(joints)), 1.0)
+    radius = face_on[markers]
+    at = view.uv[0, markers] + tracker.state.shift
+    found = tracker._search_fitted(gray, view.uv[0] + tracker.state.shift, markers, face_on)
+    if len(found):
+        near = np.linalg.norm(at[:, None] - found.xy[None], axis=-1) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
+        ratio = found.axes[None, :, 0] / radius[:, None]
+        sized = ((ratio > 0.75) & (ratio < 1.33)) | (np.abs(found.axes[None, :, 0] - radius[:, None]) <= 1.0)
+        spot[markers] = np.any(near & sized, axis=1)
+    return hidden, spot
 
 
 def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0,

@@ -149,12 +149,12 @@ class Tracker:
             predicted = self._sweep(gray, predicted)
         view = model.view(predicted[None])
         uv = view.uv[0]
+        recent = state.missed <= 2
         visible = state.visible = self._visible(view)
         expected = self._expected_radius(view.scale[0])
         motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
-        recent = state.missed <= 2
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
             recent = np.ones_like(recent)
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
@@ -198,16 +198,30 @@ class Tracker:
         # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
         # refinement converges from): those the model now knows and no disk was found near
         # are refined again from where the fit puts them
-        again = visible & known & ~_near_any(fitted_uv, found.xy, tight)
+        # ... and so are those the guessed shapes call hidden or turned away (the model's
+        # visibility is a prior, not a veto): a clear disk (the full-frame detection's contrast)
+        # where the fitted model puts one, within the tight gate, labels it
+        prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
+        again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if np.any(again):
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
                 seen = concatenate([seen, extra])
                 found = replace(seen, xy=seen.xy - state.shift)
-        markers, index = assign(fitted_uv, found.xy, tight, visible & known, found.radius, expected)
+        # a marker not followed lately: the size its guessed normal gives may be far off (a
+        # plate turned from the box's face); its ellipse's major semi-axis is the disk's radius
+        # at its depth however it is turned
+        followed = state.missed <= 2
+        face_on = self._face_on_radius(joints)
+        sized = np.where(followed[:, None], _same_size(found.radius[None], expected[:, None]),
+                         _same_size(found.axes[None, :, 0], face_on[:, None]))
+        markers, index = assign(fitted_uv, found.xy, tight, visible & known, allowed=sized)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
+        if np.any(prior_hidden):
+            markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
+                                               joints)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -300,6 +314,36 @@ class Tracker:
         modelled = scale * state.disk_m
         use_model = (state.missed > 2) & np.isfinite(modelled) & (modelled > 0)
         return np.where(use_model, modelled, state.radius)
+
+    def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
+                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The assignment (`markers`, `index`) of the markers the model shows, with the markers
+        it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
+        its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
+        disk's radius at its depth face on (the guessed normal is wrong for it). They rank after
+        the shown markers (`shown` (M,) bool): a disk goes to a hidden one only if it lies under
+        half as far from it as any shown marker (which then gives it up: a marker wrongly shown
+        on a hidden one's disk)."""
+        clear = found.contrast >= self.options.detect.min_contrast
+        more, more_index = assign(fitted_uv, np.where(clear[:, None], found.xy, np.inf), tight, hidden,
+                                  found.axes[:, 0], self._face_on_radius(joints))
+        if len(more) == 0:
+            return markers, index
+        mine = np.linalg.norm(fitted_uv[more] - found.xy[more_index], axis=1)
+        theirs = np.linalg.norm(fitted_uv[shown][:, None] - found.xy[more_index][None], axis=-1).min(axis=0, initial=np.inf)
+        wins = mine < 0.5 * theirs
+        keep = ~np.isin(index, more_index[wins])
+        return np.r_[markers[keep], more[wins]], np.r_[index[keep], more_index[wins]]
+
+    def _face_on_radius(self, joints: np.ndarray) -> np.ndarray:
+        """(M,) px: each disk's radius at its depth at joint values `joints` (J,), seen face on
+        (NaN behind the camera)."""
+        camera = self.model.camera
+        world = self.model.machine.markers(joints[None])[0]
+        depth = world @ camera.cam_from_world.rotation[2] + camera.cam_from_world.translation[2]
+        focal = 0.5 * (camera.matrix[0, 0] + camera.matrix[1, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(depth > 0, focal * self.state.disk_m / depth, np.nan)
 
     def _update_disk(self, scale: np.ndarray, markers: np.ndarray, radius: np.ndarray) -> None:
         """Refresh the disks' radius in metres from labelled radii (px), by the median."""
@@ -593,6 +637,7 @@ def assign(
     expected_radius: np.ndarray | None = None,
     size_ratio: float = 1.33,
     size_px: float = 1.0,
+    allowed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one assignment of detections to predicted markers: the least sum of
     squared distances, a marker left unassigned counting as a pair at its gate.
@@ -600,17 +645,16 @@ def assign(
     predicted (M, 2), detected (N, 2), gate (M,) px, visible (M,) bool; with the radii (N,)
     and (M,), pairs whose radii differ by more than `size_ratio` and by more than `size_px`
     are not allowed (a small disk's radius, measured on a few blurred pixels, varies by
-    more than a third from frame to frame).
+    more than a third from frame to frame); `allowed` (M, N) bool, where given, the only pairs
+    allowed at all.
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
     if len(detected) == 0 or not np.any(visible):
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
-    allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost)
+    allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost) & (True if allowed is None else allowed)
     if detected_radius is not None and expected_radius is not None:
-        r_expected, r_detected = expected_radius[:, None], detected_radius[None]
-        ratio = r_detected / np.maximum(r_expected, 1e-6)
-        allowed &= ((ratio > 1.0 / size_ratio) & (ratio < size_ratio)) | (np.abs(r_detected - r_expected) <= size_px)
+        allowed &= _same_size(detected_radius[None], expected_radius[:, None], size_ratio, size_px)
     rows = np.nonzero(np.any(allowed, axis=1))[0]
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
@@ -626,6 +670,14 @@ def assign(
     r, c = r[pair], c[pair]
     ok = sub[r, c] < _INFEASIBLE
     return rows[r[ok]], cols[c[ok]]
+
+
+def _same_size(detected: np.ndarray, expected: np.ndarray, ratio: float = 1.33, px: float = 1.0) -> np.ndarray:
+    """Whether radii `detected` and `expected` (broadcast) agree: within a factor `ratio`, or
+    within `px` (`assign`)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = detected / np.maximum(expected, 1e-6)
+    return ((share > 1.0 / ratio) & (share < ratio)) | (np.abs(detected - expected) <= px)
 
 
 def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
