@@ -80,6 +80,7 @@ def parse_classes(text: str) -> tuple[str, ...]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from mocap.io.lock import LOCK_NAME, check_free, folder_lock
     from mocap.io.machine_toml import load_machine, resolve_machine_path
     from mocap.session import Session, mark_complete
     from mocap.synthetic import SessionOptions, make_session, summary, write_truth
@@ -93,11 +94,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--cameras {args.cameras}: give 1 to 8 cameras")
     if not 1 <= args.cycles <= MAX_CYCLES:
         raise InputError(f"--cycles {args.cycles}: give 1 to {MAX_CYCLES} dig cycles")
+    if not 0.0 <= args.redirect <= 1.0:
+        raise InputError(f"--redirect {args.redirect}: a probability, give 0..1")
     if args.hold < 0.5:
         raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
     check_output_folder(args.out)
+    if args.out.is_dir():
+        check_free(args.out)  # another command writing the folder is named
     session = Session.open(args.out)
-    if args.out.exists() and any(args.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
+    if args.out.exists() and any(p.name != LOCK_NAME for p in args.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
         raise InputError("the output folder exists and is not empty; choose a new folder", path=args.out)
     if not 0.05 <= args.scale <= 4.0:
         raise InputError(f"--scale {args.scale}: give a factor between 0.05 and 4")
@@ -127,12 +132,13 @@ def run(args: argparse.Namespace) -> int:
     )
     session = make_session(machine, str(args.machine), options)
     args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over
-    write_truth(session, args.out, machine_path, look)
-    log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
-    if not args.no_video:
-        paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects, look=look))
-        log.info("wrote %d videos", len(paths))
-    mark_complete(Session.open(args.out).complete_path, "mocap synth")
+    with folder_lock(args.out, "mocap synth"):
+        write_truth(session, args.out, machine_path, look)
+        log.info("wrote the truth of %d cycles, %d cameras to %s", args.cycles, args.cameras, args.out)
+        if not args.no_video:
+            paths = render_videos(session, args.out, RenderOptions(codec=args.codec, effects=effects, look=look))
+            log.info("wrote %d videos", len(paths))
+        mark_complete(Session.open(args.out).complete_path, "mocap synth")
     print(summary(session))
     if args.look == "random":
         print(f"look: {look.name}")
