@@ -230,9 +230,13 @@ def test_a_video_that_breaks_part_way_stops_whole_video_tracking(tmp_path, capsy
     err = capsys.readouterr().err
     assert "the video breaks at frame" in err and "nothing written" in err and err.count("\n") == 1
     assert not (tmp_path / "t.csv").exists()
-    assert main(args) == 0  # by default the tracks up to the break are kept, and it says so on stderr
+    assert main(args) == 3  # by default the tracks up to the break are kept: partial, said in one line
     out = capsys.readouterr()
-    assert out.err.count("\n") == 1 and "broke at frame" in out.err and 0 < load_tracks(tmp_path / "t.csv").frame.max() < 15
+    assert out.err.count("\n") == 1 and "partial" in out.err and "broke at frame" in out.err
+    kept = load_tracks(tmp_path / "t.csv")
+    assert 0 < kept.frame.max() < 15 and f"frames 0-{kept.frame.max()}" in out.err
+    assert main(args + ["--allow-partial"]) == 0  # the user's explicit choice: the same tracks, exit 0
+    assert "broke at frame" in capsys.readouterr().err and load_tracks(tmp_path / "t.csv").frame.max() == kept.frame.max()
 
 
 # --- property-based: a spoiled number is never taken as right -----------------------------------
