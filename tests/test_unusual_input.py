@@ -98,7 +98,8 @@ def test_duplicates_across_files_are_refused(rig):
 
 def test_a_full_disk_is_one_clear_error_and_leaves_the_target_as_it_was(tmp_path):
     write_text(tmp_path / "out.csv", "old\n")
-    with pytest.raises(InputError, match=r"out\.csv: cannot write here \(No space left on device\)"):
+    with pytest.raises(InputError, match=r"out\.csv: the disk is full \(No space left on device\): the file needs more "
+                       r"than the 4 bytes written"):
         with atomic_path(tmp_path / "out.csv") as tmp:
             tmp.write_text("half")
             raise OSError(errno.ENOSPC, "No space left on device")
