@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     _quiet_libraries(args.verbose)
-    held = _HeldWarnings()
+    held = _HeldWarnings(hold=not args.verbose)  # --verbose: the log as it happens
     try:
         code = int(args.run(args) or 0)
     except InputError as exc:
@@ -101,14 +101,16 @@ def main(argv: list[str] | None = None) -> int:
 class _HeldWarnings(logging.Handler):
     """The log records of a command, held until it ends: shown when it ends otherwise than in
     an error or an interruption (whose one line then stands alone), dropped else. Held
-    records of a command run inside another go to the outer command's hold."""
+    records of a command run inside another go to the outer command's hold. Without `hold`
+    (--verbose) they go out as they come."""
 
-    def __init__(self):
+    def __init__(self, hold: bool = True):
         super().__init__(logging.NOTSET)
         self.records: list[logging.LogRecord] = []
         self.root = logging.getLogger()
         self.handlers = self.root.handlers[:]
-        self.root.handlers = [self]
+        if hold:
+            self.root.handlers = [self]
 
     def emit(self, record: logging.LogRecord) -> None:
         self.records.append(record)
