@@ -1,7 +1,9 @@
 """The `mocap` command line: one sub-command per pipeline stage.
 
 Each command module in `mocap.commands` has ``add_parser(subparsers)`` and ``run(args)``;
-a user error (InputError) becomes one line on stderr and exit status 2.
+a user error (InputError) becomes one line on stderr and exit status 2, work done in part
+exit status 3 (EXIT_PARTIAL), an interruption exit status 130. Log warnings are held until
+the command ends: an error's or an interruption's one line is not preceded by them.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import logging
 import sys
 
 from mocap.commands import COMMANDS
-from mocap.errors import InputError, one_line
+from mocap.errors import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, one_line
 
 
 class UsageError(Exception):
@@ -49,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser(command if command in COMMANDS else "").parse_args(argv)
     except UsageError as exc:
         print(one_line(str(exc)), file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
@@ -57,14 +59,70 @@ def main(argv: list[str] | None = None) -> int:
     from mocap.progress import quiet_libraries  # the video library with it, only once a command runs
 
     quiet_libraries(args.verbose)
+    held = _HeldWarnings(hold=not args.verbose)  # --verbose: the log as it happens
     try:
-        return int(args.run(args) or 0)
+        code = int(args.run(args) or 0)
     except InputError as exc:
+        held.discard()
         print(one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
+        held.discard()
         print(f"mocap {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as exc:
+        if not _interrupted(exc):
+            held.show()
+            raise
+        held.discard()  # Ctrl-C inside compiled code surfaces as another exception around it
+        print(f"mocap {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if code == EXIT_INTERRUPTED:
+        held.discard()  # a stage interrupted: its one line is said
+    else:
+        held.show()
+    return code
+
+
+class _HeldWarnings(logging.Handler):
+    """The log records of a command, held until it ends: shown when it ends otherwise than in
+    an error or an interruption (whose one line then stands alone), dropped else. Held
+    records of a command run inside another go to the outer command's hold. Without `hold`
+    (--verbose) they go out as they come."""
+
+    def __init__(self, hold: bool = True):
+        super().__init__(logging.NOTSET)
+        self.records: list[logging.LogRecord] = []
+        self.root = logging.getLogger()
+        self.handlers = self.root.handlers[:]
+        if hold:
+            self.root.handlers = [self]
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+    def _restore(self) -> None:
+        self.root.handlers = self.handlers
+
+    def discard(self) -> None:
+        self._restore()
+
+    def show(self) -> None:
+        self._restore()
+        for record in self.records:
+            if record.levelno >= self.root.getEffectiveLevel():
+                self.root.handle(record)
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is among the causes of `exc`."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 if __name__ == "__main__":

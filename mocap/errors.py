@@ -6,6 +6,12 @@ the command line turns it into one line on stderr and exit status 2. Anything el
 
 from __future__ import annotations
 
+# exit statuses of the command line (README: exit statuses)
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2  # bad input: one line on stderr, nothing written
+EXIT_PARTIAL = 3  # part of the work done and written, the rest not (the output says what); --allow-partial: 0
+EXIT_INTERRUPTED = 130  # Ctrl-C (SIGINT)
+
 
 class InputError(Exception):
     """Bad input: the message says which file, where, what is wrong and what to do."""

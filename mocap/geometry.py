@@ -42,11 +42,19 @@ def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rpy(matrix: np.ndarray) -> np.ndarray:
-    """Inverse of `rpy_to_matrix`: (*, 3, 3) -> (*, 3) (roll, pitch, yaw) in rad."""
+    """Inverse of `rpy_to_matrix`: (*, 3, 3) -> (*, 3) (roll, pitch, yaw) in rad.
+    Matrices holding a NaN or an infinity (a frame with no pose) give NaN angles.
+    """
     from scipy.spatial.transform import Rotation  # here: scipy.spatial takes a while to import
 
-    zyx = Rotation.from_matrix(np.asarray(matrix, dtype=float)).as_euler("ZYX")
-    return zyx[..., ::-1]
+    matrix = np.asarray(matrix, dtype=float)
+    finite = np.isfinite(matrix).all(axis=(-2, -1))
+    if finite.all():
+        return Rotation.from_matrix(matrix).as_euler("ZYX")[..., ::-1]
+    rpy = np.full(matrix.shape[:-2] + (3,), np.nan)
+    if finite.any():
+        rpy[finite] = Rotation.from_matrix(matrix[finite]).as_euler("ZYX")[..., ::-1]
+    return rpy
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:

@@ -101,6 +101,7 @@ CAMERA_SPOILS = {  # case: (key, TOML value) of the first camera
     "size-string": ("size", '"320x240"'),
     "rotation-nan": ("rotation", "[nan, 0.0, 0.0]"),
     "rotation-short": ("rotation", "[0.0, 0.0]"),
+    "rotation-1e300": ("rotation", "[1e300, 0.0, 0.0]"),
     "translation-string": ("translation", '["0", "0", "10"]'),
     "translation-inf": ("translation", "[0.0, 0.0, inf]"),
     "name-number": ("name", "7"),
@@ -431,6 +432,20 @@ def truncated_h264(path: Path) -> None:
 
 
 VIDEO_SPOILS["truncated-h264"] = truncated_h264
+
+
+def h264_cut_at_the_tail(path: Path) -> None:
+    """An H.264 MP4 that the video library still opens but whose last bytes are lost."""
+    with video_writer(path, (64, 48), FPS, "h264", 1) as write:
+        for k in range(20):
+            write(np.full((48, 64, 3), 10 * k, np.uint8))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 99 // 100])
+
+
+@case("view/video-h264-cut-at-the-tail", r"video\.mp4: camera cam1: the MP4 cannot be read to its end")
+def _(d):
+    h264_cut_at_the_tail(d / "video.mp4")
+    return argv_for("view", d) + ["--video", f"cam1={d / 'video.mp4'}"]
 for _name, _spoil in VIDEO_SPOILS.items():
     case(f"track/video-{_name}", "video.mp4: ")(_track_video(_spoil))
     if _name != "wrong-size":  # the replay shows a video of any size
@@ -455,6 +470,7 @@ for _name, _extra in {
     "stop-before-start": ["--start", "3", "--stop", "2"],
     "gate-zero": ["--gate", "0"],
     "contrast-nan": ["--min-contrast", "nan"],
+    "contrast-beyond-grey-levels": ["--min-contrast", "300"],
     "start-beyond-video": ["--start", "50"],
 }.items():
     case(f"track/{_name}")(_track_args(_extra))
@@ -560,7 +576,8 @@ for _command, _extras in {
                "out-machine-without-markers": ["--out-machine", "m.toml"], "max-median-nan": ["--max-median", "nan"]},
     "sync": {"fps-zero": ["--fps", "cam1=0"], "fps-negative": ["--fps", "cam1=-30"], "fps-text": ["--fps", "cam1=fast"],
              "fps-camera-unknown": ["--fps", "cam9=30"], "fps-no-name": ["--fps", "30"],
-             "max-offset-zero": ["--max-offset", "0"], "fps-nan": ["--fps", "cam1=nan"]},
+             "max-offset-zero": ["--max-offset", "0"], "fps-nan": ["--fps", "cam1=nan"],
+             "max-offset-huge": ["--max-offset", "1e12"]},
     "view": {"video-no-name": ["--video", "cam1.mp4"], "video-camera-unknown": ["--video", "cam9=x.mp4"],
              "cycles-missing": ["--cycles", "nope.csv"]},
 }.items():
@@ -602,6 +619,17 @@ for _command, _extras in {
 
 # --- wrong machine model ------------------------------------------------------------------------
 
+_ARM = ('name = "arm", type = "revolute", axis = [0, -1, 0], origin = [2.4, 0, 0], rpy_deg = [0, 0, 0], '
+        'limits = [-160, -10]')
+MACHINE_SPOILS = {  # case: (text of the rig's model, its replacement, what the line says)
+    "marker-at-1e300-m": ("position = [0.9, 0.76, 0.3]", "position = [1e300, 0.76, 0.3]",
+                          r"machine\.toml: marker 'U1': 'position' .* beyond 10000 m"),
+    "joint-origin-at-1e300-m": ("origin = [2.4, 0, 0]", "origin = [1e300, 0, 0]",
+                                r"machine\.toml: link 'arm' joint 'arm': 'origin' .* beyond 10000 m"),
+    "prismatic-stroke-absurd": (_ARM, _ARM.replace('"revolute", axis = [0, -1, 0]', '"prismatic", axis = [1, 0, 0]')
+                                .replace("[-160, -10]", "[0, 1e6]"), r"prismatic limits .* beyond 10000 m"),
+}
+
 
 for _command in ("calibrate", "fit", "refine", "sync", "track", "view"):
     for _name, _text in {
@@ -617,6 +645,14 @@ for _command in ("calibrate", "fit", "refine", "sync", "track", "view"):
             (d / "machine.toml").write_text(text)
             return argv_for(command, d)
         case(f"{_command}/{_name}", r"machine\.toml: ")(_machine)
+
+    for _name, (_old, _new, _expect) in MACHINE_SPOILS.items():
+        def _spoiled(d, old=_old, new=_new, command=_command):
+            text = (d / "machine.toml").read_text()
+            assert old in text
+            (d / "machine.toml").write_text(text.replace(old, new, 1))
+            return argv_for(command, d)
+        case(f"{_command}/machine-{_name}", _expect)(_spoiled)
 
     def _other(d, command=_command):
         shutil.copy(MACHINES_DIR / "hitachi_ex3500.toml", d / "machine.toml")
@@ -665,6 +701,7 @@ for _name, _extra in {
     "hold-short": ["--hold", "0.1", "--out", "new"],
     "classes-bad": ["--classes", "4", "--out", "new"],
     "noise-negative": ["--noise", "-1", "--out", "new"],
+    "redirect-not-a-probability": ["--redirect", "2", "--out", "new"],
 }.items():
     def _synth(d, extra=_extra):
         return ["synth", "--machine", "bobcat_225",

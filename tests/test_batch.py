@@ -244,3 +244,55 @@ def test_session_metadata_round_trip_and_guard(tmp_path):
         'machine = "bobcat_225"\nmetadata = "x"\n[[cameras]]\nname = "cam1"\nvideo = "v.mp4"\nfps = 25\n')
     with pytest.raises(InputError, match=r"\[metadata\] must be a table"):
         load_session_config(tmp_path / "session.toml")
+
+
+def tracks_killing_the_worker_once(root: Path, camera: str) -> None:
+    """The camera's tracks, but the first time its worker process is killed mid-task (as the
+    kernel's out-of-memory killer would)."""
+    import os
+    import signal
+
+    mark = root / "batch" / f"killed-{camera}"
+    if not mark.exists():
+        mark.parent.mkdir(parents=True, exist_ok=True)
+        mark.write_text("")
+        os.kill(os.getpid(), signal.SIGKILL)
+    camera_tracks(root, camera)
+
+
+def chain_with_a_killed_worker(root: Path) -> list[Stage]:
+    stages = chain(root)
+    if root.name != "s2":
+        return stages
+    return [Stage(s.name, s.inputs, s.outputs, call=partial(tracks_killing_the_worker_once, root, s.camera),
+                  camera=s.camera) if s.camera == "cam1" else s for s in stages]
+
+
+def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path, capsys):
+    """A worker killed mid-task costs only that task's re-run (Dask's own): its session's
+    results equal those of a session that ran untouched; the broken session is listed with
+    its one-line reason, the exit status says partial (3); the re-run after the fix does only
+    the broken session."""
+    top = tmp_path / "fleet"
+    shutil.copytree(fleet[0], top)
+    roots = [top / "site_a" / "s1", top / "site_a" / "s2", top / "site_b" / "deep" / "s3"]
+    for root in roots:  # from scratch: no manifest, no results of the test before
+        for made in ("batch", "results", "tracks", "analysis"):
+            shutil.rmtree(root / made, ignore_errors=True)
+        (root / "calibration" / "cameras.toml").unlink(missing_ok=True)
+    report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain_with_a_killed_worker)
+    assert failed == 1, report
+    assert (roots[1] / "batch" / "killed-cam1").exists()  # the worker was killed once
+    rows = {name.split("/")[-1]: row for name, row in read_fleet(tmp_path).items()}
+    assert [rows[r.name]["status"] for r in roots] == ["ok", "ok", "failed"]
+    assert "site_b/deep/s3: prepare: " in report and "truth/cameras.toml: file not found" in report
+    for name in ("calibration/cameras.toml", "tracks/cam1.csv", "results/points.csv", "results/motion.csv"):
+        assert (roots[1] / name).read_bytes() == (roots[0] / name).read_bytes(), name
+
+    shutil.copy(roots[0] / "truth" / "cameras.toml", roots[2] / "truth" / "cameras.toml")  # the fix
+    _, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain_with_a_killed_worker)
+    assert failed == 0
+    rows = {name.split("/")[-1]: row for name, row in read_fleet(tmp_path).items()}
+    assert rows["s1"]["stages_run"] == rows["s2"]["stages_run"] == "0"
+    assert rows["s3"]["stages_run"] == str(len(chain(roots[2]))) and rows["s3"]["status"] == "ok"
+    assert (roots[2] / "results" / "motion.csv").read_bytes() == (roots[0] / "results" / "motion.csv").read_bytes()

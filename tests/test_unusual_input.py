@@ -98,7 +98,8 @@ def test_duplicates_across_files_are_refused(rig):
 
 def test_a_full_disk_is_one_clear_error_and_leaves_the_target_as_it_was(tmp_path):
     write_text(tmp_path / "out.csv", "old\n")
-    with pytest.raises(InputError, match=r"out\.csv: cannot write here \(No space left on device\)"):
+    with pytest.raises(InputError, match=r"out\.csv: the disk is full \(No space left on device\): the file needs more "
+                       r"than the 4 bytes written"):
         with atomic_path(tmp_path / "out.csv") as tmp:
             tmp.write_text("half")
             raise OSError(errno.ENOSPC, "No space left on device")
@@ -230,9 +231,13 @@ def test_a_video_that_breaks_part_way_stops_whole_video_tracking(tmp_path, capsy
     err = capsys.readouterr().err
     assert "the video breaks at frame" in err and "nothing written" in err and err.count("\n") == 1
     assert not (tmp_path / "t.csv").exists()
-    assert main(args) == 0  # by default the tracks up to the break are kept, and it says so on stderr
+    assert main(args) == 3  # by default the tracks up to the break are kept: partial, said in one line
     out = capsys.readouterr()
-    assert out.err.count("\n") == 1 and "broke at frame" in out.err and 0 < load_tracks(tmp_path / "t.csv").frame.max() < 15
+    assert out.err.count("\n") == 1 and "partial" in out.err and "broke at frame" in out.err
+    kept = load_tracks(tmp_path / "t.csv")
+    assert 0 < kept.frame.max() < 15 and f"frames 0-{kept.frame.max()}" in out.err
+    assert main(args + ["--allow-partial"]) == 0  # the user's explicit choice: the same tracks, exit 0
+    assert "broke at frame" in capsys.readouterr().err and load_tracks(tmp_path / "t.csv").frame.max() == kept.frame.max()
 
 
 # --- property-based: a spoiled number is never taken as right -----------------------------------

@@ -65,7 +65,8 @@ def dask_client(scheduler: str | None, workers: int):
     import dask
 
     # the workers' statistical profiler samples every thread 100 times a second: 15 % more CPU here
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    # a worker killed mid-task also fails the tasks queued on it: more than Dask's 3 deaths allowed per task
+    with dask.config.set({"distributed.worker.profile.enabled": False, "distributed.scheduler.allowed-failures": 10}):
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
             with Client(cluster) as client:
                 yield client

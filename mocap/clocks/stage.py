@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocap.errors import InputError
-from mocap.io.cameras_toml import MAX_FPS, Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.machine import Machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
@@ -16,8 +16,9 @@ from mocap.clocks.align import joint_curves, pose_curves, synchronise, window_fr
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
-    if not max_offset > 0:
-        raise InputError(f"--max-offset {max_offset}: must be positive")
+    if not 0 < max_offset <= MAX_TIME_OFFSET_S:
+        raise InputError(f"--max-offset {max_offset}: must be positive seconds, at most {MAX_TIME_OFFSET_S:g} "
+                         "(cameras started within a day of each other)")
     machine = load_machine(machine_path)
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
@@ -53,6 +54,8 @@ def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps
     for camera in calibration.cameras:
         frame = tracks.frame[tracks.rows_of_camera(camera.name)]
         spans.append((int(frame.min()), int(frame.max())))
+    # offsets longer than the recordings together leave no overlap: the search ends there
+    max_offset = min(max_offset, sum((last - first + 1) / rate for (first, last), rate in zip(spans, fps)))
     curves = []
     for k, (camera, frames) in enumerate(zip(calibration.cameras, window_frames(spans, fps, max_offset))):
         pixels = tracks.dense_of_camera(camera.name, machine.marker_names, frames)

@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
         "rest one task per session. A stage whose inputs have not changed since it last ran (content hashes "
         "in SESSION/batch/manifest.toml) is skipped; a failing session is reported and the others go on. "
         "Writes fleet.csv and fleet_report.md (cycles per hour, cycle times, class mix per session, "
-        "machine and day). Exit status 1 if a session failed.",
+        "machine and day). Exit status 3 (partial) if a session failed: the others are done.",
         epilog=EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -37,7 +37,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from mocap.batch.stage import BatchOptions, run_batch
-    from mocap.errors import InputError
+    from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError
 
     try:
         options = BatchOptions(args.scheduler, args.workers, args.out, args.refine, args.view)
@@ -45,4 +45,4 @@ def run(args) -> int:
         raise InputError(f"bad option: {exc}") from None
     report, failed = run_batch(args.paths, options)
     print(report)
-    return 1 if failed else 0
+    return EXIT_PARTIAL if failed else EXIT_OK

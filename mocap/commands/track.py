@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from mocap.commands import COMMANDS
-from mocap.errors import InputError
+from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError
 from mocap.io.outputs import check_outputs
 
 EXAMPLE = """examples:
@@ -47,10 +47,29 @@ def add_parser(sub) -> None:
     p.add_argument("--min-contrast", type=float, default=40.0, metavar="GREY",
                    help="least disk-to-background contrast, grey levels (default 40)")
     p.add_argument("--whole-video", action="store_true",
-                   help="refuse a video that breaks before its end (default: keep the tracks up to the break)")
+                   help="refuse a video that breaks before its end (default: keep the tracks up to the break, "
+                   "exit status 3)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="a video that breaks before its end: keep the tracks up to the break and exit 0, not 3")
     p.add_argument("--no-occlusion", action="store_true",
                    help="do not predict markers hidden by the machine's own links")
     p.set_defaults(run=run)
+
+
+def _locked(out: str | None):
+    """The lock of the tracks file `out` (two commands writing it refuse each other), after a
+    check that no other command holds its session folder's lock (`mocap run`, `mocap synth`)."""
+    import contextlib
+
+    from mocap.io.lock import check_free, folder_lock
+
+    if out is None:
+        return contextlib.nullcontext()
+    folder = Path(out).resolve().parent
+    session = next((p for p in (folder, folder.parent) if (p / "session.toml").is_file()), None)
+    if session is not None:
+        check_free(session)
+    return folder_lock(folder, f"mocap track {out}", name=f".{Path(out).name}.lock")
 
 
 def run(args) -> int:
@@ -69,6 +88,9 @@ def run(args) -> int:
         raise InputError(f"--start {args.start} --stop {args.stop}: need 0 <= start < stop")
     if not args.gate > 0 or not args.min_contrast > 0:
         raise InputError("--gate and --min-contrast must be positive")
+    if not args.min_contrast < 255:
+        raise InputError(f"--min-contrast {args.min_contrast:g}: grey levels end at 255; give a contrast below it "
+                         "(default 40)")
     options = TrackOptions(
         gate_px=args.gate,
         occlusion=not args.no_occlusion,
@@ -81,12 +103,16 @@ def run(args) -> int:
         Path(args.propose_labels) if args.propose_labels else None,
         args.start, args.stop, options, args.whole_video, Path(args.preview) if args.preview else None,
     )
-    report = run_track(request)
+    with _locked(args.out):
+        report = run_track(request)
     print(report.text(args.out, args.propose_labels, args.preview))
     if report.summary is not None:
         for name, why in zip(report.summary.unplaced, report.summary.why):
             print(f"mocap track: warning: marker {name}: {why}", file=sys.stderr)
     if report.broken_at is not None:
-        print(f"mocap track: warning: {args.video}: the video broke at frame {report.broken_at} (truncated or "
-              "corrupt); tracks up to there are written (--whole-video refuses such a video)", file=sys.stderr)
-    return 0
+        print(f"mocap track: partial: {args.video}: the video broke at frame {report.broken_at} (truncated or "
+              f"corrupt); tracks of frames {args.start}-{report.broken_at - 1} written to {args.out}"
+              + ("" if args.allow_partial else "; exit status 3 (--allow-partial: 0, --whole-video refuses it)"),
+              file=sys.stderr)
+        return EXIT_OK if args.allow_partial else EXIT_PARTIAL
+    return EXIT_OK

@@ -145,7 +145,14 @@ def _camera_from_table(table: dict, path, where) -> tuple[Camera, dict]:
     check_matrix(matrix, path, where)
     distortions = _distortions(table["distortions"], path, where)
     rotation = array("rotation", (3,))
+    if np.linalg.norm(rotation) > MAX_ROTATION_RAD:
+        raise InputError(f"'rotation' {table['rotation']!r} turns by more than {MAX_ROTATION_RAD:g} rad (a Rodrigues "
+                         "vector's length is its angle): give it in radians",
+                         path=path, where=where)
     translation = array("translation", (3,))
+    if np.linalg.norm(translation) > MAX_DISTANCE_M:
+        raise InputError(f"'translation' {table['translation']!r} puts the world's origin "
+                         f"beyond {MAX_DISTANCE_M:g} m of the camera: give it in metres", path=path, where=where)
     extra = {k: v for k, v in table.items() if k not in _CAMERA_KEYS}
     _check_extras(extra, path, where)
     camera = Camera(
@@ -159,6 +166,8 @@ def _camera_from_table(table: dict, path, where) -> tuple[Camera, dict]:
 
 
 MAX_IMAGE_SIDE = 65536  # pixels
+MAX_ROTATION_RAD = 100.0  # a Rodrigues vector's length is its angle: 2 pi (or a few turns) at most, not 1e300
+MAX_DISTANCE_M = 1e6  # the world's origin (on the machine) within 1000 km of a camera
 MAX_TIME_OFFSET_S = 86400.0  # cameras started within a day of each other
 MAX_FPS = 10000.0
 _OPENCV_DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)  # what OpenCV's distortion models take

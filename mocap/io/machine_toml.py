@@ -12,6 +12,7 @@ from mocap.io.atomic import write_text
 from mocap.io.text import read_toml
 from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine, Tolerance
 
+MAX_LENGTH_M = 1e4  # 10 km: no machine's marker, joint origin or stroke lies farther
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
 
 _TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags", "tolerance"}
@@ -199,13 +200,20 @@ def _joint(raw, path, where) -> Joint:
         )
     where = f"{where} {name!r}"
     axis = _unit(_vector(raw, "axis", path, where), path, where, "axis")
-    origin = _vector(raw, "origin", path, where, default=[0, 0, 0])
+    origin = _length(_vector(raw, "origin", path, where, default=[0, 0, 0]), path, where, "origin")
     rpy = np.radians(_vector(raw, "rpy_deg", path, where, default=[0, 0, 0]))
     if "limits" in raw:
         limits = np.asarray(_numbers(raw["limits"], 2, path, where, "limits"))
         if not limits[0] < limits[1]:
             raise InputError(
                 f"limits {limits.tolist()} must be [lower, upper] with lower < upper",
+                path=path,
+                where=where,
+            )
+        if kind == PRISMATIC and np.any(np.abs(limits) > MAX_LENGTH_M):
+            raise InputError(
+                f"prismatic limits {limits.tolist()} reach beyond {MAX_LENGTH_M:g} m: give the joint's "
+                "stroke in metres",
                 path=path,
                 where=where,
             )
@@ -243,7 +251,7 @@ def _items(raw_items, section, link_index, path, keys):
             raise InputError(f"tag {tag!r} must be a whole number >= 0 (the tag's id)", path=path, where=where)
         names.append(name)
         links.append(link_index[link])
-        positions.append(_vector(raw, "position", path, where))
+        positions.append(_length(_vector(raw, "position", path, where), path, where, "position"))
         tags.append(tag)
         normals.append(_unit(_vector(raw, "normal", path, where), path, where, "normal") if "normal" in raw
                        else np.full(3, np.nan))
@@ -285,6 +293,14 @@ def _vector(raw: dict, key: str, path, where, default=None) -> np.ndarray:
             raise InputError(f"missing {key!r} (3 numbers, metres)", path=path, where=where)
         return np.asarray(default, dtype=float)
     return np.asarray(_numbers(raw[key], 3, path, where, key))
+
+
+def _length(vector: np.ndarray, path, where, key) -> np.ndarray:
+    """A position in metres, refused beyond MAX_LENGTH_M (a unit slip, a corrupt number)."""
+    if np.any(np.abs(vector) > MAX_LENGTH_M):
+        raise InputError(f"{key!r} {vector.tolist()} lies beyond {MAX_LENGTH_M:g} m: "
+                         "give it in metres", path=path, where=where)
+    return vector
 
 
 def _unit(vector: np.ndarray, path, where, key) -> np.ndarray:

@@ -69,6 +69,7 @@ def parse_classes(text: str) -> tuple[str, ...]:
 
 def run_synth(request: SynthRequest) -> str:
     """Write the synthetic session `request.out`; returns the summary."""
+    from mocap.io.lock import LOCK_NAME, check_free, folder_lock
     from mocap.synthetic import SessionOptions, make_session, summary, write_truth
     from mocap.synthetic.effects import EffectOptions
     from mocap.synthetic.looks import Look, random_look
@@ -81,11 +82,15 @@ def run_synth(request: SynthRequest) -> str:
         raise InputError(f"--cameras {request.cameras}: give 1 to 8 cameras")
     if not 1 <= request.cycles <= MAX_CYCLES:
         raise InputError(f"--cycles {request.cycles}: give 1 to {MAX_CYCLES} dig cycles")
+    if not 0.0 <= request.redirect <= 1.0:
+        raise InputError(f"--redirect {request.redirect}: a probability, give 0..1")
     if request.hold < 0.5:
         raise InputError(f"--hold {request.hold}: the machine must hold still at least 0.5 s")
     check_output_folder(request.out)
+    if request.out.is_dir():
+        check_free(request.out)  # another command writing the folder is named
     session = Session.open(request.out)
-    if request.out.exists() and any(request.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
+    if request.out.exists() and any(p.name != LOCK_NAME for p in request.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
         raise InputError("the output folder exists and is not empty; choose a new folder", path=request.out)
     if not 0.05 <= request.scale <= 4.0:
         raise InputError(f"--scale {request.scale}: give a factor between 0.05 and 4")
@@ -115,12 +120,13 @@ def run_synth(request: SynthRequest) -> str:
     )
     session = make_session(machine, str(request.machine), options)
     request.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over
-    write_truth(session, request.out, machine_path, look)
-    log.info("wrote the truth of %d cycles, %d cameras to %s", request.cycles, request.cameras, request.out)
-    if not request.no_video:
-        paths = render_videos(session, request.out, RenderOptions(codec=request.codec, effects=effects, look=look))
-        log.info("wrote %d videos", len(paths))
-    mark_complete(Session.open(request.out).complete_path, "mocap synth")
+    with folder_lock(request.out, "mocap synth"):
+        write_truth(session, request.out, machine_path, look)
+        log.info("wrote the truth of %d cycles, %d cameras to %s", request.cycles, request.cameras, request.out)
+        if not request.no_video:
+            paths = render_videos(session, request.out, RenderOptions(codec=request.codec, effects=effects, look=look))
+            log.info("wrote %d videos", len(paths))
+        mark_complete(Session.open(request.out).complete_path, "mocap synth")
     lines = [summary(session)]
     if request.look == "random":
         lines.append(f"look: {look.name}")

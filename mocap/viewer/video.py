@@ -14,6 +14,8 @@ import av
 import numpy as np
 import rerun as rr
 
+from mocap.errors import InputError
+
 log = logging.getLogger(__name__)
 
 PLAYABLE_CODECS = ("h264",)
@@ -58,5 +60,14 @@ def load_video(path: str | Path, camera: str) -> Video | None:
             found,
         )
         return None
-    asset = rr.AssetVideo(path=path, media_type="video/mp4")
-    return Video(path, asset, asset.read_frame_timestamps_nanos())
+    try:
+        asset = rr.AssetVideo(path=path, media_type="video/mp4")
+        timestamps = asset.read_frame_timestamps_nanos()
+    except RuntimeError as exc:  # the MP4 reader's own word on a cut or corrupt file ("MP4 error: ...")
+        raise InputError(f"camera {camera}: the MP4 cannot be read to its end ({_one_line(exc)}): a truncated or "
+                         "corrupt file; copy it again, or leave out its --video", path=path) from None
+    return Video(path, asset, timestamps)
+
+
+def _one_line(exc: Exception) -> str:
+    return " ".join(str(exc).split())

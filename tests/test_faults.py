@@ -1,0 +1,255 @@
+"""Faults a field user meets besides bad input: a base pose with no value in some frames,
+Ctrl-C inside compiled code, log warnings before an error, partial work, concurrent runs,
+a full disk."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from mocap import cli
+from mocap.errors import EXIT_INTERRUPTED, InputError
+from mocap.geometry import rpy_to_matrix
+from mocap.io.motion_csv import base_columns
+
+
+def test_a_base_pose_without_value_gives_nan_columns_not_a_crash():
+    """Frames the smoother leaves without a pose (after the last explained frame) reach the
+    motion writer as NaN matrices: their base columns are NaN, the others exact."""
+    rpy = np.array([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0], [-0.3, 0.25, 2.0]])
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, :3] = rpy_to_matrix(rpy)
+    poses[:, :3, 3] = [[1, 2, 3], [4, 5, 6], [7, 8, 9]]
+    poses[1] = np.nan
+    covariance = np.tile(np.eye(6) * 1e-4, (3, 1, 1))
+    covariance[1] = np.nan
+    columns = base_columns(poses, covariance)
+    assert np.isnan(columns["base_roll_deg"][1]) and np.isnan(columns["base_yaw_sd_deg"][1])
+    got = np.c_[columns["base_roll_deg"], columns["base_pitch_deg"], columns["base_yaw_deg"]][[0, 2]]
+    assert np.allclose(got, np.degrees(rpy[[0, 2]]), atol=1e-9)
+    assert np.allclose(columns["base_z"][[0, 2]], [3, 9])
+    assert np.all(np.isfinite(columns["base_roll_sd_deg"][[0, 2]]))
+
+
+def _command_raising(monkeypatch, exc: BaseException, warn: bool = True):
+    import mocap.commands.demo as demo
+
+    def run(args):
+        if warn:
+            logging.getLogger("mocap.calibration.doubts").warning("camera cam3: its position is hardly fixed")
+        raise exc
+    monkeypatch.setattr(demo, "run", run)
+
+
+def _interrupt_in_compiled_code() -> SystemError:
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher(<function refine>) returned a result with an exception set")
+    except SystemError as exc:
+        return exc
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt(), _interrupt_in_compiled_code()], ids=["python", "compiled"])
+def test_ctrl_c_is_one_line_even_after_warnings(exc, monkeypatch, capsys):
+    """Ctrl-C during `mocap demo` (in numba-compiled tracking it surfaces as a SystemError
+    around the KeyboardInterrupt) is one line, exit 130; the warnings logged before it are
+    not printed."""
+    _command_raising(monkeypatch, exc)
+    assert cli.main(["demo"]) == EXIT_INTERRUPTED
+    assert capsys.readouterr().err == "mocap demo: interrupted\n"
+
+
+def test_warnings_before_an_error_are_not_printed(monkeypatch, capsys):
+    _command_raising(monkeypatch, InputError("bad", path="m.toml"))
+    assert cli.main(["demo"]) == 2
+    assert capsys.readouterr().err == "mocap demo: error: m.toml: bad\n"
+
+
+def test_warnings_of_a_command_that_ends_are_printed(monkeypatch, caplog):
+    import mocap.commands.demo as demo
+
+    def run(args):
+        logging.getLogger("mocap.x").warning("camera cam3: its position is hardly fixed")
+        return 0
+    monkeypatch.setattr(demo, "run", run)
+    assert cli.main(["demo"]) == 0
+    assert [r.getMessage() for r in caplog.records] == ["camera cam3: its position is hardly fixed"]
+
+
+def test_a_bug_is_still_a_traceback(monkeypatch):
+    _command_raising(monkeypatch, ZeroDivisionError("bug"), warn=False)
+    with pytest.raises(ZeroDivisionError):
+        cli.main(["demo"])
+
+
+# --- partial work, concurrent runs, a full disk ----------------------------------------------
+
+
+def test_a_second_command_on_a_locked_folder_refuses_naming_the_first(tmp_path, capsys):
+    """A live holder (this test's parent process stands in for another `mocap run`) is named
+    in one line; the folder is left as it was."""
+    import os
+    import socket
+
+    from mocap.io.lock import LOCK_NAME
+
+    session = tmp_path / "s"
+    session.mkdir()
+    (session / LOCK_NAME).write_text(f"{os.getppid()} {socket.gethostname()} mocap run {session}\n")
+    assert cli.main(["run", str(session)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert f"in use by `mocap run {session}` (process {os.getppid()} on {socket.gethostname()}" in err
+    assert (session / LOCK_NAME).is_file()
+    argv = ["synth", "--machine", "bobcat_225", "--no-video", "--out", str(session)]
+    assert cli.main(argv) == 2 and "in use by `mocap run" in capsys.readouterr().err
+
+
+def test_a_stale_lock_is_taken_over_and_a_held_one_is_reentrant(tmp_path):
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from mocap.io.lock import LOCK_NAME, folder_lock
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    pid = int(dead.stdout)  # a process that has ended
+    (tmp_path / LOCK_NAME).write_text(f"{pid} {socket.gethostname()} mocap synth\n")
+    with folder_lock(tmp_path, "mocap run"):
+        assert (tmp_path / LOCK_NAME).read_text().split()[0] == str(os.getpid())
+        with folder_lock(tmp_path, "mocap track"):  # a command inside another, same process
+            pass
+        assert (tmp_path / LOCK_NAME).is_file()
+    assert not (tmp_path / LOCK_NAME).exists()
+
+
+def test_two_tracks_writing_one_file_refuse_each_other(tmp_path):
+    import os
+    import socket
+
+    from mocap.commands.track import _locked
+
+    (tmp_path / ".t.csv.lock").write_text(f"{os.getppid()} {socket.gethostname()} mocap track t.csv\n")
+    with pytest.raises(InputError, match=r"in use by `mocap track t\.csv`"):
+        with _locked(str(tmp_path / "t.csv")):
+            pass
+    with _locked(str(tmp_path / "u.csv")):  # another camera's tracks beside it: free
+        assert (tmp_path / ".u.csv.lock").is_file()
+
+
+FULL_DISK = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing the process
+resource.setrlimit(resource.RLIMIT_FSIZE, (BYTES, BYTES))
+from mocap.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_full_disk_is_one_line_and_keeps_earlier_results(tmp_path):
+    """A write that runs out of room (a file-size limit) names the file and the room it
+    needed; no file is left half written and the earlier result is intact."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from badinput_files import snapshot, write_rig
+
+    write_rig(tmp_path)
+    out = tmp_path / "points.csv"
+    argv = ["triangulate", str(tmp_path / "cameras.toml"), str(tmp_path / "tracks.csv"), "--out", str(out)]
+    assert cli.main(argv) == 0
+    before = snapshot(tmp_path)
+    assert out.stat().st_size > 8000
+    script = FULL_DISK.replace("BYTES", "4000")
+    done = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert f"{out}: the disk is full or over the file-size limit" in done.stderr
+    assert "needs more than the 4.0 kB written" in done.stderr
+    assert snapshot(tmp_path) == before  # the earlier points intact, no temporary file left
+
+
+# --- killed and resumed -------------------------------------------------------------------------
+
+
+def _visible(root) -> dict[str, str]:
+    """{relative path: sha256} of the files under `root` a reader takes for results (hidden
+    temporaries and lock files excluded)."""
+    from badinput_files import snapshot
+
+    return {k: v for k, v in snapshot(root).items() if not any(part.startswith(".") for part in k.split("/"))}
+
+
+def _run_killed(argv: list[str], cwd, delay: float) -> int | None:
+    """Run `mocap argv` in a child process and SIGKILL it after `delay` s (None: it ended first,
+    its exit status else)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        return child.wait(timeout=delay)
+    except subprocess.TimeoutExpired:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        return None
+
+
+KILL_SCHEDULE = np.random.default_rng(34).uniform(0.2, 1.0, 3)  # fractions of an uninterrupted run's time
+
+
+def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(tmp_path):
+    """SIGKILL of `mocap track` at seeded random moments: no tracks file that looks whole is
+    left half written, the inputs are byte-identical, and the same command run again writes
+    the tracks of an uninterrupted run, digit for digit."""
+    import time
+
+    from test_track import make_scene, write_video
+
+    from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+
+    frames, uv, seen, model, joints = make_scene(n_frames=16, clutter=4, seed=3)
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    write_video(inputs / "cam1.avi", frames, codec="MJPG")
+    save_calibration(Calibration((model.camera,), ({"fps": 30.0},), {
+        "machine": "bobcat_225", "frame": 0, "joints": joints_to_table(joints[0], model.machine)}), inputs / "c.toml")
+    before = _visible(inputs)
+
+    def argv(out):
+        return ["track", str(inputs / "cam1.avi"), "--machine", "bobcat_225", "--calibration", str(inputs / "c.toml"),
+                "--camera", "cam1", "--out", str(out / "t.csv")]
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    start = time.perf_counter()
+    assert cli.main(argv(whole)) == 0
+    took = max(time.perf_counter() - start, 0.5) + 1.5  # the child's start (imports) comes on top
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    codes = []
+    for fraction in KILL_SCHEDULE:
+        codes.append(_run_killed(argv(killed), tmp_path, fraction * took))
+        assert codes[-1] in (None, 0)
+        files = _visible(killed)
+        assert not files or files == _visible(whole)  # absent, or whole: never half written
+        assert _visible(inputs) == before
+        (killed / "t.csv").unlink(missing_ok=True)  # the next kill starts from scratch again
+    codes.append(_run_killed(argv(killed), tmp_path, 0.3 * took))  # one more kill, then the re-run
+    assert None in codes and codes[-1] in (None, 0)  # killed mid-way at least once
+    assert cli.main(argv(killed)) == 0
+    assert _visible(killed) == _visible(whole)
+    assert not list(killed.glob(".*"))  # the killed writers' temporaries and locks are gone
+    assert _visible(inputs) == before
