@@ -120,5 +120,14 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
             fallback = True
         elif code != 0:
             return code
+    write_run_report(session)
     mark_complete(session.results_complete_path, "mocap run")
     return 0
+
+
+def write_run_report(session: Session) -> None:
+    """The session report (results/session_report.html) after the stages: the measurement's quality."""
+    from mocap.report.session_report import write_session_report
+
+    print("== report", flush=True)
+    print(f"wrote {write_session_report(session.root)}", flush=True)

@@ -165,17 +165,19 @@ def test_recording_has_the_entity_tree_timelines_and_blueprint(recorded):
 
 def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, recorded):
     _, rec = recorded
-    origins, overrides = [], {}
+    origins, overrides, selection = [], {}, None
     for chunk in rec.blueprint_chunks:
         batch = chunk.to_record_batch()
+        if "TimePanelBlueprint:time_selection" in batch.schema.names:
+            selection = batch.column("TimePanelBlueprint:time_selection").to_pylist()[-1][0]
         if "ViewBlueprint:space_origin" in batch.schema.names:
             origins += [o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist()]
         if "VisibleTimeRanges:ranges" in batch.schema.names:
             overrides[chunk.entity_path.split("/overrides")[1]] = batch.column("VisibleTimeRanges:ranges").to_pylist()[-1]
     assert sorted(origins) == sorted(
-        ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots/joints",
-         "plots/bucket", "plots/speed", "plots/uncertainty", "plots/uncertainty_m", "plots/extra_filled"]
-    )  # one unit per plot: angles and lengths apart, each other column alone
+        ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots", "plots", "plots"]
+    )  # three panels of plots: joints, the bucket, the measurement's quality (no phases without cycles' phases)
+    assert selection == {"min": world.cycles.start[0], "max": selection["max"]}  # opens on the first dig
     assert set(overrides) == {"/world/trail/1/visualizers", "/world/trail/2/visualizers"}
     ranges = {r["timeline"]: r["range"] for r in overrides["/world/trail/2/visualizers"]}
     assert set(ranges) == {"frame", "time"}

@@ -38,6 +38,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--reactive", type=float, default=1.0, help="reactive dig noise, times nominal (0: none)")
     p.add_argument("--redirect", type=float, default=0.4, metavar="P",
                    help="probability of an operator's redirection per dig (default 0.4)")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="the first camera's frame rate; the others run at it or 1000/1001 of it (default 30)")
     p.add_argument("--hold", type=float, default=2.0, help="seconds the machine holds still at the start")
     p.add_argument("--scale", type=float, default=1.0, help="scale the image size, e.g. 0.5 for fast tests")
     p.add_argument("--codec", choices=CODECS, default="h264", help="h264 (PyAV) or mp4v (OpenCV); default h264")
@@ -95,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--cycles {args.cycles}: give 1 to {MAX_CYCLES} dig cycles")
     if args.hold < 0.5:
         raise InputError(f"--hold {args.hold}: the machine must hold still at least 0.5 s")
+    if not 5.0 <= args.fps <= 120.0:
+        raise InputError(f"--fps {args.fps}: give a frame rate from 5 to 120")
     check_output_folder(args.out)
     session = Session.open(args.out)
     if args.out.exists() and any(args.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
@@ -123,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         distortion=args.distortion or look.distortion, shake_deg=args.shake or look.shake_deg, bounce=args.bounce,
         reactive=args.reactive,
         redirect_probability=args.redirect, classes=parse_classes(args.classes), hold=args.hold,
-        readout=look.readout,
+        readout=look.readout, fps=args.fps,
     )
     session = make_session(machine, str(args.machine), options)
     args.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over

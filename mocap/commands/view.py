@@ -11,7 +11,8 @@ from mocap.io.outputs import check_outputs
 
 EXAMPLES = """examples:
   mocap view SESSION_DIR                       # writes SESSION_DIR/results/session.rrd
-  mocap view SESSION_DIR --spawn               # ... and opens it in the Rerun viewer
+  mocap view SESSION_DIR --open                # ... and opens it in the Rerun viewer
+  mocap view SESSION_DIR --serve               # ... serves a web viewer (a headless or remote machine)
   mocap view --machine hitachi_ex3500 --calibration cameras.toml --motion motion.csv \\
       --points points.csv --tracks tracks/cam1.csv tracks/cam2.csv --video cam1=cam1.mp4 \\
       --save dig.rrd
@@ -42,6 +43,8 @@ def add_parser(subparsers) -> None:
     out.add_argument("--connect", nargs="?", const="", metavar="URL", help="stream to a running viewer")
     out.add_argument("--serve", action="store_true", help="serve a web viewer until Ctrl-C")
     out.add_argument("--spawn", action="store_true", help="start the native viewer and stream to it")
+    out.add_argument("--open", action="store_true",
+                     help="save the recording (a session's results/session.rrd by default) and open it in the native viewer")
     p.set_defaults(run=run)
 
 
@@ -63,6 +66,10 @@ def run(args) -> int:
     asked = list(files.videos.values())
     files = with_session(files, args.session)
     sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
+    if args.open and sinks.save is None:
+        if args.session is None:
+            raise InputError("--open opens a saved recording: pass --save FILE.rrd or a session folder")
+        sinks = Sinks(Session.open(args.session).recording_path, args.connect, args.serve, args.spawn)
     if not sinks.any:
         if args.session is None:
             raise InputError("nowhere to send the replay; pass --save FILE.rrd, --connect, --serve or --spawn")
@@ -84,6 +91,11 @@ def run(args) -> int:
     videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
     trails = f"{summary.trails} trail(s)"
     print(f"replay of {summary.frames} frames, {summary.cameras} cameras{videos}, {trails}{where}")
+    if args.open:
+        from mocap.viewer.replay import open_viewer
+
+        open_viewer(sinks.save)
+        print(f"opening {sinks.save} in the Rerun viewer")
     return 0
 
 
