@@ -63,7 +63,8 @@ def cycle_times(found: Path, truth: Path) -> str:
     true_times = np.diff(numbers(load_cycle_table(truth)["dig_start_time"]))
     if not np.isfinite(times).any():
         return "no cycle time: a cycle's time runs from its dig to the next"
-    return (f"{int(np.isfinite(times).sum())} cycle times, median {np.nanmedian(times):.1f} s "
+    n = int(np.isfinite(times).sum())
+    return (f"{n} cycle time{'s' if n != 1 else ''}, median {np.nanmedian(times):.1f} s "
             f"(truth {np.median(true_times):.1f} s)")
 
 

@@ -15,7 +15,7 @@ def test_demo_chain_reaches_the_truth(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "how close it came to the ground truth" in printed and "bucket tip RMSE" in printed
     assert "dig cycles: 2 found of 2 (0 missed, 0 extra)" in printed
-    assert "1 cycle times, median" in printed and " view " in printed and " --open" in printed
+    assert "1 cycle time, median" in printed and " view " in printed and " --open" in printed
     for name in ("calibration/cameras.toml", "calibration/refined.toml", "results/points.csv",
                  "results/motion.csv", "results/cycles.csv", "results/report.html", "results/templates.toml",
                  "results/session.rrd", "results/session_report.html"):
