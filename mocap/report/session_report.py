@@ -134,10 +134,9 @@ def advice(q: SessionQuality) -> list[str]:
                        f"swapped or misplaced marker.")
     for c in q.cameras:
         sd = float(np.linalg.norm(c.position_sd))
-        if sd > FAR_SD_M:
-            out.append(f"{c.name}: the one frame places it only to ±{sd:.1f} m"
-                       + (" (refined over the session since)." if np.isfinite(c.refined_rms_px) else
-                          "; refine over the session (`mocap run` does, or `mocap refine`)."))
+        if sd > FAR_SD_M and not np.isfinite(c.refined_rms_px):  # a refined camera is placed by the session
+            out.append(f"{c.name}: the one frame places it only to ±{sd:.1f} m; refine it over the session "
+                       "(`mocap run` does, or `mocap refine`).")
     for c in q.cameras:
         if c.share.size:
             mean = c.share.mean(axis=1)
