@@ -269,10 +269,13 @@ def test_videos_are_the_files_assets_with_a_frame_per_motion_frame(world, record
         blob = rec.static(path, "AssetVideo:blob")[0]
         assert bytes(blob) == world.videos[name].read_bytes()  # the file itself, not re-encoded
         frames, stamps = rec.series(path, "VideoFrameReference:timestamp")
-        late = round(offset * FPS)  # cam2's video starts 3 reference frames late
-        np.testing.assert_array_equal(frames, np.arange(late, N_FRAMES))
-        expected = load_video(world.videos[name], name).timestamps_ns[frames - late]
-        np.testing.assert_array_equal(np.array(stamps)[:, 0], expected)
+        late = round(offset * FPS)  # cam2's video starts 3 reference frames late ...
+        np.testing.assert_array_equal(frames, np.arange(N_FRAMES))
+        expected = load_video(world.videos[name], name).timestamps_ns[np.maximum(frames - late, 0)]
+        np.testing.assert_array_equal(np.array(stamps)[:, 0], expected)  # ... showing its first frame till then
+    note_frames, labels = rec.series("/world/cameras/cam2/note", "Points2D:labels")
+    assert list(note_frames) == [0] and labels[0][0] == f"its clock starts {OFFSET:.2f} s later: its first frame until then"
+    assert "/world/cameras/cam1/note" not in rec.entities
     assert "/world/cameras/cam3/video" not in rec.entities
 
 

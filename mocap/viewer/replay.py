@@ -121,7 +121,7 @@ def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
             path = replay.videos.get(camera.name)
             video = None if path is None else load_video(path, camera.name)
             if video is not None:
-                record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k])
+                record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k], camera.size)
                 with_video.append(camera.name)
             if replay.tracks is not None:
                 clocks = (replay.fps[k], offsets[k], replay.fps[0], offsets[0])
