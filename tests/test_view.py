@@ -582,3 +582,12 @@ def test_trails_coloured_by_class_phases_plotted_machine_framed_names_on_hover(w
     distance = np.linalg.norm(eye["EyeControls3D:position"] - eye["EyeControls3D:look_target"])
     assert distance < 2.0 * np.linalg.norm(high - low) + 1.0  # the machine's working range, not the cameras'
     assert eye["EyeControls3D:position"][1] < eye["EyeControls3D:look_target"][1]  # from the side
+
+
+def test_open_without_a_display_says_to_serve(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    assert main(["view", str(tmp_path), "--open"]) == 2
+    err = capsys.readouterr().err
+    assert "no display" in err and "--serve" in err and len(err.splitlines()) == 1

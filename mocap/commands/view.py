@@ -54,6 +54,8 @@ def run(args) -> int:
     from mocap.viewer import Sinks, run_replay
     from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
 
+    if args.open:
+        check_display()
     files = ReplayFiles(
         machine=args.machine,
         calibration=args.calibration,
@@ -97,6 +99,16 @@ def run(args) -> int:
         open_viewer(sinks.save)
         print(f"opening {sinks.save} in the Rerun viewer")
     return 0
+
+
+def check_display() -> None:
+    """InputError on a Linux machine without a display: the native viewer cannot open there."""
+    import os
+    import sys
+
+    if sys.platform == "linux" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise InputError("--open: this machine has no display; serve the web viewer instead with "
+                         "`mocap view SESSION_DIR --serve` (the README says how to reach it from another machine)")
 
 
 def parse_videos(items: list[str]) -> dict[str, Path]:
