@@ -42,14 +42,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def replay_screenshot(recording: Path, out: Path, wait_s: float = 40.0) -> None:
+def replay_screenshot(recording: Path, out: Path, wait_s: float = 60.0) -> None:
     """The web viewer on `recording`, served by the Rerun beside this Python, shot after `wait_s`."""
     web, grpc = _free_port(), _free_port()
     server = subprocess.Popen([sys.executable, "-m", "rerun", "--serve-web", "--web-viewer-port", str(web),
                                "--port", str(grpc), str(recording)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(3.0)
+        time.sleep(3.0 + recording.stat().st_size / 20e6)  # the server reads the whole file first
         url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
         with tempfile.TemporaryDirectory() as profile:
             subprocess.run([chromium(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader",

@@ -274,7 +274,7 @@ def test_videos_are_the_files_assets_with_a_frame_per_motion_frame(world, record
         expected = load_video(world.videos[name], name).timestamps_ns[np.maximum(frames - late, 0)]
         np.testing.assert_array_equal(np.array(stamps)[:, 0], expected)  # ... showing its first frame till then
     note_frames, labels = rec.series("/world/cameras/cam2/note", "Points2D:labels")
-    assert list(note_frames) == [0] and labels[0][0] == f"its clock starts {OFFSET:.2f} s later: its first frame until then"
+    assert list(note_frames) == [0] and labels[0][0] == f"starts {OFFSET:.2f} s later: first frame"
     assert "/world/cameras/cam1/note" not in rec.entities
     assert "/world/cameras/cam3/video" not in rec.entities
 

@@ -213,7 +213,7 @@ def log_video(
         rows, frames = np.concatenate([np.arange(start), rows]), np.concatenate([np.zeros(start, int), frames])
         if size is not None:
             note = camera_path(camera) + "/note"
-            text = f"its clock starts {motion.time[start] - motion.time[0]:.2f} s later: its first frame until then"
+            text = f"starts {motion.time[start] - motion.time[0]:.2f} s later: first frame"
             for row, item in ((0, rr.Points2D([[size[0] / 2, 0.06 * size[1]]], labels=[text], radii=[0.5],
                                               colors=[(255, 255, 0)], show_labels=True)),
                               (start, rr.Clear(recursive=False))):
