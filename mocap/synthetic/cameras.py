@@ -99,7 +99,7 @@ def place_cameras(
             dist = np.array([rng.uniform(-0.12, 0.02), rng.uniform(-0.02, 0.05), 0.0, 0.0, 0.0])
         camera = Camera(name, size, np.array([[focal, 0, (size[0] - 1) / 2], [0, focal, (size[1] - 1) / 2], [0, 0, 1]]),
                         dist, aim.cam_from_world)
-        rate = fps if k == 0 else fps * float(rng.choice(FRAME_RATES)) / 30.0  # 29.97: 30's NTSC rate
+        rate = float(fps) if k == 0 else float(rng.choice(FRAME_RATES)) * (fps / 30.0)  # 29.97: NTSC 30, exactly at 30
         offset = 0.0 if k == 0 else float(rng.uniform(-1.0, 1.0))
         frames = int(np.floor((duration - offset) * rate)) + 1
         shake = None
