@@ -4,6 +4,7 @@ against its ground truth."""
 from __future__ import annotations
 
 import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,9 +27,10 @@ class DemoOptions:
     out: Path = Path("mocap-demo")
     machine: str = "hitachi_ex3500"
     cameras: int = 3
-    cycles: int = 1
+    cycles: int = 5
     seed: int = 7
     scale: float = 0.5
+    fps: float = 15.0
 
 
 def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
@@ -47,6 +49,25 @@ def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
     return path
 
 
+def cycle_times(found: Path, truth: Path) -> str:
+    """The line on the cycles' times: how many have one (a cycle runs from its dig to the
+    next), their median, and the truth's."""
+    import numpy as np
+
+    from mocap.io.cycles_csv import load_cycle_table
+
+    def numbers(column) -> np.ndarray:
+        return np.array([float(v) if str(v).strip() else np.nan for v in column])
+
+    times = numbers(load_cycle_table(found)["cycle_time_s"])
+    true_times = np.diff(numbers(load_cycle_table(truth)["dig_start_time"]))
+    if not np.isfinite(times).any():
+        return "no cycle time: a cycle's time runs from its dig to the next"
+    n = int(np.isfinite(times).sum())
+    return (f"{n} cycle time{'s' if n != 1 else ''}, median {np.nanmedian(times):.1f} s "
+            f"(truth {np.median(true_times):.1f} s)")
+
+
 def run_demo(options: DemoOptions) -> int:
     import numpy as np
 
@@ -63,9 +84,10 @@ def run_demo(options: DemoOptions) -> int:
         if not Session.open(out).is_synthetic:
             raise InputError("exists and is not a synthetic session folder; choose another --out", path=out)
         shutil.rmtree(out)  # an earlier demo's folder: made again from scratch
-    print(f"== synth: {options.machine}, {options.cameras} cameras, {options.cycles} dig cycle(s), seed {options.seed}")
+    print(f"== synth: {options.machine}, {options.cameras} cameras, {options.cycles} dig cycle(s), "
+          f"{options.fps:g} fps, seed {options.seed}")
     print(run_synth(SynthRequest(options.machine, out, cameras=options.cameras, cycles=options.cycles,
-                                 seed=options.seed, scale=options.scale)))
+                                 seed=options.seed, scale=options.scale, fps=options.fps)))
     session = Session.open(out)
     digitise_first_frame(session, np.random.default_rng(options.seed))
     code = run_session(out, RunOptions(refine=True))
@@ -74,7 +96,12 @@ def run_demo(options: DemoOptions) -> int:
     print("== how close it came to the ground truth")
     print(format_score(score_session(out), session.machine()))
     print(format_analysis_score(score_files(session.results_dir / "cycles.csv", session.truth_dir / "cycles.csv")))
+    print(cycle_times(session.results_dir / "cycles.csv", session.truth_dir / "cycles.csv"))
+    mocap = Path(sys.executable).with_name("mocap")
+    mocap = str(mocap) if mocap.exists() else f"{sys.executable} -m mocap"
     print(f"\nresults in {out}/: calibration/cameras.toml, tracks/, results/points.csv, "
-          f"results/motion.csv, results/cycles.csv, results/report.html, results/session.rrd (open with: rerun {session.recording_path})")
+          f"results/motion.csv, results/cycles.csv, results/report.html, results/session_report.html, "
+          f"results/session.rrd\nopen the replay: {mocap} view {out} --open  "
+          f"(a headless or remote machine: {mocap} view {out} --serve)")
     print(f"demo took {time.perf_counter() - start:.0f} s")
     return 0

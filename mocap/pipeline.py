@@ -219,5 +219,14 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
             # the stages after it use the one-frame calibration
             steps = [s for s in session_steps(session, replace(options, refine=False)) if s.name not in done]
         done.add(step.name)
+    write_run_report(session)
     mark_complete(session.results_complete_path, "mocap run")
     return 0
+
+
+def write_run_report(session: Session) -> None:
+    """The session report (results/session_report.html) after the stages: the measurement's quality."""
+    from mocap.report.session_report import write_session_report
+
+    print("== report", flush=True)
+    print(f"wrote {write_session_report(session.root)}", flush=True)

@@ -517,3 +517,23 @@ def test_the_pruned_dtw_matrix_is_the_unpruned_one():
     np.testing.assert_array_equal(d[i, j], full[i, j])
     np.testing.assert_array_equal(d, d.T)
     assert d[2, 3] == 0.0
+
+
+def test_report_summary_matches_the_table_and_says_when_data_is_too_little():
+    from mocap.analysis.report import render_report, summary_rows
+
+    machine, motion, truth = truth_session("hitachi_ex3500", 3)
+    a = analyze(tip_series(motion))
+    times = a.table["cycle_time_s"][np.isfinite(a.table["cycle_time_s"])]
+    assert len(times) == len(a) - 1  # the last cycle has no next dig
+    rows = {row[0]: row for row in summary_rows(a)}
+    assert rows["cycle time (s)"][1] == f"{np.median(times):.1f}" and rows["cycle time (s)"][4] == len(times)
+    assert rows["dig (s)"][3] == f"{a.table['dig_s'].min():.1f}–{a.table['dig_s'].max():.1f}"
+    page = render_report(a, "t")
+    assert page.index("<h2>Summary") < page.index("<img")
+    assert "needs two" not in page and page.count("data:image/png;base64,") == 6
+    one = render_report(a.take(np.arange(len(a)) == 0), "t")
+    assert "One cycle: similarity needs two." in one and "One cycle: an adjustment needs two." in one
+    assert "need at least three" in one
+    # the session, its plan, the class figure and the one cycle's time (its next dig is in the motion)
+    assert one.count("data:image/png;base64,") == 4

@@ -699,6 +699,7 @@ for _name, _extra in {
     "scale-zero": ["--scale", "0", "--out", "new"],
     "machine-unknown": ["--machine", "nope", "--out", "new"],
     "hold-short": ["--hold", "0.1", "--out", "new"],
+    "fps-huge": ["--fps", "1000", "--out", "new"],
     "classes-bad": ["--classes", "4", "--out", "new"],
     "noise-negative": ["--noise", "-1", "--out", "new"],
     "redirect-not-a-probability": ["--redirect", "2", "--out", "new"],
@@ -714,6 +715,7 @@ for _name, _extra in {
     "out-in-proc": ["--out", "/proc/mocap-demo"],
     "cameras-zero": ["--cameras", "0"],
     "scale-huge": ["--scale", "100"],
+    "fps-zero": ["--fps", "0"],
 }.items():
     def _demo(d, extra=_extra):
         return ["demo", *[str(d / a) if a in ("tracks.csv", "session") else a for a in extra]] + \

@@ -26,7 +26,7 @@ LAYERS = {
     "mocap.io": 1,
     # the stages: compute from core types, read and write through io
     "mocap.detect": 2, "mocap.calibration": 2, "mocap.tracking": 2, "mocap.clocks": 2, "mocap.reconstruct": 2,
-    "mocap.analysis": 2, "mocap.interchange": 2, "mocap.viewer": 2, "mocap.synthetic": 2, "mocap.session": 2,
+    "mocap.analysis": 2, "mocap.report": 2, "mocap.interchange": 2, "mocap.viewer": 2, "mocap.synthetic": 2, "mocap.session": 2,
     # orchestration: the chain of stages, the API
     "mocap.evaluate": 3, "mocap.pipeline": 3, "mocap.batch": 3, "mocap.demo": 3, "mocap.api": 3, "mocap.live": 3,
     # the command line

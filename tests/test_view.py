@@ -165,17 +165,19 @@ def test_recording_has_the_entity_tree_timelines_and_blueprint(recorded):
 
 def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, recorded):
     _, rec = recorded
-    origins, overrides = [], {}
+    origins, overrides, selection = [], {}, None
     for chunk in rec.blueprint_chunks:
         batch = chunk.to_record_batch()
+        if "TimePanelBlueprint:time_selection" in batch.schema.names:
+            selection = batch.column("TimePanelBlueprint:time_selection").to_pylist()[-1][0]
         if "ViewBlueprint:space_origin" in batch.schema.names:
             origins += [o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist()]
         if "VisibleTimeRanges:ranges" in batch.schema.names:
             overrides[chunk.entity_path.split("/overrides")[1]] = batch.column("VisibleTimeRanges:ranges").to_pylist()[-1]
     assert sorted(origins) == sorted(
-        ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots/joints",
-         "plots/bucket", "plots/speed", "plots/uncertainty", "plots/uncertainty_m", "plots/extra_filled"]
-    )  # one unit per plot: angles and lengths apart, each other column alone
+        ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots", "plots", "plots"]
+    )  # three panels of plots: joints, the bucket, the measurement's quality (no phases without cycles' phases)
+    assert selection == {"min": world.cycles.start[0], "max": selection["max"]}  # opens on the first dig
     assert set(overrides) == {"/world/trail/1/visualizers", "/world/trail/2/visualizers"}
     ranges = {r["timeline"]: r["range"] for r in overrides["/world/trail/2/visualizers"]}
     assert set(ranges) == {"frame", "time"}
@@ -267,10 +269,13 @@ def test_videos_are_the_files_assets_with_a_frame_per_motion_frame(world, record
         blob = rec.static(path, "AssetVideo:blob")[0]
         assert bytes(blob) == world.videos[name].read_bytes()  # the file itself, not re-encoded
         frames, stamps = rec.series(path, "VideoFrameReference:timestamp")
-        late = round(offset * FPS)  # cam2's video starts 3 reference frames late
-        np.testing.assert_array_equal(frames, np.arange(late, N_FRAMES))
-        expected = load_video(world.videos[name], name).timestamps_ns[frames - late]
-        np.testing.assert_array_equal(np.array(stamps)[:, 0], expected)
+        late = round(offset * FPS)  # cam2's video starts 3 reference frames late ...
+        np.testing.assert_array_equal(frames, np.arange(N_FRAMES))
+        expected = load_video(world.videos[name], name).timestamps_ns[np.maximum(frames - late, 0)]
+        np.testing.assert_array_equal(np.array(stamps)[:, 0], expected)  # ... showing its first frame till then
+    note_frames, labels = rec.series("/world/cameras/cam2/note", "Points2D:labels")
+    assert list(note_frames) == [0] and labels[0][0] == f"starts {OFFSET:.2f} s later: first frame"
+    assert "/world/cameras/cam1/note" not in rec.entities
     assert "/world/cameras/cam3/video" not in rec.entities
 
 
@@ -577,3 +582,12 @@ def test_trails_coloured_by_class_phases_plotted_machine_framed_names_on_hover(w
     distance = np.linalg.norm(eye["EyeControls3D:position"] - eye["EyeControls3D:look_target"])
     assert distance < 2.0 * np.linalg.norm(high - low) + 1.0  # the machine's working range, not the cameras'
     assert eye["EyeControls3D:position"][1] < eye["EyeControls3D:look_target"][1]  # from the side
+
+
+def test_open_without_a_display_says_to_serve(tmp_path, monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    assert main(["view", str(tmp_path), "--open"]) == 2
+    err = capsys.readouterr().err
+    assert "no display" in err and "--serve" in err and len(err.splitlines()) == 1

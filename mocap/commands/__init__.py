@@ -19,5 +19,6 @@ COMMANDS = {  # name: one line of help; each command's module is imported only w
     "batch": "run every session under the paths through the chain on Dask, skip what is up to date",
     "export": "write markers (C3D, TRC), a machine model (URDF) or a session (COLMAP) for other tools",
     "demo": "make a synthetic session, run the whole chain and score it against the truth",
+    "report": "the session report: calibration, tracking, sync and fit quality, and what to fix first",
     "live": "the machine's pose frame by frame from cameras as they deliver (files, devices, streams)",
 }

@@ -24,8 +24,10 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=defaults.seed, help=f"random seed (default {defaults.seed})")
     p.add_argument("--scale", type=float, default=defaults.scale,
                    help=f"image scale of the 1920x1080 cameras (default {defaults.scale})")
+    p.add_argument("--fps", type=float, default=defaults.fps,
+                   help=f"the cameras' frame rate (default {defaults.fps:g}; the others at 1000/1001 of it or at it)")
     p.set_defaults(run=run)
 
 
 def run(args) -> int:
-    return run_demo(DemoOptions(args.out, args.machine, args.cameras, args.cycles, args.seed, args.scale))
+    return run_demo(DemoOptions(args.out, args.machine, args.cameras, args.cycles, args.seed, args.scale, args.fps))

@@ -30,6 +30,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--reactive", type=float, default=1.0, help="reactive dig noise, times nominal (0: none)")
     p.add_argument("--redirect", type=float, default=0.4, metavar="P",
                    help="probability of an operator's redirection per dig (default 0.4)")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="the first camera's frame rate; the others run at it or 1000/1001 of it (default 30)")
     p.add_argument("--hold", type=float, default=2.0, help="seconds the machine holds still at the start")
     p.add_argument("--scale", type=float, default=1.0, help="scale the image size, e.g. 0.5 for fast tests")
     p.add_argument("--codec", choices=CODECS, default="h264", help="h264 (PyAV) or mp4v (OpenCV); default h264")
@@ -58,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         size=args.size, classes=args.classes, distortion=args.distortion, shake=args.shake, bounce=args.bounce,
         reactive=args.reactive, redirect=args.redirect, hold=args.hold, scale=args.scale, codec=args.codec,
         noise=args.noise, blur=args.blur, exposure=args.exposure, dust=args.dust, clean=args.clean,
-        rolling_shutter=args.rolling_shutter, look=args.look, no_video=args.no_video,
+        rolling_shutter=args.rolling_shutter, look=args.look, no_video=args.no_video, fps=args.fps,
     )
     print(run_synth(request))
     return 0

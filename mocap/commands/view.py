@@ -10,7 +10,8 @@ from mocap.errors import InputError
 
 EXAMPLES = """examples:
   mocap view SESSION_DIR                       # writes SESSION_DIR/results/session.rrd
-  mocap view SESSION_DIR --spawn               # ... and opens it in the Rerun viewer
+  mocap view SESSION_DIR --open                # ... and opens it in the Rerun viewer
+  mocap view SESSION_DIR --serve               # ... serves a web viewer (a headless or remote machine)
   mocap view --machine hitachi_ex3500 --calibration cameras.toml --motion motion.csv \\
       --points points.csv --tracks tracks/cam1.csv tracks/cam2.csv --video cam1=cam1.mp4 \\
       --save dig.rrd
@@ -41,6 +42,8 @@ def add_parser(subparsers) -> None:
     out.add_argument("--connect", nargs="?", const="", metavar="URL", help="stream to a running viewer")
     out.add_argument("--serve", action="store_true", help="serve a web viewer until Ctrl-C")
     out.add_argument("--spawn", action="store_true", help="start the native viewer and stream to it")
+    out.add_argument("--open", action="store_true",
+                     help="save the recording (a session's results/session.rrd by default) and open it in the native viewer")
     p.set_defaults(run=run)
 
 
@@ -49,6 +52,8 @@ def run(args) -> int:
     from mocap.viewer.inputs import ReplayFiles
     from mocap.viewer.stage import run_view
 
+    if args.open:
+        check_display()
     files = ReplayFiles(
         machine=args.machine,
         calibration=args.calibration,
@@ -58,8 +63,30 @@ def run(args) -> int:
         videos=parse_videos(args.video),
         cycles=args.cycles,
     )
-    print(run_view(files, args.session, Sinks(args.save, args.connect, args.serve, args.spawn)))
+    sinks = Sinks(args.save, args.connect, args.serve, args.spawn)
+    if args.open and sinks.save is None:
+        if args.session is None:
+            raise InputError("--open opens a saved recording: pass --save FILE.rrd or a session folder")
+        from mocap.session import Session
+
+        sinks = Sinks(Session.open(args.session).recording_path, args.connect, args.serve, args.spawn)
+    print(run_view(files, args.session, sinks))
+    if args.open:
+        from mocap.viewer.replay import open_viewer
+
+        open_viewer(sinks.save)
+        print(f"opening {sinks.save} in the Rerun viewer")
     return 0
+
+
+def check_display() -> None:
+    """InputError on a Linux machine without a display: the native viewer cannot open there."""
+    import os
+    import sys
+
+    if sys.platform == "linux" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise InputError("--open: this machine has no display; serve the web viewer instead with "
+                         "`mocap view SESSION_DIR --serve` (the README says how to reach it from another machine)")
 
 
 def parse_videos(items: list[str]) -> dict[str, Path]:

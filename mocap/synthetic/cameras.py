@@ -66,6 +66,7 @@ def place_cameras(
     size: tuple[int, int] = (1920, 1080),
     distortion: bool = False,
     shake_deg: float = 0.0,
+    fps: float = 30.0,
 ) -> list[FieldCamera]:
     """`n` cameras around the machine.
 
@@ -98,13 +99,13 @@ def place_cameras(
             dist = np.array([rng.uniform(-0.12, 0.02), rng.uniform(-0.02, 0.05), 0.0, 0.0, 0.0])
         camera = Camera(name, size, np.array([[focal, 0, (size[0] - 1) / 2], [0, focal, (size[1] - 1) / 2], [0, 0, 1]]),
                         dist, aim.cam_from_world)
-        fps = 30.0 if k == 0 else float(rng.choice(FRAME_RATES))
+        rate = float(fps) if k == 0 else float(rng.choice(FRAME_RATES)) * (fps / 30.0)  # 29.97: NTSC 30, exactly at 30
         offset = 0.0 if k == 0 else float(rng.uniform(-1.0, 1.0))
-        frames = int(np.floor((duration - offset) * fps)) + 1
+        frames = int(np.floor((duration - offset) * rate)) + 1
         shake = None
         if shake_deg > 0:
             shake = SmoothNoise.random(rng, np.radians(shake_deg) * np.ones(3), (0.5, 6.0))
-        cameras.append(FieldCamera(camera, fps, offset, frames, shake))
+        cameras.append(FieldCamera(camera, rate, offset, frames, shake))
     return cameras
 
 

@@ -62,6 +62,7 @@ class SessionOptions:
     hold: float = 2.0
     readout: float = 0.0
     shapes: str = "boxes"
+    fps: float = 30.0
 
     def __post_init__(self) -> None:
         if self.shapes not in SHAPES:
@@ -75,6 +76,8 @@ class SessionOptions:
             raise ValueError(f"classes must be some of {CLASSES}, got {list(self.classes)}")
         if self.hold < 0.5:
             raise ValueError(f"hold must be at least 0.5 s, got {self.hold}")
+        if not 5.0 <= self.fps <= 120.0:
+            raise ValueError(f"fps must be 5..120, got {self.fps}")
         if not 0.0 <= self.readout <= 0.9:
             raise ValueError(f"readout must be 0..0.9 of the frame interval, got {self.readout}")
 
@@ -222,7 +225,7 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     reach = float(np.linalg.norm(plan.chain.offsets, axis=1).sum())
     cameras = place_cameras(options.n_cameras, working, reach, (plan.pile.azimuth, plan.truck.azimuth),
                             plan.duration, rng, size=options.size, distortion=options.distortion,
-                            shake_deg=options.shake_deg)
+                            shake_deg=options.shake_deg, fps=options.fps)
     normals = marker_normals(machine, boxes)
     solids = None
     if options.shapes == "meshes":

@@ -46,6 +46,7 @@ class SynthRequest:
     rolling_shutter: float | None = None
     look: str = "default"
     no_video: bool = False
+    fps: float = 30.0  # the first camera's; the others run at 1000/1001 of it
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -86,6 +87,8 @@ def run_synth(request: SynthRequest) -> str:
         raise InputError(f"--redirect {request.redirect}: a probability, give 0..1")
     if request.hold < 0.5:
         raise InputError(f"--hold {request.hold}: the machine must hold still at least 0.5 s")
+    if not 5.0 <= request.fps <= 120.0:
+        raise InputError(f"--fps {request.fps}: give a frame rate from 5 to 120")
     check_output_folder(request.out)
     if request.out.is_dir():
         check_free(request.out)  # another command writing the folder is named
@@ -116,7 +119,7 @@ def run_synth(request: SynthRequest) -> str:
         distortion=request.distortion or look.distortion, shake_deg=request.shake or look.shake_deg, bounce=request.bounce,
         reactive=request.reactive,
         redirect_probability=request.redirect, classes=parse_classes(request.classes), hold=request.hold,
-        readout=look.readout,
+        readout=look.readout, fps=request.fps,
     )
     session = make_session(machine, str(request.machine), options)
     request.out.mkdir(parents=True, exist_ok=True)  # an interrupted earlier run's folder is written over

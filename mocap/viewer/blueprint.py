@@ -44,13 +44,27 @@ def default_blueprint(
         eye_controls=controls,
     )
     images = [rrb.Spatial2DView(origin=camera_path(name), name=name) for name in cameras]
+    # at most four panels, each one kind of quantity: joints, the bucket, the measurement's
+    # quality (and everything else the motion holds), the cycles' phases
+    groups = [group for group, _ in plot_groups]
     plots = [
-        rrb.TimeSeriesView(origin="plots/joints", name="joints (deg / m)"),
-        rrb.TimeSeriesView(origin="plots/bucket", name="bucket angle (deg)"),
-        rrb.TimeSeriesView(origin="plots/speed", name="speed (m/s)"),
+        rrb.TimeSeriesView(origin="plots", contents=["+ plots/joints/**", "+ plots/joints_m/**"],
+                           name="joints (deg)" if "joints_m" not in groups else "joints (deg; prismatic m)"),
+        rrb.TimeSeriesView(origin="plots", contents=["+ plots/bucket/**", "+ plots/speed/**"],
+                           name="bucket angle (deg) and tip speed (m/s)"),
     ]
+    others = [g for g in groups if g != "joints_m"]
+    if others:
+        plots.append(rrb.TimeSeriesView(origin="plots", contents=[f"+ plots/{g}/**" for g in others],
+                                        name="measurement quality (sd) and other columns"))
     if phases:
-        plots.append(rrb.TimeSeriesView(origin="plots/phase", name="dig-cycle phase"))
-    plots += [rrb.TimeSeriesView(origin=f"plots/{group}", name=title) for group, title in plot_groups]
+        plots.append(rrb.TimeSeriesView(origin="plots/phase",
+                                        name="cycles: phase (1 dig, 2 swing loaded, 3 dump, 4 swing back)"))
     left = rrb.Vertical(scene_3d, rrb.Horizontal(*images), row_shares=[3, 1]) if images else scene_3d
-    return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]))
+    panel = None
+    if trails:  # opens on the first dig, playing it in a loop
+        first = trails[0]
+        panel = rrb.TimePanel(timeline="frame", play_state="playing", loop_mode="selection",
+                              time_selection=rrb.components.AbsoluteTimeRange(int(first.first_frame), int(first.frame[-1])))
+    return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]),
+                         *([panel] if panel is not None else []))

@@ -199,12 +199,28 @@ def log_cameras(rec: rr.RecordingStream, calibration: Calibration, scale: float)
 
 
 def log_video(
-    rec: rr.RecordingStream, camera: str, video: Video, motion: Motion, fps: float, offset: float
+    rec: rr.RecordingStream, camera: str, video: Video, motion: Motion, fps: float, offset: float,
+    size: tuple[int, int] | None = None,
 ) -> None:
-    """The camera's video asset and, at each motion frame, the video frame showing it."""
+    """The camera's video asset and, at each motion frame, the video frame showing it. A
+    camera whose video starts after the motion's first frame shows its first frame until
+    then, with a note (at the top of its image of `size`) saying why."""
     path = camera_path(camera) + "/video"
     rec.log(path, video.asset, static=True)
     rows, frames = scene.video_frame_rows(motion, len(video), fps, offset)
+    if len(rows) and rows[0] > 0:
+        start = int(rows[0])  # the motion row of the video's first frame
+        rows, frames = np.concatenate([np.arange(start), rows]), np.concatenate([np.zeros(start, int), frames])
+        if size is not None:
+            note = camera_path(camera) + "/note"
+            text = f"starts {motion.time[start] - motion.time[0]:.2f} s later: first frame"
+            for row, item in ((0, rr.Points2D([[size[0] / 2, 0.06 * size[1]]], labels=[text], radii=[0.5],
+                                              colors=[(255, 255, 0)], show_labels=True)),
+                              (start, rr.Clear(recursive=False))):
+                rec.set_time("frame", sequence=int(motion.frame[row]))
+                rec.set_time("time", duration=float(motion.time[row]))
+                rec.log(note, item)
+            rec.reset_time()
     if len(rows):
         rec.send_columns(
             path,

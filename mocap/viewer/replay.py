@@ -8,6 +8,9 @@ and records into them.
 from __future__ import annotations
 
 import logging
+import os
+import subprocess
+import sys
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -118,7 +121,7 @@ def record_replay(rec: rr.RecordingStream, replay: Replay) -> ReplaySummary:
             path = replay.videos.get(camera.name)
             video = None if path is None else load_video(path, camera.name)
             if video is not None:
-                record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k])
+                record.log_video(rec, camera.name, video, motion, replay.fps[k], offsets[k], camera.size)
                 with_video.append(camera.name)
             if replay.tracks is not None:
                 clocks = (replay.fps[k], offsets[k], replay.fps[0], offsets[0])
@@ -178,7 +181,7 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
     if file is not None:
         targets.append(rr.FileSink(file))
     if sinks.spawn:
-        rr.spawn(connect=False)
+        rr.spawn(connect=False, executable_path=rerun_executable())
         targets.append(rr.GrpcSink())
     if sinks.connect is not None:
         targets.append(rr.GrpcSink(sinks.connect or None))
@@ -197,8 +200,24 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
             f"{exc}; is a Rerun viewer running there? Start one with `rerun`, or use --spawn or --save"
         ) from None
     if server is not None:
-        rr.serve_web_viewer(open_browser=True, connect_to=server.uri)
+        rr.serve_web_viewer(open_browser=bool(os.environ.get("DISPLAY") or sys.platform != "linux"),
+                            connect_to=server.uri)
+        log.warning("web viewer at http://localhost:9090 (from another machine: ssh -L 9090:localhost:9090 "
+                    "-L 9876:localhost:9876 this machine, then open that address)")
     return summary
+
+
+def rerun_executable() -> str | None:
+    """The Rerun viewer installed beside this Python (a virtual environment's, whether or not
+    it is activated); None: search the PATH."""
+    beside = Path(sys.executable).with_name("rerun.exe" if os.name == "nt" else "rerun")
+    return str(beside) if beside.exists() else None
+
+
+def open_viewer(recording: Path) -> subprocess.Popen:
+    """Start the native Rerun viewer on a saved recording, detached from this process."""
+    return subprocess.Popen([sys.executable, "-m", "rerun", str(recording)], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
 
 def _serve_until_interrupted() -> None:

@@ -205,8 +205,8 @@ def working_view(motion: Motion, tip: str | None) -> tuple[np.ndarray, np.ndarra
     low, high = box.min(axis=0), box.max(axis=0)
     target = 0.5 * (low + high)
     extent = max(float(np.linalg.norm(high - low)), 1.0)
-    direction = np.array([-0.35, -1.0, 0.5])
-    return target + 1.1 * extent * direction / np.linalg.norm(direction), target
+    direction = np.array([-0.2, -1.0, 0.3])  # from the side, a little behind and above
+    return target + 1.8 * extent * direction / np.linalg.norm(direction), target
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""Reports on a session as a whole."""
