@@ -54,6 +54,9 @@ AUTO_MODELS = ("none", "k1", "k1k2")  # tried in turn by "auto" while the criter
 LABEL_RATIO = 5.0  # a camera's median distance this many times the other cameras' contradicts them
 LABEL_FLOOR_PX = 2.0  # ... and beyond this (a worse lens or a blurrier image stays within it)
 SYNC_MIN_FRAMES = 0.5  # a camera's clock this many frames off the first's names a wrong sync
+NOISE_RATIO = 5.0  # tracks lying this many times their own noise from the refined model contradict it
+LIE_FLOOR_PX = 2.0  # ... and beyond this (a lens a little off the model stays within it)
+RAYLEIGH_MEDIAN = 1.1774  # median length of a 2-D Gaussian of unit SD per axis
 
 
 @dataclass(frozen=True)
@@ -172,7 +175,8 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     noise = float(1.4826 * np.median(np.abs(residual[problem.seen]))) if problem.seen.any() else float("nan")
     names = [camera.name for camera in cameras]
     clocks = problem.clocks(solution.x)
-    contradiction = contradicting_camera(residual, problem.seen, clocks, names)
+    contradiction = contradicting_camera(residual, problem.seen, clocks, names) or contradicting_model(
+        distance[problem.seen], track_noise(pixels))
     if contradiction:
         raise ConvergenceError(f"{contradiction}; the calibration is left as it is")
     for name, median in zip(names, medians):
@@ -195,6 +199,34 @@ def image_velocity(pixels: np.ndarray) -> np.ndarray:
     behind[:, 1:] = pixels[:, 1:] - pixels[:, :-1]
     central = 0.5 * (ahead + behind)
     return np.where(np.isfinite(central), central, np.where(np.isfinite(ahead), ahead, behind))
+
+
+def track_noise(pixels: np.ndarray) -> float:
+    """The pixel noise (SD per coordinate, px) the 2-D tracks (C, F, M, 2) show by
+    themselves: a robust scale (1.4826 MAD) of their second differences over consecutive
+    frame rows, over sqrt(6) (noise alone gives second differences sqrt(6) times its SD).
+    A motion adds its acceleration: frames far apart (every k-th frame of a video, stills)
+    make the estimate larger, never smaller. NaN where no track has three consecutive points."""
+    pixels = np.asarray(pixels, dtype=float)
+    if pixels.shape[1] < 3:
+        return float("nan")
+    second = pixels[:, 2:] - 2 * pixels[:, 1:-1] + pixels[:, :-2]
+    second = second[np.isfinite(second)]
+    return float(1.4826 * np.median(np.abs(second)) / np.sqrt(6)) if second.size else float("nan")
+
+
+def contradicting_model(distance: np.ndarray, noise_px: float) -> str:
+    """The contradiction of the model as a whole, or "": the tracks' distances (N,) px from
+    the refined model (median) beyond NOISE_RATIO times what their own noise `noise_px`
+    (`track_noise`) gives and beyond LIE_FLOOR_PX: no camera, clock or lens explains it
+    (another machine's model, a calibration of another rig, labels of other markers)."""
+    if not distance.size or not np.isfinite(noise_px):
+        return ""
+    median = float(np.median(distance))
+    if median > max(NOISE_RATIO * RAYLEIGH_MEDIAN * noise_px, LIE_FLOOR_PX):
+        return (f"the tracks lie {median:.1f} px (median) from the refined model where their own noise is "
+                f"{noise_px:.2f} px: a wrong machine model, calibration or labels")
+    return ""
 
 
 def contradicting_camera(residual: np.ndarray, seen: np.ndarray, clocks: np.ndarray, names: list[str]) -> str:
