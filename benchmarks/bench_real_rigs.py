@@ -81,7 +81,7 @@ def real_refine() -> None:
     c, m = np.nonzero(np.isfinite(pixels[:, 0, :, 0]))
     templates = [template_camera(n, size) for n in names]
     print(f"\n1. Refine on OpenCV's sample stereo pairs ({pixels.shape[1]} pairs, 9x6 board), adjacent-corner RMSE (squares)")
-    print(f"{'lens':>6} {'one frame':>10} {'refined':>8} {'median px (L, R)':>17} {'noise px':>8} {'OpenCV':>8}")
+    print(f"{'lens':>6} {'one frame':>10} {'refined':>8} {'median px (L, R)':>17} {'noise px':>8} {'tracks px':>9} {'OpenCV':>8}")
     peer = adjacent_rmse(opencv_peer(board, pixels, size, names), pixels)
     for lens in ("none", "auto"):
         options = replace(CalibrationOptions(), distortion="none" if lens == "none" else "k1")
@@ -90,7 +90,7 @@ def real_refine() -> None:
                                                                fit_principal_point=lens != "none"))
         medians = ", ".join(f"{x:.2f}" for x in result.median_px)
         print(f"{lens:>6} {adjacent_rmse(one, pixels):>10.4f} {adjacent_rmse(result.cameras, pixels):>8.4f} "
-              f"{medians:>17} {result.noise_px:>8.2f} {peer:>8.4f}")
+              f"{medians:>17} {result.noise_px:>8.2f} {result.track_noise_px:>9.2f} {peer:>8.4f}")
 
 
 def sparse(seeds: int) -> None:

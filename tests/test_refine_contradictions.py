@@ -73,6 +73,18 @@ def test_cameras_not_genlocked_are_refined_and_the_noise_reported(video):
         assert np.linalg.norm(refined.center - true.center) < np.linalg.norm(initial.center - true.center)
 
 
+def test_tracks_the_model_contradicts_as_a_whole_are_refused(video):
+    """Every camera's tracks labelled alike but as other markers of the model (no camera
+    stands out, no clock explains it): the tracks lie far from any refined model, where their
+    own frame-to-frame noise is ~0.5 px; named with both figures, nothing returned."""
+    machine, _, start, shifted = video
+    pixels = shifted(0.0)
+    swapped = pixels[:, :, np.random.default_rng(0).permutation(pixels.shape[2])]
+    with pytest.raises(ConvergenceError, match=r"the tracks lie \d+\.\d px \(median\) from the refined model where "
+                                               r"their own noise is 0\.[4-6]\d px: a wrong machine model"):
+        refine(machine, start, swapped, RefineOptions(frames=15))
+
+
 def adjacent_rmse(cameras, pixels) -> float:
     """RMS error, in squares, of adjacent corners' distance (the 9x6 board's truth)."""
     xyz = triangulate(list(cameras), pixels, TriangulateOptions(max_error_px=1e6)).xyz

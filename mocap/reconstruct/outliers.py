@@ -12,8 +12,8 @@ actually has (`factor` times their robust scale), never less than `floor_px`.
 Frames need not be a dense video: every k-th frame of one, or a board moved far between
 stills, bends a track between its frames by more than the noise. The bend is read from the
 data (`track_bends`): a track whose midpoint predictions err from its motion by more than
-`floor_px / factor` (and than noise alone makes that estimate) is not judged, whatever its
-frame numbers say.
+`floor_px / factor` (and than noise alone makes that estimate), at its turns and at the
+median of its frames alike, is not judged, whatever its frame numbers say.
 
 Shapes: F frames, M markers.
 """
@@ -29,6 +29,7 @@ from mocap.reconstruct.chi2 import upper_quantile
 RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median length of a 2-D Gaussian of unit SD per axis
 NOISE_BEND = 2.5  # pure noise gives n points' bend estimate up to this / sqrt(n) of their noise
 BEND_PERCENTILE = 90  # a track's bend and noise read at this percentile: a motion bends it at its turns
+DENSE_PERCENTILE = 50  # whether a track is dense, read at the median of its frames: a wild pixel bends it at three
 
 
 # Predictions of a pixel from its neighbours, exact for a steady motion: {frame offset:
@@ -67,7 +68,7 @@ def track_outliers(pixels: np.ndarray, factor: float = 6.0, floor_px: float = 3.
     return flagged
 
 
-def track_bends(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def track_bends(points: np.ndarray, percentile: float = BEND_PERCENTILE) -> tuple[np.ndarray, np.ndarray]:
     """Per track of points (F, M, D) (consecutive frames, NaN where not seen): how far its
     motion bends it between frames and its noise, both as the error they give the midpoint
     of the frames either side (M,), read from the second differences over one and two
@@ -83,7 +84,7 @@ def track_bends(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         two[np.isnan(one)], one[np.isnan(two)] = np.nan, np.nan
     counted = np.isfinite(one).any(0)
     m1, m2 = np.full(points.shape[1], np.nan), np.full(points.shape[1], np.nan)
-    m1[counted], m2[counted] = (np.nanpercentile(d[:, counted], BEND_PERCENTILE, 0) for d in (one, two))
+    m1[counted], m2[counted] = (np.nanpercentile(d[:, counted], percentile, 0) for d in (one, two))
     bend2 = np.maximum(m2 - m1, 0.0) / 15.0  # (2 a)^2 - (a / 2)^2 = 15 (a / 2)^2
     return np.sqrt(bend2), np.sqrt(np.maximum(m1 - bend2, 0.0))
 
@@ -93,12 +94,18 @@ def dense_tracks(points: np.ndarray, least: float) -> np.ndarray:
     neighbours in time to predict it: its bend between frames (`track_bends`) is within
     `least` / 4 (the midpoint of f-2 and f+2 errs by four times it), or within what noise
     alone gives the estimate from n points (`NOISE_BEND` / sqrt(n) of the noise: beyond it
-    once in a thousand noise tracks). A track too short to tell counts as dense."""
-    bend, noise = track_bends(points)
+    once in a thousand noise tracks). It is sparse only where it bends so at the median of
+    its frames as well as at `BEND_PERCENTILE`: sparse frames bend a track at every frame,
+    a wild pixel at the three around it (which would excuse itself from being judged).
+    A track too short to tell counts as dense."""
     points = np.asarray(points, dtype=float)
     counted = np.isfinite(points[2:-2, ..., 0] + points[1:-3, ..., 0] + points[3:-1, ..., 0] + points[:-4, ..., 0]
                           + points[4:, ..., 0]).sum(0) if len(points) >= 5 else np.zeros(points.shape[1])
-    return ~(bend > np.maximum(NOISE_BEND / np.sqrt(np.maximum(counted, 1)) * noise, least / 4))
+    sparse = np.ones(points.shape[1], bool)
+    for percentile in (BEND_PERCENTILE, DENSE_PERCENTILE):  # sparse frames bend a track at both, a wild pixel at the first
+        bend, noise = track_bends(points, percentile)
+        sparse &= bend > np.maximum(NOISE_BEND / np.sqrt(np.maximum(counted, 1)) * noise, least / 4)
+    return ~sparse
 
 
 def _deviations(pixels: np.ndarray, values: np.ndarray, todo: np.ndarray):

@@ -54,6 +54,9 @@ AUTO_MODELS = ("none", "k1", "k1k2")  # tried in turn by "auto" while the criter
 LABEL_RATIO = 5.0  # a camera's median distance this many times the other cameras' contradicts them
 LABEL_FLOOR_PX = 2.0  # ... and beyond this (a worse lens or a blurrier image stays within it)
 SYNC_MIN_FRAMES = 0.5  # a camera's clock this many frames off the first's names a wrong sync
+NOISE_RATIO = 5.0  # tracks lying this many times their own noise from the refined model contradict it
+LIE_FLOOR_PX = 2.0  # ... and beyond this (a lens a little off the model stays within it)
+RAYLEIGH_MEDIAN = 1.1774  # median length of a 2-D Gaussian of unit SD per axis
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,9 @@ class RefineResult:
     tried by "auto" (empty otherwise); median_px (C,) each camera's median distance (px)
     from its tracks to the refined cameras; noise_px the tracks' noise estimated from the
     residuals (robust SD per coordinate, px); clock_frames (C,) each camera's clock offset
-    from the first's, frames (a fraction of a frame: cameras not genlocked)."""
+    from the first's, frames (a fraction of a frame: cameras not genlocked); track_noise_px
+    the noise the 2-D tracks show by themselves (`track_noise`, px), against which the
+    distances are judged."""
 
     cameras: tuple[Camera, ...]
     machine: Machine
@@ -116,6 +121,7 @@ class RefineResult:
     median_px: tuple[float, ...] = ()
     noise_px: float = float("nan")
     clock_frames: tuple[float, ...] = ()
+    track_noise_px: float = float("nan")
 
 
 def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
@@ -172,7 +178,8 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     noise = float(1.4826 * np.median(np.abs(residual[problem.seen]))) if problem.seen.any() else float("nan")
     names = [camera.name for camera in cameras]
     clocks = problem.clocks(solution.x)
-    contradiction = contradicting_camera(residual, problem.seen, clocks, names)
+    own_noise = track_noise(pixels)
+    contradiction = contradicting_camera(residual, problem.seen, clocks, names, distance[problem.seen], own_noise)
     if contradiction:
         raise ConvergenceError(f"{contradiction}; the calibration is left as it is")
     for name, median in zip(names, medians):
@@ -183,7 +190,7 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
             )
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
                         criterion if len(models) > 1 else {}, medians, noise,
-                        tuple(float(c) for c in clocks))
+                        tuple(float(c) for c in clocks), own_noise)
 
 
 def image_velocity(pixels: np.ndarray) -> np.ndarray:
@@ -197,31 +204,61 @@ def image_velocity(pixels: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(central), central, np.where(np.isfinite(ahead), ahead, behind))
 
 
-def contradicting_camera(residual: np.ndarray, seen: np.ndarray, clocks: np.ndarray, names: list[str]) -> str:
+def track_noise(pixels: np.ndarray) -> float:
+    """The pixel noise (SD per coordinate, px) the 2-D tracks (C, F, M, 2) show by
+    themselves: a robust scale (1.4826 MAD) of their second differences over consecutive
+    frame rows, over sqrt(6) (noise alone gives second differences sqrt(6) times its SD).
+    A motion adds its acceleration: frames far apart (every k-th frame of a video, stills)
+    make the estimate larger, never smaller. NaN where no track has three consecutive points."""
+    pixels = np.asarray(pixels, dtype=float)
+    if pixels.shape[1] < 3:
+        return float("nan")
+    second = pixels[:, 2:] - 2 * pixels[:, 1:-1] + pixels[:, :-2]
+    second = second[np.isfinite(second)]
+    return float(1.4826 * np.median(np.abs(second)) / np.sqrt(6)) if second.size else float("nan")
+
+
+def contradicting_model(distance: np.ndarray, noise_px: float) -> str:
+    """The contradiction of the model as a whole, or "": the tracks' distances (N,) px from
+    the refined model (median) beyond NOISE_RATIO times what their own noise `noise_px`
+    (`track_noise`) gives and beyond LIE_FLOOR_PX: no camera, clock or lens explains it
+    (another machine's model, a calibration of another rig, labels of other markers)."""
+    if not distance.size or not np.isfinite(noise_px):
+        return ""
+    median = float(np.median(distance))
+    if median > max(NOISE_RATIO * RAYLEIGH_MEDIAN * noise_px, LIE_FLOOR_PX):
+        return (f"the tracks lie {median:.1f} px (median) from the refined model where their own noise is "
+                f"{noise_px:.2f} px: a wrong machine model, calibration or labels")
+    return ""
+
+
+def contradicting_camera(residual: np.ndarray, seen: np.ndarray, clocks: np.ndarray, names: list[str],
+                         distance: np.ndarray | None = None, noise_px: float = float("nan")) -> str:
     """The contradiction that the refined cameras' residuals (C, K, M, 2) and clock offsets
-    (C,) frames name, or "".
+    (C,) frames name, or "": one camera's wrong labels, then the model as a whole
+    (`contradicting_model` of the seen distances (N,) and the tracks' own noise), then a
+    wrong sync (a clock far off that left the residuals small).
 
     A wrong sync: a camera's clock SYNC_MIN_FRAMES or more off the first's (a fraction of a
     frame is cameras not genlocked, solved for and kept). Wrong labels: a camera's median
     distance is LABEL_RATIO times the other cameras' (the median over them) and beyond
     LABEL_FLOOR_PX. Noise and a lens model a little off spread over every camera alike and
     name nothing."""
-    distance = np.linalg.norm(residual, axis=-1)
-    medians = np.array([np.median(d[s]) if np.any(s) else 0.0 for d, s in zip(distance, seen)])
-    off = np.abs(clocks) >= SYNC_MIN_FRAMES
-    if off.any():
-        listed = ", ".join(f"{name} {clock:+.1f}" for name, clock in zip(names[1:], clocks[1:]))
-        return (f"the cameras' clocks disagree by up to {np.abs(clocks).max():.1f} frames ({listed} frames from "
-                f"{names[0]}'s, estimated from the tracks' motion): a wrong sync (run `mocap sync`, or check the "
-                "frame times)")
-    if len(names) < 2:
-        return ""
-    for c, name in enumerate(names):
+    lengths = np.linalg.norm(residual, axis=-1)
+    medians = np.array([np.median(d[s]) if np.any(s) else 0.0 for d, s in zip(lengths, seen)])
+    for c, name in enumerate(names if len(names) >= 2 else ()):
         others = float(np.median(np.delete(medians, c)))
         if medians[c] > max(LABEL_RATIO * others, LABEL_FLOOR_PX):
             return (f"camera {name}'s tracks lie {medians[c]:.1f} px (median) from the refined cameras, the other "
                     f"cameras' {others:.2f} px: its labels contradict theirs (markers swapped, or a tracker on the "
                     "wrong marker)")
+    if distance is not None and (model := contradicting_model(distance, noise_px)):
+        return model
+    if np.any(np.abs(clocks) >= SYNC_MIN_FRAMES):
+        listed = ", ".join(f"{name} {clock:+.1f}" for name, clock in zip(names[1:], clocks[1:]))
+        return (f"the cameras' clocks disagree by up to {np.abs(clocks).max():.1f} frames ({listed} frames from "
+                f"{names[0]}'s, estimated from the tracks' motion): a wrong sync (run `mocap sync`, or check the "
+                "frame times)")
     return ""
 
 
