@@ -27,8 +27,8 @@ OVERLAID = 8
 PHASES = (("dig_s", "dig"), ("swing_loaded_s", "swing loaded"), ("dump_s", "dump"), ("swing_back_s", "swing back"))
 
 
-def _png(fig) -> str:
-    """The figure as an <img>, drawn once: its margins are fixed (`_subplots`), where
+def figure_png(fig) -> str:
+    """The figure as an <img>, drawn once: its margins are fixed (`page_subplots`), where
     bbox_inches="tight" would draw it twice."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
@@ -36,7 +36,7 @@ def _png(fig) -> str:
     return f'<img src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
 
 
-def _subplots(rows: int, cols: int, size: tuple[float, float], left: float, right: float, bottom: float,
+def page_subplots(rows: int, cols: int, size: tuple[float, float], left: float, right: float, bottom: float,
               top: float, wgap: float = 0.0, hgap: float = 0.0):
     """plt.subplots (axes always 2-D) with margins and gaps between axes in inches, fixed
     for the figure's labels: a constrained layout measures every text once more before
@@ -52,7 +52,7 @@ def _subplots(rows: int, cols: int, size: tuple[float, float], left: float, righ
 def _class_figures(a: Analysis) -> str:
     labels = list(a.templates)
     width = min(4.6 * len(labels), 13.5)
-    fig, axes = _subplots(2, len(labels), (width, 7.6), left=0.75, right=0.15, bottom=0.55, top=0.35,
+    fig, axes = page_subplots(2, len(labels), (width, 7.6), left=0.75, right=0.15, bottom=0.55, top=0.35,
                           wgap=0.8, hgap=0.75)
     t, series = a.table, a.series
     for col, label in enumerate(labels):
@@ -85,7 +85,7 @@ def _class_figures(a: Analysis) -> str:
         path_ax.legend(fontsize=7, loc="upper left")  # a fixed place: "best" searches every line's points
         for ax in (path_ax, angle_ax):
             ax.grid(alpha=0.3)
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _bars(x: np.ndarray, bottom: np.ndarray, top: np.ndarray, width: float = 0.8) -> np.ndarray:
@@ -114,7 +114,7 @@ def _timeline_figure(a: Analysis) -> str:
     """The session over time: swing angle, tip height and bucket angle, phases shaded,
     cycles numbered."""
     s = a.series
-    fig, axes = _subplots(3, 1, (13, 6.4), left=0.85, right=0.2, bottom=0.55, top=0.55, hgap=0.15)
+    fig, axes = page_subplots(3, 1, (13, 6.4), left=0.85, right=0.2, bottom=0.55, top=0.55, hgap=0.15)
     axes = axes[:, 0]
     t = s.time - s.time[0]
     for ax, values, name in zip(axes, (np.degrees(s.azimuth), s.height, np.degrees(s.angle)),
@@ -138,7 +138,7 @@ def _timeline_figure(a: Analysis) -> str:
     axes[-1].set_xlabel(f"time from the first frame (s); frame {int(s.frame[0])} at 0 s")
     if drawn:
         axes[0].legend(loc="lower left", bbox_to_anchor=(0.0, 1.09), ncols=len(drawn), fontsize=8, frameon=False)
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _plan_figure(a: Analysis) -> str:
@@ -146,7 +146,7 @@ def _plan_figure(a: Analysis) -> str:
     each dig in its cycle's colour, the dumps marked."""
     s = a.series
     x, y = s.reach * np.cos(s.azimuth), s.reach * np.sin(s.azimuth)
-    fig, axes = _subplots(1, 1, (8, 5.5), left=0.8, right=1.5, bottom=0.6, top=0.35)
+    fig, axes = page_subplots(1, 1, (8, 5.5), left=0.8, right=1.5, bottom=0.6, top=0.35)
     ax = axes[0, 0]
     ax.plot(x, y, color="0.7", lw=0.8, label="tip path")
     for k in range(len(a)):
@@ -161,11 +161,11 @@ def _plan_figure(a: Analysis) -> str:
     ax.set(xlabel="x (m)", ylabel="y (m)", title="Plan view of the bucket tip")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the plot: it covers no path
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _time_figure(a: Analysis) -> str:
-    fig, axes = _subplots(1, 1, (max(6.5, 0.3 * len(a) + 3), 3.8), left=0.7, right=0.2, bottom=0.55, top=0.65)
+    fig, axes = page_subplots(1, 1, (max(6.5, 0.3 * len(a) + 3), 3.8), left=0.7, right=0.2, bottom=0.55, top=0.65)
     ax = axes[0, 0]
     x = np.asarray(a.table["cycle"], dtype=float)
     bottom = np.zeros(len(a))
@@ -182,12 +182,12 @@ def _time_figure(a: Analysis) -> str:
     ax.set(xlabel="cycle", ylabel="time (s)")
     ax.set_title("Cycle-time breakdown (a cycle ends where the next dig starts)", pad=22)
     ax.legend(fontsize=8, ncols=4, loc="lower left", bbox_to_anchor=(0.0, 1.0), frameon=False, borderaxespad=0.2)
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _similarity_figure(a: Analysis) -> str:
     order = np.lexsort((a.table["cycle"], a.table["class"].astype(str)))
-    fig, axes = _subplots(1, 1, (6.2, 5.0), left=1.05, right=0.2, bottom=0.55, top=0.35)
+    fig, axes = page_subplots(1, 1, (6.2, 5.0), left=1.05, right=0.2, bottom=0.55, top=0.35)
     ax = axes[0, 0]
     image = ax.imshow(a.distance[np.ix_(order, order)], cmap="viridis", vmin=0)
     ticks = np.arange(len(order)) if len(order) <= 30 else np.arange(0, len(order), len(order) // 15)
@@ -196,12 +196,12 @@ def _similarity_figure(a: Analysis) -> str:
     ax.set_xlabel("cycle")
     ax.set_title("DTW distance between digs (sorted by class)")
     fig.colorbar(image, ax=ax, label="DTW distance (dig lengths and rad, summed over the path)")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _relation_figure(a: Analysis) -> str:
     # the bottom margin holds the correlation matrix's vertical parameter names
-    fig, axes = _subplots(1, 2, (13, 5.6), left=0.75, right=0.75, bottom=1.45, top=0.35, wgap=1.6)
+    fig, axes = page_subplots(1, 2, (13, 5.6), left=0.75, right=0.75, bottom=1.45, top=0.35, wgap=1.6)
     axes = axes[0]
     labels = a.table["class"]
     for rel in a.relations:
@@ -221,7 +221,7 @@ def _relation_figure(a: Analysis) -> str:
     axes[1].set_yticks(range(len(RELATED)), RELATED, fontsize=7)
     axes[1].set_title("Correlation of cycle parameters")
     fig.colorbar(image, ax=axes[1], label="Pearson r")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _spread(values) -> tuple[str, str, str, int]:
@@ -248,15 +248,15 @@ def _summary(a: Analysis) -> str:
     counts = {label: int((t["class"] == label).sum()) for label in dict.fromkeys(t["class"])}
     timed = int(np.isfinite(np.asarray(t["cycle_time_s"], dtype=float)).sum())
     redirected = int((t["redirection"] != "none").sum())
-    facts = _table(["cycles", "with a cycle time", "classes", "redirections"],
+    facts = html_table(["cycles", "with a cycle time", "classes", "redirections"],
                    [[len(a), timed, ", ".join(f"{k}: {v}" for k, v in counts.items()), redirected]])
-    spread = _table(["", "median", "middle half (IQR)", "range", "cycles"], summary_rows(a))
+    spread = html_table(["", "median", "middle half (IQR)", "range", "cycles"], summary_rows(a))
     note = ("" if timed else "<p>No cycle has a time: a cycle's time runs from its dig to the next dig, "
             "and this motion holds one dig only.</p>")
     return facts + spread + note
 
 
-def _table(header: list[str], rows: list[list]) -> str:
+def html_table(header: list[str], rows: list[list]) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>" for row in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
@@ -293,7 +293,7 @@ def render_report(a: Analysis, title: str) -> str:
         rows = [[c, k, _f(t["start_height_m"][i]), _f(t["start_angle_deg"][i], 0), _f(t["dig_s"][i], 1),
                  _f(t["dig_length_m"][i]), _f(t["scale_x"][i]), _f(t["scale_z"][i]), t["redirection_kind"][i],
                  t["class_rule"][i]] for i, (c, k) in enumerate(zip(t["cycle"], t["class"]))]
-        parts.append(_table(["cycle", "class", "start height m", "start angle deg", "dig s", "length m",
+        parts.append(html_table(["cycle", "class", "start height m", "start angle deg", "dig s", "length m",
                              "scale x", "scale z", "redirection", "rule"], rows))
         parts.append("<h2>2. How similar consecutive cycles are</h2>")
         parts.append(_similarity_figure(a) if len(a) > 1 else _say("One cycle: similarity needs two."))
@@ -303,7 +303,7 @@ def render_report(a: Analysis, title: str) -> str:
         groups = [["outliers" if g == 0 else g, int((a.grouping.groups == g).sum()),
                    ", ".join(f"{k} {int(((a.grouping.groups == g) & (t['class'] == k)).sum())}" for k in a.templates)]
                   for g in np.unique(a.grouping.groups)]
-        parts.append(_table(["group", "digs", "by class"], groups))
+        parts.append(html_table(["group", "digs", "by class"], groups))
         parts.append("<h2>3. Adjustment from one load to the next</h2>")
         if len(a) > 1:
             changes = [c for c in t if c.startswith("change_")]
@@ -311,7 +311,7 @@ def render_report(a: Analysis, title: str) -> str:
                     for i, c in enumerate(t["cycle"]) if i > 0]
             parts.append("<p>Each cycle's change from the one before it (units of the columns of cycles.csv: "
                          "m, deg, s; scales as ratios).</p>"
-                         + _table(["cycle", "DTW to previous"] + [c.removeprefix("change_") for c in changes], rows))
+                         + html_table(["cycle", "DTW to previous"] + [c.removeprefix("change_") for c in changes], rows))
         else:
             parts.append(_say("One cycle: an adjustment needs two."))
         parts.append("<h2>4. Relations between motion parameters</h2>")

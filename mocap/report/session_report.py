@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.analysis.report import _png, _subplots, _table, plt
+from mocap.analysis.report import figure_png, page_subplots, html_table, plt
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
 from mocap.io.cameras_toml import Calibration, load_calibration
@@ -157,7 +157,7 @@ def advice(q: SessionQuality) -> list[str]:
 
 
 def _plan_figure(q: SessionQuality) -> str:
-    fig, axes = _subplots(1, 1, (7.5, 6), left=0.8, right=0.2, bottom=0.6, top=0.35)
+    fig, axes = page_subplots(1, 1, (7.5, 6), left=0.8, right=0.2, bottom=0.6, top=0.35)
     ax = axes[0, 0]
     if q.motion is not None and "bucket_tip" in q.motion.point_names:
         tip = q.motion.point("bucket_tip")
@@ -174,13 +174,13 @@ def _plan_figure(q: SessionQuality) -> str:
     ax.set(xlabel="x (m)", ylabel="y (m)", title="Where the cameras stand (bars: ±2 SD from the one frame)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper right")  # not "best": it would search the tip's every point
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _heat_figure(q: SessionQuality) -> str:
     shown = [c for c in q.cameras if c.share.size]
     rows = max(len(c.markers) for c in shown)
-    fig, axes = _subplots(len(shown), 1, (12, len(shown) * (0.16 * rows + 0.9) + 0.8), left=0.8, right=1.3,
+    fig, axes = page_subplots(len(shown), 1, (12, len(shown) * (0.16 * rows + 0.9) + 0.8), left=0.8, right=1.3,
                           bottom=0.55, top=0.3, hgap=0.6)
     image = None
     for ax, c in zip(axes[:, 0], shown):
@@ -191,12 +191,12 @@ def _heat_figure(q: SessionQuality) -> str:
         ax.set_title(f"{c.name}: share of frames each marker was tracked ({BIN_S:g} s bins)", fontsize=9)
     axes[-1, 0].set_xlabel("time (s, reference clock)")
     fig.colorbar(image, ax=axes[:, 0].tolist(), label="share of frames tracked", fraction=0.03, pad=0.01)
-    return _png(fig)
+    return figure_png(fig)
 
 
 def _fit_figure(motion: Motion) -> str:
     t = motion.time
-    fig, axes = _subplots(2, 1, (12, 5.2), left=0.8, right=0.2, bottom=0.55, top=0.55, hgap=0.2)
+    fig, axes = page_subplots(2, 1, (12, 5.2), left=0.8, right=0.2, bottom=0.55, top=0.55, hgap=0.2)
     rms = _column(motion, "rms_px")
     top, bottom = axes[0, 0], axes[1, 0]
     if rms is not None:
@@ -219,7 +219,7 @@ def _fit_figure(motion: Motion) -> str:
             ax.legend(fontsize=8, loc="upper right", ncols=4)
     top.tick_params(labelbottom=False)
     top.set_title("The fit over time")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def render_session_report(q: SessionQuality, title: str) -> str:
@@ -231,7 +231,7 @@ def render_session_report(q: SessionQuality, title: str) -> str:
              f"{c.focal_sd_px:.1f}", f"{np.linalg.norm(c.position):.0f}"] for c in q.cameras]
     parts.append(f"<h2>Cameras</h2><p>Calibration from one frame (noise estimate {sigma}): its residual and "
                  "the SDs of its parameters; the plan shows the refined position where there is one.</p>"
-                 + _table(["camera", "residual px", "refined over the session", "position SD x / y / z m",
+                 + html_table(["camera", "residual px", "refined over the session", "position SD x / y / z m",
                            "azimuth / elevation / tilt SD deg", "focal SD px", "distance m"], rows))
     parts.append(_plan_figure(q))
     parts.append("<h2>Markers tracked over time</h2>")
@@ -241,7 +241,7 @@ def render_session_report(q: SessionQuality, title: str) -> str:
     parts.append("<h2>Sync</h2><p>Each camera's clock against the first camera's. The sync stage records no "
                  "uncertainty of its offsets; the session's refinement and fit residuals below show what an "
                  "offset error would leave.</p>"
-                 + _table(["camera", "fps", "time offset s", "offset (first camera's frames)"], rows))
+                 + html_table(["camera", "fps", "time offset s", "offset (first camera's frames)"], rows))
     parts.append("<h2>The fit</h2>")
     if q.motion is None or len(q.motion) == 0:
         parts.append('<p class="note">No fitted motion yet: run `mocap fit` (or `mocap run`).</p>')
