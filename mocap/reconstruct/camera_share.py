@@ -1,0 +1,139 @@
+"""What the cameras' own uncertainty adds to each frame's parameter covariance.
+
+A calibration's error is common to every frame it is used on: the fit's covariance from the
+pixel noise leaves it out, however many frames there are. With the calibration's
+covariance Σ of the cameras' parameters (`CameraCovariance`, as `calibrate` writes it), a
+frame's parameters move by X δc for a camera error δc, X = H⁻¹ Jᵀ W D its response (H =
+Jᵀ W J the frame's weighted normal matrix, D the predicted pixels' derivative by the camera
+parameters), so that X Σ Xᵀ is added to the frame's covariance, as the markers' offsets' is
+(mocap.reconstruct.offsets).
+
+Camera parameters, named ``<camera>.<parameter>`` as the calibration names them: ``rx ry
+rz`` the Rodrigues vector of ``cam_from_world``, ``tx ty tz`` its translation (m), ``f`` the
+focal length (fx, fy in proportion), ``cx cy`` the principal point, ``k1 k2 p1 p2 k3``
+the distortion. Shapes: C cameras, F frames, M markers, P parameters, K camera parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocap.camera import Camera, project_cam
+from mocap.geometry import Rigid, rotvec_to_matrix
+from mocap.machine import Machine
+from mocap.reconstruct.kinmodel import FrameState, KinematicModel
+
+CAMERA_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz", "f", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+_CHUNK = 2048  # frames at a time
+_STEP_SDS = 1e-3  # finite-difference step in SDs of the parameter
+
+
+@dataclass(frozen=True)
+class CameraCovariance:
+    """names (K,) ``<camera>.<parameter>``; matrix (K, K) their covariance."""
+
+    names: tuple[str, ...]
+    matrix: np.ndarray
+
+    def __post_init__(self) -> None:
+        k = len(self.names)
+        if np.shape(self.matrix) != (k, k):
+            raise ValueError(f"a camera covariance of {k} parameters must be ({k}, {k}), got {np.shape(self.matrix)}")
+
+    @classmethod
+    def of_cameras(cls, names, covariance: np.ndarray, cameras) -> CameraCovariance:
+        """The cameras' block of a covariance over `names` (joints and the rest left out)."""
+        camera_names = {c.name for c in cameras}
+        keep = [i for i, n in enumerate(names)
+                if "." in n and n.rsplit(".", 1)[0] in camera_names and n.rsplit(".", 1)[1] in CAMERA_PARAMETERS]
+        return cls(tuple(names[i] for i in keep), np.asarray(covariance, dtype=float)[np.ix_(keep, keep)])
+
+    def to_table(self) -> dict:
+        return {"parameters": list(self.names), "matrix": self.matrix.tolist()}
+
+    @classmethod
+    def from_table(cls, table: dict) -> CameraCovariance:
+        return cls(tuple(table["parameters"]), np.asarray(table["matrix"], dtype=float))
+
+    def with_cameras(self, cameras) -> CameraCovariance:
+        """Only the parameters of `cameras` (by name)."""
+        return CameraCovariance.of_cameras(self.names, self.matrix, cameras)
+
+
+def perturbed(camera: Camera, parameter: str, delta: float) -> Camera:
+    """`camera` with one named parameter moved by `delta`."""
+    pose, matrix, distortion = camera.cam_from_world, camera.matrix.copy(), np.broadcast_to(camera.distortion, 5).copy()
+    if parameter[0] == "r" and parameter[1:] in ("x", "y", "z"):
+        rotvec = pose.rotvec.copy()
+        rotvec["xyz".index(parameter[1])] += delta
+        pose = Rigid(rotvec_to_matrix(rotvec), pose.translation)
+    elif parameter[0] == "t" and parameter[1:] in ("x", "y", "z"):
+        translation = pose.translation.copy()
+        translation["xyz".index(parameter[1])] += delta
+        pose = Rigid(pose.rotation, translation)
+    elif parameter == "f":
+        scale = (matrix[0, 0] + delta) / matrix[0, 0]
+        matrix[0, 0] *= scale
+        matrix[1, 1] *= scale
+    elif parameter in ("cx", "cy"):
+        matrix["xy".index(parameter[1]), 2] += delta
+    else:
+        distortion[("k1", "k2", "p1", "p2", "k3").index(parameter)] += delta
+    return Camera(camera.name, camera.size, matrix, distortion, pose)
+
+
+def camera_share(machine: Machine, cameras: list[Camera], fit, covariance: CameraCovariance | None) -> np.ndarray | float:
+    """(F, P, P) what the cameras' covariance adds to each frame's parameter covariance of
+    `fit` (a JointFit of `machine` seen by `cameras`), 0.0 without a covariance."""
+    if covariance is None or not len(covariance.names) or not np.any(covariance.matrix):
+        return 0.0
+    index = {c.name: k for k, c in enumerate(cameras)}
+    names = [n for n in covariance.names if n.rsplit(".", 1)[0] in index]
+    if not names:
+        return 0.0
+    chosen = [covariance.names.index(n) for n in names]
+    sigma = covariance.matrix[np.ix_(chosen, chosen)]
+    steps = _STEP_SDS * np.sqrt(np.maximum(np.diag(sigma), 0.0))
+    out = np.zeros(fit.covariance.shape)
+    weights = np.nan_to_num(fit.weights, nan=0.0)  # (C, F, M): 0 where unseen
+    for start in range(0, len(fit.joints), _CHUNK):
+        part = slice(start, start + _CHUNK)
+        response = _response(machine, cameras, fit, part, weights[:, part], names, steps, index)
+        out[part] = response @ sigma @ np.swapaxes(response, 1, 2)
+    return np.where((fit.valid & fit.explained)[:, None, None], out, 0.0)
+
+
+def _response(machine, cameras, fit, part: slice, weights: np.ndarray, names, steps, index) -> np.ndarray:
+    """(F, P, K) the frames' parameters' response to the camera parameters."""
+    joints = np.nan_to_num(fit.joints[part])
+    rotation = translation = None
+    if fit.base is not None:
+        base = np.nan_to_num(fit.base[part])
+        rotation, translation = rotvec_to_matrix(base[:, :3]), base[:, 3:]
+    model = KinematicModel(machine, tuple(cameras), base_motion=fit.base is not None)
+    world, d_world = model.world_markers(FrameState(joints, rotation, translation, np.zeros(len(joints))))
+    n_frames, n_params = len(joints), d_world.shape[-1]
+    hessian = np.zeros((n_frames, n_params, n_params))
+    gradient = np.zeros((n_frames, n_params, len(names)))
+    jacobians, predicted = [], []
+    for c, camera in enumerate(cameras):
+        rot = camera.cam_from_world.rotation
+        uv, d_uv = project_cam(world @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+        jq = np.nan_to_num(d_uv @ rot) @ d_world  # (F, M, 2, P)
+        w = weights[c] * np.isfinite(uv[..., 0])
+        hessian += np.einsum("fmap,fmaq,fm->fpq", jq, jq, w)
+        jacobians.append(jq * w[..., None, None])
+        predicted.append(uv)
+    for k, (name, step) in enumerate(zip(names, steps)):
+        if not step > 0:
+            continue
+        camera_name, parameter = name.rsplit(".", 1)
+        c = index[camera_name]
+        moved = perturbed(cameras[c], parameter, step)
+        rot = moved.cam_from_world.rotation
+        uv = project_cam(world @ rot.T + moved.cam_from_world.translation, moved.matrix, moved.distortion)
+        d_pixel = np.nan_to_num((uv - predicted[c]) / step)  # (F, M, 2)
+        gradient[:, :, k] = np.einsum("fmap,fma->fp", jacobians[c], d_pixel)
+    return np.linalg.solve(hessian + 1e-9 * np.eye(n_params), gradient)
