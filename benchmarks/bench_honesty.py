@@ -53,12 +53,16 @@ def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
     tolerance = Tolerance(options.tolerance) if field else None
     fit_options = FitOptions(tolerance=tolerance)
 
-    def ratios(key: str, cameras_used, covariance: CameraCovariance | None) -> None:
-        if field:
-            result = fit_with_offsets(scene.model, cameras_used, pixels, options=fit_options)
-            fit, shared, fitted = result.fit, result.shared, result.offsets.apply(scene.model)
+    def ratios(key: str, cameras_used, covariance: CameraCovariance | None, model=scene.model,
+               estimated: bool = False) -> None:
+        if estimated:  # the markers estimated with the cameras: their uncertainty is in the covariance
+            fit = fit_joints(model, cameras_used, pixels, options=FitOptions(tolerance=Tolerance()))
+            shared, fitted = 0.0, model
+        elif field:
+            result = fit_with_offsets(model, cameras_used, pixels, options=fit_options)
+            fit, shared, fitted = result.fit, result.shared, result.offsets.apply(model)
         else:
-            fit, shared, fitted = fit_joints(scene.model, cameras_used, pixels, options=fit_options), 0.0, scene.model
+            fit, shared, fitted = fit_joints(model, cameras_used, pixels, options=fit_options), 0.0, model
         ok = fit.valid & fit.explained
         for suffix, extra in (("", camera_share(fitted, cameras_used, fit, covariance)), ("_pixels", 0.0)):
             tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance + shared + extra)
@@ -79,11 +83,11 @@ def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
     ratios("one_frame", list(result.cameras), covariance)
     if with_refine:
         try:
-            refined = refine(scene.model, list(result.cameras), pixels, RefineOptions(frames=FRAMES))
+            refined = refine(scene.model, list(result.cameras), pixels, RefineOptions(frames=FRAMES, tolerance=tolerance))
         except InputError as exc:
             out["refine_refused"] = str(exc)[:80]
             return out
-        ratios("refined", list(refined.cameras), getattr(refined, "camera_covariance", None))
+        ratios("refined", list(refined.cameras), refined.camera_covariance, refined.machine, field)
     return out
 
 

@@ -16,7 +16,7 @@ the distortion. Shapes: C cameras, F frames, M markers, P parameters, K camera p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,6 +62,13 @@ class CameraCovariance:
         return CameraCovariance.of_cameras(self.names, self.matrix, cameras)
 
 
+def named_parameters(camera: Camera) -> np.ndarray:
+    """(14,) a camera's parameters in the order of CAMERA_PARAMETERS."""
+    pose, matrix = camera.cam_from_world, camera.matrix
+    return np.r_[pose.rotvec, pose.translation, matrix[0, 0], matrix[0, 2], matrix[1, 2],
+                 np.broadcast_to(camera.distortion, 5)]
+
+
 def perturbed(camera: Camera, parameter: str, delta: float) -> Camera:
     """`camera` with one named parameter moved by `delta`."""
     pose, matrix, distortion = camera.cam_from_world, camera.matrix.copy(), np.broadcast_to(camera.distortion, 5).copy()
@@ -85,12 +92,16 @@ def perturbed(camera: Camera, parameter: str, delta: float) -> Camera:
 
 
 def camera_share(machine: Machine, cameras: list[Camera], fit, covariance: CameraCovariance | None) -> np.ndarray | float:
-    """(F, P, P) what the cameras' covariance adds to each frame's parameter covariance of
-    `fit` (a JointFit of `machine` seen by `cameras`), 0.0 without a covariance."""
+    """(F, P, P) what the calibration's covariance adds to each frame's parameter covariance
+    of `fit` (a JointFit of `machine` seen by `cameras`), 0.0 without a covariance. Besides
+    the cameras' parameters the covariance may hold markers' offsets ``<marker>.dx`` (m, in
+    the marker's link frame, as refine estimates them with the cameras)."""
     if covariance is None or not len(covariance.names) or not np.any(covariance.matrix):
         return 0.0
     index = {c.name: k for k, c in enumerate(cameras)}
-    names = [n for n in covariance.names if n.rsplit(".", 1)[0] in index]
+    markers = set(machine.marker_names)
+    names = [n for n in covariance.names if n.rsplit(".", 1)[0] in index
+             or (n.rsplit(".", 1)[0] in markers and n.rsplit(".", 1)[-1] in _OFFSETS)]
     if not names:
         return 0.0
     chosen = [covariance.names.index(n) for n in names]
@@ -105,15 +116,19 @@ def camera_share(machine: Machine, cameras: list[Camera], fit, covariance: Camer
     return np.where((fit.valid & fit.explained)[:, None, None], out, 0.0)
 
 
+_OFFSETS = ("dx", "dy", "dz")
+
+
 def _response(machine, cameras, fit, part: slice, weights: np.ndarray, names, steps, index) -> np.ndarray:
-    """(F, P, K) the frames' parameters' response to the camera parameters."""
+    """(F, P, K) the frames' parameters' response to the calibration's parameters."""
     joints = np.nan_to_num(fit.joints[part])
     rotation = translation = None
     if fit.base is not None:
         base = np.nan_to_num(fit.base[part])
         rotation, translation = rotvec_to_matrix(base[:, :3]), base[:, 3:]
+    state = FrameState(joints, rotation, translation, np.zeros(len(joints)))
     model = KinematicModel(machine, tuple(cameras), base_motion=fit.base is not None)
-    world, d_world = model.world_markers(FrameState(joints, rotation, translation, np.zeros(len(joints))))
+    world, d_world = model.world_markers(state)
     n_frames, n_params = len(joints), d_world.shape[-1]
     hessian = np.zeros((n_frames, n_params, n_params))
     gradient = np.zeros((n_frames, n_params, len(names)))
@@ -129,11 +144,23 @@ def _response(machine, cameras, fit, part: slice, weights: np.ndarray, names, st
     for k, (name, step) in enumerate(zip(names, steps)):
         if not step > 0:
             continue
-        camera_name, parameter = name.rsplit(".", 1)
-        c = index[camera_name]
-        moved = perturbed(cameras[c], parameter, step)
-        rot = moved.cam_from_world.rotation
-        uv = project_cam(world @ rot.T + moved.cam_from_world.translation, moved.matrix, moved.distortion)
-        d_pixel = np.nan_to_num((uv - predicted[c]) / step)  # (F, M, 2)
-        gradient[:, :, k] = np.einsum("fmap,fma->fp", jacobians[c], d_pixel)
+        owner, parameter = name.rsplit(".", 1)
+        if owner in index:  # a camera's parameter: its own pixels move
+            c = index[owner]
+            moved = perturbed(cameras[c], parameter, step)
+            rot = moved.cam_from_world.rotation
+            uv = project_cam(world @ rot.T + moved.cam_from_world.translation, moved.matrix, moved.distortion)
+            d_pixel = np.nan_to_num((uv - predicted[c]) / step)  # (F, M, 2)
+            gradient[:, :, k] = np.einsum("fmap,fma->fp", jacobians[c], d_pixel)
+            continue
+        m = machine.marker_names.index(owner)  # a marker's offset: every camera's pixels of it move
+        positions = machine.marker_positions.copy()
+        positions[m, _OFFSETS.index(parameter)] += step
+        shifted = KinematicModel(replace(machine, marker_positions=positions), tuple(cameras),
+                                 base_motion=fit.base is not None).world_markers(state)[0]
+        for c, camera in enumerate(cameras):
+            rot = camera.cam_from_world.rotation
+            uv = project_cam(shifted[:, m] @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion)
+            d_pixel = np.nan_to_num((uv - predicted[c][:, m]) / step)  # (F, 2)
+            gradient[:, :, k] += np.einsum("fap,fa->fp", jacobians[c][:, m], d_pixel)
     return np.linalg.solve(hessian + 1e-9 * np.eye(n_params), gradient)
