@@ -10,6 +10,7 @@ from mocap.camera import Camera
 from mocap.io.cameras_toml import Calibration, joints_to_table
 from mocap.io.points_csv import Points
 from mocap.machine import REVOLUTE, Machine
+from mocap.reconstruct.camera_share import CameraCovariance
 
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
@@ -76,6 +77,8 @@ def to_calibration(result: CalibrationResult, frame: int) -> Calibration:
     }
     if result.warnings:
         metadata["warnings"] = list(result.warnings)
+    metadata["camera_covariance"] = CameraCovariance.of_cameras(
+        result.parameter_names, result.covariance, result.cameras).to_table()
     if not result.per_camera:
         metadata["joints"] = joints_to_table(result.joints, machine)
         metadata["joints_sd"] = _joint_sd_table(result.joints_sd, machine)

@@ -55,7 +55,14 @@ class CameraCovariance:
 
     @classmethod
     def from_table(cls, table: dict) -> CameraCovariance:
-        return cls(tuple(table["parameters"]), np.asarray(table["matrix"], dtype=float))
+        """From ``{parameters, matrix}``; ValueError unless the matrix is K x K finite numbers,
+        symmetric with a non-negative diagonal."""
+        names, matrix = tuple(str(n) for n in table["parameters"]), np.asarray(table["matrix"], dtype=float)
+        if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
+            raise ValueError(f"{len(names)} parameters need a {len(names)} x {len(names)} matrix of finite numbers")
+        if np.any(np.diag(matrix) < 0) or not np.allclose(matrix, matrix.T, rtol=1e-6, atol=0):
+            raise ValueError("a covariance is symmetric with a non-negative diagonal")
+        return cls(names, matrix)
 
     def with_cameras(self, cameras) -> CameraCovariance:
         """Only the parameters of `cameras` (by name)."""
