@@ -174,7 +174,7 @@ def _shown_tolerance(machine: Machine, result: CalibrationResult, noise_px: floa
                       for c, m in zip((result.cameras[k] for k in camera), marker)])
     focal = np.array([result.cameras[k].focal for k in camera])
     scale = focal * spread[marker] / np.maximum(np.abs(depth), 1e-6)
-    return noise.model_error_fraction(squared, scale, marker, noise_px)
+    return noise.model_error_fraction(squared, scale, marker, noise_px, result.sigma_px)
 
 
 def _calibrate(machine, observations, templates, options, guess) -> CalibrationResult:
