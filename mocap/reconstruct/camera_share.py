@@ -120,7 +120,15 @@ def camera_share(machine: Machine, cameras: list[Camera], fit, covariance: Camer
         part = slice(start, start + _CHUNK)
         response = _response(machine, cameras, fit, part, weights[:, part], names, steps, index)
         out[part] = response @ sigma @ np.swapaxes(response, 1, 2)
-    return np.where((fit.valid & fit.explained)[:, None, None], out, 0.0)
+    good = fit.valid & fit.explained
+    if not good.any():
+        return 0.0
+    # a frame the fit did not explain (the smoother fills it) takes its nearest explained frame's
+    explained, frames = np.flatnonzero(good), np.arange(len(good))
+    place = np.searchsorted(explained, frames)
+    after, before = explained[np.minimum(place, len(explained) - 1)], explained[np.maximum(place - 1, 0)]
+    nearest = np.where(np.abs(before - frames) < np.abs(after - frames), before, after)
+    return out[np.where(good, frames, nearest)]
 
 
 _OFFSETS = ("dx", "dy", "dz")
