@@ -166,8 +166,10 @@ def at_bound(covariance: np.ndarray, rng) -> float:
     return float(np.median(np.linalg.norm(draws, axis=1) / np.sqrt(np.trace(covariance, axis1=1, axis2=2))))
 
 
-def one_scene(seed: int, field: bool, stages: str = "all", field_options: SceneOptions = FIELD) -> dict:
-    """One scene's rows; `stages`: all, calibration or triangulation."""
+def one_scene(seed: int, field: bool, stages: str = "all", field_options: SceneOptions = FIELD,
+              stated: bool = True) -> dict:
+    """One scene's rows; `stages`: all, calibration or triangulation; `stated`: the field
+    scenes' tolerance told to the calibration (else it estimates one where the residuals show it)."""
     rng = np.random.default_rng(seed)
     options = field_options if field else SceneOptions()
     try:
@@ -181,7 +183,7 @@ def one_scene(seed: int, field: bool, stages: str = "all", field_options: SceneO
     if stages == "triangulation":
         return {**out, **triangulation_rows(scene, seed, field, noise)}
     templates = [template_camera(c.name, c.size) for c in cameras]
-    calibration_options = CalibrationOptions(tolerance=Tolerance(options.tolerance) if field else None)
+    calibration_options = CalibrationOptions(tolerance=Tolerance(options.tolerance) if field and stated else None)
     try:
         covariance = calibration_centre_covariance(machine, cameras, scene.joints[0],
                                                    scene.observations(inliers_only=True), noise, sd)
@@ -202,7 +204,7 @@ def one_scene(seed: int, field: bool, stages: str = "all", field_options: SceneO
             out["naive_calibration"] = float(np.median(naive_calibration(scene, rng) / bound))
             from_truth(out, scene, templates, calibration_options, result, bound)
             inliers = scene.observations(inliers_only=True)
-            for key, prior in (("calibration_stated_prior", tape_sd(calibration_options.tolerance,
+            for key, prior in (("calibration_stated_prior", tape_sd(Tolerance(options.tolerance),
                                                                     scene.model.marker_positions)),
                                ("calibration_exact_model", None)):
                 other = calibration_centre_covariance(machine, cameras, scene.joints[0], inliers, noise, prior)
@@ -430,6 +432,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"field scenes' share of wild pixels (default {FIELD.outliers:g})")
     parser.add_argument("--occlusion", type=float, default=FIELD.occlusion,
                         help=f"field scenes' share of hidden markers (default {FIELD.occlusion:g})")
+    parser.add_argument("--unstated", action="store_true",
+                        help="field scenes' tolerance not told to the calibration (it estimates one from the residuals)")
     parser.add_argument("--rows", help="also write every scene's figures to this file (JSON lines)")
     parser.add_argument("--refined", type=int, default=0, metavar="N",
                         help="also N clean scenes through calibrate, refine and fit (default 0)")
@@ -449,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds = [seed + (10**6 if field else 0) for seed in range(args.first, args.first + args.scenes)]
         with multiprocessing.Pool(args.jobs) if args.jobs > 1 else nullcontext() as pool:
             rows = (pool.starmap if pool else itertools.starmap)(
-                one_scene, [(seed, field, stages, field_options) for seed in seeds])
+                one_scene, [(seed, field, stages, field_options, not args.unstated) for seed in seeds])
             rows = list(rows)
         everything += rows
         report(name, rows, keys)

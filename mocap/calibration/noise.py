@@ -76,3 +76,45 @@ def pixel_robust_loss(n_pixel_rows: int):
         return out
 
     return loss
+
+
+MODEL_ERROR_MARKERS = 3  # markers that must show the model error before a tolerance is estimated
+MAX_ESTIMATED_TOLERANCE = 0.2  # a fraction beyond this is a wrong model, not a tape measure
+SHOWN_NOISE_RATIO = 1.5  # residuals whose robust SD is this many times the stated noise show model error
+_FAR = 5.0  # residuals beyond this many of their SDs (wild pixels) are left out of the estimate
+
+
+def model_error_fraction(squared: np.ndarray, scale: np.ndarray, markers: np.ndarray, noise_px: float,
+                         shown_px: float) -> float | None:
+    """The tolerance (a fraction of each marker's coordinates) that a fit's residuals show,
+    or None where they show none beyond the pixel noise.
+
+    squared (N,) each observation's squared residual length px²; scale (N,) px, what a
+    fraction of 1 moves it in its image (per axis: the projected SD of every coordinate off
+    by up to itself, uniformly); markers (N,) marker indices; noise_px the pixel noise per
+    axis (one frame cannot tell it from model error: the stated one); shown_px the noise the
+    fit's residuals show (leverage counted, `pixel_noise`). Model error is shown where that
+    is SHOWN_NOISE_RATIO times the stated noise and MODEL_ERROR_MARKERS markers lie beyond 2
+    of its SDs: many markers off, not a few wild pixels. Each residual's variance
+    per axis is then noise² + t² scale², t² fitted by weighted least squares on the squared
+    lengths (iterated, residuals beyond 5 of their SDs left out as wild). The uniform bound
+    is sqrt(3) times that SD, as `Tolerance` reads it.
+    """
+    y = np.asarray(squared, dtype=float) / 2.0
+    s2 = np.asarray(scale, dtype=float) ** 2
+    noise2 = noise_px**2
+    if len(y) < 8 or shown_px <= SHOWN_NOISE_RATIO * noise_px:
+        return None
+    beyond = y > 4.0 * noise2
+    if len(np.unique(np.asarray(markers)[beyond])) < MODEL_ERROR_MARKERS:
+        return None
+    b = float(np.median(np.maximum(y - noise2, 0.0) / np.maximum(s2, 1e-12)))
+    for _ in range(30):
+        variance = noise2 + b * s2
+        w = (y <= _FAR**2 * variance) / variance**2
+        b_new = max(float(np.sum(w * (y - noise2) * s2) / max(np.sum(w * s2 * s2), 1e-300)), 0.0)
+        done = abs(b_new - b) <= 1e-6 * b
+        b = b_new
+        if done:
+            break
+    return float(min(np.sqrt(3.0 * b), MAX_ESTIMATED_TOLERANCE)) if b > 0 else None

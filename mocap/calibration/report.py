@@ -10,6 +10,7 @@ from mocap.camera import Camera
 from mocap.io.cameras_toml import Calibration, joints_to_table
 from mocap.io.points_csv import Points
 from mocap.machine import REVOLUTE, Machine
+from mocap.reconstruct.camera_share import CameraCovariance
 
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
@@ -76,6 +77,10 @@ def to_calibration(result: CalibrationResult, frame: int) -> Calibration:
     }
     if result.warnings:
         metadata["warnings"] = list(result.warnings)
+    if result.estimated_tolerance is not None:
+        metadata["estimated_tolerance"] = float(result.estimated_tolerance)
+    metadata["camera_covariance"] = CameraCovariance.of_cameras(
+        result.parameter_names, result.covariance, result.cameras).to_table()
     if not result.per_camera:
         metadata["joints"] = joints_to_table(result.joints, machine)
         metadata["joints_sd"] = _joint_sd_table(result.joints_sd, machine)
@@ -163,7 +168,10 @@ def format_report(result: CalibrationResult, frame: int) -> str:
     if result.marker_offsets is not None:
         moved = np.linalg.norm(result.marker_offsets, axis=1)
         worst = np.argsort(-moved)[:3]
-        lines.append("markers fitted within the model's tolerance, largest moves: " + ", ".join(
+        within = ("the model's tolerance" if result.estimated_tolerance is None else
+                  f"an estimated tolerance of {100 * result.estimated_tolerance:.1f} % (none stated; the residuals "
+                  "showed the markers off beyond the pixel noise)")
+        lines.append(f"markers' positions fitted within {within}, largest moves: " + ", ".join(
             f"{machine.marker_names[m]} {moved[m]:.3f} m" for m in worst))
     if result.outliers:
         lines.append("outliers (dropped): " + ", ".join(

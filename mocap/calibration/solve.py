@@ -106,6 +106,7 @@ class CalibrationResult:
     marker_offsets: np.ndarray | None = None  # (M, 3) m, link frames: fitted within the tolerance
     marker_offsets_sd: np.ndarray | None = None  # (M, 3)
     warnings: tuple[str, ...] = ()  # what the data leave doubtful, one sentence each
+    estimated_tolerance: float | None = None  # the markers' tolerance estimated from the residuals (none stated)
 
     @property
     def std(self) -> np.ndarray:
@@ -137,7 +138,46 @@ def calibrate(
     observations: N rows of (camera index into `templates`, marker index, pixel).
     templates: one Camera per camera giving name and image size (and the principal point
     and distortion used when they are not fitted).
+
+    With no tolerance stated (neither in `options` nor in the model), where the residuals
+    show model error (many markers off beyond the pixel noise, more the farther they reach:
+    `noise.model_error_fraction`), the tolerance is estimated from them and the frame
+    calibrated again within it (`estimated_tolerance` in the result); an explicit
+    tolerance, an exact one (``Tolerance()``) too, is used as stated.
     """
+    result = _calibrate(machine, observations, templates, options, guess)
+    if options.tolerance is not None or machine.tolerance:  # a tolerance stated (an exact model too) wins
+        return result
+    fraction = _shown_tolerance(machine, result, options.noise_px)
+    if fraction is None:
+        return result
+    log.info("the residuals show the markers' positions off by about %.1f %% (no tolerance stated): calibrated "
+             "again within it", 100 * fraction)
+    try:
+        again = _calibrate(machine, observations, templates, replace(options, tolerance=Tolerance(fraction)), guess)
+    except InputError as failure:
+        log.info("the calibration within the estimated tolerance failed (%s): the exact model's kept", failure)
+        return result
+    return replace(again, estimated_tolerance=fraction)
+
+
+def _shown_tolerance(machine: Machine, result: CalibrationResult, noise_px: float) -> float | None:
+    """The tolerance the residuals of an exact model's calibration show (`noise.model_error_fraction`)."""
+    if result.per_camera:
+        return None
+    index = {c.name: k for k, c in enumerate(result.cameras)}
+    camera = np.array([index[r.camera] for r in result.residuals])
+    marker = machine.marker_index([r.marker for r in result.residuals])
+    squared = np.array([np.sum(r.residual**2) for r in result.residuals])
+    spread = np.linalg.norm(tape_sd(Tolerance(0.5), machine.marker_positions), axis=1) / 0.5 / np.sqrt(3.0)  # (M,) m per axis, a fraction of 1
+    depth = np.array([(c.cam_from_world.rotation @ result.markers_world[m] + c.cam_from_world.translation)[2]
+                      for c, m in zip((result.cameras[k] for k in camera), marker)])
+    focal = np.array([result.cameras[k].focal for k in camera])
+    scale = focal * spread[marker] / np.maximum(np.abs(depth), 1e-6)
+    return noise.model_error_fraction(squared, scale, marker, noise_px, result.sigma_px)
+
+
+def _calibrate(machine, observations, templates, options, guess) -> CalibrationResult:
     names = [t.name for t in templates]
     tolerance = machine.tolerance if options.tolerance is None else options.tolerance
     layout = Layout(

@@ -9,7 +9,9 @@ explains the frame's pixels within the noise: the smoother treats the frame as m
 
 With a stated tolerance (the fit options' or the model's) the markers' offsets from their
 measured positions are estimated over the session (mocap.reconstruct.offsets) and their
-uncertainty, common to all frames, is added to every frame's after smoothing.
+uncertainty, common to all frames, is added to every frame's after smoothing; so is the
+calibration's (its covariance of the cameras, and of the markers' offsets where refine
+estimated them: mocap.reconstruct.camera_share), an error common to all frames too.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from mocap.camera import Camera
 from mocap.io.motion_csv import Motion, base_columns
 from mocap.machine import Machine
+from mocap.reconstruct.camera_share import CameraCovariance, camera_share
 from mocap.reconstruct.base_check import BaseCheck, check_base_motion
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
@@ -54,12 +57,14 @@ def reconstruct_motion(
     smoothing: bool = True,
     initial: np.ndarray | None = None,
     choose_base: bool = False,
+    camera_covariance: CameraCovariance | None = None,
 ) -> MotionResult:
     """Fit, smooth and measure the machine's motion.
 
     frame (F,) reference frames; time (F,) s; pixels (C, F, M, 2) on the reference clock.
     With `choose_base` and a fixed base in `fit_options`, the base is fitted per frame
     instead when a sample of frames says it moves (`mocap.reconstruct.base_check`).
+    `camera_covariance`: the calibration's, carried into every frame's SDs.
     """
     fit_options = fit_options or FitOptions()
     fit, offsets, shared = _fit(machine, cameras, pixels, fit_options, initial)
@@ -71,6 +76,10 @@ def reconstruct_motion(
             start = np.where(np.isfinite(fit.joints), fit.joints, np.nan_to_num(np.nanmedian(fit.joints, axis=0)))
             fit_options = replace(fit_options, base_motion=True)
             fit, offsets, shared = _fit(machine, cameras, pixels, fit_options, start)
+    if offsets is not None:  # the markers' offsets estimated here: the calibration's cameras' part only
+        camera_covariance = None if camera_covariance is None else camera_covariance.with_cameras(cameras)
+    shared = shared + camera_share(machine if offsets is None else offsets.apply(machine), cameras, fit,
+                                   camera_covariance)
     base_motion = fit.base is not None
     values = fit.joints if not base_motion else np.c_[fit.joints, fit.base]
     n_joints = machine.n_joints

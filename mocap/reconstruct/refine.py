@@ -40,9 +40,11 @@ from mocap.camera import Camera, project_cam
 from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import Rigid, cross, matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine, Tolerance
+from mocap.reconstruct.camera_share import CAMERA_PARAMETERS, CameraCovariance, named_parameters
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 from mocap.reconstruct.lens_start import board_poses
+from mocap.reconstruct.offsets import tape_sd
 from mocap.reconstruct.sparse_lm import Solution, levenberg_marquardt
 
 log = logging.getLogger(__name__)
@@ -122,6 +124,7 @@ class RefineResult:
     noise_px: float = float("nan")
     clock_frames: tuple[float, ...] = ()
     track_noise_px: float = float("nan")
+    camera_covariance: CameraCovariance | None = None
 
 
 def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
@@ -190,7 +193,54 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
             )
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
                         criterion if len(models) > 1 else {}, medians, noise,
-                        tuple(float(c) for c in clocks), own_noise)
+                        tuple(float(c) for c in clocks), own_noise,
+                        camera_covariance(problem, solution.x, options.scale_px, noise))
+
+
+def camera_covariance(problem: "_Bundle", x: np.ndarray, scale_px: float, noise_px: float) -> CameraCovariance | None:
+    """The refined cameras' covariance (named as the calibration names them, with the
+    markers' offsets when they were refined) from the bundle's normal equations at the
+    solution: (Jᵀ W J)⁻¹ over the free parameters, the pixel rows over the tracks' noise
+    `noise_px` squared with their Huber weights, the markers' prior rows at their own SDs;
+    the camera block carried to the cameras' named parameters by their derivative by the
+    bundle's increments."""
+    if not noise_px > 0:
+        return None
+    free = problem.free
+    jac = problem.jacobian(x)[:, free]
+    residual = problem.residuals(x)
+    n_pixel = problem.seen.size * 2
+    weight = np.minimum(1.0, scale_px / np.maximum(np.abs(residual), 1e-12)) / noise_px**2
+    weight[n_pixel:] = 1.0 / problem.noise_px**2  # a prior row is an offset over its SD times noise_px
+    information = np.asarray((jac.T @ jac.multiply(weight[:, None])).toarray() if hasattr(jac, "multiply")
+                             else jac.T @ (jac * weight[:, None]))
+    if not np.all(np.isfinite(information)):
+        return None
+    covariance = np.linalg.pinv(information, hermitian=True)
+    position = np.cumsum(free) - 1  # index among the free parameters
+    cameras = problem.unpack(x)[0]
+    named = [named_parameters(c) for c in cameras]
+    n_named = len(CAMERA_PARAMETERS)
+    size = problem.n_camera_params
+    columns = [c * size + i for c in range(len(cameras)) for i in range(size) if free[c * size + i]]
+    transform = np.zeros((len(cameras) * n_named, len(columns)))
+    step = 1e-7
+    for k, column in enumerate(columns):
+        c = column // size
+        moved = x.copy()
+        moved[column] += step
+        transform[c * n_named : (c + 1) * n_named, k] = (named_parameters(problem.unpack(moved)[0][c]) - named[c]) / step
+    names = [f"{c.name}.{p}" for c in cameras for p in CAMERA_PARAMETERS]
+    if problem.options.markers:  # the markers' offsets, estimated with the cameras, in their links' frames
+        offsets = list(range(problem.marker_start, problem.clock_start))
+        transform = np.block([[transform, np.zeros((len(transform), len(offsets)))],
+                              [np.zeros((len(offsets), len(columns))), np.eye(len(offsets))]])
+        columns = columns + [i for i in offsets if free[i]]
+        names += [f"{m}.d{a}" for m in problem.machine.marker_names for a in "xyz"]
+    block = covariance[np.ix_(position[columns], position[columns])]
+    full = transform @ block @ transform.T
+    keep = np.nonzero(np.diag(full) > 0)[0]
+    return CameraCovariance(tuple(names[i] for i in keep), full[np.ix_(keep, keep)])
 
 
 def image_velocity(pixels: np.ndarray) -> np.ndarray:
@@ -308,7 +358,7 @@ class _Bundle:
         self.seen = np.isfinite(pixels[..., 0])  # (C, K, M)
         self.terms = list(DISTORTION_MODELS[options.distortion])
         self.n_camera_params = 6 + options.fit_focal + 2 * options.fit_principal_point + len(self.terms)
-        self.prior_sd = (options.tolerance or machine.tolerance or DEFAULT_TOLERANCE).sd(machine.marker_positions)
+        self.prior_sd = tape_sd(options.tolerance or machine.tolerance or DEFAULT_TOLERANCE, machine.marker_positions)  # (M, 3)
         self.noise_px = noise_px
         n_cams, n_frames, n_markers = self.seen.shape
         self.base0 = None
@@ -396,7 +446,7 @@ class _Bundle:
         if not self.options.markers:
             return pixel
         offsets = self._split(x)[3]
-        return np.r_[pixel, (offsets / self.prior_sd[:, None] * self.noise_px).ravel()]
+        return np.r_[pixel, (offsets / self.prior_sd * self.noise_px).ravel()]
 
     def pixel_rms(self, x: np.ndarray) -> float:
         residual = self.pixel_residuals(x)
@@ -470,7 +520,7 @@ class _Bundle:
             col_list.append((self.clock_start + c).ravel())
         if self.options.markers:
             prior = np.arange(3 * n_markers)
-            data.append(np.repeat(self.noise_px / self.prior_sd, 3))
+            data.append((self.noise_px / self.prior_sd).ravel())
             row_list.append(n_rows + prior)
             col_list.append(self.marker_start + prior)
             n_rows += 3 * n_markers

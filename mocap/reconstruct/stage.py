@@ -247,7 +247,7 @@ def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_o
     result = reconstruct_motion(
         machine, list(calibration.cameras), clock.frame, clock.time, clock.pixels,
         fit_options=fit_options, smooth_options=smooth_options, smoothing=smooth_options is not None,
-        choose_base=choose_base,
+        choose_base=choose_base, camera_covariance=covariance_of(calibration, calibration_path),
     )
     fit = result.fit
     if fit.noise_px > max_noise_px:
@@ -269,6 +269,21 @@ def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_o
         fit_options = replace(fit_options, base_motion=True)
     ambiguity = _ambiguity(fitted_machine, list(calibration.cameras), clock.pixels, fit, fit_options)
     return Fitted(result.motion, fitted_machine, result, ambiguity, clock.dropped)
+
+
+def covariance_of(calibration: Calibration, path=None):
+    """The calibration file's covariance of its cameras (``[metadata.camera_covariance]``,
+    as calibrate and refine write it), or None where the file has none."""
+    from mocap.reconstruct.camera_share import CameraCovariance
+
+    table = calibration.metadata.get("camera_covariance")
+    if table is None:
+        return None
+    try:
+        return CameraCovariance.from_table(table)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"[metadata.camera_covariance] must hold 'parameters' (K names) and 'matrix' (K x K "
+                         f"numbers) ({exc}); fix or delete it", path=path) from None
 
 
 def _offsets(offsets) -> str:
@@ -377,7 +392,9 @@ def refine_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, o
         options = replace(options, fixed_intrinsics=frozenset(c.name for c in cameras if c.name in known_intrinsics))
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     result = refine(machine, cameras, clock.pixels, options)
-    refined = Calibration(result.cameras, calibration.extras, {
-        **calibration.metadata, "refined_frames": int(len(result.frames)), "error": float(result.rms_after),
-    })
+    metadata = {k: v for k, v in calibration.metadata.items() if k != "camera_covariance"}  # the one-frame's
+    metadata.update({"refined_frames": int(len(result.frames)), "error": float(result.rms_after)})
+    if result.camera_covariance is not None:
+        metadata["camera_covariance"] = result.camera_covariance.to_table()
+    refined = Calibration(result.cameras, calibration.extras, metadata)
     return Refinement(refined, result.machine, result, frozenset(options.fixed_intrinsics))

@@ -1,0 +1,130 @@
+"""Are the fit's stated SDs honest? The bucket tip's error over its stated SD (RMS over a
+scene's frames, then over scenes) with the true cameras, the one-frame calibration (frame 0)
+and that calibration refined over the scene's frames, on random clean and field scenes.
+An honest SD scores 1; a camera's error is common to a scene's frames, so each scene gives
+one ratio. `with camera covariance` adds the calibration's covariance to the fit's
+(mocap.reconstruct.camera_share), `pixel noise only` is the fit's covariance alone.
+
+    .venv/bin/python benchmarks/bench_honesty.py --scenes 8
+    .venv/bin/python benchmarks/bench_honesty.py --scenes 8 --kind field --no-refine
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import multiprocessing
+
+import numpy as np
+
+from mocap.calibration import CalibrationOptions, calibrate, template_camera
+from mocap.errors import DegenerateError, InputError
+from mocap.machine import Tolerance
+from mocap.reconstruct.camera_share import CameraCovariance, camera_share
+from mocap.reconstruct.kinfit import FitOptions, fit_joints
+from mocap.reconstruct.offsets import fit_with_offsets
+from mocap.reconstruct.refine import RefineOptions, refine
+from mocap.reconstruct.timing import tracks_on_reference_clock
+from mocap.reconstruct.uncertainty import point_quantities
+from mocap.synthetic.machines import SceneOptions, random_scene
+
+FRAMES = 40
+
+
+def on_clock(scene) -> np.ndarray:
+    names = [c.name for c in scene.cameras]
+    ones = np.ones(len(names))
+    return tracks_on_reference_clock(scene.tracks, names, scene.machine.marker_names, 30.0 * ones, 0.0 * ones).pixels
+
+
+def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
+    rng = np.random.default_rng(seed)
+    options = SceneOptions.field() if field else SceneOptions()
+    try:
+        scene = random_scene(rng, options, n_frames=FRAMES)
+    except DegenerateError:
+        return {"seed": seed}
+    machine, cameras = scene.machine, list(scene.cameras)
+    out = {"seed": seed, "cameras": len(cameras)}
+    if not (machine.n_joints and machine.point_names):
+        return out
+    pixels = on_clock(scene) if field else scene.pixels()
+    truth = machine.points(scene.joints)[:, 0]
+    tolerance = Tolerance(options.tolerance) if field else None
+    fit_options = FitOptions(tolerance=tolerance)
+
+    def ratios(key: str, cameras_used, covariance: CameraCovariance | None, model=scene.model,
+               estimated: bool = False) -> None:
+        if estimated:  # the markers estimated with the cameras: their uncertainty is in the covariance
+            fit = fit_joints(model, cameras_used, pixels, options=FitOptions(tolerance=Tolerance()))
+            shared, fitted = 0.0, model
+        elif field:
+            result = fit_with_offsets(model, cameras_used, pixels, options=fit_options)
+            fit, shared, fitted = result.fit, result.shared, result.offsets.apply(model)
+        else:
+            fit, shared, fitted = fit_joints(model, cameras_used, pixels, options=fit_options), 0.0, model
+        ok = fit.valid & fit.explained
+        for suffix, extra in (("", camera_share(fitted, cameras_used, fit, covariance)), ("_pixels", 0.0)):
+            tip = point_quantities(scene.model, np.nan_to_num(fit.joints), fit.covariance + shared + extra)
+            error = np.linalg.norm(tip.points[:, 0] - truth, axis=1)
+            z = (error / tip.points_sd[:, 0])[ok]
+            z = z[np.isfinite(z)]
+            if len(z):
+                out[key + suffix] = float(np.sqrt(np.mean(z**2)))
+
+    ratios("true", cameras, None)
+    try:
+        templates = [template_camera(c.name, c.size) for c in cameras]
+        result = calibrate(scene.model, scene.observations(), templates, CalibrationOptions(tolerance=tolerance))
+    except InputError as exc:
+        out["refused"] = str(exc)[:80]
+        return out
+    covariance = CameraCovariance.of_cameras(result.parameter_names, result.covariance, result.cameras)
+    ratios("one_frame", list(result.cameras), covariance)
+    if with_refine:
+        try:
+            refined = refine(scene.model, list(result.cameras), pixels, RefineOptions(frames=FRAMES, tolerance=tolerance))
+        except InputError as exc:
+            out["refine_refused"] = str(exc)[:80]
+            return out
+        ratios("refined", list(refined.cameras), refined.camera_covariance, refined.machine, field)
+    return out
+
+
+def row(name: str, values: list[float]) -> str:
+    v = np.array([x for x in values if np.isfinite(x)])
+    if not len(v):
+        return f"{name:<34} {'-':>6}"
+    return (f"{name:<34} {len(v):>6} {np.median(v):>8.2f} {np.percentile(v, 90):>8.2f} {np.sqrt(np.mean(v**2)):>8.2f}"
+            f" {np.mean((v >= 0.8) & (v <= 1.25)):>8.0%}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", type=int, default=8)
+    parser.add_argument("--first", type=int, default=0)
+    parser.add_argument("--kind", choices=("clean", "field"), default="clean")
+    parser.add_argument("--no-refine", action="store_true")
+    parser.add_argument("--jobs", type=int, default=1)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.ERROR)
+    seeds = range(args.first, args.first + args.scenes)
+    jobs = [(s, args.kind == "field", not args.no_refine) for s in seeds]
+    if args.jobs > 1:
+        with multiprocessing.Pool(args.jobs) as pool:
+            rows = pool.starmap(one_scene, jobs)
+    else:
+        rows = [one_scene(*j) for j in jobs]
+    print(f"bucket tip: RMS over a scene's frames of error / stated SD; {args.kind} scenes, seeds {seeds.start}-{seeds.stop - 1}")
+    print(f"{'cameras, SDs':<34} {'scenes':>6} {'median':>8} {'p90':>8} {'RMS':>8} {'in 0.8-1.25':>8}")
+    for key, label in (("true", "true"), ("one_frame", "one-frame"), ("refined", "refined")):
+        print(row(f"{label}, with camera covariance", [r.get(key, np.nan) for r in rows]))
+        print(row(f"{label}, pixel noise only", [r.get(key + "_pixels", np.nan) for r in rows]))
+    for r in rows:
+        if "refused" in r or "refine_refused" in r:
+            print(f"seed {r['seed']}: {r.get('refused') or r.get('refine_refused')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,44 @@
+"""A tolerance the machine file does not state is estimated from the calibration's
+residuals: field scenes (every marker coordinate off by up to ±5 %, 0.8 px noise) whose
+exact model put a camera many times its Cramér–Rao bound away are calibrated within the
+tolerance their residuals show, reported; a stated tolerance, an exact one too, wins, and
+a clean scene's residuals show none."""
+
+import numpy as np
+import pytest
+
+from mocap.calibration import CalibrationOptions, calibrate, template_camera
+from mocap.calibration.report import format_report
+from mocap.machine import Tolerance
+from mocap.synthetic.machines import SceneOptions, random_scene
+
+from test_field_calibration import _bound, _field_scene
+
+ALONG_SIGHT_99 = 2.58  # a camera's error lies along its line of sight: |N(0, 1)| at 99 %
+
+
+def _ratios(result, scene) -> np.ndarray:
+    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
+    return error / _bound(scene)
+
+
+@pytest.mark.parametrize("seed", [1000010, 1000011])  # the exact model: 7.6 and 6.6 times the bound
+def test_a_tolerance_not_stated_is_estimated_and_used(seed):
+    scene, templates, _ = _field_scene(seed)
+    result = calibrate(scene.model, scene.observations(), templates, CalibrationOptions())
+    assert result.estimated_tolerance is not None and 0.02 < result.estimated_tolerance < 0.2
+    assert np.all(_ratios(result, scene) < ALONG_SIGHT_99), _ratios(result, scene)
+    assert "within an estimated tolerance of" in format_report(result, 0)
+    exact = calibrate(scene.model, scene.observations(), templates, CalibrationOptions(tolerance=Tolerance()))
+    assert exact.estimated_tolerance is None and np.max(_ratios(exact, scene)) > ALONG_SIGHT_99
+
+
+def test_a_stated_tolerance_wins():
+    scene, templates, options = _field_scene(1000011)
+    assert calibrate(scene.model, scene.observations(), templates, options).estimated_tolerance is None
+
+
+def test_a_clean_scene_shows_no_model_error():
+    scene = random_scene(np.random.default_rng(4), SceneOptions(), n_frames=2)
+    templates = [template_camera(c.name, c.size) for c in scene.cameras]
+    assert calibrate(scene.model, scene.observations(), templates, CalibrationOptions()).estimated_tolerance is None
