@@ -23,6 +23,8 @@ import numpy as np
 from mocap.geometry import Rigid
 
 # paper camera axes -> OpenCV camera axes: x_cv = -Y_p, y_cv = -Z_p, z_cv = X_p
+# the lens models a fit may free: their coefficients' places in OpenCV's (k1, k2, p1, p2, k3)
+DISTORTION_MODELS = {"none": (), "k1": (0,), "k1k2": (0, 1), "full": (0, 1, 2, 3, 4)}
 CV_FROM_PAPER = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
 

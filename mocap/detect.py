@@ -32,6 +32,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from mocap.core.tags import tag_dictionary
 from mocap.disk_kernel import refine_disks, refine_disks_converged
 
 
@@ -332,17 +333,6 @@ def diagonal_intersection(corners: np.ndarray) -> np.ndarray:
     d2 = np.cross(h[:, 1], h[:, 3])
     x = np.cross(d1, d2)
     return x[:, :2] / x[:, 2:]
-
-
-def tag_dictionary(name: str):
-    """An OpenCV predefined dictionary by name, e.g. 'DICT_4X4_50' or 'DICT_APRILTAG_36h11'."""
-    key = name if name.startswith("DICT_") else f"DICT_{name}"
-    if not hasattr(cv2.aruco, key.upper()) and not hasattr(cv2.aruco, key):
-        known = sorted(k[5:] for k in dir(cv2.aruco) if k.startswith("DICT_"))
-        raise ValueError(f"unknown tag dictionary {name!r}; known: {', '.join(known)}")
-    value = getattr(cv2.aruco, key, None)
-    value = getattr(cv2.aruco, key.upper()) if value is None else value
-    return cv2.aruco.getPredefinedDictionary(value)
 
 
 _TAG_PASSES = ((False, 1), (True, 1), (False, 2), (True, 2))  # (inverted, enlargement)

@@ -16,9 +16,9 @@ from mocap.detect import (
     detect_tags,
     disk_centre_from_ellipse,
     refine,
-    tag_dictionary,
     as_gray,
 )
+from mocap.core.tags import tag_dictionary
 from mocap.synthetic.scenes import look_at_camera
 
 SUPERSAMPLE = 8

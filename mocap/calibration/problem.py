@@ -14,11 +14,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from mocap.camera import Camera, project_cam
+from mocap.camera import DISTORTION_MODELS, Camera, project_cam
 from mocap.geometry import Rigid
 
 BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that the solver can start)
-DISTORTION_MODELS = {"none": (), "k1": (0,), "k1k2": (0, 1), "full": (0, 1, 2, 3, 4)}
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 

@@ -116,7 +116,7 @@ def _tags(data: dict, tags: list, path) -> tuple[np.ndarray | None, str | None]:
         _check_keys(raw, _TAGS_KEYS, path, "[tags]")
     if all(t < 0 for t in tags):
         return None, None
-    from mocap.detect import tag_dictionary  # OpenCV's, only for a machine with tags
+    from mocap.core.tags import tag_dictionary  # OpenCV's, only for a machine with tags
 
     dictionary = str((raw or {}).get("dictionary", DEFAULT_TAG_DICTIONARY))
     try:

@@ -35,8 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse import coo_matrix
 
-from mocap.calibration.problem import DISTORTION_MODELS
-from mocap.camera import Camera, project_cam
+from mocap.camera import DISTORTION_MODELS, Camera, project_cam
 from mocap.errors import ConvergenceError, DegenerateError
 from mocap.geometry import Rigid, cross, matrix_to_rotvec, rotvec_to_matrix
 from mocap.machine import Machine, Tolerance

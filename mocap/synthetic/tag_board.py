@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mocap.detect import tag_dictionary
+from mocap.core.tags import tag_dictionary
 from mocap.synthetic.shutter import rolling_pixels, row_delay
 
 _CELL_PX = 8  # texture pixels per tag cell
