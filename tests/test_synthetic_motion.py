@@ -131,13 +131,14 @@ def test_deviations_are_recorded_and_change_the_dig(ex3500):
             assert abs(c.scale[0] - c.scale[1]) > 0.05
 
 
-def test_same_seed_same_truth(ex3500, session):
-    again = make_session(ex3500, "hitachi_ex3500", n_cameras=3, n_cycles=3, seed=11)
-    np.testing.assert_array_equal(again.tracks.xy, session.tracks.xy)
-    np.testing.assert_array_equal(again.motion.joints, session.motion.joints)
-    other = make_session(ex3500, "hitachi_ex3500", n_cameras=3, n_cycles=3, seed=12)
-    assert other.motion.joints.shape != session.motion.joints.shape or not np.allclose(
-        other.motion.joints, session.motion.joints
+def test_same_seed_same_truth(ex3500):
+    first = make_session(ex3500, "hitachi_ex3500", n_cameras=2, n_cycles=1, seed=11)
+    again = make_session(ex3500, "hitachi_ex3500", n_cameras=2, n_cycles=1, seed=11)
+    np.testing.assert_array_equal(again.tracks.xy, first.tracks.xy)
+    np.testing.assert_array_equal(again.motion.joints, first.motion.joints)
+    other = make_session(ex3500, "hitachi_ex3500", n_cameras=2, n_cycles=1, seed=12)
+    assert other.motion.joints.shape != first.motion.joints.shape or not np.allclose(
+        other.motion.joints, first.motion.joints
     )
 
 
