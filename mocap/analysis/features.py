@@ -24,9 +24,9 @@ import numpy as np
 
 from mocap.analysis.segment import Segments
 from mocap.analysis.series import TipSeries
+from mocap.core.classes import DIG_CLASSES, OTHER
 
-CLASSES = ("Type 1", "Type 2", "Type 3")
-OTHER = "other"
+CLASSES = DIG_CLASSES
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-CLASSES = ("Type 1", "Type 2", "Type 3", "other")
+from mocap.core.classes import DIG_CLASSES, OTHER
+
+CLASSES = (*DIG_CLASSES, OTHER)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CLASSES = ("Type 1", "Type 2", "Type 3")
+from mocap.core.classes import DIG_CLASSES
+
+CLASSES = DIG_CLASSES
 BACKHOE = "backhoe"  # a backhoe's dig: out at the floor, dragged towards the machine and curled up
 
 
