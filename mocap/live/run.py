@@ -53,7 +53,8 @@ FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (
 class LiveRequest:
     """What `mocap live` was asked: paths as given; `lag` the smoother's lag in reference
     frames; `duration` seconds of the run (None: until the sources end or Ctrl-C); `feed`
-    (host, port) or None; `record` a session folder to write, or None."""
+    (host, port) or None; `record` a session folder to write, or None; `view` where the rows
+    are shown as they come (`mocap.live.view.check_target`), or None."""
 
     machine: str
     calibration: Path
@@ -66,6 +67,7 @@ class LiveRequest:
     wait_frames: float = 1.5
     feed: tuple[str, int] | None = None
     record: Path | None = None
+    view: str | None = None
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -90,6 +92,7 @@ class LiveReport:
     interrupted: bool
     skipped: int = 0
     feed: str | None = None
+    view_ms: float = float("nan")  # the main thread's time per row logging it to the viewer
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -192,7 +195,9 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     if feed is not None and announce is not None:
         announce(f"feed on {feed.url}")
     writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
-    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop)
+    chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
+    view = _view(request.view, machine, chosen)
+    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view)
     with ExitStack() as recording:
         _recorders(request, readers, cameras, fps, recording)
         for thread in [*readers, *workers]:
@@ -206,20 +211,32 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
             writer.close()
             if feed is not None:
                 feed.close()
+            if view is not None:
+                view.close()
     if request.record is not None:
         _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
                    for c, r, w in zip(cameras, readers, workers))
     return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
-                      loop.skipped, feed.url if feed is not None else None)
+                      loop.skipped, feed.url if feed is not None else None,
+                      1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"))
+
+
+def _view(target: str | None, machine: Machine, calibration: Calibration):
+    if target is None:
+        return None
+    from mocap.live.view import LiveView, live_blueprint, open_stream
+
+    return LiveView(open_stream(target, live_blueprint(machine)), machine, calibration)
 
 
 class _Loop:
     """The main thread's work: labelled frames in, rows out."""
 
-    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop):
+    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop, view=None):
         self.request, self.machine, self.cameras, self.fps = request, machine, cameras, fps
-        self.workers, self.writer, self.feed, self.stop = workers, writer, feed, stop
+        self.workers, self.writer, self.feed, self.stop, self.view = workers, writer, feed, stop, view
+        self.view_s = 0.0
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
@@ -316,6 +333,10 @@ class _Loop:
         self.writer.write(values)
         if self.feed is not None:
             self.feed.send(values)
+        if self.view is not None:
+            began = time.perf_counter()
+            self.view.log(frame, t, pose)
+            self.view_s += time.perf_counter() - began
         self.rows += 1
         self.latency.append(latency)
 
