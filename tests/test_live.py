@@ -277,3 +277,32 @@ def test_a_stream_that_ends_is_reopened_and_the_rows_carry_on(short_session, tmp
     assert reopened and int(reopened.group(2)) >= 1 and int(reopened.group(1)) > FRAMES[1], summary
     frames = [int(r["frame"]) for r in read_rows(out)]
     assert len(frames) >= 0.7 * 90 and max(frames) >= 80
+
+
+def test_a_drifting_clock_is_followed(short_session, tmp_path, capsys):
+    """cam2 delivers 28.5 frames a second where its calibration states 29.97 (5 % off, so that
+    its offset moves by 2 frames in 2.6 s): with --follow-clocks its offset, re-estimated
+    from the motion, follows the truth at the frame it was estimated around within a frame,
+    where the calibrated one is several frames off by then."""
+    from dataclasses import replace
+
+    root, session = short_session
+    stated = session.cameras[1]
+    true_fps = 28.5
+    drifting = replace(session, cameras=(session.cameras[0], replace(stated, fps=true_fps)))
+    renderer = CameraRenderer(drifting, 1, RenderOptions(), np.random.default_rng(1))
+    with video_writer(tmp_path / "cam2.mp4", stated.camera.size, stated.fps) as write:
+        for _, image in renderer.frames(np.arange(75)):  # to 3.5 s on the reference clock, as cam1
+            write(image)
+    argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
+            "--source", f"cam2={tmp_path / 'cam2.mp4'}", "--realtime", "--duration", "3.5", "--follow-clocks",
+            "--out", str(tmp_path / "poses.csv")]
+    assert cli.main(argv) == 0
+    summary = capsys.readouterr().out
+    found = re.search(r"cam2 clock offset ([-+.\d]+) s at its frame (\d+) \(calibrated ([-+.\d]+) s\)", summary)
+    assert found, summary
+    offset, frame, calibrated = float(found.group(1)), int(found.group(2)), float(found.group(3))
+    assert calibrated == pytest.approx(stated.time_offset, abs=1e-4)
+    truth = stated.time_offset + frame * (1 / true_fps - 1 / stated.fps)  # frame n shows n / 28.5 + offset
+    assert abs(offset - truth) < 1 / 30, (offset, truth, frame)
+    assert abs(truth - calibrated) > 1.5 / 30  # the calibrated offset is off by more than 1.5 frames there

@@ -55,6 +55,9 @@ def add_parser(sub) -> None:
                    "the calibration): columns base_x ... as in the motion CSV; 6 more parameters a frame")
     p.add_argument("--feed", metavar="tcp://127.0.0.1:PORT",
                    help="also send each row as a JSON line to the programs connected to this loopback port")
+    p.add_argument("--follow-clocks", action="store_true",
+                   help="re-estimate each other camera's time offset from the last 2 s of motion every 0.5 s (as "
+                   "mocap sync does) and place its frames with it: a camera whose clock drifts from its stated fps")
     p.add_argument("--record", metavar="DIR", help="also write a session folder for the offline chain (mocap run)")
     p.add_argument("--view", nargs="?", const="", metavar="URL|FILE.rrd",
                    help="also show the machine, the bucket tip's trail and the joints as they come in a Rerun viewer: "
@@ -89,7 +92,7 @@ def run(args) -> int:
         args.machine, Path(args.calibration), sources, Path(args.out), realtime=args.realtime,
         duration=args.duration, lag=args.lag, feed=parse_feed(args.feed) if args.feed else None,
         record=Path(args.record) if args.record else None, fit_options=FitOptions(base_motion=args.base_motion),
-        view=view,
+        view=view, follow_clocks=args.follow_clocks,
     )
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -68,6 +68,7 @@ class LiveRequest:
     feed: tuple[str, int] | None = None
     record: Path | None = None
     view: str | None = None
+    follow_clocks: bool = False
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -93,6 +94,8 @@ class LiveReport:
     skipped: int = 0
     feed: str | None = None
     view_ms: float = float("nan")  # the main thread's time per row logging it to the viewer
+    # followed cameras: (name, newest offset s, the camera's frame at the middle of its window, calibrated offset s)
+    clocks: tuple[tuple[str, float, float, float], ...] = ()
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -105,7 +108,10 @@ class LiveReport:
             latency = "latency -"
         return (f"{self.rows} rows to {out}; {counts}; {latency} (the smoother's lag of {self.lag_ms:.0f} ms "
                 f"included)" + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
-                                "CPU)" if self.skipped else "") + ("; interrupted" if self.interrupted else ""))
+                                "CPU)" if self.skipped else "") + "".join(
+                    f"; {name} clock offset {now:+.4f} s at its frame {at:.0f} (calibrated {then:+.4f} s)"
+                    for name, now, at, then in self.clocks)
+                + ("; interrupted" if self.interrupted else ""))
 
 
 class CameraWorker(threading.Thread):
@@ -197,10 +203,15 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
     chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
     view = _view(request.view, machine, chosen)
-    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view)
+    follower = None
+    if request.follow_clocks and len(cameras) > 1:
+        from mocap.live.clocks import ClockFollower
+
+        follower = ClockFollower(machine, cameras, fps, offsets, stop)
+    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
     with ExitStack() as recording:
         _recorders(request, readers, cameras, fps, recording)
-        for thread in [*readers, *workers]:
+        for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
             thread.start()
         try:
             loop.run(clock_start)
@@ -219,7 +230,9 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                    for c, r, w in zip(cameras, readers, workers))
     return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
                       loop.skipped, feed.url if feed is not None else None,
-                      1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"))
+                      1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"),
+                      () if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
+                                                        for k, c in enumerate(cameras) if k > 0))
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
@@ -233,10 +246,11 @@ def _view(target: str | None, machine: Machine, calibration: Calibration):
 class _Loop:
     """The main thread's work: labelled frames in, rows out."""
 
-    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop, view=None):
+    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop, view=None, follower=None):
         self.request, self.machine, self.cameras, self.fps = request, machine, cameras, fps
         self.workers, self.writer, self.feed, self.stop, self.view = workers, writer, feed, stop, view
         self.view_s = 0.0
+        self.follower = follower
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
@@ -268,6 +282,10 @@ class _Loop:
                     break
                 self._emit()
                 continue
+            if self.follower is not None:  # the frame placed with its camera's newest offset
+                index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
+                self.follower.add(k, index, pixels)
+                time_ref = index / self.fps[k] + self.follower.offset(k)
             self.history[k].add(time_ref, pixels)
             self.seen[k] = time.perf_counter()
             if k == self._clock():
