@@ -66,10 +66,11 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
 
 
 def live_run(session: Path, names: list[str], duration: float, lag: int, out: Path, base_motion: bool,
-             realtime: bool = True, view: str | None = None):
+             realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
+                          follow_clocks=follow_clocks,
                           fit_options=FitOptions(base_motion=base_motion))
     cpu = time.process_time()
     report = run_live(request)
@@ -135,6 +136,10 @@ def main() -> None:
     parser.add_argument("--fixed-base", action="store_true",
                         help="fit live with the base fixed (default: its pose per frame, --base-motion: the "
                         "synthetic machine bounces, and the offline fit finds that it does)")
+    parser.add_argument("--follow-clocks", action="store_true",
+                        help="follow the clocks in the real-time runs: each other camera's newest offset against its "
+                        "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
+                        "per re-estimate")
     parser.add_argument("--work", help="folder for the session (default: a temporary one)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -152,7 +157,8 @@ def main() -> None:
             names = list(calibration.names[:n])
             work = root / f"run{n}"
             work.mkdir(exist_ok=True)
-            report, cpu = live_run(session, names, args.duration, args.lag, work / "poses.csv", not args.fixed_base)
+            report, cpu = live_run(session, names, args.duration, args.lag, work / "poses.csv", not args.fixed_base,
+                                   follow_clocks=args.follow_clocks and n > 1)
             frames, tips = read_tips(work / "poses.csv")
             fast, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base,
                                realtime=False, view=str(work / "fast.rrd"))
@@ -172,6 +178,11 @@ def main() -> None:
                   f"{tip_rmse(fast_frames, fast_tips, truth):>10.3f} {offline_rmse(motion, fast_frames, truth):>8.3f} "
                   f"{view_ms:>15.2f} {fast.view_ms:>7.2f}",
                   flush=True)
+            for name, offset, at, _ in report.clocks:
+                true = calibration.time_offsets[calibration.names.index(name)]
+                print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "
+                      f"({(offset - true) * fps[0]:+.2f} frames); {report.clock_update_ms:.0f} ms CPU per re-estimate "
+                      "of all the offsets", flush=True)
         print("rows/s: rows written per second of the run (the reference camera delivers "
               f"{calibration.fps()[0]:g}); need fps: the frames the cameras deliver per second, beside the decode-only "
               "rate; RMSE in metres over the rows live and over the same frames offline; as fast: the files read as "

@@ -239,6 +239,14 @@ def test_bad_live_arguments_exit_2(short_session, tmp_path, capsys, extra, messa
     assert message in err and len(err.strip().splitlines()) == 1
 
 
+def test_following_the_clocks_of_one_camera_exits_2(short_session, tmp_path, capsys):
+    root, _ = short_session
+    argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
+            "--follow-clocks", "--out", str(tmp_path / "p.csv")]
+    assert cli.main(argv) == 2
+    assert "give two --source or more" in capsys.readouterr().err
+
+
 def test_a_feed_port_in_use_exits_2(short_session, tmp_path, capsys):
     root, _ = short_session
     with socket.socket() as taken:

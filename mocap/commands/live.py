@@ -82,6 +82,9 @@ def run(args) -> int:
     if args.lag < 0:
         raise InputError(f"--lag {args.lag}: give 0 or more frames")
     sources = tuple(parse_source(text) for text in args.source)
+    if args.follow_clocks and len(sources) < 2:
+        raise InputError("--follow-clocks follows a camera's clock against the reference camera's; give two "
+                         "--source or more")
     files = [s.target for s in sources if not s.live]
     saved = view if view and view.endswith(".rrd") else None
     check_outputs({"--out": args.out, "--view": saved}, {"machine model": args.machine,

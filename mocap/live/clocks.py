@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -55,6 +56,7 @@ class ClockFollower(threading.Thread):
         self.lock = threading.Lock()
         self.estimates: list[OffsetEstimate] = []
         self.at = np.full(len(self.fps), np.nan)  # the frame each camera's newest offset was estimated around
+        self.cpu_s, self.updates = 0.0, 0  # this thread's CPU over its updates
 
     def add(self, k: int, frame: int, pixels: np.ndarray) -> None:
         with self.lock:
@@ -66,7 +68,10 @@ class ClockFollower(threading.Thread):
     def run(self) -> None:
         while not self.stop.wait(self.every_s):
             try:
+                began = time.thread_time()
                 self.update()
+                self.cpu_s += time.thread_time() - began
+                self.updates += 1
             except Exception:
                 log.exception("clock following failed; the offsets stay as they are")
 

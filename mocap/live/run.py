@@ -96,6 +96,7 @@ class LiveReport:
     view_ms: float = float("nan")  # the main thread's time per row logging it to the viewer
     # followed cameras: (name, newest offset s, the camera's frame at the middle of its window, calibrated offset s)
     clocks: tuple[tuple[str, float, float, float], ...] = ()
+    clock_update_ms: float = float("nan")  # CPU per re-estimate of the offsets
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -232,7 +233,9 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                       loop.skipped, feed.url if feed is not None else None,
                       1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"),
                       () if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
-                                                        for k, c in enumerate(cameras) if k > 0))
+                                                        for k, c in enumerate(cameras) if k > 0),
+                      1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
+                      else float("nan"))
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
