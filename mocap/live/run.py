@@ -93,7 +93,8 @@ class LiveReport:
     interrupted: bool
     skipped: int = 0
     feed: str | None = None
-    view_ms: float = float("nan")  # the main thread's time per row logging it to the viewer
+    view_ms: float = float("nan")  # the main thread's time per row handing it to the viewer
+    view_dropped: int = 0  # rows not shown: the viewer's queue was full
     # followed cameras: (name, newest offset s, the camera's frame at the middle of its window, calibrated offset s)
     clocks: tuple[tuple[str, float, float, float], ...] = ()
     clock_update_ms: float = float("nan")  # CPU per re-estimate of the offsets
@@ -112,6 +113,7 @@ class LiveReport:
                                 "CPU)" if self.skipped else "") + "".join(
                     f"; {name} clock offset {now:+.4f} s at its frame {at:.0f} (calibrated {then:+.4f} s)"
                     for name, now, at, then in self.clocks)
+                + (f"; {self.view_dropped} rows not shown in the viewer (it fell behind)" if self.view_dropped else "")
                 + ("; interrupted" if self.interrupted else ""))
 
 
@@ -229,13 +231,15 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
         _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
                    for c, r, w in zip(cameras, readers, workers))
-    return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
-                      loop.skipped, feed.url if feed is not None else None,
-                      1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"),
-                      () if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
-                                                        for k, c in enumerate(cameras) if k > 0),
-                      1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
-                      else float("nan"))
+    return LiveReport(
+        loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted, loop.skipped,
+        feed.url if feed is not None else None,
+        view_ms=1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"),
+        view_dropped=view.dropped if view is not None else 0,
+        clocks=() if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
+                                                 for k, c in enumerate(cameras) if k > 0),
+        clock_update_ms=1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
+        else float("nan"))
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
@@ -243,7 +247,11 @@ def _view(target: str | None, machine: Machine, calibration: Calibration):
         return None
     from mocap.live.view import LiveView, live_blueprint, open_stream
 
-    return LiveView(open_stream(target, live_blueprint(machine)), machine, calibration)
+    from mocap.live.view import ViewThread
+
+    view = ViewThread(LiveView(open_stream(target, live_blueprint(machine)), machine, calibration))
+    view.start()
+    return view
 
 
 class _Loop:
@@ -356,7 +364,7 @@ class _Loop:
             self.feed.send(values)
         if self.view is not None:
             began = time.perf_counter()
-            self.view.log(frame, t, pose)
+            self.view.submit(frame, t, pose)
             self.view_s += time.perf_counter() - began
         self.rows += 1
         self.latency.append(latency)

@@ -6,13 +6,17 @@ kinematics), world/<point> (the named points), world/trail/live (the bucket tip'
 segment a row, shown over the last `TRAIL_S` seconds), world/cameras/<cam> (static),
 plots/joints/<joint> (deg; prismatic in plots/joints_m, m) and plots/bucket/bucket_angle
 (deg). Timelines `frame` and `time` as in the replay. The work per row is fixed: one
-transform per link, the points, one segment, one scalar per joint; Rerun sends them from
-its own thread.
+transform per link, the points, one segment, one scalar per joint, done by a thread of its
+own (`ViewThread`) from a queue of at most `QUEUE_ROWS` rows, so that the rows' loop only
+hands them over; rows that find the queue full are not shown (counted). Rerun sends them
+from its own thread.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +37,7 @@ log = logging.getLogger(__name__)
 TRAIL_S = 20.0  # seconds of the tip's path shown behind the time cursor
 TRAIL = trail_path("live")
 SPAWN = ""  # `--view` without a value: a viewer started on this machine
+QUEUE_ROWS = 256  # rows waiting to be shown at most (8 s at 30 fps)
 
 
 def check_target(target: str) -> str:
@@ -132,6 +137,37 @@ class LiveView:
     def close(self) -> None:
         self.rec.flush()
         self.rec.disconnect()
+
+
+class ViewThread(threading.Thread):
+    """`LiveView.log` on a thread of its own: `submit` never waits; a row that finds
+    `QUEUE_ROWS` rows waiting is dropped and counted in `dropped`."""
+
+    def __init__(self, view: LiveView):
+        super().__init__(name="view", daemon=True)
+        self.view = view
+        self.rows: queue.Queue = queue.Queue(maxsize=QUEUE_ROWS)
+        self.dropped = 0
+
+    def submit(self, frame: int, time: float, pose: Pose) -> None:
+        try:
+            self.rows.put_nowait((frame, time, pose))
+        except queue.Full:
+            self.dropped += 1
+
+    def run(self) -> None:
+        while (item := self.rows.get()) is not None:
+            try:
+                self.view.log(*item)
+            except Exception:
+                log.exception("the viewer stopped showing rows; the rows carry on")
+                break
+
+    def close(self) -> None:
+        """Show the rows waiting, then flush and close the stream."""
+        self.rows.put(None)
+        self.join(timeout=30.0)
+        self.view.close()
 
 
 def _extent(machine: Machine) -> float:
