@@ -11,7 +11,9 @@ streams (the tracker's own grey decoding, all the cameras' frames of that durati
 after another: the floor); and the bucket tip's RMSE against the truth, live and by the
 offline chain (`mocap track` each camera, then `mocap fit`, over the whole videos) over the
 same frames; and the same live chain reading the files as fast as they are tracked (no frame
-dropped, no time limit per frame) for the same time, against the offline chain on its rows.
+dropped, no time limit per frame) for the same time, against the offline chain on its rows;
+and `--view`'s cost: the process's CPU per row (Rerun's sending thread included) logging the
+as-fast run's rows to an .rrd file, and the main thread's time per row inside the run.
 
     python benchmarks/bench_live.py [--size 960x540] [--cameras 3] [--duration 20] [--seed 7] [--lag 1] [--fixed-base]
 """
@@ -64,10 +66,11 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
 
 
 def live_run(session: Path, names: list[str], duration: float, lag: int, out: Path, base_motion: bool,
-             realtime: bool = True):
+             realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
-                          realtime=realtime, duration=duration, lag=lag,
+                          realtime=realtime, duration=duration, lag=lag, view=view,
+                          follow_clocks=follow_clocks,
                           fit_options=FitOptions(base_motion=base_motion))
     cpu = time.process_time()
     report = run_live(request)
@@ -101,6 +104,28 @@ def offline_rmse(motion, frames: np.ndarray, truth) -> float:
     return tip_rmse(keep, motion.point("bucket_tip")[[index[f] for f in keep]], truth)
 
 
+def view_cpu(rows_path: Path, calibration, out: Path) -> float:
+    """The process's CPU (ms) per row logging the rows of `rows_path` through `LiveView` to an
+    .rrd file, flushed (Rerun's own thread included)."""
+    from mocap.live.pose import Pose
+    from mocap.live.view import LiveView, live_blueprint, open_stream
+    from mocap.viewer.scene import joint_display_units
+
+    machine = load_machine(MACHINE)
+    rows = np.genfromtxt(rows_path, delimiter=",", names=True, dtype=None, encoding="utf-8")
+    scale, _ = joint_display_units(machine)
+    joints = np.stack([rows[n].astype(float) for n in machine.joint_names], 1) / scale
+    points = np.stack([np.stack([rows[f"{p}_{a}"].astype(float) for a in "xyz"], 1) for p in machine.point_names], 1)
+    angle = np.radians(rows["bucket_angle_deg"].astype(float))
+    cpu = time.process_time()
+    view = LiveView(open_stream(str(out), live_blueprint(machine)), machine, calibration)
+    for k, frame in enumerate(rows["frame"]):
+        view.log(int(frame), frame / 30.0, Pose(joints[k], joints[k] * 0, points[k], np.zeros(len(points[k])),
+                                                float(angle[k]), 0.0, False, {}))
+    view.close()
+    return 1000 * (time.process_time() - cpu) / len(joints)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="960x540")
@@ -111,6 +136,10 @@ def main() -> None:
     parser.add_argument("--fixed-base", action="store_true",
                         help="fit live with the base fixed (default: its pose per frame, --base-motion: the "
                         "synthetic machine bounces, and the offline fit finds that it does)")
+    parser.add_argument("--follow-clocks", action="store_true",
+                        help="follow the clocks in the real-time runs: each other camera's newest offset against its "
+                        "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
+                        "per re-estimate")
     parser.add_argument("--work", help="folder for the session (default: a temporary one)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -122,14 +151,18 @@ def main() -> None:
         print(f"{args.size}, {args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
               f"{'fixed base' if args.fixed_base else 'base pose per frame'}")
         print(f"{'cams':>4} {'rows/s':>7} {'dropped':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'cpu ms/row':>10} "
-              f"{'decode fps':>10} {'need fps':>8} {'tip RMSE live':>13} {'offline':>8} {'as fast':>10} {'offline':>8}")
+              f"{'decode fps':>10} {'need fps':>8} {'tip RMSE live':>13} {'offline':>8} {'as fast':>10} {'offline':>8} "
+              f"{'view cpu ms/row':>15} {'in loop':>7}")
         for n in range(1, args.cameras + 1):
             names = list(calibration.names[:n])
             work = root / f"run{n}"
             work.mkdir(exist_ok=True)
-            report, cpu = live_run(session, names, args.duration, args.lag, work / "poses.csv", not args.fixed_base)
+            report, cpu = live_run(session, names, args.duration, args.lag, work / "poses.csv", not args.fixed_base,
+                                   follow_clocks=args.follow_clocks and n > 1)
             frames, tips = read_tips(work / "poses.csv")
-            live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base, realtime=False)
+            fast, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base,
+                               realtime=False, view=str(work / "fast.rrd"))
+            view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd")
             fast_frames, fast_tips = read_tips(work / "fast.csv")
             fps = calibration.fps()[:n]
             offsets = calibration.time_offsets[:n]
@@ -142,8 +175,14 @@ def main() -> None:
             print(f"{n:>4} {report.rows / args.duration:>7.1f} {f'{dropped}/{read}':>8} {p50:>7.0f} {p99:>7.0f} "
                   f"{report.latency_ms.max():>7.0f} {1000 * cpu / max(report.rows, 1):>10.1f} {decode:>10.0f} {fps.sum():>8.1f} "
                   f"{tip_rmse(frames, tips, truth):>13.3f} {offline_rmse(motion, frames, truth):>8.3f} "
-                  f"{tip_rmse(fast_frames, fast_tips, truth):>10.3f} {offline_rmse(motion, fast_frames, truth):>8.3f}",
+                  f"{tip_rmse(fast_frames, fast_tips, truth):>10.3f} {offline_rmse(motion, fast_frames, truth):>8.3f} "
+                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}",
                   flush=True)
+            for name, offset, at, _ in report.clocks:
+                true = calibration.time_offsets[calibration.names.index(name)]
+                print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "
+                      f"({(offset - true) * fps[0]:+.2f} frames); {report.clock_update_ms:.0f} ms CPU per re-estimate "
+                      "of all the offsets", flush=True)
         print("rows/s: rows written per second of the run (the reference camera delivers "
               f"{calibration.fps()[0]:g}); need fps: the frames the cameras deliver per second, beside the decode-only "
               "rate; RMSE in metres over the rows live and over the same frames offline; as fast: the files read as "

@@ -26,6 +26,7 @@ from mocap.io.tracks_csv import load_tracks
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.render import CameraRenderer, RenderOptions
 from mocap.synthetic.session import make_session
+from mocap.viewer import scene
 
 FRAMES = (105, 45)  # frames rendered per camera: cam2 (from 0.9 s on the reference clock) ends at 2.4 s, cam1 at 3.5 s
 SUMMARY = re.compile(r"^(\d+) rows to \S+; cam1 in (\d+) out (\d+) dropped (\d+); cam2 in (\d+) out (\d+) dropped (\d+); "
@@ -132,12 +133,15 @@ def test_streaming_tracker_labels_as_mocap_track_and_the_recorded_session(short_
 
     root, session = short_session
     record = tmp_path / "session"
-    assert cli.main(live(root, "--out", str(tmp_path / "poses.parquet"), "--record", str(record))) == 0
+    view = tmp_path / "live.rrd"
+    assert cli.main(live(root, "--out", str(tmp_path / "poses.parquet"), "--record", str(record),
+                         "--view", str(view))) == 0
     import pyarrow.parquet as pq
 
     poses = pq.read_table(tmp_path / "poses.parquet")  # read as fast as tracked: a row per reference frame
     assert poses.column("frame").to_pylist() == list(range(FRAMES[0]))
     assert set(poses.column("cameras").to_pylist()) == {"cam1", "cam1;cam2"}
+    check_view(view, poses, load_machine("hitachi_ex3500"))
     for name in ("cam1", "cam2"):
         assert cli.main(["track", str(root / f"{name}.mp4"), "--machine", "hitachi_ex3500", "--calibration",
                          str(root / "cameras.toml"), "--camera", name, "--out", str(tmp_path / f"{name}.csv")]) == 0
@@ -149,6 +153,46 @@ def test_streaming_tracker_labels_as_mocap_track_and_the_recorded_session(short_
     assert opened.camera_names == ("cam1", "cam2") and opened.machine().name == load_machine("hitachi_ex3500").name
     assert opened.video_path("cam2").read_bytes() == (root / "cam2.mp4").read_bytes()
     assert opened.calibration_path.is_file()
+
+
+def check_view(path: Path, poses, machine) -> None:
+    """The recording `--view` wrote, read back: per row, each link moved to where the model's
+    forward kinematics puts it at the row's joints, the bucket tip and the joint plots equal
+    to the row's values, the trail a segment from each row's tip to the next."""
+    import pyarrow as pa
+    from rerun.chunk import RrdReader
+
+    chunks: dict[str, list] = {}
+    for chunk in RrdReader(path).stream().collect().stream():
+        chunks.setdefault(chunk.entity_path, []).append(chunk)
+
+    def series(entity: str, component: str) -> dict[int, list]:
+        out = {}
+        for chunk in chunks[entity]:
+            batch = chunk.to_record_batch()
+            if not chunk.is_static and component in batch.schema.names:
+                out.update(zip(batch.column("frame").cast(pa.int64()).to_pylist(), batch.column(component).to_pylist()))
+        return out
+
+    frame = np.array(poses.column("frame").to_pylist())
+    joints = np.stack([poses.column(name).to_numpy() for name in machine.joint_names], axis=1)
+    scale, _ = scene.joint_display_units(machine)
+    world_from_link = machine.link_poses(joints / scale)
+    for i, name in enumerate(machine.link_names):
+        logged = series(f"/world/machine/{name}", "Transform3D:translation")
+        assert sorted(logged) == frame.tolist()
+        assert np.allclose([logged[f][0] for f in frame], world_from_link[:, i, :3, 3], atol=1e-6)
+    tip = np.stack([poses.column(f"bucket_tip_{a}").to_numpy() for a in "xyz"], axis=1)
+    logged = series("/world/bucket_tip", "Points3D:positions")
+    assert np.allclose([logged[f][0] for f in frame], tip, atol=1e-5)
+    for name in machine.joint_names:
+        logged = series(f"/plots/joints/{name}", "Scalars:scalars")
+        assert np.allclose([logged[f][0] for f in frame], poses.column(name).to_numpy(), atol=1e-9)
+    segments = series("/world/trail/live", "LineStrips3D:strips")
+    assert sorted(segments) == frame[1:].tolist()
+    assert np.allclose([segments[f][0] for f in frame[1:]], np.stack([tip[:-1], tip[1:]], axis=1), atol=1e-5)
+    angle = series("/plots/bucket/bucket_angle", "Scalars:scalars")
+    assert np.allclose([angle[f][0] for f in frame], poses.column("bucket_angle_deg").to_numpy(), atol=1e-9)
 
 
 def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):
@@ -177,7 +221,8 @@ def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):
     (["--source", "cam9=0"], "no such camera in the calibration"),
     (["--feed", "tcp://10.1.2.3:7400"], "only a loopback address"),
     (["--feed", "udp://127.0.0.1:7400"], "expected tcp://127.0.0.1:PORT"),
-    (["--view"], "--view is not available yet"),
+    (["--view", "out.txt"], "expected a viewer's URL"),
+    (["--view", "{folder}.rrd"], "--view names a folder"),
     (["--duration", "0"], "positive number of seconds"),
     (["--lag", "-1"], "give 0 or more frames"),
     (["--source", "cam3=no/such/video.mp4"], "video file not found"),
@@ -187,10 +232,19 @@ def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):
 def test_bad_live_arguments_exit_2(short_session, tmp_path, capsys, extra, message):
     root, _ = short_session
     (tmp_path / "a_file").write_text("")
-    extra = [e.format(file=tmp_path / "a_file") for e in extra]
+    (tmp_path / "a_folder.rrd").mkdir()
+    extra = [e.format(file=tmp_path / "a_file", folder=tmp_path / "a_folder") for e in extra]
     assert cli.main(live(root, "--out", str(tmp_path / "p.csv"), *extra)) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_following_the_clocks_of_one_camera_exits_2(short_session, tmp_path, capsys):
+    root, _ = short_session
+    argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
+            "--follow-clocks", "--out", str(tmp_path / "p.csv")]
+    assert cli.main(argv) == 2
+    assert "give two --source or more" in capsys.readouterr().err
 
 
 def test_a_feed_port_in_use_exits_2(short_session, tmp_path, capsys):
@@ -231,3 +285,32 @@ def test_a_stream_that_ends_is_reopened_and_the_rows_carry_on(short_session, tmp
     assert reopened and int(reopened.group(2)) >= 1 and int(reopened.group(1)) > FRAMES[1], summary
     frames = [int(r["frame"]) for r in read_rows(out)]
     assert len(frames) >= 0.7 * 90 and max(frames) >= 80
+
+
+def test_a_drifting_clock_is_followed(short_session, tmp_path, capsys):
+    """cam2 delivers 28.5 frames a second where its calibration states 29.97 (5 % off, so that
+    its offset moves by 2 frames in 2.6 s): with --follow-clocks its offset, re-estimated
+    from the motion, follows the truth at the frame it was estimated around within a frame,
+    where the calibrated one is several frames off by then."""
+    from dataclasses import replace
+
+    root, session = short_session
+    stated = session.cameras[1]
+    true_fps = 28.5
+    drifting = replace(session, cameras=(session.cameras[0], replace(stated, fps=true_fps)))
+    renderer = CameraRenderer(drifting, 1, RenderOptions(), np.random.default_rng(1))
+    with video_writer(tmp_path / "cam2.mp4", stated.camera.size, stated.fps) as write:
+        for _, image in renderer.frames(np.arange(75)):  # to 3.5 s on the reference clock, as cam1
+            write(image)
+    argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
+            "--source", f"cam2={tmp_path / 'cam2.mp4'}", "--realtime", "--duration", "3.5", "--follow-clocks",
+            "--out", str(tmp_path / "poses.csv")]
+    assert cli.main(argv) == 0
+    summary = capsys.readouterr().out
+    found = re.search(r"cam2 clock offset ([-+.\d]+) s at its frame (\d+) \(calibrated ([-+.\d]+) s\)", summary)
+    assert found, summary
+    offset, frame, calibrated = float(found.group(1)), int(found.group(2)), float(found.group(3))
+    assert calibrated == pytest.approx(stated.time_offset, abs=1e-4)
+    truth = stated.time_offset + frame * (1 / true_fps - 1 / stated.fps)  # frame n shows n / 28.5 + offset
+    assert abs(offset - truth) < 1 / 30, (offset, truth, frame)
+    assert abs(truth - calibrated) > 1.5 / 30  # the calibrated offset is off by more than 1.5 frames there

@@ -55,8 +55,14 @@ def add_parser(sub) -> None:
                    "the calibration): columns base_x ... as in the motion CSV; 6 more parameters a frame")
     p.add_argument("--feed", metavar="tcp://127.0.0.1:PORT",
                    help="also send each row as a JSON line to the programs connected to this loopback port")
+    p.add_argument("--follow-clocks", action="store_true",
+                   help="re-estimate each other camera's time offset from the last 2 s of motion every 0.5 s (as "
+                   "mocap sync does) and place its frames with it: a camera whose clock drifts from its stated fps")
     p.add_argument("--record", metavar="DIR", help="also write a session folder for the offline chain (mocap run)")
-    p.add_argument("--view", action="store_true", help="(not available yet: replay the poses file with mocap view)")
+    p.add_argument("--view", nargs="?", const="", metavar="URL|FILE.rrd",
+                   help="also show the machine, the bucket tip's trail and the joints as they come in a Rerun viewer: "
+                   "alone, a viewer started here; a running viewer's URL (rerun+http://HOST:9876/proxy); or an .rrd "
+                   "file to write and open later")
     p.set_defaults(run=run)
 
 
@@ -66,23 +72,30 @@ def run(args) -> int:
     from mocap.live.sources import parse_source
     from mocap.reconstruct.kinfit import FitOptions
 
-    if args.view:
-        raise InputError("--view is not available yet in mocap live; replay the poses afterwards with mocap view, "
-                         "or read the rows as they come from --feed")
+    view = None
+    if args.view is not None:
+        from mocap.live.view import check_target
+
+        view = check_target(args.view)
     if args.duration is not None and not args.duration > 0:
         raise InputError(f"--duration {args.duration}: give a positive number of seconds")
     if args.lag < 0:
         raise InputError(f"--lag {args.lag}: give 0 or more frames")
     sources = tuple(parse_source(text) for text in args.source)
+    if args.follow_clocks and len(sources) < 2:
+        raise InputError("--follow-clocks follows a camera's clock against the reference camera's; give two "
+                         "--source or more")
     files = [s.target for s in sources if not s.live]
-    check_outputs({"--out": args.out}, {"machine model": args.machine, "calibration": args.calibration,
-                                         "video": files})
+    saved = view if view and view.endswith(".rrd") else None
+    check_outputs({"--out": args.out, "--view": saved}, {"machine model": args.machine,
+                                                         "calibration": args.calibration, "video": files})
     if args.record is not None and Path(args.record).is_file():
         raise InputError("--record names a file; give a folder for the session", path=args.record)
     request = LiveRequest(
         args.machine, Path(args.calibration), sources, Path(args.out), realtime=args.realtime,
         duration=args.duration, lag=args.lag, feed=parse_feed(args.feed) if args.feed else None,
         record=Path(args.record) if args.record else None, fit_options=FitOptions(base_motion=args.base_motion),
+        view=view, follow_clocks=args.follow_clocks,
     )
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -53,7 +53,8 @@ FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (
 class LiveRequest:
     """What `mocap live` was asked: paths as given; `lag` the smoother's lag in reference
     frames; `duration` seconds of the run (None: until the sources end or Ctrl-C); `feed`
-    (host, port) or None; `record` a session folder to write, or None."""
+    (host, port) or None; `record` a session folder to write, or None; `view` where the rows
+    are shown as they come (`mocap.live.view.check_target`), or None."""
 
     machine: str
     calibration: Path
@@ -66,6 +67,8 @@ class LiveRequest:
     wait_frames: float = 1.5
     feed: tuple[str, int] | None = None
     record: Path | None = None
+    view: str | None = None
+    follow_clocks: bool = False
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -90,6 +93,11 @@ class LiveReport:
     interrupted: bool
     skipped: int = 0
     feed: str | None = None
+    view_ms: float = float("nan")  # the main thread's time per row handing it to the viewer
+    view_dropped: int = 0  # rows not shown: the viewer's queue was full
+    # followed cameras: (name, newest offset s, the camera's frame at the middle of its window, calibrated offset s)
+    clocks: tuple[tuple[str, float, float, float], ...] = ()
+    clock_update_ms: float = float("nan")  # CPU per re-estimate of the offsets
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -102,7 +110,11 @@ class LiveReport:
             latency = "latency -"
         return (f"{self.rows} rows to {out}; {counts}; {latency} (the smoother's lag of {self.lag_ms:.0f} ms "
                 f"included)" + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
-                                "CPU)" if self.skipped else "") + ("; interrupted" if self.interrupted else ""))
+                                "CPU)" if self.skipped else "") + "".join(
+                    f"; {name} clock offset {now:+.4f} s at its frame {at:.0f} (calibrated {then:+.4f} s)"
+                    for name, now, at, then in self.clocks)
+                + (f"; {self.view_dropped} rows not shown in the viewer (it fell behind)" if self.view_dropped else "")
+                + ("; interrupted" if self.interrupted else ""))
 
 
 class CameraWorker(threading.Thread):
@@ -192,10 +204,17 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     if feed is not None and announce is not None:
         announce(f"feed on {feed.url}")
     writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
-    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop)
+    chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
+    view = _view(request.view, machine, chosen)
+    follower = None
+    if request.follow_clocks and len(cameras) > 1:
+        from mocap.live.clocks import ClockFollower
+
+        follower = ClockFollower(machine, cameras, fps, offsets, stop)
+    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
     with ExitStack() as recording:
         _recorders(request, readers, cameras, fps, recording)
-        for thread in [*readers, *workers]:
+        for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
             thread.start()
         try:
             loop.run(clock_start)
@@ -206,20 +225,43 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
             writer.close()
             if feed is not None:
                 feed.close()
+            if view is not None:
+                view.close()
     if request.record is not None:
         _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
                    for c, r, w in zip(cameras, readers, workers))
-    return LiveReport(loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted,
-                      loop.skipped, feed.url if feed is not None else None)
+    return LiveReport(
+        loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted, loop.skipped,
+        feed.url if feed is not None else None,
+        view_ms=1000.0 * loop.view_s / loop.rows if view is not None and loop.rows else float("nan"),
+        view_dropped=view.dropped if view is not None else 0,
+        clocks=() if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
+                                                 for k, c in enumerate(cameras) if k > 0),
+        clock_update_ms=1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
+        else float("nan"))
+
+
+def _view(target: str | None, machine: Machine, calibration: Calibration):
+    if target is None:
+        return None
+    from mocap.live.view import LiveView, live_blueprint, open_stream
+
+    from mocap.live.view import ViewThread
+
+    view = ViewThread(LiveView(open_stream(target, live_blueprint(machine)), machine, calibration))
+    view.start()
+    return view
 
 
 class _Loop:
     """The main thread's work: labelled frames in, rows out."""
 
-    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop):
+    def __init__(self, request, machine, cameras, fps, workers, writer, feed, stop, view=None, follower=None):
         self.request, self.machine, self.cameras, self.fps = request, machine, cameras, fps
-        self.workers, self.writer, self.feed, self.stop = workers, writer, feed, stop
+        self.workers, self.writer, self.feed, self.stop, self.view = workers, writer, feed, stop, view
+        self.view_s = 0.0
+        self.follower = follower
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
@@ -251,6 +293,10 @@ class _Loop:
                     break
                 self._emit()
                 continue
+            if self.follower is not None:  # the frame placed with its camera's newest offset
+                index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
+                self.follower.add(k, index, pixels)
+                time_ref = index / self.fps[k] + self.follower.offset(k)
             self.history[k].add(time_ref, pixels)
             self.seen[k] = time.perf_counter()
             if k == self._clock():
@@ -316,6 +362,10 @@ class _Loop:
         self.writer.write(values)
         if self.feed is not None:
             self.feed.send(values)
+        if self.view is not None:
+            began = time.perf_counter()
+            self.view.submit(frame, t, pose)
+            self.view_s += time.perf_counter() - began
         self.rows += 1
         self.latency.append(latency)
 

@@ -79,15 +79,12 @@ def log_world(rec: rr.RecordingStream, machine: Machine) -> None:
     rec.log("world", rr.AnnotationContext(labels), static=True)
 
 
-def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion, series: scene.LinkSeries) -> None:
-    """Each link as a solid box in its own frame, moved by world_from_link per frame."""
+def log_link_boxes(rec: rr.RecordingStream, machine: Machine) -> None:
+    """Each link as a solid box in its own frame (static), at `link_path`."""
     boxes = link_boxes(machine)  # (L, 2, 3) min and max corners in the link frame
-    quaternion = series.quaternions()
-    times = time_columns(motion.frame[series.rows], motion.time[series.rows])
     for i, name in enumerate(machine.link_names):
-        path = link_path(name)
         rec.log(
-            path,
+            link_path(name),
             rr.Boxes3D(
                 centers=[boxes[i].mean(axis=0)],
                 half_sizes=[(boxes[i, 1] - boxes[i, 0]) / 2],
@@ -98,14 +95,21 @@ def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion, serie
             ),
             static=True,
         )
-        if len(series.rows):
-            rec.send_columns(
-                path,
-                indexes=times,
-                columns=rr.Transform3D.columns(
-                    translation=series.translation[:, i], quaternion=quaternion[:, i]
-                ),
-            )
+
+
+def log_machine(rec: rr.RecordingStream, machine: Machine, motion: Motion, series: scene.LinkSeries) -> None:
+    """Each link as a solid box in its own frame, moved by world_from_link per frame."""
+    log_link_boxes(rec, machine)
+    if not len(series.rows):
+        return
+    quaternion = series.quaternions()
+    times = time_columns(motion.frame[series.rows], motion.time[series.rows])
+    for i, name in enumerate(machine.link_names):
+        rec.send_columns(
+            link_path(name),
+            indexes=times,
+            columns=rr.Transform3D.columns(translation=series.translation[:, i], quaternion=quaternion[:, i]),
+        )
 
 
 def log_markers(
