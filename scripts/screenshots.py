@@ -12,7 +12,9 @@ session's results (`mocap demo` or `mocap run`).
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -47,7 +49,7 @@ def replay_screenshot(recording: Path, out: Path, wait_s: float = 60.0) -> None:
     web, grpc = _free_port(), _free_port()
     server = subprocess.Popen([sys.executable, "-m", "rerun", "--serve-web", "--web-viewer-port", str(web),
                                "--port", str(grpc), str(recording)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         time.sleep(3.0 + recording.stat().st_size / 20e6)  # the server reads the whole file first
         url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
@@ -56,8 +58,8 @@ def replay_screenshot(recording: Path, out: Path, wait_s: float = 60.0) -> None:
                             "--enable-unsafe-swiftshader", "--hide-scrollbars", f"--user-data-dir={profile}",
                             "--window-size=1600,1000", f"--virtual-time-budget={int(wait_s * 1000)}",
                             f"--screenshot={out}", url], check=True, capture_output=True, timeout=wait_s + 120)
-    finally:
-        server.terminate()
+    finally:  # `python -m rerun` runs the viewer's binary as a child: stop the whole group
+        os.killpg(server.pid, signal.SIGTERM)
         server.wait(timeout=10)
 
 
