@@ -71,7 +71,8 @@ class DevTools:
             os.dup2(b, 4)
 
         self.process = subprocess.Popen(
-            [browser_binary(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+            [browser_binary(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
+             "--enable-unsafe-swiftshader",
              "--hide-scrollbars", f"--user-data-dir={profile}", f"--window-size={width},{height}",
              "--remote-debugging-pipe", "about:blank"],
             close_fds=False, preexec_fn=pipes, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

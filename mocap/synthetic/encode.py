@@ -60,7 +60,8 @@ def video_writer(path: str | Path, size: tuple[int, int], fps: float, codec: str
                     if image.shape[0] % 2 or image.shape[1] % 2:
                         frame = av.VideoFrame.from_ndarray(image, format="bgr24")
                     else:
-                        frame = av.VideoFrame.from_ndarray(cv2.cvtColor(image, cv2.COLOR_BGR2YUV_I420), format="yuv420p")
+                        yuv = cv2.cvtColor(image, cv2.COLOR_BGR2YUV_I420)
+                        frame = av.VideoFrame.from_ndarray(yuv, format="yuv420p")
                     for packet in stream.encode(frame):
                         container.mux(packet)
 

@@ -212,7 +212,8 @@ def log_video(
     first = first_frame_jpeg(video.path)
     if first is not None:  # under the video: seen at once, before the viewer has decoded the video
         rec.log(camera_path(camera) + "/first_frame",
-                rr.EncodedImage(contents=first, media_type="image/jpeg", draw_order=FIRST_FRAME_DRAW_ORDER), static=True)
+                rr.EncodedImage(contents=first, media_type="image/jpeg", draw_order=FIRST_FRAME_DRAW_ORDER),
+                static=True)
     rows, frames = scene.video_frame_rows(motion, len(video), fps, offset)
     if len(rows) and rows[0] > 0:
         start = int(rows[0])  # the motion row of the video's first frame
