@@ -12,7 +12,11 @@ session's results (`mocap demo` or `mocap run`).
 from __future__ import annotations
 
 import argparse
+import base64
+import json
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -42,22 +46,99 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def browser_binary() -> str:
+    """Chromium's own binary: Debian's `chromium` is a shell script that closes the file
+    descriptors the DevTools pipe needs."""
+    path = Path(chromium()).resolve()
+    with path.open("rb") as f:
+        script = f.read(2) == b"#!"
+    for candidate in (Path("/usr/lib/chromium/chromium"), Path("/usr/lib/chromium-browser/chromium-browser")):
+        if script and candidate.is_file():
+            return str(candidate)
+    return str(path)
+
+
+class DevTools:
+    """Chromium driven over its DevTools pipe (fds 3 and 4: JSON messages ended by NUL)."""
+
+    def __init__(self, width: int, height: int, profile: str):
+        to_browser, self._write = os.pipe()
+        self._read, from_browser = os.pipe()
+
+        def pipes() -> None:
+            a, b = os.dup(to_browser), os.dup(from_browser)  # dup2 onto a different fd clears close-on-exec
+            os.dup2(a, 3)
+            os.dup2(b, 4)
+
+        self.process = subprocess.Popen(
+            [browser_binary(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
+             "--enable-unsafe-swiftshader",
+             "--hide-scrollbars", f"--user-data-dir={profile}", f"--window-size={width},{height}",
+             "--remote-debugging-pipe", "about:blank"],
+            close_fds=False, preexec_fn=pipes, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        os.close(to_browser)
+        os.close(from_browser)
+        self._buffer, self._next = b"", 0
+
+    def call(self, method: str, session: str | None = None, **params) -> dict:
+        self._next += 1
+        message = {"id": self._next, "method": method, "params": params, **({"sessionId": session} if session else {})}
+        os.write(self._write, json.dumps(message).encode() + b"\0")
+        while True:
+            while b"\0" not in self._buffer:
+                chunk = os.read(self._read, 1 << 20)
+                if not chunk:
+                    raise RuntimeError(f"Chromium closed its DevTools pipe during {method}")
+                self._buffer += chunk
+            raw, self._buffer = self._buffer.split(b"\0", 1)
+            reply = json.loads(raw)
+            if reply.get("id") == self._next:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                return reply["result"]
+
+    def close(self) -> None:
+        try:
+            self.call("Browser.close")
+        except (RuntimeError, OSError):
+            pass
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        os.close(self._write)
+        os.close(self._read)
+
+
+def live_screenshot(url: str, out: Path, wait_s: float, width: int = 1600, height: int = 1000) -> None:
+    """`url` shot after `wait_s` seconds of real time (a WebAssembly viewer compiles in real
+    time, which --virtual-time-budget runs past)."""
+    with tempfile.TemporaryDirectory() as profile:
+        browser = DevTools(width, height, profile)
+        try:
+            target = browser.call("Target.createTarget", url=url)["targetId"]
+            session = browser.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+            browser.call("Emulation.setDeviceMetricsOverride", session, width=width, height=height,
+                         deviceScaleFactor=1, mobile=False)
+            time.sleep(wait_s)
+            png = browser.call("Page.captureScreenshot", session, format="png")["data"]
+            out.write_bytes(base64.b64decode(png))
+        finally:
+            browser.close()
+
+
 def replay_screenshot(recording: Path, out: Path, wait_s: float = 60.0) -> None:
     """The web viewer on `recording`, served by the Rerun beside this Python, shot after `wait_s`."""
     web, grpc = _free_port(), _free_port()
     server = subprocess.Popen([sys.executable, "-m", "rerun", "--serve-web", "--web-viewer-port", str(web),
                                "--port", str(grpc), str(recording)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         time.sleep(3.0 + recording.stat().st_size / 20e6)  # the server reads the whole file first
-        url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
-        with tempfile.TemporaryDirectory() as profile:
-            subprocess.run([chromium(), "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
-                            "--enable-unsafe-swiftshader", "--hide-scrollbars", f"--user-data-dir={profile}",
-                            "--window-size=1600,1000", f"--virtual-time-budget={int(wait_s * 1000)}",
-                            f"--screenshot={out}", url], check=True, capture_output=True, timeout=wait_s + 120)
-    finally:
-        server.terminate()
+        live_screenshot(f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy", out, wait_s)
+    finally:  # `python -m rerun` runs the viewer's binary as a child: stop the whole group
+        os.killpg(server.pid, signal.SIGTERM)
         server.wait(timeout=10)
 
 

@@ -170,6 +170,7 @@ def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, reco
         batch = chunk.to_record_batch()
         if "TimePanelBlueprint:time_selection" in batch.schema.names:
             selection = batch.column("TimePanelBlueprint:time_selection").to_pylist()[-1][0]
+            fps = batch.column("TimePanelBlueprint:fps").to_pylist()[-1][0]
         if "ViewBlueprint:space_origin" in batch.schema.names:
             origins += [o[0] for o in batch.column("ViewBlueprint:space_origin").to_pylist()]
         if "VisibleTimeRanges:ranges" in batch.schema.names:
@@ -177,7 +178,8 @@ def test_default_blueprint_shows_the_scene_each_camera_and_the_plots(world, reco
     assert sorted(origins) == sorted(
         ["world", "world/cameras/cam1", "world/cameras/cam2", "world/cameras/cam3", "plots", "plots", "plots"]
     )  # three panels of plots: joints, the bucket, the measurement's quality (no phases without cycles' phases)
-    assert selection == {"min": world.cycles.start[0], "max": selection["max"]}  # opens on the first dig
+    assert selection == {"min": world.cycles.start[0], "max": selection["max"]}  # the first dig, looped
+    assert fps == FPS  # played at the reference camera's rate (Rerun's default is 30)
     assert set(overrides) == {"/world/trail/1/visualizers", "/world/trail/2/visualizers"}
     ranges = {r["timeline"]: r["range"] for r in overrides["/world/trail/2/visualizers"]}
     assert set(ranges) == {"frame", "time"}
@@ -277,6 +279,19 @@ def test_videos_are_the_files_assets_with_a_frame_per_motion_frame(world, record
     assert list(note_frames) == [0] and labels[0][0] == f"starts {OFFSET:.2f} s later: first frame"
     assert "/world/cameras/cam1/note" not in rec.entities
     assert "/world/cameras/cam3/video" not in rec.entities
+
+
+def test_each_video_shows_its_first_frame_as_an_image_under_the_video(world, recorded):
+    import cv2
+
+    _, rec = recorded
+    for name in ("cam1", "cam2"):  # the test videos' frame i is grey level 7 i: the first is black
+        path = f"/world/cameras/{name}/first_frame"
+        assert rec.static(path, "EncodedImage:media_type") == ["image/jpeg"]
+        image = cv2.imdecode(np.frombuffer(bytes(rec.static(path, "EncodedImage:blob")[0]), np.uint8), cv2.IMREAD_COLOR)
+        assert image.shape == (48, 64, 3) and image.max() <= 3  # H.264 and JPEG round the grey level a little
+        assert rec.static(path, "EncodedImage:draw_order")[0] < -15.0  # under the video's frames (Rerun's -15)
+    assert "/world/cameras/cam3/first_frame" not in rec.entities  # no playable video, no image
 
 
 def test_non_h264_video_is_skipped_with_a_warning(world, caplog):

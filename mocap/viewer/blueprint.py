@@ -31,11 +31,13 @@ def trail_time_ranges(trail: Trail) -> rrb.VisibleTimeRanges:
 
 def default_blueprint(
     cameras: Sequence[str], trails: Sequence[Trail], plot_groups: Sequence[tuple[str, str]],
-    eye: tuple[np.ndarray, np.ndarray] | None = None, phases: bool = False,
+    eye: tuple[np.ndarray, np.ndarray] | None = None, phases: bool = False, fps: float | None = None,
 ) -> rrb.Blueprint:
     """`plot_groups` (group under plots/, title with its unit) beyond joints, bucket angle
     and speed that have series; `eye` the 3-D view's position and look target (m), None for
-    Rerun's own framing; `phases` whether plots/phase has the dig-cycle phases."""
+    Rerun's own framing; `phases` whether plots/phase has the dig-cycle phases; `fps` the
+    reference camera's frame rate, which the viewer plays the frame timeline at (its own
+    default is 30)."""
     controls = None if eye is None else rrb.EyeControls3D(position=eye[0], look_target=eye[1], eye_up=[0, 0, 1])
     scene_3d = rrb.Spatial3DView(
         origin="world",
@@ -62,9 +64,12 @@ def default_blueprint(
                                         name="cycles: phase (1 dig, 2 swing loaded, 3 dump, 4 swing back)"))
     left = rrb.Vertical(scene_3d, rrb.Horizontal(*images), row_shares=[3, 1]) if images else scene_3d
     panel = None
-    if trails:  # opens on the first dig, playing it in a loop
+    if trails:
+        # The first dig selected, played in a loop. Rerun 0.41's blueprint has no time cursor:
+        # playing starts at the timeline's first frame and wraps to the selection's start only
+        # at its end, so the replay plays up to the first dig and then loops on it.
         first = trails[0]
-        panel = rrb.TimePanel(timeline="frame", play_state="playing", loop_mode="selection",
+        panel = rrb.TimePanel(timeline="frame", play_state="playing", loop_mode="selection", fps=fps,
                               time_selection=rrb.components.AbsoluteTimeRange(int(first.first_frame), int(first.frame[-1])))
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Vertical(*plots), column_shares=[2, 1]),
                          *([panel] if panel is not None else []))

@@ -11,6 +11,7 @@ Entity tree (it mirrors the frame tree; the world is the machine's base frame, z
                                     coloured by the dig's class
     world/cameras/<cam>             world_from_cam and the pinhole (static, OpenCV axes RDF)
     world/cameras/<cam>/video       the camera's H.264 video and the frame shown per frame
+    world/cameras/<cam>/first_frame the video's first frame as a JPEG (static), under the video
     world/cameras/<cam>/tracks      the camera's 2-D tracks
     plots/<group>/<series>          joints, bucket (angle), speed, uncertainty, base, one
                                     group per other column: one unit per group
@@ -32,7 +33,7 @@ from mocap.io.points_csv import Points
 from mocap.machine import Machine
 from mocap.shapes import link_boxes
 from mocap.viewer import scene
-from mocap.viewer.video import Video
+from mocap.viewer.video import Video, first_frame_jpeg
 
 LINK_COLORS = np.array(
     [[120, 120, 120], [230, 170, 40], [240, 200, 60], [220, 140, 40], [160, 160, 170], [200, 90, 60]],
@@ -45,6 +46,7 @@ TRAIL_COLORS = np.array(
     [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [23, 190, 207]],
     dtype=np.uint8,
 )
+FIRST_FRAME_DRAW_ORDER = -30.0  # below the video's frames (Rerun draws video at -15)
 CLASS_COLORS = {"Type 1": (31, 119, 180), "Type 2": (255, 127, 14), "Type 3": (44, 160, 44), "other": (150, 150, 150)}
 
 
@@ -211,6 +213,11 @@ def log_video(
     then, with a note (at the top of its image of `size`) saying why."""
     path = camera_path(camera) + "/video"
     rec.log(path, video.asset, static=True)
+    first = first_frame_jpeg(video.path)
+    if first is not None:  # under the video: seen at once, before the viewer has decoded the video
+        rec.log(camera_path(camera) + "/first_frame",
+                rr.EncodedImage(contents=first, media_type="image/jpeg", draw_order=FIRST_FRAME_DRAW_ORDER),
+                static=True)
     rows, frames = scene.video_frame_rows(motion, len(video), fps, offset)
     if len(rows) and rows[0] > 0:
         start = int(rows[0])  # the motion row of the video's first frame

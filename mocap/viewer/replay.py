@@ -155,7 +155,7 @@ def replay_blueprint(replay: Replay):
             groups[s.group] = GROUP_TITLES.get(s.group, s.label)
     eye = scene.working_view(replay.motion, replay.tip)
     return default_blueprint(replay.calibration.names, replay.trails(), list(groups.items()), eye,
-                             replay.phases() is not None)
+                             replay.phases() is not None, fps=float(replay.fps[0]))
 
 
 def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:

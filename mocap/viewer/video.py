@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
 import rerun as rr
 
@@ -67,6 +68,21 @@ def load_video(path: str | Path, camera: str) -> Video | None:
         raise InputError(f"camera {camera}: the MP4 cannot be read to its end ({_one_line(exc)}): a truncated or "
                          "corrupt file; copy it again, or leave out its --video", path=path) from None
     return Video(path, asset, timestamps)
+
+
+def first_frame_jpeg(path: str | Path, quality: int = 80) -> bytes | None:
+    """The video's first frame as JPEG bytes (None if it cannot be decoded): shown at once
+    while a viewer still loads and decodes the video itself."""
+    try:
+        with av.open(str(path)) as container:
+            frame = next(container.decode(video=0), None)
+            if frame is None:
+                return None
+            rgb = frame.to_ndarray(format="rgb24")
+    except (av.FFmpegError, OSError):
+        return None
+    ok, data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return data.tobytes() if ok else None
 
 
 def _one_line(exc: Exception) -> str:
