@@ -34,14 +34,17 @@ def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("partial")
     machine = load_machine("hitachi_ex3500")
     rng = np.random.default_rng(5)
-    cameras = ring_of_cameras(2, np.array([5.0, 0.0, 5.0]), (30.0, 50.0), rng, fov_deg=(40.0, 55.0))
+    cameras = ring_of_cameras(3, np.array([5.0, 0.0, 5.0]), (30.0, 50.0), rng, fov_deg=(40.0, 55.0))
     joints = random_motion(machine, FRAMES, rng, fps=FPS)
-    tracks = concatenate([observe([camera], machine, joints, rng, noise_px=0.3) for camera in cameras])
-    save_calibration(Calibration(tuple(cameras), tuple({"fps": FPS} for _ in cameras),
-                                 {"machine": "hitachi_ex3500", "frame": 0,
-                                  "joints": joints_to_table(joints[0], machine)}), root / "c.toml")
+    other = random_motion(machine, FRAMES, rng, fps=FPS)  # what the third camera saw: another session
+    tracks = [observe([camera], machine, joints, rng, noise_px=0.3) for camera in cameras]
+    metadata = {"machine": "hitachi_ex3500", "frame": 0, "joints": joints_to_table(joints[0], machine)}
+    save_calibration(Calibration(tuple(cameras[:2]), ({"fps": FPS},) * 2, metadata), root / "c.toml")
+    save_calibration(Calibration(tuple(cameras), ({"fps": FPS},) * 3, metadata), root / "c3.toml")
     for name, frames in (("stretch", slice(20, 40)), ("few", slice(30, 33))):
-        save_tracks(mixed(tracks, frames, list(machine.marker_names), 1), root / f"{name}.csv")
+        save_tracks(mixed(concatenate(tracks[:2]), frames, list(machine.marker_names), 1), root / f"{name}.csv")
+    save_tracks(concatenate(tracks[:2] + [observe([cameras[2]], machine, other, rng, noise_px=0.3)]),
+                root / "three.csv")
     return root, machine
 
 
@@ -73,3 +76,23 @@ def test_a_few_unexplained_frames_are_not_partial_and_the_flag_accepts_a_stretch
     assert fit(root, "stretch", "--allow-partial") == EXIT_OK
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mocap fit: partial: ") and "exit status 3" not in err[0]
+
+
+def test_a_camera_never_synchronised_is_partial_and_the_others_are_written(scene, capsys):
+    import tomllib
+
+    root, _ = scene
+    argv = ["sync", str(root / "c3.toml"), str(root / "three.csv"), "--machine", "hitachi_ex3500",
+            "--max-offset", "1", "--out", str(root / "synced.toml")]
+    assert cli.main(argv) == EXIT_PARTIAL
+    out, err = capsys.readouterr()
+    err = err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mocap sync: partial: camera cam3 not synchronised (")
+    assert "cam1" not in err[0] and "cam2" not in err[0] and f"written to {root / 'synced.toml'}" in err[0]
+    assert "cam3: not synchronised" in out
+    data = tomllib.loads((root / "synced.toml").read_text())
+    cams = [v for k, v in data.items() if k != "metadata"]
+    assert abs(cams[1]["time_offset"]) * FPS < 0.25  # the same clock, found over 4 s to a quarter of a frame
+    assert "time_offset" not in cams[2] and cams[2]["fps"] == FPS  # none found: none written
+    assert cli.main(argv + ["--allow-partial"]) == EXIT_OK
+    assert "exit status 3" not in capsys.readouterr().err
