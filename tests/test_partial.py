@@ -96,3 +96,27 @@ def test_a_camera_never_synchronised_is_partial_and_the_others_are_written(scene
     assert "time_offset" not in cams[2] and cams[2]["fps"] == FPS  # none found: none written
     assert cli.main(argv + ["--allow-partial"]) == EXIT_OK
     assert "exit status 3" not in capsys.readouterr().err
+
+
+def _half_done(out) -> str:
+    from mocap.errors import Report
+
+    out.write_text("what was done\n")
+    return Report(f"wrote {out}", "camera cam3 not synchronised")
+
+
+def test_a_batch_stage_that_did_part_of_its_work_is_partial_also_when_skipped(tmp_path):
+    """The batch's stage outcome carries the partial line, and keeps it when a re-run finds the
+    stage up to date (the session stays partial, not ok)."""
+    from functools import partial
+
+    from mocap.batch.plan import Stage
+    from mocap.batch.run import RAN, SKIPPED, run_stages
+
+    (tmp_path / "in.txt").write_text("input\n")
+    chain = [Stage("sync", (tmp_path / "in.txt",), (tmp_path / "out.txt",), call=partial(_half_done, tmp_path / "out.txt"))]
+    first = run_stages(tmp_path, chain, ["sync"], [], True)
+    again = run_stages(tmp_path, chain, ["sync"], [], True)
+    assert [(o.status, o.partial) for o in first.outcomes + again.outcomes] == [
+        (RAN, "camera cam3 not synchronised"), (SKIPPED, "camera cam3 not synchronised")]
+    assert not first.error and (tmp_path / "out.txt").read_text() == "what was done\n"

@@ -10,7 +10,7 @@ CLASSES = ("Type 1", "Type 2", "Type 3", "other")
 @dataclass(frozen=True)
 class SessionSummary:
     """One session's figures: hours recorded, cycles, summed cycle and dig seconds, class
-    counts (in `CLASSES` order); `status` ok or failed with `error`; stages run / skipped."""
+    counts (in `CLASSES` order); `status` ok, partial or failed with `error`; stages run / skipped."""
 
     session: str
     machine: str
