@@ -253,3 +253,34 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     assert _visible(killed) == _visible(whole)
     assert not list(killed.glob(".*"))  # the killed writers' temporaries and locks are gone
     assert _visible(inputs) == before
+
+
+def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(tmp_path):
+    """SIGKILL of `mocap synth` (one camera, a tiny video) at seeded moments, each run resuming
+    the folder the last one left: every file a reader sees is whole (as the uninterrupted
+    run's), COMPLETE only once all are, and the command run again writes the same session
+    byte for byte, the video too."""
+    import time
+
+    def argv(out):
+        return ["synth", "--machine", "bobcat_225", "--cycles", "1", "--cameras", "1", "--scale", "0.05",
+                "--fps", "5", "--out", str(out)]
+    start = time.perf_counter()
+    assert cli.main(argv(tmp_path / "whole")) == 0
+    took = max(time.perf_counter() - start, 0.5) + 1.5  # the child's start (imports) comes on top
+    whole = _visible(tmp_path / "whole")
+    assert "COMPLETE" in whole and "videos/cam1.mp4" in whole
+    killed, codes = tmp_path / "killed", []
+    for fraction in KILL_SCHEDULE[1:]:  # the later moments: inside the writing, not the imports
+        codes.append(_run_killed(argv(killed), tmp_path, fraction * took))
+        assert codes[-1] in (None, 0)
+        files = _visible(killed) if killed.exists() else {}
+        assert all(whole[name] == digest for name, digest in files.items())  # whole, or absent
+        assert ("COMPLETE" in files) == (files == whole)
+        if codes[-1] == 0:  # it finished before the kill: a complete folder is not written again
+            break
+    assert None in codes  # killed mid-way at least once
+    if codes[-1] is None:
+        assert cli.main(argv(killed)) == 0
+    assert _visible(killed) == whole
+    assert not [p for p in killed.rglob(".*")]  # no temporary or lock of the killed runs left
