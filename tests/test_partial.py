@@ -120,3 +120,30 @@ def test_a_batch_stage_that_did_part_of_its_work_is_partial_also_when_skipped(tm
     assert [(o.status, o.partial) for o in first.outcomes + again.outcomes] == [
         (RAN, "camera cam3 not synchronised"), (SKIPPED, "camera cam3 not synchronised")]
     assert not first.error and (tmp_path / "out.txt").read_text() == "what was done\n"
+
+
+def test_run_carries_on_after_a_partial_stage_and_exits_3_unless_allowed(tmp_path, monkeypatch, capsys):
+    """`mocap run`'s chain: a stage that did part of its work prints its line, the stages
+    after it run, the run exits 3; with --allow-partial (as the demo runs it) 0."""
+    from mocap import pipeline
+    from mocap.errors import Report
+    from mocap.pipeline import RunOptions, Step, run_session
+
+    ran = []
+
+    def stage(name, partial=""):
+        def call():
+            ran.append(name)
+            return Report(f"{name} done", partial)
+        return Step(name, name, call, (), ())
+    monkeypatch.setattr(pipeline, "session_steps", lambda session, options: [
+        stage("sync", "camera cam3 not synchronised"), stage("fit")])
+    monkeypatch.setattr(pipeline, "write_run_report", lambda session: None)
+    (tmp_path / "results").mkdir()
+    assert run_session(tmp_path) == EXIT_PARTIAL
+    out, err = capsys.readouterr()
+    assert ran == ["sync", "fit"] and "fit done" in out
+    assert err.splitlines()[0] == "mocap sync: partial: camera cam3 not synchronised"
+    assert err.splitlines()[1].startswith("mocap run: partial: sync did part of the work")
+    assert run_session(tmp_path, RunOptions(allow_partial=True)) == EXIT_OK
+    assert capsys.readouterr().err == "mocap sync: partial: camera cam3 not synchronised\n"
