@@ -147,3 +147,18 @@ def test_run_carries_on_after_a_partial_stage_and_exits_3_unless_allowed(tmp_pat
     assert err.splitlines()[1].startswith("mocap run: partial: sync did part of the work")
     assert run_session(tmp_path, RunOptions(allow_partial=True)) == EXIT_OK
     assert capsys.readouterr().err == "mocap sync: partial: camera cam3 not synchronised\n"
+
+
+def test_the_fleet_report_lists_partial_sessions_apart_and_counts_their_results():
+    from mocap.batch.fleet import combine, report_text
+    from mocap.core.session_summary import SessionSummary
+
+    summaries = [SessionSummary("a", "m", "d", "ok", "", hours=1.0, analysed=True),
+                 SessionSummary("b", "m", "d", "partial", "sync: camera cam3 not synchronised", hours=2.0, analysed=True),
+                 SessionSummary("c", "m", "d", "failed", "track cam1: corrupt video")]
+    total = combine(summaries, "fleet")
+    assert total.status == "1/3 ok, 1 partial" and total.hours == 3.0  # a partial session's results count
+    text = report_text(summaries, 1.0)
+    failed, partial = text.split("## Failed")[1].split("## Partial")
+    assert "- c: track cam1: corrupt video" in failed and "- b:" not in failed
+    assert "- b: sync: camera cam3 not synchronised" in partial
