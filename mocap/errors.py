@@ -41,3 +41,16 @@ class ConvergenceError(InputError):
 def one_line(message: str) -> str:
     """A message as one line: line breaks (from a file's own text, say) become spaces."""
     return " ".join(message.split())
+
+
+class Report(str):
+    """A stage's report (the lines its command prints on stdout). `partial`: one line on the
+    work it could not do ('' when it did the whole of it); its command then exits
+    EXIT_PARTIAL, or 0 with --allow-partial, having written what it did."""
+
+    partial: str
+
+    def __new__(cls, text: str, partial: str = "") -> Report:
+        report = super().__new__(cls, text)
+        report.partial = partial
+        return report

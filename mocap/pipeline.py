@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
-from mocap.errors import InputError, one_line
+from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError, one_line
 from mocap.io.outputs import check_outputs
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
@@ -31,11 +31,14 @@ log = logging.getLogger(__name__)
 class RunOptions:
     """`labels`: the calibration frame's marker pixels (tracks CSV, all cameras), default
     calibration/labels.csv; `refine`: bundle-adjust the cameras over the session's frames
-    before the final fit; `view`: write the Rerun recording."""
+    before the final fit; `view`: write the Rerun recording; `allow_partial`: a stage that did
+    part of its work (a camera not synchronised, frames left unexplained) still ends the run
+    with status 0 (else 3; either way its line is printed and the chain carries on)."""
 
     labels: Path | None = None
     refine: bool = False
     view: bool = True
+    allow_partial: bool = False
 
 
 @dataclass(frozen=True)
@@ -195,7 +198,9 @@ def session_steps(session: Session, options: RunOptions) -> list[Step]:
 
 def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
     """Run every stage on the session folder `root`, printing each stage's report; stops at
-    the first failing stage (its one line on stderr) and returns its exit status (2)."""
+    the first failing stage (its one line on stderr) and returns its exit status (2). A stage
+    that did part of its work prints its partial line on stderr and the chain carries on; the
+    run then returns 3 (EXIT_PARTIAL) unless `options.allow_partial`."""
     session = Session.open(root)
     if not session.root.is_dir():
         raise InputError("not a folder; give the session folder (with session.toml)", path=root)
@@ -205,11 +210,16 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
     session.results_complete_path.unlink(missing_ok=True)
     steps = session_steps(session, options)
     done: set[str] = set()
+    partial: list[str] = []
     while steps:
         step = steps.pop(0)
         print(f"== {step.name}", flush=True)
         try:
-            print(step.call(), flush=True)
+            report = step.call()
+            print(report, flush=True)
+            if getattr(report, "partial", ""):
+                partial.append(step.name)
+                print(one_line(f"mocap {step.command}: partial: {report.partial}"), file=sys.stderr, flush=True)
         except InputError as exc:
             print(one_line(f"mocap {step.command}: error: {exc}"), file=sys.stderr, flush=True)
             if step.command != "refine":
@@ -221,7 +231,11 @@ def run_session(root: str | Path, options: RunOptions = RunOptions()) -> int:
         done.add(step.name)
     write_run_report(session)
     mark_complete(session.results_complete_path, "mocap run")
-    return 0
+    if partial and not options.allow_partial:
+        print(f"mocap run: partial: {', '.join(partial)} did part of the work (the lines above say what), every "
+              "stage after them ran; exit status 3 (--allow-partial: 0)", file=sys.stderr, flush=True)
+        return EXIT_PARTIAL
+    return EXIT_OK
 
 
 def write_run_report(session: Session) -> None:

@@ -253,3 +253,62 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     assert _visible(killed) == _visible(whole)
     assert not list(killed.glob(".*"))  # the killed writers' temporaries and locks are gone
     assert _visible(inputs) == before
+
+
+SYNTH_KILLS = np.random.default_rng(34).uniform(0.55, 0.85, 2)  # after the imports: inside the writing
+
+
+def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(tmp_path):
+    """SIGKILL of `mocap synth` (one camera, a tiny video) at seeded moments, each run resuming
+    the folder the last one left: every file a reader sees is whole (as the uninterrupted
+    run's), COMPLETE only once all are, and the command run again writes the same session
+    byte for byte, the video too."""
+    import shutil
+    import time
+
+    def argv(out):
+        return ["synth", "--machine", "bobcat_225", "--cycles", "1", "--cameras", "1", "--scale", "0.05",
+                "--fps", "5", "--out", str(out)]
+    start = time.perf_counter()
+    assert _run_killed(argv(tmp_path / "whole"), tmp_path, 600.0) == 0  # timed as the killed ones run
+    took = time.perf_counter() - start
+    whole = _visible(tmp_path / "whole")
+    assert "COMPLETE" in whole and "videos/cam1.mp4" in whole
+    killed = tmp_path / "killed"
+    for fraction in SYNTH_KILLS:
+        delay = fraction * took
+        for _ in range(4):  # a loaded machine may run it faster than timed: a finished run, again sooner
+            code = _run_killed(argv(killed), tmp_path, delay)
+            if code is None:
+                break
+            assert code == 0 and _visible(killed) == whole
+            shutil.rmtree(killed)
+            delay /= 2
+        assert code is None  # killed mid-way
+        files = _visible(killed) if killed.exists() else {}
+        assert all(whole[name] == digest for name, digest in files.items())  # whole, or absent
+        assert ("COMPLETE" in files) == (files == whole)  # COMPLETE last
+        if "COMPLETE" in files:  # killed as it ended (its lock left, for the next command to take over)
+            break
+    else:
+        assert cli.main(argv(killed)) == 0
+        assert not [p for p in killed.rglob(".*")]  # no temporary or lock of the killed runs left
+    assert _visible(killed) == whole
+
+
+def test_a_folder_synth_left_at_any_moment_is_resumed_and_others_refused(tmp_path, capsys):
+    """Killed just after session.toml (no truth/ yet) or inside an atomic write (its hidden
+    temporary): `mocap synth` takes the folder up again; a folder holding anything else, or
+    COMPLETE, is refused in one line."""
+    from mocap.synthetic.stage import _interrupted_synth
+
+    (tmp_path / "session.toml").write_text("machine = 'bobcat_225'\n")
+    (tmp_path / ".motion.csv.tmp").write_text("half")
+    assert _interrupted_synth(tmp_path)
+    (tmp_path / "notes.txt").write_text("mine")
+    assert not _interrupted_synth(tmp_path)
+    assert cli.main(["synth", "--machine", "bobcat_225", "--no-video", "--out", str(tmp_path)]) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+    (tmp_path / "notes.txt").unlink()
+    (tmp_path / "COMPLETE").write_text("done\n")
+    assert not _interrupted_synth(tmp_path)

@@ -48,11 +48,13 @@ def cycle_figures(cycles: Cycles | None, fps: float, n_frames: int) -> dict:
 
 
 def combine(summaries: list[SessionSummary], name: str) -> SessionSummary:
-    """Sessions added up (the successful ones) under one name."""
+    """Sessions added up (the successful ones, and the partial ones: their results written)
+    under one name."""
     ok = [s for s in summaries if s.status == "ok"]
-    analysed = [s for s in ok if s.analysed]
+    partial = [s for s in summaries if s.status == "partial"]
+    analysed = [s for s in ok + partial if s.analysed]
     return SessionSummary(
-        name, "", "", status=f"{len(ok)}/{len(summaries)} ok",
+        name, "", "", status=f"{len(ok)}/{len(summaries)} ok" + (f", {len(partial)} partial" if partial else ""),
         hours=float(sum(s.hours for s in analysed)) if analysed else float("nan"),
         cycles=sum(s.cycles for s in analysed),
         cycle_seconds=sum(s.cycle_seconds for s in analysed),
@@ -101,7 +103,10 @@ def report_text(summaries: list[SessionSummary], wall_seconds: float) -> str:
     lines += _table("session", "session", summaries)
     lines += _table("machine", "machine", summaries)
     lines += _table("day", "day", summaries)
-    failed = [s for s in summaries if s.status != "ok"]
+    failed = [s for s in summaries if s.status not in ("ok", "partial")]
     if failed:
         lines += ["## Failed", ""] + [f"- {s.session}: {s.error}" for s in failed] + [""]
+    partial = [s for s in summaries if s.status == "partial"]
+    if partial:
+        lines += ["## Partial", ""] + [f"- {s.session}: {s.error}" for s in partial] + [""]
     return "\n".join(lines)

@@ -21,13 +21,14 @@ from pathlib import Path
 import mocap
 from mocap.batch.manifest import Manifest
 from mocap.batch.plan import Stage
-from mocap.errors import InputError, one_line
+from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError, Report, one_line
 from mocap.progress import quiet_libraries
 
 log = logging.getLogger(__name__)
 
 LOG_DIR = Path("batch") / "logs"
 RAN, SKIPPED, FAILED = "ran", "skipped", "failed"
+PARTIAL = "partial"  # a session whose stages all ran, one or more doing part of its work
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class Outcome:
     status: str  # ran, skipped or failed
     seconds: float
     error: str = ""
+    partial: str = ""  # a stage that did part of its work: its line (a camera not synchronised, ...)
 
 
 @dataclass(frozen=True)
@@ -93,7 +95,8 @@ def up_to_date(stage: Stage, manifest: Manifest, inputs: dict, overwritten) -> b
 
 
 def execute(stage: Stage, root: Path) -> str:
-    """Run one stage; its report goes to batch/logs/<stage>.log. Returns '' or the error.
+    """Run one stage; its report goes to batch/logs/<stage>.log. Returns '' or the error, as
+    a `Report` whose `partial` is the stage's line when it did part of its work (exit status 3).
 
     A callable stage runs inside the worker's process (its modules stay imported from one
     stage to the next); a stage of `mocap` arguments runs as that command in a child process.
@@ -102,9 +105,9 @@ def execute(stage: Stage, root: Path) -> str:
     if stage.call is None:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         code, errors = _child_process(stage.args, log_path)
-        if code == 0:
-            return ""
         lines = [line for line in errors.splitlines() if line.strip()]
+        if code in (EXIT_OK, EXIT_PARTIAL):
+            return Report("", lines[-1] if code == EXIT_PARTIAL and lines else "")
         return lines[-1] if lines else f"exit status {code}"
     quiet_libraries()
     report = ""
@@ -121,7 +124,7 @@ def execute(stage: Stage, root: Path) -> str:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(log_path, "w", encoding="utf-8") as out:
             out.write("".join(f"{text}\n" for text in (report, error) if text))
-    return error
+    return Report(error, "" if error else getattr(report, "partial", ""))
 
 
 def _child_process(args, log_path: Path) -> tuple[int, str]:
@@ -160,7 +163,7 @@ def run_stages(root: Path, chain: list[Stage], names: list[str], priors: list[Ta
         inputs = _input_hashes(stage, manifest, state)
         if up_to_date(stage, manifest, inputs, overwritten):
             state.update(manifest.stages[name]["outputs"])
-            outcomes.append(Outcome(name, SKIPPED, 0.0))
+            outcomes.append(Outcome(name, SKIPPED, 0.0, partial=manifest.stages[name].get("partial", "")))
             continue
         for path in stage.inputs:  # an input a later stage rewrote: put back what this stage read
             key = manifest.key(path)
@@ -170,6 +173,7 @@ def run_stages(root: Path, chain: list[Stage], names: list[str], priors: list[Ta
                 return TaskResult(state, tuple(outcomes), records, manifest.files, f"{name}: {error}")
         start = time.perf_counter()
         error = execute(stage, root)
+        partial, error = getattr(error, "partial", ""), str(error)
         seconds = time.perf_counter() - start
         missing = [str(p) for p in stage.outputs if not p.exists()]
         if not error and missing:
@@ -183,9 +187,11 @@ def run_stages(root: Path, chain: list[Stage], names: list[str], priors: list[Ta
             if (name, manifest.key(path)) in overwritten:
                 manifest.keep(path, outputs[manifest.key(path)])
         manifest.record(name, _args(stage), inputs, outputs, seconds)
+        if partial:  # kept, so that a re-run that skips the stage still reports it
+            manifest.stages[name]["partial"] = partial
         records[name] = manifest.stages[name]
         state.update(outputs)
-        outcomes.append(Outcome(name, RAN, seconds))
+        outcomes.append(Outcome(name, RAN, seconds, partial=partial))
         if write:
             manifest.save()
     return TaskResult(state, tuple(outcomes), {} if write else records, manifest.files)

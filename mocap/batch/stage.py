@@ -19,7 +19,7 @@ from pathlib import Path
 
 from mocap.batch.fleet import SessionSummary, cycle_figures, machine_and_day, report_text
 from mocap.batch.plan import ANALYSIS_DIR, Stage, default_chain, find_sessions, split_tasks
-from mocap.batch.run import FAILED, RAN, SKIPPED, TaskResult, run_stages
+from mocap.batch.run import FAILED, PARTIAL, RAN, SKIPPED, TaskResult, run_stages
 from mocap.errors import InputError
 from mocap.progress import progress
 
@@ -97,7 +97,8 @@ def summarize(root: Path, label: str, results: list[TaskResult]) -> SessionSumma
     except InputError as exc:
         return SessionSummary(label, machine, day, FAILED, f"summary: {exc}", **counts)
     figures = cycle_figures(cycles, config.cameras[0].fps, n_frames)
-    return SessionSummary(label, machine, day, "ok", "", **counts, **figures)
+    partial = "; ".join(f"{o.stage}: {o.partial}" for o in outcomes if o.partial)
+    return SessionSummary(label, machine, day, PARTIAL if partial else "ok", partial, **counts, **figures)
 
 
 def _failed(root: Path, label: str, error: str) -> SessionSummary:
@@ -143,7 +144,8 @@ def analyze_available() -> bool:
 
 def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Stage]] | None = None) -> tuple[str, int]:
     """Run every session under `paths`; write fleet.csv and fleet_report.md into
-    `options.out`. Returns the short report and the number of failed sessions.
+    `options.out`. Returns the short report and the number of sessions failed or partial
+    (every stage ran, one did part of its work: a camera not synchronised, frames unexplained).
 
     `chain_for(root)` gives a session's stages; by default `mocap run`'s (as `options`
     say) and then `mocap analyze`.
@@ -187,9 +189,13 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
     wall = time.perf_counter() - start
     save_fleet(ordered, Path(options.out) / "fleet.csv")
     write_text(Path(options.out) / "fleet_report.md", report_text(ordered, wall))
-    failed = [s for s in ordered if s.status != "ok"]
-    lines = [f"{len(ordered)} sessions in {wall:.1f} s: {len(ordered) - len(failed)} ok, {len(failed)} failed; "
-             f"{sum(s.stages_run for s in ordered)} stages run, {sum(s.stages_skipped for s in ordered)} up to date"]
+    failed = [s for s in ordered if s.status == FAILED]
+    partial = [s for s in ordered if s.status == PARTIAL]
+    lines = [f"{len(ordered)} sessions in {wall:.1f} s: {len(ordered) - len(failed) - len(partial)} ok, "
+             + (f"{len(partial)} partial, " if partial else "")
+             + f"{len(failed)} failed; {sum(s.stages_run for s in ordered)} stages run, "
+             f"{sum(s.stages_skipped for s in ordered)} up to date"]
     lines += [f"  {s.session}: {s.error}" for s in failed]
+    lines += [f"  {s.session}: partial: {s.error}" for s in partial]
     lines.append(f"wrote {Path(options.out) / 'fleet.csv'} and {Path(options.out) / 'fleet_report.md'}")
-    return "\n".join(lines), len(failed)
+    return "\n".join(lines), len(failed) + len(partial)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.errors import InputError
+from mocap.errors import InputError, Report
 from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.machine import Machine
@@ -23,16 +23,23 @@ def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
     synced, report = sync_cameras(machine, calibration, tracks, fps_values, max_offset, machine_path, calibration_path,
-                                  ", ".join(map(str, tracks_paths)))
+                                  ", ".join(map(str, tracks_paths)), partial_ok=True)
     save_calibration(synced, out)
-    return report
+    partial = getattr(report, "partial", "")
+    return Report(report, f"{partial}; the others' offsets written to {out}" if partial else "")
 
 
 def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps_values=(), max_offset: float = 10.0,
-                 machine_path=None, calibration_path=None, tracks_where=None) -> tuple[Calibration, str]:
+                 machine_path=None, calibration_path=None, tracks_where=None,
+                 partial_ok: bool = False) -> tuple[Calibration, str]:
     """The calibration with each camera's time_offset (s) and fps, found by aligning each
     camera's own joint-value curves with the reference camera's; and the report. `fps_values`
-    "NAME=FPS" strings (default: the calibration's fps, else the tracks' time column)."""
+    "NAME=FPS" strings (default: the calibration's fps, else the tracks' time column).
+
+    A camera that cannot be synchronised (no overlap in motion, no offset that makes the
+    motions agree) is an InputError; with `partial_ok`, when another camera was synchronised,
+    it keeps the calibration's time_offset (0 if none) and the report is a `Report` whose
+    `partial` line names it."""
     if not max_offset > 0:
         raise InputError(f"--max-offset {max_offset}: must be positive")
     check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, tracks_where)
@@ -68,17 +75,26 @@ def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps
         raise InputError(f"the rigid object {machine.name!r} does not move in {calibration.names[0]}'s view: "
                          "no motion to synchronise on; give each camera's time_offset in the calibration "
                          "instead", path=machine_path)
-    failed = [f"{calibration.names[k]}: {r}" for k, r in enumerate(result.reasons) if r]
-    if failed:
-        raise InputError("cannot synchronise: " + "; ".join(failed))
+    failed = [k for k, r in enumerate(result.reasons) if r]
+    if failed and (not partial_ok or len(failed) == len(calibration.names) - 1 or 0 in failed):
+        raise InputError("cannot synchronise: " + "; ".join(f"{calibration.names[k]}: {result.reasons[k]}"
+                                                            for k in failed))
     synced: Calibration = calibration
-    for k in range(len(calibration.cameras)):
+    lines = []
+    for k, name in enumerate(calibration.names):
+        if k in failed:  # not synchronised: the calibration's offset, if any, stays
+            kept = float(calibration.extras[k].get("time_offset", 0.0))
+            synced = synced.with_extras(k, fps=float(fps[k]))
+            lines.append(f"{name}: not synchronised ({result.reasons[k]}); time_offset {kept:+.4f} s kept, "
+                         f"fps {fps[k]:g}")
+            continue
         synced = synced.with_extras(k, time_offset=float(result.offsets[k]), fps=float(fps[k]))
-    return synced, "\n".join(
-        f"{name}: time_offset {result.offsets[k]:+.4f} s ({result.offsets[k] * fps[0]:+.3f} frames), "
-        f"fps {fps[k]:g}, residual {result.residual[k]:.3f}"
-        for k, name in enumerate(calibration.names)
-    )
+        lines.append(f"{name}: time_offset {result.offsets[k]:+.4f} s ({result.offsets[k] * fps[0]:+.3f} frames), "
+                     f"fps {fps[k]:g}, residual {result.residual[k]:.3f}")
+    partial = "; ".join(
+        f"camera {calibration.names[k]} not synchronised ({result.reasons[k]}): its time_offset "
+        f"{float(calibration.extras[k].get('time_offset', 0.0)):+.4f} s kept" for k in failed)
+    return synced, Report("\n".join(lines), partial)
 
 
 def parse_fps(values: list[str], names) -> dict[str, float]:

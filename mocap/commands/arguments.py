@@ -27,3 +27,24 @@ def tolerance(text: str) -> Tolerance:
 
 TOLERANCE_HELP = ("how far the model's marker positions may be off: a fraction (0.05 or 5%%) of "
                   "each marker's distance from its link's origin, or a length (0.03m, 3cm)")
+
+
+def add_allow_partial(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--allow-partial", action="store_true",
+                        help=f"exit 0 when {what} (default: exit status 3, partial; the line on stderr says what)")
+
+
+def partial_status(command: str, report: str, allow_partial: bool) -> int:
+    """Print a stage's report; when it did part of its work (a `mocap.errors.Report` with
+    `partial`), its one line on stderr and exit status 3, or 0 with --allow-partial."""
+    import sys
+
+    from mocap.errors import EXIT_OK, EXIT_PARTIAL
+
+    print(report)
+    partial = getattr(report, "partial", "")
+    if not partial:
+        return EXIT_OK
+    print(f"mocap {command}: partial: {partial}" + ("" if allow_partial else "; exit status 3 (--allow-partial: 0)"),
+          file=sys.stderr)
+    return EXIT_OK if allow_partial else EXIT_PARTIAL

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from mocap.commands import COMMANDS
-from mocap.commands.arguments import TOLERANCE_HELP, tolerance
+from mocap.commands.arguments import TOLERANCE_HELP, add_allow_partial, partial_status, tolerance
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
 
@@ -53,6 +53,8 @@ def add_parser(sub) -> None:
     p.add_argument("--max-noise-px", type=float, default=5.0, metavar="PX",
                    help="refuse (exit 2, nothing written) when the tracks imply a pixel noise beyond this: a wrong "
                    "model, calibration or labels (default 5)")
+    add_allow_partial(p, "a stretch of frames is left unexplained (a run of 1 s or more, or over a tenth of the "
+                      "fitted frames; the motion is written either way)")
     p.set_defaults(run=run)
 
 
@@ -73,6 +75,6 @@ def run(args) -> int:
         )
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
-    print(run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options,
-                  args.max_noise_px, args.out_machine, choose_base=not args.fixed_base))
-    return 0
+    report = run_fit(args.machine, args.calibration, args.tracks, args.out, fit_options, smooth_options,
+                     args.max_noise_px, args.out_machine, choose_base=not args.fixed_base)
+    return partial_status("fit", report, args.allow_partial)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from mocap.commands import COMMANDS
+from mocap.commands.arguments import add_allow_partial
 
 EXAMPLE = """example:
   mocap run SESSION_DIR          # needs SESSION_DIR/calibration/labels.csv (the first frame's markers)"""
@@ -25,6 +26,8 @@ def add_parser(sub) -> None:
     p.add_argument("--labels", type=Path, help="calibration frame labels CSV (default calibration/labels.csv)")
     p.add_argument("--refine", action="store_true", help="bundle-adjust the cameras over the session first")
     p.add_argument("--no-view", action="store_true", help="skip the Rerun recording")
+    add_allow_partial(p, "a stage did part of its work (a camera not synchronised, a stretch of frames "
+                      "unexplained; the chain carries on after it either way)")
     p.set_defaults(run=run)
 
 
@@ -33,4 +36,4 @@ def run(args) -> int:
     from mocap.pipeline import RunOptions, run_session
 
     with folder_lock(args.session, "mocap run"):  # one command at a time writes the session
-        return run_session(args.session, RunOptions(args.labels, args.refine, not args.no_view))
+        return run_session(args.session, RunOptions(args.labels, args.refine, not args.no_view, args.allow_partial))

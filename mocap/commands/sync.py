@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from mocap.commands import COMMANDS
+from mocap.commands.arguments import add_allow_partial, partial_status
 from mocap.io.outputs import check_outputs
 
 EXAMPLE = """example:
@@ -31,6 +32,8 @@ def add_parser(sub) -> None:
                    help="a camera's frame rate (default: the calibration's fps, else the tracks' time column)")
     p.add_argument("--max-offset", type=float, default=10.0, metavar="S",
                    help="search offsets within ± this many seconds (default 10)")
+    add_allow_partial(p, "a camera could not be synchronised while others were (it keeps the calibration's "
+                      "time_offset; the others' offsets are written either way)")
     p.set_defaults(run=run)
 
 
@@ -40,5 +43,5 @@ def run(args) -> int:
     check_outputs({"--out": args.out},
                   {"machine model": args.machine, "calibration": args.calibration, "tracks": args.tracks},
                   may_replace=("calibration",))
-    print(run_sync(args.machine, args.calibration, args.tracks, args.out, args.fps, args.max_offset))
-    return 0
+    report = run_sync(args.machine, args.calibration, args.tracks, args.out, args.fps, args.max_offset)
+    return partial_status("sync", report, args.allow_partial)

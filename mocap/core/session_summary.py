@@ -12,7 +12,7 @@ CLASSES = (*DIG_CLASSES, OTHER)
 @dataclass(frozen=True)
 class SessionSummary:
     """One session's figures: hours recorded, cycles, summed cycle and dig seconds, class
-    counts (in `CLASSES` order); `status` ok or failed with `error`; stages run / skipped."""
+    counts (in `CLASSES` order); `status` ok, partial or failed with `error`; stages run / skipped."""
 
     session: str
     machine: str

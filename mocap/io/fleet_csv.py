@@ -1,8 +1,8 @@
 """The fleet summary CSV of `mocap batch`: one row per session.
 
-Columns: `session` (folder), `machine`, `day`, `status` (ok / failed), `error`,
-`stages_run`, `stages_skipped`, `stage_seconds`, `hours` (recorded), `cycles`,
-`cycles_per_hour`, `mean_cycle_s`, `mean_dig_s`, `mean_rest_s` (swing, dump and return),
+Columns: `session` (folder), `machine`, `day`, `status` (ok / partial / failed), `error` (a
+failed session's reason; a partial one's stages and what they could not do), `stages_run`,
+`stages_skipped`, `stage_seconds`, `hours` (recorded), `cycles`, `cycles_per_hour`, `mean_cycle_s`, `mean_dig_s`, `mean_rest_s` (swing, dump and return),
 then one count per cycle class (`type_1`, `type_2`, `type_3`, `other`). Cycle columns are
 empty for a session without a cycle analysis.
 """

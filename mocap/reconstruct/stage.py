@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mocap.errors import InputError
+from mocap.errors import InputError, Report
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
@@ -31,6 +31,10 @@ if TYPE_CHECKING:  # the fit and the refinement are imported by the stages that 
 log = logging.getLogger(__name__)
 
 _CHUNK_FRAMES = 2000  # frames triangulated per batch (memory, progress)
+# a fit is partial (exit status 3) when frames no joint values explain make a stretch of a
+# second or more, or more than a tenth of the fitted frames: a few scattered ones are not
+PARTIAL_STRETCH_S = 1.0
+PARTIAL_SHARE = 0.1
 
 
 def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
@@ -211,6 +215,34 @@ class Fitted:
                        "base_*; --fixed-base keeps it fixed)")
         return report + self.ambiguity + _dropped(self.dropped)
 
+    def partial(self, out=None) -> str:
+        """One line when a stretch of frames was left unexplained (a run of them lasting
+        PARTIAL_STRETCH_S or more, or more than PARTIAL_SHARE of the fitted frames), else ''."""
+        fit, motion = self.result.fit, self.result.motion
+        unexplained = np.asarray(fit.valid & ~fit.explained, dtype=bool)
+        count = int(unexplained.sum())
+        if not count:
+            return ""
+        first, last = _longest_run(unexplained)
+        time = np.asarray(motion.time, dtype=float)
+        step = float(np.median(np.diff(time))) if len(time) > 1 else 0.0
+        seconds = float(time[last] - time[first]) + step
+        fitted = max(int(fit.valid.sum()), 1)
+        if seconds < PARTIAL_STRETCH_S and count <= PARTIAL_SHARE * fitted:
+            return ""
+        filled = "; the smoother filled them" if self.result.smoothed is not None else ""
+        return (f"{count} of {fitted} fitted frames unexplained (no joint values explain them within the noise), "
+                f"the longest stretch frames {int(motion.frame[first])}-{int(motion.frame[last])} ({seconds:.1f} s)"
+                f"{filled}; the motion{_written(out)} (column unexplained)")
+
+
+def _longest_run(flags: np.ndarray) -> tuple[int, int]:
+    """First and last index of the longest run of True in `flags` (at least one True)."""
+    edges = np.diff(np.r_[0, flags.astype(np.int8), 0])
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    k = int(np.argmax(ends - starts))
+    return int(starts[k]), int(ends[k] - 1)
+
 
 def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitOptions,
             smooth_options: SmoothOptions | None, max_noise_px: float = MAX_NOISE_PX, out_machine=None,
@@ -227,7 +259,7 @@ def run_fit(machine_path, calibration_path, tracks_paths, out, fit_options: FitO
     save_motion(fitted.motion, machine, out)
     if fitted.result.offsets is not None and out_machine is not None:
         save_machine(fitted.machine, out_machine)
-    return fitted.report(out, out_machine)
+    return Report(fitted.report(out, out_machine), fitted.partial(out))
 
 
 def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_options: FitOptions | None = None,

@@ -68,9 +68,21 @@ def parse_classes(text: str) -> tuple[str, ...]:
     return tuple(CLASSES[int(v) - 1] for v in dict.fromkeys(picks))
 
 
+# what `mocap synth` writes at a session folder's top (hidden: its lock and atomic temporaries)
+_SYNTH_ENTRIES = frozenset({"session.toml", "machine.toml", "truth", "videos"})
+
+
+def _interrupted_synth(out: Path) -> bool:
+    """True for a folder an interrupted `mocap synth` left (killed at any moment): no COMPLETE,
+    and nothing but what it writes; running it again finishes the folder."""
+    entries = list(out.iterdir())
+    return (not (out / "COMPLETE").exists()
+            and all(p.name in _SYNTH_ENTRIES or p.name.startswith(".") for p in entries))
+
+
 def run_synth(request: SynthRequest) -> str:
     """Write the synthetic session `request.out`; returns the summary."""
-    from mocap.io.lock import LOCK_NAME, check_free, folder_lock
+    from mocap.io.lock import check_free, folder_lock
     from mocap.synthetic import SessionOptions, make_session, summary, write_truth
     from mocap.synthetic.effects import EffectOptions
     from mocap.synthetic.looks import Look, random_look
@@ -92,8 +104,7 @@ def run_synth(request: SynthRequest) -> str:
     check_output_folder(request.out)
     if request.out.is_dir():
         check_free(request.out)  # another command writing the folder is named
-    session = Session.open(request.out)
-    if request.out.exists() and any(p.name != LOCK_NAME for p in request.out.iterdir()) and not (session.is_synthetic and not session.complete_path.exists()):
+    if request.out.exists() and not _interrupted_synth(request.out) and any(request.out.iterdir()):
         raise InputError("the output folder exists and is not empty; choose a new folder", path=request.out)
     if not 0.05 <= request.scale <= 4.0:
         raise InputError(f"--scale {request.scale}: give a factor between 0.05 and 4")
