@@ -11,10 +11,11 @@ Definitions (the README states them too):
   judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as
   the swing toward the truck begins (the last tip-speed minimum before that swing). When
   the bucket rests longer than `pause_s` before the dig, the dig starts when it leaves the
-  rest. The dig ends when the bucket comes to rest before its lift-out, however short the
-  rest: where its speed falls to zero, the speed's last fall below a fiftieth of the
-  session's 95th percentile, plus the time the fall from four times that took (a smooth
-  stop's speed falls as the square of the time left), never after the lift-out starts.
+  rest. When it rests longer than `rest_s` before the lift-out, the dig ends when it comes
+  to rest: where its speed reaches zero, taken as the speed's last fall below the rest's
+  threshold (a fiftieth of the session's 95th percentile, brief rises of the base's
+  bouncing bridged) plus the time its fall from four times that took (a smooth stop's
+  speed falls as the square of the time left).
 - A **cycle** runs from the start of one dig to the start of the next (the last ends with
   the data); its phases are dig, swing loaded (lift-out and swing to the truck), dump (the
   dwell at the truck) and swing back (the return swing and lowering to the next dig).
@@ -44,9 +45,11 @@ class SegmentOptions:
     horizon_s: float = 3.0
     pause_s: float = 2.0
     min_dig_s: float = 1.5
+    rest_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("swing_rate_deg_s", "onset_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s"):
+        for name in ("swing_rate_deg_s", "onset_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s",
+                     "rest_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SegmentOptions.{name} must be positive, got {getattr(self, name)}")
 
@@ -191,7 +194,9 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
         top = lo
         while top > 0 and series.speed[top - 1] < 4.0 * low:
             top -= 1
-        end = min(lo + (lo - top), hi)
+        stop = lo + (lo - top)  # a smooth stop: from 4 low to low as long as from low to rest
+        if hi - stop > int(round(options.rest_s * rate)):  # at rest before the lift-out
+            end = stop
     else:
         end = b
     return (start, end) if end > start else None
