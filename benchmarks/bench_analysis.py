@@ -31,7 +31,8 @@ truth motion alone (no cameras, no fit).
 Table (6) (`--only endings --seeds A-B`): dig start and end errors on planned truth sessions
 of 12 cycles of the EX3500 and of random diggers whose digs end in other ways: a rest before
 the lift-out, the swing starting before the dig ends, redirections late in the dig, more
-reactive noise, and all of these; on the truth motion and with reconstruction-sized noise.
+reactive noise, and all of these; on the truth motion and with reconstruction-sized noise
+(and with `--fitted` on the motion `mocap fit` gives, table 4's cameras).
 Table (3): a 2-hour session (216,000 frames at 30 fps, about 290 cycles) built by
 concatenating planned truth sessions, analysed end to end (`mocap analyze`: CSV read,
 analysis, report, templates) and the analysis alone; CPU seconds of one thread.
@@ -400,15 +401,16 @@ ENDINGS = (("default digs", {}),
                              "redirect_probability": 0.8, "reactive": 2.5}))
 
 
-def endings(first: int, last: int) -> None:
+def endings(first: int, last: int, root: Path, fit: bool = False) -> None:
     """Table (6): dig bounds on digs that end in other ways, planned truth sessions of 12
     cycles (seeds `first`..`last`) of the EX3500 and of random diggers digging like shovels;
-    on the truth motion and with reconstruction-sized white noise (noisy)."""
+    on the truth motion, with reconstruction-sized white noise (noisy) and, when `fit`, as
+    `mocap fit` gives it from 2-3 random cameras (table 4's)."""
     rows = []
     ex3500 = load_machine("hitachi_ex3500")
     for kind in ("EX3500", "random diggers"):
         for name, options in ENDINGS:
-            scores = {"truth": [], "noisy": []}
+            scores = {"truth": [], "noisy": [], **({"fitted": []} if fit else {})}
             peer, refused = [], 0
             for seed in range(first, last + 1):
                 machine = ex3500 if kind == "EX3500" else random_digger(np.random.default_rng(seed))
@@ -418,8 +420,15 @@ def endings(first: int, last: int) -> None:
                     refused += 1
                     continue
                 motion, truth = planned_truth(machine, plan)
-                noisy = reconstruction_noise(motion, np.random.default_rng([7, seed]), plan_reach(plan))
-                for label, m in (("truth", motion), ("noisy", noisy)):
+                motions = {"truth": motion,
+                           "noisy": reconstruction_noise(motion, np.random.default_rng([7, seed]), plan_reach(plan))}
+                if fit:
+                    folder = root / f"endings_{kind.split()[0]}_{seed}"
+                    files = filmed(machine, plan, motion.time, folder, np.random.default_rng([2, seed]))
+                    fitted = fitted_motion(*files, folder, np.random.default_rng([3, seed]), quiet=True)
+                    assert fitted is not None, "the fit refused an endings session"
+                    motions["fitted"] = load_motion(fitted, machine)
+                for label, m in motions.items():
                     a = analyze(tip_series(m))
                     scores[label].append(score_analysis(a.table, truth))
                     if label == "truth":
@@ -430,7 +439,7 @@ def endings(first: int, last: int) -> None:
                 rows.append([kind, name, label, len(pooled), refused, *counts, *bounds, worst,
                              float(np.median(peer)) if label == "truth" else ""])
     table(f"(6) dig bounds on digs that end in other ways, seeds {first}-{last} (truth motion; with "
-          f"{NOISE_TIP:.1%} of the reach and {NOISE_ANGLE_DEG} deg of white noise)",
+          f"{NOISE_TIP:.1%} of the reach and {NOISE_ANGLE_DEG} deg of white noise; fitted with --fitted)",
           ["machines", "digs", "motion", "sessions", "refused", "true", "found", "missed", "extra", "start med",
            "start p95", "end med", "end p95", "end max", "peer's end med (dwell)"], rows)
 
@@ -445,6 +454,7 @@ def main() -> int:
     parser.add_argument("--seeds", default="1-60", help="table 5's seeds, A-B (default 1-60)")
     parser.add_argument("--accuracy-seeds", metavar="A-B",
                         help="table 1 on seeds A-B of each machine instead of its six sessions")
+    parser.add_argument("--fitted", action="store_true", help="table 6 on the fitted motion too (a fit a session)")
     args = parser.parse_args()
     sessions = SESSIONS[:2] if args.quick else SESSIONS
     if args.accuracy_seeds:
@@ -463,7 +473,7 @@ def main() -> int:
             machines_truth(10)
         if args.only == "endings":
             first, _, last = args.seeds.partition("-")
-            endings(int(first), int(last or first))
+            endings(int(first), int(last or first), Path(tmp), args.fitted)
         if args.only == "seeds":
             first, _, last = args.seeds.partition("-")
             seed_sweep(int(first), int(last or first))
