@@ -28,6 +28,11 @@ the right kind (temporary or kept) the error of their lift (a share of the machi
 reach) and turn (deg).
 Table (4b) (`--only machines-truth`): table 4's first 10 machines of each kind on the
 truth motion alone (no cameras, no fit).
+Table (6) (`--only endings --seeds A-B`): dig start and end errors on planned truth sessions
+of 12 cycles of the EX3500 and of random diggers whose digs end in other ways: a rest before
+the lift-out, the swing starting before the dig ends, redirections late in the dig, more
+reactive noise, and all of these; on the truth motion and with reconstruction-sized noise
+(and with `--fitted` on the motion `mocap fit` gives, table 4's cameras).
 Table (3): a 2-hour session (216,000 frames at 30 fps, about 290 cycles) built by
 concatenating planned truth sessions, analysed end to end (`mocap analyze`: CSV read,
 analysis, report, templates) and the analysis alone; CPU seconds of one thread.
@@ -387,15 +392,69 @@ def seed_sweep(first: int, last: int) -> None:
            "right kind", "lift err med (reach)", "lift err p90", "turn err med (deg)", "turn err p90"], rows)
 
 
+ENDINGS = (("default digs", {}),
+           ("a rest of 0.5-3 s before the lift-out", {"end_pause": (0.5, 3.0)}),
+           ("the swing starting up to 0.9 s before the dig ends", {"swing_lead": (-0.3, 0.4)}),
+           ("redirections at 0.7-0.92 of the dig (4 in 5 digs)", {"redirect_at": (0.7, 0.92), "redirect_probability": 0.8}),
+           ("reactive noise x2.5", {"reactive": 2.5}),
+           ("all of these", {"end_pause": (0.5, 3.0), "swing_lead": (-0.3, 0.4), "redirect_at": (0.7, 0.92),
+                             "redirect_probability": 0.8, "reactive": 2.5}))
+
+
+def endings(first: int, last: int, root: Path, fit: bool = False) -> None:
+    """Table (6): dig bounds on digs that end in other ways, planned truth sessions of 12
+    cycles (seeds `first`..`last`) of the EX3500 and of random diggers digging like shovels;
+    on the truth motion, with reconstruction-sized white noise (noisy) and, when `fit`, as
+    `mocap fit` gives it from 2-3 random cameras (table 4's)."""
+    rows = []
+    ex3500 = load_machine("hitachi_ex3500")
+    for kind in ("EX3500", "random diggers"):
+        for name, options in ENDINGS:
+            scores = {"truth": [], "noisy": [], **({"fitted": []} if fit else {})}
+            peer, refused = [], 0
+            for seed in range(first, last + 1):
+                machine = ex3500 if kind == "EX3500" else random_digger(np.random.default_rng(seed))
+                try:
+                    plan = plan_session(machine, 12, np.random.default_rng([6, seed]), **options)
+                except InputError:
+                    refused += 1
+                    continue
+                motion, truth = planned_truth(machine, plan)
+                motions = {"truth": motion,
+                           "noisy": reconstruction_noise(motion, np.random.default_rng([7, seed]), plan_reach(plan))}
+                if fit:
+                    folder = root / f"endings_{kind.split()[0]}_{seed}"
+                    files = filmed(machine, plan, motion.time, folder, np.random.default_rng([2, seed]))
+                    fitted = fitted_motion(*files, folder, np.random.default_rng([3, seed]), quiet=True)
+                    assert fitted is not None, "the fit refused an endings session"
+                    motions["fitted"] = load_motion(fitted, machine)
+                for label, m in motions.items():
+                    a = analyze(tip_series(m))
+                    scores[label].append(score_analysis(a.table, truth))
+                    if label == "truth":
+                        peer.append(dwell_peer(a, truth)[1])
+            for label, pooled in scores.items():
+                counts, bounds, *_ = pool(pooled)
+                worst = float(np.abs(np.concatenate([s.end_errors for s in pooled])).max())
+                rows.append([kind, name, label, len(pooled), refused, *counts, *bounds, worst,
+                             float(np.median(peer)) if label == "truth" else ""])
+    table(f"(6) dig bounds on digs that end in other ways, seeds {first}-{last} (truth motion; with "
+          f"{NOISE_TIP:.1%} of the reach and {NOISE_ANGLE_DEG} deg of white noise; fitted with --fitted)",
+          ["machines", "digs", "motion", "sessions", "refused", "true", "found", "missed", "extra", "start med",
+           "start p95", "end med", "end p95", "end max", "peer's end med (dwell)"], rows)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two sessions instead of six, 5 random machines "
                         "instead of 30, no 2-hour session")
-    parser.add_argument("--only", choices=("accuracy", "machines", "long", "seeds", "machines-truth"),
-                        help="one part only (seeds: table 5, machines-truth: table 4b, run only when asked)")
+    parser.add_argument("--only", choices=("accuracy", "machines", "long", "seeds", "machines-truth", "endings"),
+                        help="one part only (seeds: table 5, machines-truth: table 4b, endings: table 6, run "
+                        "only when asked)")
     parser.add_argument("--seeds", default="1-60", help="table 5's seeds, A-B (default 1-60)")
     parser.add_argument("--accuracy-seeds", metavar="A-B",
                         help="table 1 on seeds A-B of each machine instead of its six sessions")
+    parser.add_argument("--fitted", action="store_true", help="table 6 on the fitted motion too (a fit a session)")
     args = parser.parse_args()
     sessions = SESSIONS[:2] if args.quick else SESSIONS
     if args.accuracy_seeds:
@@ -412,6 +471,9 @@ def main() -> int:
             two_hours(Path(tmp))
         if args.only == "machines-truth":
             machines_truth(10)
+        if args.only == "endings":
+            first, _, last = args.seeds.partition("-")
+            endings(int(first), int(last or first), Path(tmp), args.fitted)
         if args.only == "seeds":
             first, _, last = args.seeds.partition("-")
             seed_sweep(int(first), int(last or first))

@@ -257,6 +257,19 @@ def test_pause_before_the_dig_moves_its_start_to_the_end_of_the_pause():
     assert np.abs(score.start_errors).max() < 1.5
 
 
+def test_a_dig_that_rests_before_its_lift_out_ends_where_it_comes_to_rest():
+    # the bucket rests 1.5-2.5 s at the end of every dig (bouncing with the base), then
+    # lifts out: the dig ends where it came to rest, not at the lift-out (2 s later)
+    machine = load_machine("hitachi_ex3500")
+    plan = plan_session(machine, 6, np.random.default_rng(2), end_pause=(1.5, 2.5))
+    motion, truth = planned_truth(machine, plan)
+    score = score_analysis(analyze(tip_series(motion)).table, truth)
+    assert score.missed == 0 and score.extra == 0
+    # a smooth stop is below the speed of the bouncing for ~0.5 s before the true bound
+    assert np.median(np.abs(score.end_errors)) < 0.5 and np.abs(score.end_errors).max() < 1.0
+    assert np.abs(score.start_errors).max() < 1.0
+
+
 def test_a_dig_pulling_towards_the_machine_is_other():
     machine, motion, truth = truth_session("bobcat_225", 4)
     backwards = _with(motion, np.arange(len(motion))[::-1])

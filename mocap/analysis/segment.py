@@ -10,8 +10,12 @@ Definitions (the README states them too):
   tip moves forward, up, or back along the floor as a backhoe's drags — not mostly down,
   judged over the next `horizon_s` — by more than the base's bouncing) to its lift-out as
   the swing toward the truck begins (the last tip-speed minimum before that swing). When
-  the bucket rests longer than `pause_s` at either end, the dig starts when it leaves the
-  rest and ends when it comes to rest.
+  the bucket rests longer than `pause_s` before the dig, the dig starts when it leaves the
+  rest. When it rests longer than `rest_s` before the lift-out, the dig ends when it comes
+  to rest: where its speed reaches zero, taken as the speed's last fall below the rest's
+  threshold (a fiftieth of the session's 95th percentile, brief rises of the base's
+  bouncing bridged) plus the time its fall from four times that took (a smooth stop's
+  speed falls as the square of the time left).
 - A **cycle** runs from the start of one dig to the start of the next (the last ends with
   the data); its phases are dig, swing loaded (lift-out and swing to the truck), dump (the
   dwell at the truck) and swing back (the return swing and lowering to the next dig).
@@ -41,9 +45,11 @@ class SegmentOptions:
     horizon_s: float = 3.0
     pause_s: float = 2.0
     min_dig_s: float = 1.5
+    rest_s: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("swing_rate_deg_s", "onset_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s"):
+        for name in ("swing_rate_deg_s", "onset_deg_s", "min_swing_deg", "prominence", "horizon_s", "pause_s", "min_dig_s",
+                     "rest_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SegmentOptions.{name} must be positive, got {getattr(self, name)}")
 
@@ -131,6 +137,21 @@ def _rest_edge(speed: np.ndarray, k: int, low: float, forward: bool, pause: int)
     return hi if forward else lo
 
 
+def _rest(speed: np.ndarray, k: int, low: float, gap: int) -> tuple[int, int]:
+    """The bucket's rest around the speed minimum at `k`: the first and last index of the
+    stretch of speed below `low` that holds `k`, gaps of at most `gap` frames above it
+    bridged (the base's bouncing)."""
+    bounds = []
+    for step in (-1, 1):
+        edge = i = k
+        while 0 < i < len(speed) - 1 and abs(i - edge) <= gap:
+            i += step
+            if speed[i] < low:
+                edge = i
+        bounds.append(edge)
+    return bounds[0], bounds[1]
+
+
 def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
              options: SegmentOptions, typical_reach: float | None = None) -> tuple[int, int] | None:
     """The dig inside the face dwell [a, b] (indices): (start, end) or None when no cutting
@@ -168,7 +189,14 @@ def find_dig(series: TipSeries, minima: np.ndarray, a: int, b: int, low: float,
         return None
     ends = candidates[candidates > start + options.min_dig_s * rate]
     if len(ends):
-        end = _rest_edge(series.speed, int(ends[-1]), low, False, pause)
+        end = int(ends[-1])
+        lo, hi = _rest(series.speed, end, low, int(round(0.3 * rate)))
+        top = lo
+        while top > 0 and series.speed[top - 1] < 4.0 * low:
+            top -= 1
+        stop = lo + (lo - top)  # a smooth stop: from 4 low to low as long as from low to rest
+        if hi - stop > int(round(options.rest_s * rate)):  # at rest before the lift-out
+            end = stop
     else:
         end = b
     return (start, end) if end > start else None

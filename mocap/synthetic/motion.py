@@ -174,11 +174,19 @@ def plan_session(
     reactive: float = 1.0,
     bounce: float = 1.0,
     hold: float = 2.0,
+    end_pause: tuple[float, float] = (0.0, 0.0),
+    swing_lead: tuple[float, float] = (0.4, 0.4),
+    redirect_at: tuple[float, float] = (0.35, 0.65),
 ) -> DigMotion:
     """Plan `n_cycles` dig cycles of `machine`; the classes cycle through `classes` in a
     random order (`paths.BACKHOE` plans a backhoe's digs, whose truth class is ``other``);
     `reactive` and `bounce` scale the reactive noise and the base's bouncing
-    (0 turns them off)."""
+    (0 turns them off). Each dig's bucket rests at the end of the dig for a time drawn from
+    `end_pause` (s) before the lift-out; the swing to the truck starts a share drawn from
+    `swing_lead` of the lift-out's time after the lift-out starts (below 0: before the dig
+    ends, the house turning while the bucket still cuts); a redirection is centred at a
+    share of the dig drawn from `redirect_at`. Ranges of zero width draw nothing, so the
+    defaults plan the sessions they always did."""
     chain = PlanarChain.from_machine(machine)
     reach = float(np.linalg.norm(chain.offsets, axis=1).sum())
     pace = float(np.clip(np.sqrt(reach / 15.5), 0.6, 1.0))  # small machines cycle faster
@@ -209,7 +217,7 @@ def plan_session(
         redirection = None
         if rng.random() < redirect_probability:
             redirection = Redirection(
-                rng.uniform(0.35, 0.65), rng.uniform(0.08, 0.14), rng.choice([-1, 1]) * rng.uniform(0.015, 0.03) * reach,
+                rng.uniform(*redirect_at), rng.uniform(0.08, 0.14), rng.choice([-1, 1]) * rng.uniform(0.015, 0.03) * reach,
                 rng.choice([-1, 1]) * deg(rng.uniform(8, 18)), bool(rng.random() < 0.4),
             )
         noise = None
@@ -230,9 +238,14 @@ def plan_session(
         dig_end = dig_start + t_dig
         segments.append(_Segment(dig_start, dig_end, begin, begin, dig, noise, redirection))
         end_state = dig_state(dig, np.ones(1), None, redirection)[0]
-        lifted = dig_end + t_lift
-        segments.append(_Segment(dig_end, lifted, end_state, carry))
-        swing_t += [dig_end + 0.4 * t_lift, dig_end + 0.4 * t_lift + t_swing]
+        pause = _draw(rng, end_pause)
+        if pause > 0:
+            segments.append(_Segment(dig_end, dig_end + pause, end_state, end_state))
+        lift_out = dig_end + pause
+        lifted = lift_out + t_lift
+        segments.append(_Segment(lift_out, lifted, end_state, carry))
+        swing_start = lift_out + _draw(rng, swing_lead) * t_lift
+        swing_t += [swing_start, swing_start + t_swing]
         swing_v += [azimuth, truck.azimuth]
         at_truck = swing_t[-1]
         segments.append(_Segment(lifted, at_truck, carry, carry))
@@ -263,6 +276,11 @@ def plan_session(
                      tuple(cycles), pile, truck)
 
 
+
+
+def _draw(rng: np.random.Generator, span: tuple[float, float]) -> float:
+    """A uniform draw from `span`, or its value without a draw when it has no width."""
+    return float(span[0]) if span[0] == span[1] else float(rng.uniform(*span))
 
 
 def fit_in_reach(chain: PlanarChain, limits: np.ndarray, dig: DigShape, redirection: Redirection | None,
