@@ -193,13 +193,13 @@ def test_field_calibration_fits_the_markers_within_the_tolerance():
     """Field conditions (every marker coordinate off by up to 5 %, 2 % wild pixels, 15 %
     occlusion, 0.8 px): with the tolerance stated, the markers are fitted within it, the
     errors stay near the bound that counts the model's error, and few good observations are
-    taken for outliers; with the model stated exact (tried on the first 6 scenes: the slow
+    taken for outliers; with the model stated exact (tried on the first 4 scenes: the slow
     part), model error is taken for outliers. (With none stated the tolerance is estimated
-    from the residuals: tests/test_tolerance_estimated.py.) 12 scenes; bench_robustness.py
+    from the residuals: tests/test_tolerance_estimated.py.) 6 scenes; bench_robustness.py
     --kind field holds hundreds to the same bound."""
     ratios, false_with, false_without, caught, wild = [], 0, 0, 0, 0
-    for seed in range(12):
-        compared = seed < 6
+    for seed in range(6):
+        compared = seed < 4
         scene = random_scene(np.random.default_rng(900 + seed), SceneOptions(**{**SceneOptions.field().__dict__, "cameras": (2, 4)}))
         obs, truly = scene.observations(), scene.outlier[scene.tracks.frame == 0]
         templates = [template_camera(c.name, c.size) for c in scene.cameras]
@@ -221,7 +221,7 @@ def test_field_calibration_fits_the_markers_within_the_tolerance():
             false_without += sum(r.outlier and not t for r, t in zip(plain.residuals, truly))
         except DegenerateError:
             false_without += 1
-    assert len(ratios) >= 9
+    assert len(ratios) >= 5
     assert np.median(ratios) < 1.5
     print(f"good observations dropped: {false_with} with the tolerance, {false_without} with the model exact; "
           f"wild ones caught {caught} of {wild}")
