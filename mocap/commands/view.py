@@ -70,7 +70,7 @@ def run(args) -> int:
         from mocap.session import Session
 
         sinks = Sinks(Session.open(args.session).recording_path, args.connect, args.serve, args.spawn)
-    print(run_view(files, args.session, sinks))
+    print(run_view(files, args.session, sinks, on_serving=lambda where: print(where, flush=True)))
     if args.open:
         from mocap.viewer.replay import open_viewer
 

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,9 +159,10 @@ def replay_blueprint(replay: Replay):
                              replay.phases() is not None, fps=float(replay.fps[0]))
 
 
-def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:
+def run_replay(replay: Replay, sinks: Sinks, on_serving: Callable[[str], None] | None = None) -> ReplaySummary:
     """Record `replay` into `sinks`. The .rrd file appears only once complete; with `serve`,
-    keeps serving until interrupted."""
+    tells `on_serving` where the web viewer is (default: the log) and keeps serving until
+    interrupted."""
     if not sinks.any:
         raise ValueError("no sink: give a path to save, a viewer to connect to, serve or spawn")
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
@@ -172,6 +174,7 @@ def run_replay(replay: Replay, sinks: Sinks) -> ReplaySummary:
             summary = _record_live(rec, replay, sinks, blueprint, file=tmp)
         log.info("saved the replay to %s", sinks.save)
     if sinks.serve:
+        (on_serving or log.warning)(SERVING)
         _serve_until_interrupted()
     return summary
 
@@ -202,8 +205,6 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
     if server is not None:
         rr.serve_web_viewer(open_browser=bool(os.environ.get("DISPLAY") or sys.platform != "linux"),
                             connect_to=server.uri)
-        log.warning("web viewer at http://localhost:9090 (from another machine: ssh -L 9090:localhost:9090 "
-                    "-L 9876:localhost:9876 this machine, then open that address)")
     return summary
 
 
@@ -220,8 +221,11 @@ def open_viewer(recording: Path) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
 
+SERVING = ("web viewer at http://localhost:9090 (from another machine: ssh -L 9090:localhost:9090 -L 9876:localhost:9876 "
+           "this machine, then open that address); serving until Ctrl-C")
+
+
 def _serve_until_interrupted() -> None:
-    log.warning("serving the replay to the web viewer; press Ctrl-C to stop")
     try:
         while True:
             time.sleep(1.0)

@@ -3,6 +3,7 @@ recording into its sinks -> a short report."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from mocap.errors import InputError
@@ -13,9 +14,11 @@ from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
 from mocap.viewer.replay import Sinks, run_replay
 
 
-def run_view(files: ReplayFiles, session: str | Path | None = None, sinks: Sinks = Sinks()) -> str:
+def run_view(files: ReplayFiles, session: str | Path | None = None, sinks: Sinks = Sinks(),
+             on_serving: Callable[[str], None] | None = None) -> str:
     """Record the replay of `files` (completed from the folder `session`) into `sinks`
-    (default: a session's results/session.rrd); returns the report line."""
+    (default: a session's results/session.rrd); returns the report line. `on_serving` is
+    told where a served web viewer is, before serving until interrupted."""
     asked = list(files.videos.values())
     files = with_session(files, session)
     if not sinks.any:
@@ -34,7 +37,7 @@ def run_view(files: ReplayFiles, session: str | Path | None = None, sinks: Sinks
         if not path.is_file():
             raise InputError("video file not found; check --video NAME=PATH", path=path)
         probe_video(path)
-    summary = run_replay(replay, sinks)
+    summary = run_replay(replay, sinks, on_serving)
     where = f" to {sinks.save}" if sinks.save is not None else ""
     videos = f", video for {', '.join(summary.videos)}" if summary.videos else ", no video"
     trails = f"{summary.trails} trail(s)"
