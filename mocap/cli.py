@@ -59,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     from mocap.progress import quiet_libraries  # the video library with it, only once a command runs
 
     quiet_libraries(args.verbose)
-    held = _HeldWarnings(hold=not args.verbose)  # --verbose: the log as it happens
+    # the log as it happens with --verbose, or for a command that runs until stopped (hold_log False)
+    held = _HeldWarnings(hold=not args.verbose and getattr(args, "hold_log", True))
     try:
         code = int(args.run(args) or 0)
     except InputError as exc:

@@ -63,7 +63,7 @@ def add_parser(sub) -> None:
                    help="also show the machine, the bucket tip's trail and the joints as they come in a Rerun viewer: "
                    "alone, a viewer started here; a running viewer's URL (rerun+http://HOST:9876/proxy); or an .rrd "
                    "file to write and open later")
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, hold_log=False)  # a camera lost or reconnected is said as it happens
 
 
 def run(args) -> int:
