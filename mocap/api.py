@@ -25,8 +25,8 @@ from mocap.errors import InputError
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine as _load_machine
 from mocap.io.machine_toml import save_machine
-from mocap.io.points_csv import Points, load_points, save_points
-from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks
+from mocap.io.points_csv import Points, load_points, points_columns, save_points
+from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks, tracks_columns
 from mocap.machine import Machine
 
 __all__ = [
@@ -71,8 +71,8 @@ def write_tracks(tracks: Tracks, path: str | Path) -> None:
 
 def tracks_to_arrow(tracks: Tracks) -> pa.Table:
     """The tracks as a table with the file's columns."""
-    return pa.table({"camera": tracks.camera.astype(str), "frame": tracks.frame, "marker": tracks.marker.astype(str),
-                     "x": tracks.xy[:, 0], "y": tracks.xy[:, 1], "time": tracks.time, "score": tracks.score})
+    columns = tracks_columns(tracks)
+    return pa.table({**columns, "camera": columns["camera"].astype(str), "marker": columns["marker"].astype(str)})
 
 
 class Cameras(Calibration):
@@ -103,9 +103,8 @@ class PointsTable:
         return len(self.points)
 
     def to_arrow(self) -> pa.Table:
-        p = self.points
-        return pa.table({"frame": p.frame, "marker": p.marker.astype(str), "x": p.xyz[:, 0], "y": p.xyz[:, 1],
-                         "z": p.xyz[:, 2], "error_px": p.error_px, "views": p.views})
+        columns = points_columns(self.points)
+        return pa.table({**columns, "marker": columns["marker"].astype(str)})
 
     def to_pandas(self):
         return _to_pandas(self.to_arrow())

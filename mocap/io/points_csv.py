@@ -39,17 +39,19 @@ class Points:
         return len(self.frame)
 
 
+def points_columns(points: Points) -> dict[str, np.ndarray]:
+    """The points file's columns, each (N,)."""
+    return {"frame": points.frame.astype(np.int64), "marker": points.marker, "x": points.xyz[:, 0],
+            "y": points.xyz[:, 1], "z": points.xyz[:, 2], "error_px": points.error_px,
+            "views": points.views.astype(np.int64)}
+
+
 def save_points(points: Points, path: str | Path) -> None:
     """Write the points as CSV, or as Parquet for a ``.parquet`` path."""
     if is_parquet(path):
-        columnar.write_parquet({"frame": points.frame.astype(np.int64), "marker": points.marker,
-                                "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
-                                "error_px": points.error_px, "views": points.views.astype(np.int64)}, path)
+        columnar.write_parquet(points_columns(points), path)
         return
-    columnar.write_csv({"frame": points.frame.astype(np.int64), "marker": points.marker,
-                        "x": points.xyz[:, 0], "y": points.xyz[:, 1], "z": points.xyz[:, 2],
-                        "error_px": points.error_px, "views": points.views.astype(np.int64)}, path,
-                       {"x": 5, "y": 5, "z": 5, "error_px": 4})
+    columnar.write_csv(points_columns(points), path, {"x": 5, "y": 5, "z": 5, "error_px": 4})
 
 
 def load_points(path: str | Path) -> Points:

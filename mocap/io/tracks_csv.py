@@ -475,13 +475,18 @@ def _check_span(tracks: Tracks, place, where) -> None:
             path=where)
 
 
+def tracks_columns(tracks: Tracks) -> dict[str, np.ndarray]:
+    """The tracks file's columns, each (N,), `time` and `score` NaN where absent."""
+    return {"camera": tracks.camera, "frame": tracks.frame.astype(np.int64), "marker": tracks.marker,
+            "x": tracks.xy[:, 0], "y": tracks.xy[:, 1], "time": tracks.time, "score": tracks.score}
+
+
 def save_tracks(tracks: Tracks, path: str | Path) -> None:
     """Write the tracks as CSV, or as Parquet for a ``.parquet`` path."""
     has_time = bool(np.any(np.isfinite(tracks.time)))
     has_score = bool(np.any(np.isfinite(tracks.score)))
     header = list(REQUIRED) + (["time"] if has_time else []) + (["score"] if has_score else [])
-    columns = {"camera": tracks.camera, "frame": tracks.frame.astype(np.int64), "marker": tracks.marker,
-               "x": tracks.xy[:, 0], "y": tracks.xy[:, 1], "time": tracks.time, "score": tracks.score}
+    columns = tracks_columns(tracks)
     if is_parquet(path):
         columnar.write_parquet({h: columns[h] for h in header}, path)
         return
