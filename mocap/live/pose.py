@@ -107,6 +107,11 @@ class WarmFit:
         self.per_obs: deque[float] = deque(maxlen=_NOISE_FRAMES)
 
     @property
+    def warm(self) -> bool:
+        """A frame before was fitted: the next starts from it."""
+        return bool(self.last)
+
+    @property
     def noise_px(self) -> float:
         if self.options.noise_px:
             return self.options.noise_px
@@ -114,13 +119,15 @@ class WarmFit:
             return 1.0
         return max(float(np.median(np.concatenate(self.lengths))) / _RAYLEIGH_MEDIAN, 0.05)
 
-    def __call__(self, pixels: np.ndarray) -> FrameFit:
-        """pixels (C, M, 2), NaN where not seen."""
+    def __call__(self, pixels: np.ndarray, keep: bool = True) -> FrameFit:
+        """pixels (C, M, 2), NaN where not seen. `keep` False: a provisional fit (a camera's
+        pixels extrapolated) that neither starts the next frame nor counts in the noise."""
         n_joints, n_params = self.machine.n_joints, self.fitter.n_params
         seen = np.isfinite(pixels[..., 0])
         n_obs = int(seen.sum())
         if 2 * n_obs < n_params:
-            self.last.clear()
+            if keep:
+                self.last.clear()
             return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs)
         frame = pixels[:, None]
         if not self.last:
@@ -136,12 +143,13 @@ class WarmFit:
         residual = state.residual[0].reshape(-1, 2)[seen.reshape(-1)]
         length = np.hypot(residual[:, 0], residual[:, 1])
         weight = state.weight[0].reshape(-1, 2)[seen.reshape(-1), 0]
-        self.lengths.append(length)
-        self.per_obs.append(float(state.cost[0] / n_obs))
         values = state.joints[0].copy()
         if state.rotation is not None:
             values = np.r_[values, matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]]
-        self.last.append(values)
+        if keep:
+            self.lengths.append(length)
+            self.per_obs.append(float(state.cost[0] / n_obs))
+            self.last.append(values)
         rms = float(np.sqrt(np.sum(weight * length**2) / max(np.sum(weight), 1e-12)))
         return FrameFit(values, state.hessian[0] / self.noise_px**2, True, rms, n_obs)
 
@@ -206,6 +214,11 @@ class FixedLagSmoother:
             return None
         self.pending -= 1
         return self._pose(len(self.time) - 1 - self.lag)
+
+    def revise(self, fit: FrameFit) -> None:
+        """Replace the newest frame's fit (a provisional one, by the frame's own once all its
+        cameras are in); its pose, not given yet, follows from this one."""
+        self.values[-1], self.information[-1], self.valid[-1] = fit.values, fit.information, fit.valid
 
     def flush(self) -> list[Pose]:
         """The poses not yet given (the last `lag` frames), from the frames there are."""

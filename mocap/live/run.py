@@ -98,6 +98,9 @@ class LiveReport:
     # followed cameras: (name, newest offset s, the camera's frame at the middle of its window, calibrated offset s)
     clocks: tuple[tuple[str, float, float, float], ...] = ()
     clock_update_ms: float = float("nan")  # CPU per re-estimate of the offsets
+    # per row (R, 4) ms: the reference frame's tracking (arrival to its labels in the main thread), the wait
+    # for the other cameras' frames, the fit, and the smoother's lag (the fit to the row written)
+    stages_ms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -165,7 +168,7 @@ class CameraWorker(threading.Thread):
         if len(rows):
             pixels[[self.markers[m] for m in rows.marker]] = rows.xy
         self.out += 1
-        self.labelled.put((self.k, time_ref, arrived, pixels))
+        self.labelled.put((self.k, time_ref, arrived, pixels, time.perf_counter()))
 
     def tracks(self) -> Tracks | None:
         return concatenate(self.parts) if self.parts else None
@@ -239,7 +242,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
         clocks=() if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
                                                  for k, c in enumerate(cameras) if k > 0),
         clock_update_ms=1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
-        else float("nan"))
+        else float("nan"), stages_ms=np.array(loop.stages).reshape(-1, 4))
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
@@ -265,14 +268,19 @@ class _Loop:
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
-        self.pending: list[tuple[int, float, float]] = []  # clock frames waiting: (frame, time, arrived)
-        self.waiting: list[tuple[int, float, float, list[str], object]] = []  # fitted, awaiting the smoother
+        self.pending: list[tuple[int, float, float, float]] = []  # clock frames waiting: (frame, time, arrived, labelled)
+        self.waiting: list[tuple[int, float, float, list[str], object, tuple]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
+        self.ahead = -1  # the clock frame fitted ahead of its cameras (`_fit_ahead`)
         self.rows = self.skipped = 0
         self.latency: list[float] = []
+        self.stages: list[tuple[float, float, float, float]] = []
         self.interrupted = False
         self.seen: list[float] = []  # when each camera last delivered labels
         self.patient = not request.realtime and all(w.reader.spec.kind == FILE for w in workers)
+        # with a lag, the newest frame fitted ahead gives the row `lag` back at once (files read as fast as
+        # they are tracked wait for every frame instead)
+        self.early = request.lag > 0 and not self.patient
 
     def run(self, clock_start: float) -> None:
         end = None if self.request.duration is None else clock_start + self.request.duration
@@ -286,7 +294,7 @@ class _Loop:
             if end is not None and time.perf_counter() >= end:
                 break
             try:
-                k, time_ref, arrived, pixels = labelled.get(timeout=0.05)
+                k, time_ref, arrived, pixels, labelled_at = labelled.get(timeout=0.05)
             except queue.Empty:
                 if all(w.finished.is_set() for w in self.workers) and labelled.empty():
                     self._emit(final=True)
@@ -302,7 +310,7 @@ class _Loop:
             if k == self._clock():
                 frame = int(round(time_ref * self.fps[0]))
                 if frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
-                    self.pending.append((frame, frame / self.fps[0], arrived))
+                    self.pending.append((frame, frame / self.fps[0], arrived, labelled_at))
             self._emit()
         self._emit(final=True)  # the frames still waiting for a camera: with those there are
         for pose_and_meta in self._drain():
@@ -323,41 +331,73 @@ class _Loop:
         """Fit the waiting clock frames whose cameras are all in (or waited for long enough)."""
         now = time.perf_counter()
         while self.pending:
-            frame, t, arrived = self.pending[0]
+            frame, t, arrived, labelled_at = self.pending[0]
             ready = final
             if not ready:
                 late = not self.patient and now > arrived + self.request.wait_frames / self.fps[0]
                 ready = late or all(h.latest >= t or w.finished.is_set()
                                     for h, w in zip(self.history, self.workers))
             if not ready:
-                return
+                break
             self.pending.pop(0)
             if not self.patient and now - arrived > BEHIND_S:
-                self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
+                if frame != self.ahead:
+                    self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
                 continue
-            self._fit(frame, t, arrived)
+            self._fit(frame, t, arrived, (labelled_at, now))
+        if self.early and self.pending and self.pending[-1][0] != self.ahead and self.fit.warm:
+            self._fit_ahead(*self.pending[-1])
 
-    def _fit(self, frame: int, t: float, arrived: float) -> None:
+    def _pixels(self, t: float) -> tuple[np.ndarray, list[str]]:
+        """(C, M, 2) every camera's pixels at `t` and the cameras that see a marker."""
         views = [h.pixels_at(t) for h in self.history]
         n_markers = len(self.machine.marker_names)
         pixels = np.stack([np.full((n_markers, 2), np.nan) if v is None else v for v in views])
-        used = [c.name for c, v in zip(self.cameras, views) if v is not None and np.isfinite(v[:, 0]).any()]
+        return pixels, [c.name for c, v in zip(self.cameras, views) if v is not None and np.isfinite(v[:, 0]).any()]
+
+    def _fit(self, frame: int, t: float, arrived: float, stamps: tuple[float, float]) -> None:
+        """`stamps`: when the frame's labels came, when the other cameras' were all in."""
+        pixels, used = self._pixels(t)
         fitted = self.fit(pixels)
         for history in self.history:
             history.forget(t)
         self.last_frame = frame
-        self.waiting.append((frame, t, arrived, used, fitted))
+        entry = (frame, t, arrived, used, fitted, (*stamps, time.perf_counter()))
+        if frame == self.ahead:  # its row was given already: the frame's own fit replaces the provisional one
+            self.smoother.revise(fitted)
+            if self.waiting and self.waiting[-1][0] == frame:
+                self.waiting[-1] = entry[:5] + (self.waiting[-1][5],)
+            return
+        self.waiting.append(entry)
+        pose = self.smoother.push(t, fitted)
+        if pose is not None:
+            self._write(*self.waiting.pop(0), pose)
+
+    def _fit_ahead(self, frame: int, t: float, arrived: float, labelled_at: float) -> None:
+        """The newest clock frame fitted at once from what is in (the cameras whose frame after
+        it has not come extrapolated, `CameraHistory.pixels_at`) and pushed to the smoother,
+        which gives the row `lag` frames back without waiting; the frame's own fit revises it
+        once its cameras are in."""
+        if self.pending[0][0] != frame:  # an older frame still waits: this one's turn comes after
+            return
+        pixels, used = self._pixels(t)
+        fitted = self.fit(pixels, keep=False)
+        now = time.perf_counter()
+        self.ahead = frame
+        self.waiting.append((frame, t, arrived, used, fitted, (labelled_at, now, now)))
         pose = self.smoother.push(t, fitted)
         if pose is not None:
             self._write(*self.waiting.pop(0), pose)
 
     def _drain(self):
         for pose in self.smoother.flush():
-            frame, t, arrived, used, fitted = self.waiting.pop(0)
-            yield frame, t, arrived, used, fitted, pose
+            yield *self.waiting.pop(0), pose
 
-    def _write(self, frame, t, arrived, used, fitted, pose) -> None:
-        latency = 1000.0 * (time.perf_counter() - arrived)
+    def _write(self, frame, t, arrived, used, fitted, stamps, pose) -> None:
+        written = time.perf_counter()
+        latency = 1000.0 * (written - arrived)
+        labelled_at, ready, fitted_at = stamps
+        self.stages.append(tuple(1000.0 * np.diff([arrived, labelled_at, ready, fitted_at, written])))
         values = row(self.machine, frame, t, latency, used, pose, fitted.rms_px, fitted.observations)
         self.writer.write(values)
         if self.feed is not None:
