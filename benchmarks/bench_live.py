@@ -1,29 +1,41 @@
-"""`mocap live` on a synthetic session played in real time, against the truth and the
+"""`mocap live` on synthetic sessions played in real time, against the truth and the
 offline chain on the same videos.
 
-Writes a session with `mocap synth` (the default look, `--cameras` cameras at `--size`), then
-for 1 .. N of its cameras: the videos played as their cameras delivered them
+For each size of `--sizes` and seed of `--seeds`, writes a session with `mocap synth` (the
+default look, or with `--look random` the seed's random look: paint, light, lens, noise ...;
+the largest of `--cameras` cameras; the first camera at 30 fps, the others at 29.97), then
+for each count of `--cameras`: the first N videos played as their cameras delivered them
 (`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`):
-rows out per second of the run, frames dropped, latency p50 / p99 /
-max (from the reference frame's arrival to its row written, the smoother's lag included),
-the process's CPU time per row (all its threads: decoding, tracking, fitting); beside it the decode-only rate of the same
-streams (the tracker's own grey decoding, all the cameras' frames of that duration one
-after another: the floor); and the bucket tip's RMSE against the truth, live and by the
-offline chain (`mocap track` each camera, then `mocap fit`, over the whole videos) over the
-same frames; and the same live chain reading the files as fast as they are tracked (no frame
-dropped, no time limit per frame) for the same time, against the offline chain on its rows;
-and `--view`'s cost: the process's CPU per row (Rerun's sending thread included) logging the
-as-fast run's rows to an .rrd file, and the main thread's time per row inside the run.
+rows out per second of the run, frames dropped, latency p50 / p99 / max (from the
+reference frame's arrival to its row written, the smoother's lag included) and its parts'
+medians (the reference frame's tracking, the wait for the other cameras, the fit, the
+smoother's lag); the process's CPU time per row (all its threads: decoding, tracking,
+fitting: load-independent where the wall figures are upper bounds on a shared machine); its
+resident memory after the first tenth of the run and at its end (flat?); beside it the
+decode-only rate of the same streams (the tracker's own grey decoding, all the cameras'
+frames of that duration one after another: the floor) and the frames the cameras deliver;
+and the bucket tip's RMSE against the truth, live and by the offline chain (`mocap track`
+each camera, then `mocap fit`, over the whole videos) over the same frames.
 
-    python benchmarks/bench_live.py [--size 960x540] [--cameras 3] [--duration 20] [--seed 7] [--lag 1] [--fixed-base]
+`--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
+run (its frames in that time never arrive, as from a camera unplugged and plugged back).
+`--as-fast`: also the same live chain reading the files as fast as they are tracked (no
+frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
+per row logging those rows to an .rrd file, and the main thread's time per row in the run).
+
+    python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast]
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import tempfile
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +45,9 @@ from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.video import Video
+from mocap.live import run as live_module
 from mocap.live.run import LiveRequest, run_live
-from mocap.live.sources import parse_source
+from mocap.live.sources import SourceReader, parse_source
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.reconstruct.smooth import SmoothOptions
 from mocap.reconstruct.stage import run_fit
@@ -43,12 +56,65 @@ from mocap.tracking.stage import TrackRequest, run_track
 MACHINE = "hitachi_ex3500"
 
 
-def make_session(root: Path, size: str, cameras: int, seed: int) -> Path:
-    session = root / f"live_{size}_{cameras}_{seed}"
+GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
+
+
+def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default") -> Path:
+    session = root / f"live_{size}_{cameras}_{seed}" if look == "default" else root / f"live_{size}_{cameras}_{seed}_{look}"
     if not (session / "COMPLETE").exists():
         assert cli.main(["synth", "--machine", MACHINE, "--cameras", str(cameras), "--cycles", "1", "--seed",
-                         str(seed), "--size", size, "--hold", "0.5", "--out", str(session)]) == 0
+                         str(seed), "--size", size, "--hold", "0.5", "--look", look, "--out", str(session)]) == 0
     return session
+
+
+class _Silent(SourceReader):
+    """A source whose camera `gap[0]` delivers nothing from `gap[1]` to `gap[2]` s after the start."""
+
+    gap: tuple[str, float, float] | None = None
+
+    def _deliver(self, frame) -> None:
+        gap = _Silent.gap
+        if gap is not None and self.spec.camera == gap[0] and gap[1] <= frame.arrived - self.clock_start < gap[2]:
+            return
+        super()._deliver(frame)
+
+
+@contextmanager
+def silent(camera: str | None, start: float):
+    """While in it, `run_live`'s camera `camera` delivers nothing for `GAP_S` from `start` s."""
+    if camera is None:
+        yield
+        return
+    _Silent.gap = (camera, start, start + GAP_S)
+    live_module.SourceReader = _Silent
+    try:
+        yield
+    finally:
+        live_module.SourceReader = SourceReader
+        _Silent.gap = None
+
+
+class Memory(threading.Thread):
+    """The process's resident memory (MB) sampled every 0.2 s until `done` is set."""
+
+    def __init__(self):
+        super().__init__(daemon=True)
+        self.samples: list[tuple[float, float]] = []
+        self.done = threading.Event()
+        self.page_mb = os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    def run(self) -> None:
+        started = time.perf_counter()
+        while not self.done.wait(0.2):
+            with open("/proc/self/statm") as f:
+                self.samples.append((time.perf_counter() - started, int(f.read().split()[1]) * self.page_mb))
+
+    def at(self, share: float) -> float:
+        """The RSS at `share` of the sampled time (the largest sample up to it)."""
+        if not self.samples:
+            return float("nan")
+        end = self.samples[-1][0] * share
+        return max(mb for t, mb in self.samples if t <= end or t == self.samples[0][0])
 
 
 def tip_rmse(frames: np.ndarray, tips: np.ndarray, truth) -> float:
@@ -67,14 +133,21 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
 
 def live_run(session: Path, names: list[str], duration: float, lag: int, out: Path, base_motion: bool,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
+    """The run's report, its CPU seconds (all threads) and its memory samples."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
                           follow_clocks=follow_clocks,
                           fit_options=FitOptions(base_motion=base_motion))
+    memory = Memory()
+    memory.start()
     cpu = time.process_time()
-    report = run_live(request)
-    return report, time.process_time() - cpu
+    try:
+        report = run_live(request)
+    finally:
+        memory.done.set()
+        memory.join()
+    return report, time.process_time() - cpu, memory
 
 
 def read_tips(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -88,9 +161,11 @@ def offline(session: Path, names: list[str], work: Path):
     """The offline chain's motion (`mocap track` each whole video, `mocap fit`)."""
     tracks = []
     for name in names:
-        path = work / f"{name}.csv"
-        run_track(TrackRequest(session / "videos" / f"{name}.mp4", MACHINE, session / "truth" / "cameras.toml", name,
-                               path))
+        path = session.parent / f"{session.name}_tracks" / f"{name}.csv"  # the same for every count of cameras
+        if not path.exists():
+            path.parent.mkdir(exist_ok=True)
+            run_track(TrackRequest(session / "videos" / f"{name}.mp4", MACHINE, session / "truth" / "cameras.toml",
+                                   name, path))
         tracks.append(path)
     out = work / "motion.csv"
     run_fit(MACHINE, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
@@ -126,13 +201,21 @@ def view_cpu(rows_path: Path, calibration, out: Path) -> float:
     return 1000 * (time.process_time() - cpu) / len(joints)
 
 
+def counts(text: str) -> list[int]:
+    return [int(n) for n in text.split(",")]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--size", default="960x540")
-    parser.add_argument("--cameras", type=int, default=3)
-    parser.add_argument("--duration", type=float, default=20.0)
-    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--sizes", default="960x540", help="image sizes, comma-separated (default 960x540)")
+    parser.add_argument("--cameras", default="1,2,3", help="camera counts, comma-separated (default 1,2,3)")
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds of each run (600: the soak)")
+    parser.add_argument("--seeds", default="7", help="sessions' seeds, comma-separated (the motion, and the look)")
+    parser.add_argument("--look", choices=("default", "random"), default="default",
+                        help="random: each seed's random look (mocap synth --look random)")
     parser.add_argument("--lag", type=int, default=1)
+    parser.add_argument("--fault", choices=("none", "disconnect"), default="none",
+                        help=f"disconnect: the last camera delivers nothing for {GAP_S:g} s from a third of the run")
     parser.add_argument("--fixed-base", action="store_true",
                         help="fit live with the base fixed (default: its pose per frame, --base-motion: the "
                         "synthetic machine bounces, and the offline fit finds that it does)")
@@ -140,53 +223,89 @@ def main() -> None:
                         help="follow the clocks in the real-time runs: each other camera's newest offset against its "
                         "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
                         "per re-estimate")
-    parser.add_argument("--work", help="folder for the session (default: a temporary one)")
+    parser.add_argument("--as-fast", action="store_true",
+                        help="also the files read as fast as they are tracked, and the viewer's cost")
+    parser.add_argument("--work", help="folder for the sessions and runs (default: a temporary one); a session "
+                        "found there complete is used again")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    cameras = counts(args.cameras)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.work or tmp)
-        session = make_session(root, args.size, args.cameras, args.seed)
-        calibration = load_calibration(session / "truth" / "cameras.toml")
-        truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
-        print(f"{args.size}, {args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
-              f"{'fixed base' if args.fixed_base else 'base pose per frame'}")
-        print(f"{'cams':>4} {'rows/s':>7} {'dropped':>8} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'cpu ms/row':>10} "
-              f"{'decode fps':>10} {'need fps':>8} {'tip RMSE live':>13} {'offline':>8} {'as fast':>10} {'offline':>8} "
-              f"{'view cpu ms/row':>15} {'in loop':>7}")
-        for n in range(1, args.cameras + 1):
-            names = list(calibration.names[:n])
-            work = root / f"run{n}"
-            work.mkdir(exist_ok=True)
-            report, cpu = live_run(session, names, args.duration, args.lag, work / "poses.csv", not args.fixed_base,
-                                   follow_clocks=args.follow_clocks and n > 1)
-            frames, tips = read_tips(work / "poses.csv")
-            fast, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base,
-                               realtime=False, view=str(work / "fast.rrd"))
-            view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd")
-            fast_frames, fast_tips = read_tips(work / "fast.csv")
-            fps = calibration.fps()[:n]
-            offsets = calibration.time_offsets[:n]
-            stops = [max(int((args.duration - max(o, 0.0)) * f), 1) for f, o in zip(fps, offsets)]
-            decode = decode_rate([session / "videos" / f"{c}.mp4" for c in names], stops)
-            motion = offline(session, names, work)
-            dropped = sum(c.dropped for c in report.cameras)
-            read = sum(c.read for c in report.cameras)
-            p50, p99 = np.percentile(report.latency_ms, [50, 99])
-            print(f"{n:>4} {report.rows / args.duration:>7.1f} {f'{dropped}/{read}':>8} {p50:>7.0f} {p99:>7.0f} "
-                  f"{report.latency_ms.max():>7.0f} {1000 * cpu / max(report.rows, 1):>10.1f} {decode:>10.0f} {fps.sum():>8.1f} "
-                  f"{tip_rmse(frames, tips, truth):>13.3f} {offline_rmse(motion, frames, truth):>8.3f} "
-                  f"{tip_rmse(fast_frames, fast_tips, truth):>10.3f} {offline_rmse(motion, fast_frames, truth):>8.3f} "
-                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}",
-                  flush=True)
-            for name, offset, at, _ in report.clocks:
-                true = calibration.time_offsets[calibration.names.index(name)]
-                print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "
-                      f"({(offset - true) * fps[0]:+.2f} frames); {report.clock_update_ms:.0f} ms CPU per re-estimate "
-                      "of all the offsets", flush=True)
-        print("rows/s: rows written per second of the run (the reference camera delivers "
-              f"{calibration.fps()[0]:g}); need fps: the frames the cameras deliver per second, beside the decode-only "
-              "rate; RMSE in metres over the rows live and over the same frames offline; as fast: the files read as "
-              "fast as they are tracked for the same time (no frame dropped), and offline over its rows' frames")
+        print(f"{args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
+              f"{'fixed base' if args.fixed_base else 'base pose per frame'}"
+              + (f", the last camera silent for {GAP_S:g} s from {args.duration / 3:.0f} s" if args.fault != "none"
+                 else "") + f"; load average {os.getloadavg()[0]:.2f} at the start")
+        header = (f"{'size':>9} {'seed':>4} {'cams':>4} {'rows/s':>6} {'dropped':>8} {'p50 ms':>6} {'p99 ms':>6} "
+                  f"{'max ms':>6} {'track':>5} {'wait':>5} {'fit':>5} {'lag':>5} {'cpu ms/row':>10} {'RSS MB':>9} "
+                  f"{'decode fps':>10} {'need fps':>8} {'tip RMSE live':>13} {'offline':>7} {'ratio':>5}")
+        if args.as_fast:
+            header += f" {'as fast':>7} {'offline':>7} {'view cpu ms/row':>15} {'in loop':>7}"
+        print(header, flush=True)
+        ratios = []
+        for size in args.sizes.split(","):
+            for seed in counts(args.seeds):
+                session = make_session(root, size, max(cameras), seed, args.look)
+                calibration = load_calibration(session / "truth" / "cameras.toml")
+                truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
+                print(f"{session.name}: " + ", ".join(f"{c} {f:.5g} fps" for c, f in zip(calibration.names,
+                                                                                      calibration.fps())), flush=True)
+                for n in cameras:
+                    ratios.append(bench_row(args, root, session, calibration, truth, size, seed, n))
+        loads = os.getloadavg()
+        ratios = np.array(ratios)
+        print("rows/s: rows written per second of the run (the reference camera delivers 30; each session's cameras' rates above); "
+              "dropped: frames late, of those read; track / wait / fit / lag: the latency's parts' medians (ms: the "
+              "reference frame's tracking, the wait for the other cameras, the fit, the smoother's lag to the row "
+              "written); cpu ms/row: the process's CPU (all threads) per row; RSS MB: resident memory after a tenth "
+              "of the run / at its end; need fps: the frames the cameras deliver per second, beside the decode-only "
+              "rate; RMSE in metres over the rows live and over the same frames offline (ratio: live / offline)"
+              + ("; as fast: the files read as fast as they are tracked for the same time (no frame dropped), and "
+                 "offline over its rows' frames" if args.as_fast else ""))
+        print(f"tip RMSE live / offline over {len(ratios)} runs: median {np.median(ratios):.2f}, worst "
+              f"{ratios.max():.2f}; load average {loads[0]:.2f} at the end")
+
+
+def bench_row(args, root: Path, session: Path, calibration, truth, size: str, seed: int, n: int) -> float:
+    """One count of cameras' line of the table; the live / offline tip RMSE ratio."""
+    names = list(calibration.names[:n])
+    work = root / f"run_{session.name}_{n}"
+    work.mkdir(exist_ok=True)
+    gap = names[-1] if args.fault == "disconnect" else None
+    with silent(gap, args.duration / 3):
+        report, cpu, memory = live_run(session, names, args.duration, args.lag, work / "poses.csv",
+                                       not args.fixed_base, follow_clocks=args.follow_clocks and n > 1)
+    frames, tips = read_tips(work / "poses.csv")
+    fps = calibration.fps()[:n]
+    offsets = calibration.time_offsets[:n]
+    stops = [max(int((args.duration - max(o, 0.0)) * f), 1) for f, o in zip(fps, offsets)]
+    decode = decode_rate([session / "videos" / f"{c}.mp4" for c in names], stops)
+    motion = offline(session, names, work)
+    dropped = sum(c.dropped for c in report.cameras)
+    read = sum(c.read for c in report.cameras)
+    p50, p99 = np.percentile(report.latency_ms, [50, 99])
+    stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
+    live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
+    width, height = calibration.cameras[0].size
+    line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
+            f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max():>6.0f} "
+            + " ".join(f"{x:>5.1f}" for x in stages)
+            + f" {1000 * cpu / max(report.rows, 1):>10.1f} {f'{memory.at(0.1):.0f}/{memory.at(1.0):.0f}':>9} "
+            f"{decode:>10.0f} {fps.sum():>8.1f} {live:>13.4f} {off:>7.4f} {live / off:>5.2f}")
+    if args.as_fast:
+        fast, _, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base,
+                              realtime=False, view=str(work / "fast.rrd"))
+        view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd")
+        fast_frames, fast_tips = read_tips(work / "fast.csv")
+        line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
+                 f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")
+    print(line, flush=True)
+    for name, offset, at, _ in report.clocks:
+        true = calibration.time_offsets[calibration.names.index(name)]
+        print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "
+              f"({(offset - true) * fps[0]:+.2f} frames); {report.clock_update_ms:.0f} ms CPU per re-estimate "
+              "of all the offsets", flush=True)
+    return live / off
 
 
 if __name__ == "__main__":

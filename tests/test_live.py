@@ -314,3 +314,68 @@ def test_a_drifting_clock_is_followed(short_session, tmp_path, capsys):
     truth = stated.time_offset + frame * (1 / true_fps - 1 / stated.fps)  # frame n shows n / 28.5 + offset
     assert abs(offset - truth) < 1 / 30, (offset, truth, frame)
     assert abs(truth - calibrated) > 1.5 / 30  # the calibrated offset is off by more than 1.5 frames there
+
+
+def test_a_tracker_that_fails_is_one_line_and_the_others_carry_on(short_session, tmp_path, monkeypatch, caplog):
+    """cam2's tracker fails at its 10th frame: one error line names the camera and the fault
+    (no traceback), and cam1's rows go on to its last frame from cam1 alone, on the truth."""
+    import logging
+
+    from mocap.live import run as live_run
+    from mocap.live.run import LiveRequest, run_live
+    from mocap.live.sources import parse_source
+    from mocap.reconstruct.kinfit import FitOptions
+
+    root, session = short_session
+    real = live_run.track_frames
+
+    def failing(model, frames, *args, **kwargs):
+        def broken():
+            for n, item in enumerate(frames):
+                if n == 10:
+                    raise RuntimeError("sensor fault")
+                yield item
+
+        return real(model, broken() if model.camera.name == "cam2" else frames, *args, **kwargs)
+
+    monkeypatch.setattr(live_run, "track_frames", failing)
+    out = tmp_path / "poses.csv"
+    request = LiveRequest("hitachi_ex3500", root / "cameras.toml",
+                          tuple(parse_source(f"{c}={root / f'{c}.mp4'}") for c in ("cam1", "cam2")), out,
+                          fit_options=FitOptions(base_motion=True))
+    with caplog.at_level(logging.INFO, logger="mocap.live"):
+        report = run_live(request)
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0].exc_info is None, errors
+    assert "cam2" in errors[0].getMessage() and "sensor fault" in errors[0].getMessage()
+    rows = read_rows(out)
+    assert report.rows == len(rows) == FRAMES[0]
+    assert {r["cameras"] for r in rows[-60:]} == {"cam1"}
+    assert np.nanmax(tip_error(rows, session)) < 0.1  # the one-camera rows of the test above
+
+
+def test_a_provisional_fit_revised_gives_the_rows_of_the_frame_s_own_fit():
+    """The newest frame pushed with a provisional fit gives the row `lag` back at once; once
+    revised by its own fit, the rows after are those of a smoother that only saw its own."""
+    from mocap.live.pose import FixedLagSmoother, FrameFit
+
+    machine = load_machine("hitachi_ex3500")
+    rng = np.random.default_rng(3)
+    n = machine.n_joints
+    values = 0.1 * np.cumsum(rng.normal(size=(12, n)), axis=0) + machine.joint_limits.mean(axis=1)
+    fits = [FrameFit(v, 1e4 * np.eye(n), True, 0.3, 40) for v in values]
+    plain, revised = FixedLagSmoother(machine, 1), FixedLagSmoother(machine, 1)
+    expected = [plain.push(k / 30, f) for k, f in enumerate(fits)] + plain.flush()
+    got = []
+    for k, fit in enumerate(fits):
+        provisional = FrameFit(fit.values + 0.05, fit.information, True, 0.5, 30)
+        got.append(revised.push(k / 30, provisional))
+        revised.revise(fit)
+    got += revised.flush()
+    assert got[0] is None and expected[0] is None
+    for a, b in zip(expected[1:], got[1:]):  # the row of frame k - 1, given with frame k's provisional fit
+        assert a is not None and b is not None
+    # each frame's own row: given from the revised window (frames up to it own, the next provisional)
+    assert np.allclose(expected[-1].joints, got[-1].joints)  # the last: from own fits only
+    shift = np.array([abs(a.joints - b.joints).max() for a, b in zip(expected[1:-1], got[1:-1])])
+    assert (shift > 0).all() and (shift < 0.05).all()  # the provisional next frame moves a row less than it is off

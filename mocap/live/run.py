@@ -146,8 +146,10 @@ class CameraWorker(threading.Thread):
                     self.parts.append(tracks)
                 except ValueError as exc:  # the first frame not labelled: try the next ones
                     log.info("camera %s: %s; trying the next frame", self.reader.spec.camera, exc)
-        except Exception:
-            log.exception("camera %s: tracking failed; the others carry on", self.reader.spec.camera)
+        except Exception as exc:  # one line; the traceback at debug level
+            log.error("camera %s: tracking failed (%s: %s); the others carry on", self.reader.spec.camera,
+                      type(exc).__name__, exc)
+            log.debug("camera %s: tracking failed", self.reader.spec.camera, exc_info=True)
         finally:
             self.finished.set()
 
@@ -380,11 +382,11 @@ class _Loop:
         once its cameras are in."""
         if self.pending[0][0] != frame:  # an older frame still waits: this one's turn comes after
             return
+        began = time.perf_counter()
         pixels, used = self._pixels(t)
         fitted = self.fit(pixels, keep=False)
-        now = time.perf_counter()
         self.ahead = frame
-        self.waiting.append((frame, t, arrived, used, fitted, (labelled_at, now, now)))
+        self.waiting.append((frame, t, arrived, used, fitted, (labelled_at, began, time.perf_counter())))
         pose = self.smoother.push(t, fitted)
         if pose is not None:
             self._write(*self.waiting.pop(0), pose)
