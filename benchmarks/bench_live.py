@@ -59,10 +59,16 @@ MACHINE = "hitachi_ex3500"
 GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
 
 
-def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default") -> Path:
-    session = root / f"live_{size}_{cameras}_{seed}" if look == "default" else root / f"live_{size}_{cameras}_{seed}_{look}"
+CYCLE_S = 25.0  # a dig cycle lasts at least this long: the session has enough cycles for the run
+
+
+def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default", duration: float = 20.0) -> Path:
+    cycles = max(1, int(np.ceil(duration / CYCLE_S)))
+    name = f"live_{size}_{cameras}_{seed}" + (f"_{look}" if look != "default" else "") + (f"_{cycles}c" if cycles > 1
+                                                                                         else "")
+    session = root / name
     if not (session / "COMPLETE").exists():
-        assert cli.main(["synth", "--machine", MACHINE, "--cameras", str(cameras), "--cycles", "1", "--seed",
+        assert cli.main(["synth", "--machine", MACHINE, "--cameras", str(cameras), "--cycles", str(cycles), "--seed",
                          str(seed), "--size", size, "--hold", "0.5", "--look", look, "--out", str(session)]) == 0
     return session
 
@@ -245,7 +251,7 @@ def main() -> None:
         ratios = []
         for size in args.sizes.split(","):
             for seed in counts(args.seeds):
-                session = make_session(root, size, max(cameras), seed, args.look)
+                session = make_session(root, size, max(cameras), seed, args.look, args.duration)
                 calibration = load_calibration(session / "truth" / "cameras.toml")
                 truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
                 print(f"{session.name}: " + ", ".join(f"{c} {f:.5g} fps" for c, f in zip(calibration.names,
@@ -254,7 +260,8 @@ def main() -> None:
                     ratios.append(bench_row(args, root, session, calibration, truth, size, seed, n))
         loads = os.getloadavg()
         ratios = np.array(ratios)
-        print("rows/s: rows written per second of the run (the reference camera delivers 30; each session's cameras' rates above); "
+        print("rows/s: rows written per second of the run (the reference camera delivers 30; each session's cameras' "
+              "rates above); "
               "dropped: frames late, of those read; track / wait / fit / lag: the latency's parts' medians (ms: the "
               "reference frame's tracking, the wait for the other cameras, the fit, the smoother's lag to the row "
               "written); cpu ms/row: the process's CPU (all threads) per row; RSS MB: resident memory after a tenth "

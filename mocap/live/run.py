@@ -270,7 +270,8 @@ class _Loop:
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
-        self.pending: list[tuple[int, float, float, float]] = []  # clock frames waiting: (frame, time, arrived, labelled)
+        # clock frames waiting: (frame, time, arrived, labels in)
+        self.pending: list[tuple[int, float, float, float]] = []
         self.waiting: list[tuple[int, float, float, list[str], object, tuple]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
         self.ahead = -1  # the clock frame fitted ahead of its cameras (`_fit_ahead`)
