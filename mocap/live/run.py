@@ -126,9 +126,10 @@ class CameraWorker(threading.Thread):
     pixels (M, 2)). A first frame that cannot be labelled is skipped and the next one tried."""
 
     def __init__(self, k: int, reader: SourceReader, model: CameraModel, start: np.ndarray, fps: float,
-                 options: TrackOptions, labelled: queue.Queue, stop: threading.Event):
+                 options: TrackOptions, labelled: queue.Queue, stop: threading.Event, keep: bool = True):
         super().__init__(name=f"track {reader.spec.camera}", daemon=True)
         self.k, self.reader, self.model, self.start_joints, self.fps = k, reader, model, start, fps
+        self.keep = keep  # the labels kept for `tracks()` (--record); else memory stays flat however long the run
         self.options, self.labelled, self.stop = options, labelled, stop
         self.markers = {name: m for m, name in enumerate(model.machine.marker_names)}
         self.out = 0
@@ -142,7 +143,7 @@ class CameraWorker(threading.Thread):
             while not self._exhausted and not self.stop.is_set():
                 try:
                     tracks, _ = track_frames(self.model, self._frames(), self.start_joints, None, self.fps, self.options,
-                                             on_frame=self._on_frame)
+                                             on_frame=self._on_frame, keep=self.keep)
                     self.parts.append(tracks)
                 except ValueError as exc:  # the first frame not labelled: try the next ones
                     log.info("camera %s: %s; trying the next frame", self.reader.spec.camera, exc)
@@ -203,7 +204,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                              path=reader.spec.target)
     labelled: queue.Queue = queue.Queue()
     workers = [CameraWorker(k, reader, CameraModel(machine, camera, solid=machine.n_joints > 0), start_joints,
-                            fps[k], request.track_options, labelled, stop)
+                            fps[k], request.track_options, labelled, stop, keep=request.record is not None)
                for k, (reader, camera) in enumerate(zip(readers, cameras))]
     feed = Feed(*request.feed) if request.feed is not None else None
     if feed is not None and announce is not None:

@@ -114,11 +114,13 @@ def track_frames(
     fps: float = 0.0,
     options: TrackOptions | None = None,
     on_frame: Callable[[int, Tracks], None] | None = None,
+    keep: bool = True,
 ) -> tuple[Tracks, TrackSummary]:
     """Label and track markers through `frames` (iterable of (index, grey (H, W))).
 
     `on_frame(index, rows)`, if given, is called with each frame's rows as soon as they are
-    known (`mocap live` tracks a stream this way, frame by frame).
+    known (`mocap live` tracks a stream this way, frame by frame); with `keep` False the rows
+    go to `on_frame` only and the tracks returned are empty (a stream that runs for hours).
 
     `start` (J,) joint values near the first frame's (the calibration's); `labelled`
     (M, 2) the first frame's digitised pixels, or None to have them proposed. Returns the
@@ -132,7 +134,7 @@ def track_frames(
     camera = model.camera.name
     rows: list[Tracks] = []
     if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
-        return track_tags(model.machine, frames, camera, fps, on_frame)
+        return track_tags(model.machine, frames, camera, fps, on_frame, keep)
     tracker = None
     finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
     n_frames = n_fitted = restarts = searched = 0
@@ -142,6 +144,7 @@ def track_frames(
     dark = np.zeros(len(names), dtype=int)  # and of those, frames a dark spot lay where the fit put it
     hidden_placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
+    let_go = 0  # rows handed to `on_frame` and not kept
     blank_disks = 0  # while lost: disks the last failed full-frame search had (or fewest since)
     for index, gray in frames:
         n_frames += 1
@@ -221,6 +224,9 @@ def track_frames(
             rows.append(tag_rows(camera, index, fps, names, tags))
         if on_frame is not None:
             on_frame(index, _concatenate(rows[known:]))
+        if not keep:
+            let_go += sum(len(r) for r in rows[known:])
+            del rows[known:]
     tracks = _concatenate(rows)
     unplaced = (in_view >= UNPLACED_MIN_FRAMES) & (placed < 0.1 * in_view)
     spotted = (looked >= 3) & (dark >= 0.5 * looked) & (hidden_placed < 0.1 * looked) & ~unplaced
@@ -231,7 +237,7 @@ def track_frames(
             f"in {dark[m]} of {looked[m]} frames looked at and was not taken (fainter than the detection's "
             f"--min-contrast?): state its `normal` in the machine file" for m in np.flatnonzero(spotted)]
     order = np.r_[np.flatnonzero(unplaced), np.flatnonzero(spotted)]
-    return tracks, TrackSummary(n_frames, n_fitted, len(tracks), restarts,
+    return tracks, TrackSummary(n_frames, n_fitted, len(tracks) + let_go, restarts,
                                 tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why))
 
 
@@ -260,19 +266,22 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple
 
 
 def track_tags(machine: Machine, frames, camera: str, fps: float = 0.0,
-               on_frame: Callable[[int, Tracks], None] | None = None) -> tuple[Tracks, TrackSummary]:
+               on_frame: Callable[[int, Tracks], None] | None = None,
+               keep: bool = True) -> tuple[Tracks, TrackSummary]:
     """The tracks of a machine whose markers all carry tags: each frame's tags by their ids
-    (no camera model needed). `frames` iterable of (index, grey (H, W)); `on_frame` as in
-    `track_frames`."""
-    rows, n_frames = [], 0
+    (no camera model needed). `frames` iterable of (index, grey (H, W)); `on_frame` and `keep`
+    as in `track_frames`."""
+    rows, n_frames, let_go = [], 0, 0
     finder = TagFinder(machine.tag_dictionary)
     for index, gray in frames:
         n_frames += 1
         rows.append(tag_rows(camera, index, fps, machine.marker_names, tag_pixels(machine, gray, finder)))
         if on_frame is not None:
             on_frame(index, rows[-1])
+        if not keep:
+            let_go += len(rows.pop())
     tracks = _concatenate(rows)
-    return tracks, TrackSummary(n_frames, 0, len(tracks), 0)
+    return tracks, TrackSummary(n_frames, 0, len(tracks) + let_go, 0)
 
 
 def _supported(model: CameraModel, result: FrameResult, held: np.ndarray) -> FrameResult:
