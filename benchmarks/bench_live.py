@@ -307,6 +307,14 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
         line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")
     print(line, flush=True)
+    if gap is not None:
+        rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+        without = np.array([gap not in str(c).split(";") for c in np.atleast_1d(rows["cameras"])])
+        print(f"     {without.sum()} rows without {gap} (its {GAP_S:g} s gap, and its first frames): tip RMSE "
+              f"{tip_rmse(frames[without], tips[without], truth):.4f} live, "
+              f"{offline_rmse(motion, frames[without], truth):.4f} offline (all cameras); the other "
+              f"{(~without).sum()} rows: {tip_rmse(frames[~without], tips[~without], truth):.4f} live, "
+              f"{offline_rmse(motion, frames[~without], truth):.4f} offline", flush=True)
     for name, offset, at, _ in report.clocks:
         true = calibration.time_offsets[calibration.names.index(name)]
         print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "
