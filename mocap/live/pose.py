@@ -215,11 +215,10 @@ class FixedLagSmoother:
         self.pending -= 1
         return self._pose(len(self.time) - 1 - self.lag)
 
-    def revise(self, fit: FrameFit, back: int = 0) -> None:
-        """Replace the fit of the frame `back` frames before the newest (a provisional one, by
-        the frame's own once all its cameras are in); the poses not given yet follow from it."""
-        at = len(self.values) - 1 - back
-        self.values[at], self.information[at], self.valid[at] = fit.values, fit.information, fit.valid
+    def revise(self, fit: FrameFit) -> None:
+        """Replace the newest frame's fit (a provisional one, by the frame's own once all its
+        cameras are in); its pose, not given yet, follows from this one."""
+        self.values[-1], self.information[-1], self.valid[-1] = fit.values, fit.information, fit.valid
 
     def flush(self) -> list[Pose]:
         """The poses not yet given (the last `lag` frames), from the frames there are."""

@@ -275,7 +275,7 @@ class _Loop:
         self.pending: list[tuple[int, float, float, float]] = []
         self.waiting: list[tuple[int, float, float, list[str], object, tuple]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
-        self.ahead: list[int] = []  # the clock frames fitted ahead of their cameras (`_fit_ahead`), oldest first
+        self.ahead = -1  # the clock frame fitted ahead of its cameras (`_fit_ahead`)
         self.rows = self.skipped = 0
         self.latency: list[float] = []
         self.stages: list[tuple[float, float, float, float]] = []
@@ -345,15 +345,11 @@ class _Loop:
                 break
             self.pending.pop(0)
             if not self.patient and now - arrived > BEHIND_S:
-                if frame in self.ahead:  # its provisional fit stays
-                    self.ahead.remove(frame)
-                else:
+                if frame != self.ahead:
                     self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
                 continue
             self._fit(frame, t, arrived, (labelled_at, now))
-        # the newest fitted ahead once the frames before it are in the smoother (their own fit or ahead)
-        if (self.early and self.pending and self.fit.warm
-                and all(p[0] in self.ahead for p in self.pending[:-1]) and self.pending[-1][0] not in self.ahead):
+        if self.early and self.pending and self.pending[-1][0] != self.ahead and self.fit.warm:
             self._fit_ahead(*self.pending[-1])
 
     def _pixels(self, t: float) -> tuple[np.ndarray, list[str]]:
@@ -371,13 +367,10 @@ class _Loop:
             history.forget(t)
         self.last_frame = frame
         entry = (frame, t, arrived, used, fitted, (*stamps, time.perf_counter()))
-        if frame in self.ahead:  # its provisional fit gave a row already: its own replaces it in the smoother
-            back = len(self.ahead) - 1 - self.ahead.index(frame)  # frames pushed after it (fitted ahead too)
-            self.ahead.remove(frame)
-            self.smoother.revise(fitted, back)
-            for i, waiting in enumerate(self.waiting):
-                if waiting[0] == frame:
-                    self.waiting[i] = entry[:5] + (waiting[5],)
+        if frame == self.ahead:  # its row was given already: the frame's own fit replaces the provisional one
+            self.smoother.revise(fitted)
+            if self.waiting and self.waiting[-1][0] == frame:
+                self.waiting[-1] = entry[:5] + (self.waiting[-1][5],)
             return
         self.waiting.append(entry)
         pose = self.smoother.push(t, fitted)
@@ -388,11 +381,13 @@ class _Loop:
         """The newest clock frame fitted at once from what is in (the cameras whose frame after
         it has not come extrapolated, `CameraHistory.pixels_at`) and pushed to the smoother,
         which gives the row `lag` frames back without waiting; the frame's own fit revises it
-        once its cameras are in (an older frame may still be waiting: fitted ahead too)."""
+        once its cameras are in."""
+        if self.pending[0][0] != frame:  # an older frame still waits: this one's turn comes after
+            return
         began = time.perf_counter()
         pixels, used = self._pixels(t)
         fitted = self.fit(pixels, keep=False)
-        self.ahead.append(frame)
+        self.ahead = frame
         self.waiting.append((frame, t, arrived, used, fitted, (labelled_at, began, time.perf_counter())))
         pose = self.smoother.push(t, fitted)
         if pose is not None:
