@@ -4,12 +4,15 @@ poses file and the feed.
 
 The rows follow the clock camera: the reference camera (the calibration's first among the
 sources), or while it has ended, the first camera still delivering; a row's frame is the
-reference camera's frame at that time. A row waits for every other running camera's frame
-at or after its time (to interpolate between the two either side), at most `wait_frames`
-reference intervals after its frame arrived (files read as fast as possible wait for as
-long as it takes); a camera that has not delivered by then is left out of that row
-(column `cameras`). A frame that is still waiting for its fit `BEHIND_S` after it arrived
-(the process has too little CPU) gets no row and is counted: the rows never fall further
+reference camera's frame at that time. A frame's own fit waits for every other running
+camera's frame at or after its time (to interpolate between the two either side), at most
+`wait_frames` reference intervals after its frame arrived (files read as fast as possible
+wait for as long as it takes); a camera that has not delivered by then is left out of that
+fit (column `cameras`). With a lag the row does not wait for them: the newest clock frame,
+once every older one has its own fit, is fitted at once from what is in (`_fit_ahead`) and
+the smoother gives the row `lag` frames back; the frame's own fit then replaces that one in
+the smoother. A frame still waiting for its fit `BEHIND_S` after it arrived (the process
+has too little CPU) gets no row and is counted: the rows never fall further
 behind. Ctrl-C (`stop`) ends the run with every row so far written.
 """
 
