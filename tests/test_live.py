@@ -350,6 +350,9 @@ def test_a_tracker_that_fails_is_one_line_and_the_others_carry_on(short_session,
     assert "cam2" in errors[0].getMessage() and "sensor fault" in errors[0].getMessage()
     rows = read_rows(out)
     assert report.rows == len(rows) == FRAMES[0]
+    # the latency's parts (tracking, wait, fit, lag) are each row's latency
+    assert report.stages_ms.shape == (len(rows), 4) and np.all(report.stages_ms >= 0)
+    assert np.allclose(report.stages_ms.sum(axis=1), report.latency_ms, atol=1e-6)
     assert {r["cameras"] for r in rows[-60:]} == {"cam1"}
     assert np.nanmax(tip_error(rows, session)) < 0.1  # the one-camera rows of the test above
 
