@@ -187,9 +187,10 @@ def _visible(root) -> dict[str, str]:
     return {k: v for k, v in snapshot(root).items() if not any(part.startswith(".") for part in k.split("/"))}
 
 
-def _run_killed(argv: list[str], cwd, delay: float) -> int | None:
-    """Run `mocap argv` in a child process and SIGKILL it after `delay` s (None: it ended first,
-    its exit status else)."""
+def _run_killed(argv: list[str], cwd, delay: float, after=None) -> int | None:
+    """Run `mocap argv` in a child process and SIGKILL it, and every process it started (a
+    batch's Dask workers), after `delay` s, counted from when `after()` first holds if given
+    (None: it ended first, its exit status else)."""
     import os
     import signal
     import subprocess
@@ -199,13 +200,46 @@ def _run_killed(argv: list[str], cwd, delay: float) -> int | None:
 
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    while after is not None and child.poll() is None and not after():
+        time.sleep(0.002)
     try:
         return child.wait(timeout=delay)
     except subprocess.TimeoutExpired:
-        child.send_signal(signal.SIGKILL)
+        os.killpg(child.pid, signal.SIGKILL)
         child.wait()
+        deadline = time.monotonic() + 10
+        while _group_alive(child.pid) and time.monotonic() < deadline:  # its workers gone too
+            time.sleep(0.05)
         return None
+
+
+def _group_alive(group: int) -> bool:
+    import os
+
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _kill_at(argv: list[str], cwd, delays, check, after=None) -> list[int | None]:
+    """Run `mocap argv` killed after each of `delays` s in turn (from when `after()` holds if
+    given), each run taking up what the last one left; `check()` after each. A run that ends
+    before its moment (a machine faster than timed) must end with 0, and is run again with half
+    the delay. Returns the exit statuses (None: killed); every moment killed one."""
+    codes = []
+    for delay in delays:
+        for _ in range(3):
+            codes.append(_run_killed(argv, cwd, delay, after))
+            assert codes[-1] in (None, 0), codes
+            check()
+            if codes[-1] is None:
+                break
+            delay /= 2
+        assert codes[-1] is None, codes  # killed mid-way
+    return codes
 
 
 KILL_SCHEDULE = np.random.default_rng(34).uniform(0.2, 1.0, 3)  # fractions of an uninterrupted run's time
@@ -312,3 +346,168 @@ def test_a_folder_synth_left_at_any_moment_is_resumed_and_others_refused(tmp_pat
     (tmp_path / "notes.txt").unlink()
     (tmp_path / "COMPLETE").write_text("done\n")
     assert not _interrupted_synth(tmp_path)
+
+
+# --- killed and resumed: run, batch, live --record on one small session -----------------------
+
+
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory):
+    """A session as a user brings it to `mocap run`: two cameras at 480x270 and 5 fps, one dig
+    cycle, the calibration frame's labels digitised."""
+    from mocap.demo import digitise_first_frame
+    from mocap.session import Session
+
+    root = tmp_path_factory.mktemp("small") / "s"
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cameras", "2", "--cycles", "1", "--size", "480x270",
+                     "--fps", "5", "--clean", "--out", str(root)]) == 0
+    digitise_first_frame(Session.open(root), np.random.default_rng(1))
+    return root
+
+
+@pytest.fixture(scope="module")
+def whole_run(small_session, tmp_path_factory):
+    """`mocap run --no-view` uninterrupted on a copy (named as the session: the report names
+    its folder): {file: sha256} of the folder after it, its seconds, and the calibration the
+    calibrate stage writes before sync rewrites it in place (a state the run passes through)."""
+    import shutil
+    import time
+
+    from mocap.pipeline import RunOptions, session_steps
+    from mocap.session import Session
+
+    root = tmp_path_factory.mktemp("whole") / "s"
+    shutil.copytree(small_session, root)
+    start = time.perf_counter()
+    assert cli.main(["run", str(root), "--no-view"]) == 0
+    took = time.perf_counter() - start
+    between = tmp_path_factory.mktemp("between") / "s"
+    shutil.copytree(small_session, between)
+    session_steps(Session.open(between), RunOptions(view=False))[0].call()  # the calibrate stage alone
+    return _visible(root), took, _visible(between)["calibration/cameras.toml"]
+
+
+def _whole_or_passed_through(files: dict, whole: dict, calibrated: str) -> None:
+    """Every file as the uninterrupted run left it, or the calibration as the calibrate stage
+    wrote it (sync rewrites it in place later): none half written."""
+    for name, digest in files.items():
+        assert digest == whole.get(name) or (name == "calibration/cameras.toml" and digest == calibrated), name
+
+
+RUN_KILLS = np.random.default_rng(341).uniform(0.15, 0.9, 3)  # fractions of an uninterrupted run's time
+
+
+def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, whole_run, tmp_path):
+    """SIGKILL of `mocap run` at seeded random moments, each run taking up the folder the last
+    one left (its lock a dead process's: taken over): the inputs stay byte-identical, every
+    file is whole, results/COMPLETE only once all are, and the same command run again leaves
+    the folder of an uninterrupted run, byte for byte."""
+    import shutil
+
+    whole, took, calibrated = whole_run
+    inputs = _visible(small_session)
+    killed = tmp_path / "killed" / "s"
+    shutil.copytree(small_session, killed)
+    argv = ["run", str(killed), "--no-view"]
+
+    def check():
+        files = _visible(killed)
+        assert {name: files.get(name) for name in inputs} == inputs
+        _whole_or_passed_through(files, whole, calibrated)
+        assert ("results/COMPLETE" in files) == (files == whole)
+
+    _kill_at(argv, tmp_path, RUN_KILLS * (took + 1.5), check)  # the child's start (imports) comes on top
+    assert cli.main(argv) == 0
+    assert _visible(killed) == whole
+    assert not list(killed.rglob(".*"))  # no temporary or lock of the killed runs left
+
+
+def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small_session, whole_run, tmp_path):
+    """SIGKILL of `mocap batch` (and its Dask workers) at a seeded random moment of the whole
+    and another after the first stage is in the manifest: every file whole, the inputs
+    byte-identical; the batch run again skips the stages the manifest holds and leaves each
+    result as `mocap run` does, byte for byte."""
+    import shutil
+    import tomllib
+
+    from test_batch import read_fleet
+
+    whole, took, calibrated = whole_run
+    inputs = _visible(small_session)
+    fleet = tmp_path / "fleet"
+    root = fleet / "s"
+    shutil.copytree(small_session, root)
+    out = tmp_path / "out"
+    argv = ["batch", str(fleet), "--workers", "1", "--out", str(out)]
+    manifest = root / "batch" / "manifest.toml"
+
+    def check():
+        files = {k: v for k, v in _visible(root).items() if not k.startswith("batch/")}
+        assert {name: files.get(name) for name in inputs} == inputs
+        _whole_or_passed_through(files, whole, calibrated)
+        if manifest.exists():
+            tomllib.loads(manifest.read_text())  # whole
+        for name in ("fleet.csv", "fleet_report.md"):
+            assert not (out / name).exists() or (out / name).read_text().endswith("\n")
+
+    kills = np.random.default_rng(342).uniform(0.2, 0.8, 2)
+    _kill_at(argv, tmp_path, [kills[0] * (took + 4.0)], check)  # Dask's start on top of the stages
+    _kill_at(argv, tmp_path, [kills[1] * took], check, after=manifest.exists)
+    recorded = set(tomllib.loads(manifest.read_text())["stages"])
+    assert recorded
+    assert cli.main(argv) == 0
+    row = read_fleet(out)["s"]
+    assert row["status"] == "ok" and int(row["stages_skipped"]) == len(recorded), (row, recorded)
+    results = {k: v for k, v in _visible(root).items() if not k.startswith("batch/")}
+    serial = {k: v for k, v in whole.items() if k not in ("results/session_report.html", "results/COMPLETE")}
+    assert results == serial  # `mocap run`'s files but its report and COMPLETE
+    assert not list(root.rglob(".*"))  # no temporary of the killed runs left
+
+
+LIVE_KILLS = np.random.default_rng(343).uniform(0.3, 0.95, 3)
+
+
+def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, tmp_path):
+    """SIGKILL of `mocap live --record DIR` (files read as fast as tracked) at seeded moments,
+    into a folder holding an earlier, other recording: a killed run leaves no session.toml
+    (the earlier one's would name files of two runs as one session), every file is whole, and
+    the same command run again records what an uninterrupted run does, byte for byte."""
+    import shutil
+    import time
+
+    from mocap.io.session_toml import load_session_config, save_session_config
+
+    def argv(record):
+        return ["live", "hitachi_ex3500", str(small_session / "truth" / "cameras.toml"),
+                "--source", f"cam1={small_session / 'videos' / 'cam1.mp4'}",
+                "--source", f"cam2={small_session / 'videos' / 'cam2.mp4'}",
+                "--out", str(tmp_path / "poses.csv"), "--record", str(record)]
+    inputs = _visible(small_session)
+    start = time.perf_counter()
+    assert cli.main(argv(tmp_path / "whole")) == 0
+    took = time.perf_counter() - start + 1.5
+    recorded = _visible(tmp_path / "whole")
+    killed = tmp_path / "killed"
+    shutil.copytree(tmp_path / "whole", killed)  # an earlier recording: of cam1 alone
+    config = load_session_config(killed / "session.toml")
+    save_session_config(config.__class__(config.machine, config.cameras[:1], config.options, config.metadata),
+                        killed / "session.toml")
+    (killed / "videos" / "cam2.mp4").unlink()
+    (killed / "tracks" / "cam2.csv").unlink()
+    earlier = _visible(killed)
+
+    def check():
+        files = _visible(killed)
+        assert all(recorded[name] == digest for name, digest in files.items() if name != "session.toml")
+        if files != earlier:  # (killed before it took up the folder: the earlier recording as it was)
+            assert ("session.toml" in files) == (files == recorded)  # written last, and only then
+        assert _visible(small_session) == inputs
+
+    def writing():  # the run has begun to write the recording's files (cam2's video the first new one)
+        return any("cam2" in p.name for p in (killed / "videos").iterdir())
+    assert _run_killed(argv(killed), tmp_path, LIVE_KILLS[0] * 0.005, after=writing) is None  # inside the writing
+    check()
+    _kill_at(argv(killed), tmp_path, LIVE_KILLS[1:] * took, check)
+    assert cli.main(argv(killed)) == 0
+    assert _visible(killed) == recorded
+    assert not list(killed.rglob(".*"))

@@ -23,7 +23,7 @@ import queue
 import shutil
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from mocap.errors import InputError
+from mocap.io.atomic import atomic_path
 from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
@@ -209,35 +210,38 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     workers = [CameraWorker(k, reader, CameraModel(machine, camera, solid=machine.n_joints > 0), start_joints,
                             fps[k], request.track_options, labelled, stop, keep=request.record is not None)
                for k, (reader, camera) in enumerate(zip(readers, cameras))]
-    feed = Feed(*request.feed) if request.feed is not None else None
-    if feed is not None and announce is not None:
-        announce(f"feed on {feed.url}")
-    writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
-    chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
-    view = _view(request.view, machine, chosen)
-    follower = None
-    if request.follow_clocks and len(cameras) > 1:
-        from mocap.live.clocks import ClockFollower
+    with ExitStack() as held:
+        if request.record is not None:  # the folder held (one command writes it) and marked unfinished
+            held.enter_context(_recording(request.record))
+        feed = Feed(*request.feed) if request.feed is not None else None
+        if feed is not None and announce is not None:
+            announce(f"feed on {feed.url}")
+        writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
+        chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
+        view = _view(request.view, machine, chosen)
+        follower = None
+        if request.follow_clocks and len(cameras) > 1:
+            from mocap.live.clocks import ClockFollower
 
-        follower = ClockFollower(machine, cameras, fps, offsets, stop)
-    loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
-    with ExitStack() as recording:
-        _recorders(request, readers, cameras, fps, recording)
-        for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
-            thread.start()
-        try:
-            loop.run(clock_start)
-        finally:
-            stop.set()
-            for thread in [*readers, *workers]:
-                thread.join(timeout=5.0)
-            writer.close()
-            if feed is not None:
-                feed.close()
-            if view is not None:
-                view.close()
-    if request.record is not None:
-        _record(request, machine, calibration, order, cameras, fps, workers)
+            follower = ClockFollower(machine, cameras, fps, offsets, stop)
+        loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
+        with ExitStack() as videos:
+            _recorders(request, readers, cameras, fps, videos)
+            for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
+                thread.start()
+            try:
+                loop.run(clock_start)
+            finally:
+                stop.set()
+                for thread in [*readers, *workers]:
+                    thread.join(timeout=5.0)
+                writer.close()
+                if feed is not None:
+                    feed.close()
+                if view is not None:
+                    view.close()
+        if request.record is not None:
+            _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
                    for c, r, w in zip(cameras, readers, workers))
     return LiveReport(
@@ -444,24 +448,43 @@ def _recorders(request: LiveRequest, readers: list[SourceReader], cameras, fps, 
             reader.on_frame = lambda gray, write=write: write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
 
 
+@contextmanager
+def _recording(root: Path):
+    """Hold the --record folder while the run writes it: its lock (`mocap.io.lock`; another
+    command writing it is refused, a killed one's lock taken over), and no session.toml in it
+    until every other file of this run is written (`_record` writes it last): a run killed
+    part-way leaves no session that looks whole, with files of two runs."""
+    from mocap.io.lock import folder_lock
+
+    root.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root, f"mocap live --record {root}"):
+        (root / "session.toml").unlink(missing_ok=True)
+        yield
+
+
+def _copy(source: str | Path, target: Path) -> None:
+    """`source` copied to `target` whole or not at all (written beside it, then renamed)."""
+    with atomic_path(target) as tmp:
+        shutil.copyfile(source, tmp)
+
+
 def _record(request: LiveRequest, machine: Machine, calibration: Calibration, order, cameras, fps, workers) -> None:
     """The session folder for the offline chain: session.toml, calibration/cameras.toml,
     calibration/labels.csv (each camera's first labelled frame), videos/<camera>.mp4 (a file
     copied; a device or stream recorded as it came) and tracks/<camera>.csv (the live
-    tracker's labels)."""
+    tracker's labels). Every file is written whole or not at all, session.toml last."""
     root = request.record
     root.mkdir(parents=True, exist_ok=True)
     machine_ref = request.machine
     if Path(request.machine).is_file():
-        shutil.copyfile(request.machine, root / "machine.toml")
+        _copy(request.machine, root / "machine.toml")
         machine_ref = "machine.toml"
     entries, first_labels = [], []
     for k, camera in enumerate(cameras):
         spec = workers[k].reader.spec
         video = f"videos/{camera.name}.mp4"
         if spec.kind == FILE:
-            (root / "videos").mkdir(exist_ok=True)
-            shutil.copyfile(spec.target, root / video)
+            _copy(spec.target, root / video)
         entries.append(SessionCamera(camera.name, video, float(fps[k])))
         tracks = workers[k].tracks()
         if tracks is not None and len(tracks):
