@@ -296,3 +296,74 @@ def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path
     assert rows["s1"]["stages_run"] == rows["s2"]["stages_run"] == "0"
     assert rows["s3"]["stages_run"] == str(len(chain(roots[2]))) and rows["s3"]["status"] == "ok"
     assert (roots[2] / "results" / "motion.csv").read_bytes() == (roots[0] / "results" / "motion.csv").read_bytes()
+
+
+# --- a cluster across machines: TLS ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def certificates(tmp_path_factory):
+    """A CA of the cluster's own and one certificate it signed, for the scheduler, the worker
+    and the client (Dask checks the CA, not the host name), made with openssl."""
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed")
+    d = tmp_path_factory.mktemp("tls")
+
+    def openssl(*args):
+        subprocess.run(["openssl", *args], cwd=d, check=True, capture_output=True)
+    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+            "-subj", "/CN=mocap test CA")
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "node.key", "-out", "node.csr", "-subj", "/CN=localhost")
+    (d / "node.ext").write_text("basicConstraints=CA:FALSE\nsubjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    openssl("x509", "-req", "-in", "node.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-days", "2",
+            "-extfile", "node.ext", "-out", "node.pem")
+    return d / "ca.pem", d / "node.pem", d / "node.key"
+
+
+def test_batch_through_a_tls_scheduler(fleet, certificates, tmp_path, capsys):
+    """A scheduler and a worker that speak TLS only, on loopback: the batch reaches them with
+    the cluster's CA and a certificate it signed, and its session's results are those of its
+    stages run one after the other here; without the certificates it is refused in one line, and a
+    missing or unreadable file is one line naming it (exit 2)."""
+    from distributed import LocalCluster
+    from distributed.security import Security
+
+    from mocap.batch.run import run_stages
+
+    ca, cert, key = certificates
+    top, serial = tmp_path / "fleet", tmp_path / "serial"
+    for copy in (top, serial):  # from scratch: no manifest, no results of another test
+        shutil.copytree(fleet[1][0], copy / "s1", ignore=shutil.ignore_patterns("batch", "results", "tracks"))
+        (copy / "s1" / "calibration" / "cameras.toml").unlink(missing_ok=True)
+    stages = chain(serial / "s1")
+    assert not run_stages(serial / "s1", stages, [s.name for s in stages], [], True).error  # in this process, no Dask
+    security = Security(tls_ca_file=str(ca), tls_scheduler_cert=str(cert), tls_scheduler_key=str(key),
+                        tls_worker_cert=str(cert), tls_worker_key=str(key), tls_client_cert=str(cert),
+                        tls_client_key=str(key), require_encryption=True)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tls://", host="127.0.0.1",
+                      security=security, dashboard_address=":0") as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tls://127.0.0.1:")
+        options = BatchOptions(scheduler=address, out=tmp_path, tls_ca_file=ca, tls_cert=cert, tls_key=key)
+        report, failed = run_batch([top], options, chain_for=chain)
+        assert failed == 0, report
+        assert read_fleet(tmp_path)["s1"]["stages_run"] == str(len(chain(top / "s1")))
+        for name in ("calibration/cameras.toml", "tracks/cam1.csv", "results/motion.csv"):
+            assert (top / "s1" / name).read_bytes() == (serial / "s1" / name).read_bytes(), name
+
+        argv = ["batch", str(top), "--scheduler", address, "--out", str(tmp_path)]
+        assert cli.main(argv) == 2  # no certificate: neither flags nor Dask's configuration
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "needs the cluster's CA and this client's certificate" in err
+        for flags, named in [(["--tls-ca-file", str(tmp_path / "none.pem"), "--tls-cert", str(cert)], "none.pem"),
+                             (["--tls-ca-file", str(ca), "--tls-cert", str(cert), "--tls-key", str(tmp_path)],
+                              str(tmp_path)),
+                             (["--tls-ca-file", str(key), "--tls-cert", str(cert), "--tls-key", str(key)], str(key))]:
+            assert cli.main(argv + flags) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and f"{named}: " in err, err
+    tcp = ["batch", str(top), "--scheduler", "tcp://127.0.0.1:9", "--tls-ca-file", str(ca), "--out", str(tmp_path)]
+    assert cli.main(tcp) == 2 and "give --scheduler tls://HOST:PORT" in capsys.readouterr().err

@@ -37,22 +37,79 @@ class BatchOptions:
     out: Path = Path(".")
     refine: bool = False
     view: bool = False
+    tls_ca_file: Path | None = None  # a tls:// scheduler's: the cluster's CA, this client's certificate and key (PEM)
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
 
     def __post_init__(self) -> None:
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
+        given = [flag for flag, value in (("--tls-ca-file", self.tls_ca_file), ("--tls-cert", self.tls_cert),
+                                          ("--tls-key", self.tls_key)) if value is not None]
+        if given and not (self.scheduler or "").startswith("tls://"):
+            raise ValueError(f"{given[0]} is for a cluster reached over TLS: give --scheduler tls://HOST:PORT")
+        if given and (self.tls_ca_file is None or self.tls_cert is None):
+            raise ValueError("TLS needs the cluster's CA (--tls-ca-file) and this client's certificate (--tls-cert, "
+                             "with --tls-key unless the certificate file holds the key)")
+
+
+_TLS_CONFIG = "distributed.comm.tls"  # Dask's own settings of the files, used when no flag gives them
+
+
+def cluster_security(options: BatchOptions):
+    """Dask's `Security` for a tls:// scheduler (None for any other): the files of
+    `options`, or else Dask's own configuration (``distributed.comm.tls.ca-file``,
+    ``.client.cert``, ``.client.key``). A file missing or unreadable, or not a PEM
+    certificate or key, is an InputError naming it."""
+    import ssl
+
+    import dask
+    from distributed.security import Security
+
+    if not (options.scheduler or "").startswith("tls://"):
+        return None
+    if options.tls_ca_file is not None:
+        files = {"--tls-ca-file": options.tls_ca_file, "--tls-cert": options.tls_cert, "--tls-key": options.tls_key}
+    else:
+        files = {f"{_TLS_CONFIG}.{k}": dask.config.get(f"{_TLS_CONFIG}.{k}", None)
+                 for k in ("ca-file", "client.cert", "client.key")}
+        if not all(list(files.values())[:2]):
+            raise InputError("a tls:// scheduler needs the cluster's CA and this client's certificate: give "
+                             "--tls-ca-file, --tls-cert and --tls-key (PEM files), or set them in Dask's "
+                             f"configuration ({_TLS_CONFIG}.ca-file, .client.cert, .client.key)", where=options.scheduler)
+    for flag, path in files.items():
+        if path is None:
+            continue
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise InputError(f"{flag}: cannot read it ({exc.strerror or exc}); give the PEM file", path=path) from None
+    ca, cert, key = (None if v is None else str(v) for v in files.values())
+    try:
+        ssl.create_default_context(cafile=ca)
+    except ssl.SSLError as exc:
+        raise InputError(f"not a PEM certificate of a CA ({exc.reason or exc}); give the cluster's CA file",
+                         path=ca) from None
+    try:
+        ssl.create_default_context().load_cert_chain(cert, key)
+    except ssl.SSLError as exc:
+        raise InputError(f"the certificate and its key do not load ({exc.reason or exc}); give this client's PEM "
+                         "certificate and its key", path=cert if key is None else f"{cert}, {key}") from None
+    return Security(tls_ca_file=ca, tls_client_cert=cert, tls_client_key=key, require_encryption=True)
 
 
 @contextlib.contextmanager
-def dask_client(scheduler: str | None, workers: int):
-    """A Dask client: of the scheduler at `scheduler`, or of an embedded local cluster."""
+def dask_client(scheduler: str | None, workers: int, security=None):
+    """A Dask client: of the scheduler at `scheduler` (over TLS with `security`, Dask's
+    `Security`), or of an embedded local cluster."""
     from distributed import Client, LocalCluster
 
     if not log.isEnabledFor(logging.DEBUG):  # Dask's own start-up and shut-down lines only with -v -v
         logging.getLogger("distributed").setLevel(logging.WARNING)
     if scheduler:
         try:
-            client = Client(scheduler, timeout="5s")
+            client = Client(scheduler, timeout="5s", security=security)
         except (OSError, TimeoutError) as exc:
             raise InputError(
                 f"cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` and workers "
@@ -169,7 +226,7 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
 
     labels = session_labels(sessions)
     summaries: dict[Path, SessionSummary] = {}
-    with dask_client(options.scheduler, options.workers) as client:
+    with dask_client(options.scheduler, options.workers, cluster_security(options)) as client:
         futures = {}
         for root in sessions:
             try:

@@ -10,7 +10,8 @@ from mocap.commands import COMMANDS
 EXAMPLE = """examples:
   mocap batch sessions/ --workers 2 --out fleet/          # an embedded local cluster of 2 workers
   dask scheduler &  dask worker tcp://HOST:8786 &          # or a cluster of your own
-  mocap batch sessions/ --scheduler tcp://HOST:8786 --out fleet/"""
+  mocap batch sessions/ --scheduler tcp://HOST:8786 --out fleet/
+  mocap batch sessions/ --scheduler tls://HOST:8786 --tls-ca-file ca.pem --tls-cert me.pem --tls-key me.key"""
 
 
 def add_parser(sub) -> None:
@@ -27,7 +28,14 @@ def add_parser(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("paths", nargs="+", type=Path, help="session folders or folders holding them")
-    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="a running Dask scheduler, tcp:// or tls:// (default: a local cluster)")
+    p.add_argument("--tls-ca-file", type=Path, metavar="CA.pem",
+                   help="with a tls:// scheduler: the cluster's CA certificate (default: Dask's configuration, "
+                   "distributed.comm.tls.ca-file)")
+    p.add_argument("--tls-cert", type=Path, metavar="CERT.pem", help="with a tls:// scheduler: this client's certificate")
+    p.add_argument("--tls-key", type=Path, metavar="KEY.pem",
+                   help="with a tls:// scheduler: this client's private key (unless the certificate file holds it)")
     p.add_argument("--workers", type=int, default=2, help="workers of the local cluster (default 2)")
     p.add_argument("--out", type=Path, default=Path("."), help="folder for fleet.csv and fleet_report.md (default .)")
     p.add_argument("--refine", action="store_true", help="bundle-adjust each session's cameras, as `mocap run --refine`")
@@ -40,7 +48,8 @@ def run(args) -> int:
     from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError
 
     try:
-        options = BatchOptions(args.scheduler, args.workers, args.out, args.refine, args.view)
+        options = BatchOptions(args.scheduler, args.workers, args.out, args.refine, args.view,
+                               args.tls_ca_file, args.tls_cert, args.tls_key)
     except ValueError as exc:
         raise InputError(f"bad option: {exc}") from None
     report, failed = run_batch(args.paths, options)
