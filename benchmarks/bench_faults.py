@@ -11,6 +11,17 @@ sessions identical to a serial run (the same stages one after the other in this 
 no Dask, no kills) byte for byte, and the peak memory of each worker process.
 
     .venv/bin/python benchmarks/bench_faults.py [--sessions 50] [--broken 5] [--kills 8] [--workers 2]
+
+The kill soak instead: `mocap run` (--kill-run N) or `mocap batch` (--kill-batch N, over
+--sessions M copies of one small session) SIGKILLed, with every process it started, at N
+seeded random moments, each run taking up what the last one left; after each kill every
+file a reader sees is checked (whole: as an uninterrupted run leaves it, or a state such a
+run passes through), and the lock a killed run left is counted (the next run takes it
+over); then the command runs to its end and its files are compared with an uninterrupted
+`mocap run`'s, byte for byte:
+
+    .venv/bin/python benchmarks/bench_faults.py --kill-run 20
+    .venv/bin/python benchmarks/bench_faults.py --kill-batch 10 --sessions 4
 """
 
 from __future__ import annotations
@@ -139,16 +150,101 @@ def serial(roots: list[Path], broken: dict[str, str]) -> dict[str, str]:
     return out
 
 
+# --- the kill soak: `mocap run` / `mocap batch` killed at random moments -------------------------
+
+sys.path.insert(0, str(ROOT / "tests"))
+NOT_BATCH_RESULTS = ("results/session_report.html", "results/COMPLETE")  # `mocap run`'s, not the batch's
+
+
+def kill_soak(command: str, kills: int, sessions: int, workers: int, seed: int, work: Path) -> None:
+    from kills import make_small_session, run_killed, visible
+
+    from mocap.io.lock import LOCK_NAME
+    from mocap.pipeline import RunOptions, session_steps
+
+    small = work / "small" / "s"
+    if not (small / "calibration" / "labels.csv").exists():
+        shutil.rmtree(small.parent, ignore_errors=True)
+        make_small_session(small)
+    inputs = visible(small)
+    for made in ("whole", "between", "killed"):
+        shutil.rmtree(work / made, ignore_errors=True)
+    whole_root = work / "whole" / "s"
+    shutil.copytree(small, whole_root)
+    start = time.perf_counter()
+    assert run_killed(["run", str(whole_root), "--no-view"], work, 3600.0) == 0
+    took = time.perf_counter() - start
+    whole = visible(whole_root)
+    between = work / "between" / "s"  # the calibration the calibrate stage writes, before sync rewrites it
+    shutil.copytree(small, between)
+    session_steps(Session.open(between), RunOptions(view=False))[0].call()
+    passed_through = {"calibration/cameras.toml": visible(between)["calibration/cameras.toml"]}
+
+    if command == "run":
+        roots = [work / "killed" / "s"]
+        argv = ["run", str(roots[0]), "--no-view"]
+        expected = whole
+        estimate = took
+    else:
+        roots = [work / "killed" / f"s{k:02d}" for k in range(sessions)]
+        argv = ["batch", str(work / "killed"), "--workers", str(workers), "--out", str(work / "killed-out")]
+        expected = {k: v for k, v in whole.items() if k not in NOT_BATCH_RESULTS}
+        estimate = 5.0 + took * sessions / workers  # Dask's start, then the sessions side by side
+    for root in roots:
+        shutil.copytree(small, root)
+
+    rng = np.random.default_rng(seed)
+    killed = checked = not_whole = stale = inputs_changed = ended = refused = 0
+    for _ in range(kills):
+        code = run_killed(argv, work, float(rng.uniform(0.05, 1.0)) * estimate)
+        killed += code is None
+        ended += code == 0
+        refused += code not in (None, 0)
+        for root in roots:
+            files = {k: v for k, v in visible(root).items() if not k.startswith("batch/")}
+            inputs_changed += any(files.get(k) != v for k, v in inputs.items())
+            for name, digest in files.items():
+                checked += 1
+                not_whole += digest not in (whole.get(name), passed_through.get(name))
+            stale += (root / LOCK_NAME).exists()  # a dead process's: the next run takes it over
+    start = time.perf_counter()
+    final = run_killed(argv, work, 3600.0)
+    rerun_s = time.perf_counter() - start
+    identical = sum({k: v for k, v in visible(r).items() if not k.startswith("batch/")} == expected for r in roots)
+    skipped = ""
+    if command == "batch" and (work / "killed-out" / "fleet.csv").exists():
+        import csv
+
+        with open(work / "killed-out" / "fleet.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        skipped = (f"; the re-run: {sum(int(r['stages_run']) for r in rows)} stages run, "
+                   f"{sum(int(r['stages_skipped']) for r in rows)} skipped (done before a kill)")
+    print(f"kill soak of `mocap {command}`" + (f" over {sessions} sessions, {workers} workers" if command == "batch"
+                                               else "") + f" (seed {seed}); an uninterrupted `mocap run` {took:.1f} s")
+    print(f"runs {kills}: killed {killed}, ended before their moment {ended}, refused {refused}; files checked "
+          f"{checked}, files not whole {not_whole}, inputs changed {inputs_changed}, stale locks taken over {stale}")
+    print(f"run again to its end: exit {final} in {rerun_s:.1f} s; identical to an uninterrupted run "
+          f"{identical} of {len(roots)} session(s) ({'identical' if identical == len(roots) else 'NOT identical'})"
+          + skipped)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sessions", type=int, default=50)
+    parser.add_argument("--sessions", type=int, default=None, help="sessions (default 50; the kill soak of batch 4)")
     parser.add_argument("--broken", type=int, default=5)
     parser.add_argument("--kills", type=int, default=8, help="tasks whose worker is killed the first time")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--work", type=Path, help="work folder (default: a temporary one)")
+    parser.add_argument("--kill-run", type=int, metavar="N", help="the kill soak of `mocap run`: N kills")
+    parser.add_argument("--kill-batch", type=int, metavar="N", help="the kill soak of `mocap batch`: N kills")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_faults_"))
+    if args.kill_run or args.kill_batch:
+        command, kills = ("run", args.kill_run) if args.kill_run else ("batch", args.kill_batch)
+        kill_soak(command, kills, args.sessions or 4, args.workers, args.seed, work)
+        return
+    args.sessions = args.sessions or 50
     shutil.rmtree(work / "fleet", ignore_errors=True)
     shutil.rmtree(work / "serial", ignore_errors=True)
     shutil.rmtree(work / KILLS_DIR, ignore_errors=True)

@@ -14,6 +14,8 @@ from mocap.errors import EXIT_INTERRUPTED, InputError
 from mocap.geometry import rpy_to_matrix
 from mocap.io.motion_csv import base_columns
 
+from kills import kill_at, run_killed, visible
+
 
 def test_a_base_pose_without_value_gives_nan_columns_not_a_crash():
     """Frames the smoother leaves without a pose (after the last explained frame) reach the
@@ -179,69 +181,6 @@ def test_a_full_disk_is_one_line_and_keeps_earlier_results(tmp_path):
 # --- killed and resumed -------------------------------------------------------------------------
 
 
-def _visible(root) -> dict[str, str]:
-    """{relative path: sha256} of the files under `root` a reader takes for results (hidden
-    temporaries and lock files excluded)."""
-    from badinput_files import snapshot
-
-    return {k: v for k, v in snapshot(root).items() if not any(part.startswith(".") for part in k.split("/"))}
-
-
-def _run_killed(argv: list[str], cwd, delay: float, after=None) -> int | None:
-    """Run `mocap argv` in a child process and SIGKILL it, and every process it started (a
-    batch's Dask workers), after `delay` s, counted from when `after()` first holds if given
-    (None: it ended first, its exit status else)."""
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
-    from pathlib import Path
-
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    while after is not None and child.poll() is None and not after():
-        time.sleep(0.002)
-    try:
-        return child.wait(timeout=delay)
-    except subprocess.TimeoutExpired:
-        os.killpg(child.pid, signal.SIGKILL)
-        child.wait()
-        deadline = time.monotonic() + 10
-        while _group_alive(child.pid) and time.monotonic() < deadline:  # its workers gone too
-            time.sleep(0.05)
-        return None
-
-
-def _group_alive(group: int) -> bool:
-    import os
-
-    try:
-        os.killpg(group, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
-def _kill_at(argv: list[str], cwd, delays, check, after=None) -> list[int | None]:
-    """Run `mocap argv` killed after each of `delays` s in turn (from when `after()` holds if
-    given), each run taking up what the last one left; `check()` after each. A run that ends
-    before its moment (a machine faster than timed) must end with 0, and is run again with half
-    the delay. Returns the exit statuses (None: killed); every moment killed one."""
-    codes = []
-    for delay in delays:
-        for _ in range(3):
-            codes.append(_run_killed(argv, cwd, delay, after))
-            assert codes[-1] in (None, 0), codes
-            check()
-            if codes[-1] is None:
-                break
-            delay /= 2
-        assert codes[-1] is None, codes  # killed mid-way
-    return codes
-
-
 KILL_SCHEDULE = np.random.default_rng(34).uniform(0.2, 1.0, 3)  # fractions of an uninterrupted run's time
 
 
@@ -261,7 +200,7 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     write_video(inputs / "cam1.avi", frames, codec="MJPG")
     save_calibration(Calibration((model.camera,), ({"fps": 30.0},), {
         "machine": "bobcat_225", "frame": 0, "joints": joints_to_table(joints[0], model.machine)}), inputs / "c.toml")
-    before = _visible(inputs)
+    before = visible(inputs)
 
     def argv(out):
         return ["track", str(inputs / "cam1.avi"), "--machine", "bobcat_225", "--calibration", str(inputs / "c.toml"),
@@ -275,18 +214,18 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     killed.mkdir()
     codes = []
     for fraction in KILL_SCHEDULE:
-        codes.append(_run_killed(argv(killed), tmp_path, fraction * took))
+        codes.append(run_killed(argv(killed), tmp_path, fraction * took))
         assert codes[-1] in (None, 0)
-        files = _visible(killed)
-        assert not files or files == _visible(whole)  # absent, or whole: never half written
-        assert _visible(inputs) == before
+        files = visible(killed)
+        assert not files or files == visible(whole)  # absent, or whole: never half written
+        assert visible(inputs) == before
         (killed / "t.csv").unlink(missing_ok=True)  # the next kill starts from scratch again
-    codes.append(_run_killed(argv(killed), tmp_path, 0.3 * took))  # one more kill, then the re-run
+    codes.append(run_killed(argv(killed), tmp_path, 0.3 * took))  # one more kill, then the re-run
     assert None in codes and codes[-1] in (None, 0)  # killed mid-way at least once
     assert cli.main(argv(killed)) == 0
-    assert _visible(killed) == _visible(whole)
+    assert visible(killed) == visible(whole)
     assert not list(killed.glob(".*"))  # the killed writers' temporaries and locks are gone
-    assert _visible(inputs) == before
+    assert visible(inputs) == before
 
 
 SYNTH_KILLS = np.random.default_rng(34).uniform(0.55, 0.85, 2)  # after the imports: inside the writing
@@ -304,22 +243,22 @@ def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
         return ["synth", "--machine", "bobcat_225", "--cycles", "1", "--cameras", "1", "--scale", "0.05",
                 "--fps", "5", "--out", str(out)]
     start = time.perf_counter()
-    assert _run_killed(argv(tmp_path / "whole"), tmp_path, 600.0) == 0  # timed as the killed ones run
+    assert run_killed(argv(tmp_path / "whole"), tmp_path, 600.0) == 0  # timed as the killed ones run
     took = time.perf_counter() - start
-    whole = _visible(tmp_path / "whole")
+    whole = visible(tmp_path / "whole")
     assert "COMPLETE" in whole and "videos/cam1.mp4" in whole
     killed = tmp_path / "killed"
     for fraction in SYNTH_KILLS:
         delay = fraction * took
         for _ in range(4):  # a loaded machine may run it faster than timed: a finished run, again sooner
-            code = _run_killed(argv(killed), tmp_path, delay)
+            code = run_killed(argv(killed), tmp_path, delay)
             if code is None:
                 break
-            assert code == 0 and _visible(killed) == whole
+            assert code == 0 and visible(killed) == whole
             shutil.rmtree(killed)
             delay /= 2
         assert code is None  # killed mid-way
-        files = _visible(killed) if killed.exists() else {}
+        files = visible(killed) if killed.exists() else {}
         assert all(whole[name] == digest for name, digest in files.items())  # whole, or absent
         assert ("COMPLETE" in files) == (files == whole)  # COMPLETE last
         if "COMPLETE" in files:  # killed as it ended (its lock left, for the next command to take over)
@@ -327,7 +266,7 @@ def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     else:
         assert cli.main(argv(killed)) == 0
         assert not [p for p in killed.rglob(".*")]  # no temporary or lock of the killed runs left
-    assert _visible(killed) == whole
+    assert visible(killed) == whole
 
 
 def test_a_folder_synth_left_at_any_moment_is_resumed_and_others_refused(tmp_path, capsys):
@@ -355,14 +294,9 @@ def test_a_folder_synth_left_at_any_moment_is_resumed_and_others_refused(tmp_pat
 def small_session(tmp_path_factory):
     """A session as a user brings it to `mocap run`: two cameras at 480x270 and 5 fps, one dig
     cycle, the calibration frame's labels digitised."""
-    from mocap.demo import digitise_first_frame
-    from mocap.session import Session
+    from kills import make_small_session
 
-    root = tmp_path_factory.mktemp("small") / "s"
-    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cameras", "2", "--cycles", "1", "--size", "480x270",
-                     "--fps", "5", "--clean", "--out", str(root)]) == 0
-    digitise_first_frame(Session.open(root), np.random.default_rng(1))
-    return root
+    return make_small_session(tmp_path_factory.mktemp("small") / "s")
 
 
 @pytest.fixture(scope="module")
@@ -384,7 +318,7 @@ def whole_run(small_session, tmp_path_factory):
     between = tmp_path_factory.mktemp("between") / "s"
     shutil.copytree(small_session, between)
     session_steps(Session.open(between), RunOptions(view=False))[0].call()  # the calibrate stage alone
-    return _visible(root), took, _visible(between)["calibration/cameras.toml"]
+    return visible(root), took, visible(between)["calibration/cameras.toml"]
 
 
 def _whole_or_passed_through(files: dict, whole: dict, calibrated: str) -> None:
@@ -405,20 +339,20 @@ def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run
     import shutil
 
     whole, took, calibrated = whole_run
-    inputs = _visible(small_session)
+    inputs = visible(small_session)
     killed = tmp_path / "killed" / "s"
     shutil.copytree(small_session, killed)
     argv = ["run", str(killed), "--no-view"]
 
     def check():
-        files = _visible(killed)
+        files = visible(killed)
         assert {name: files.get(name) for name in inputs} == inputs
         _whole_or_passed_through(files, whole, calibrated)
         assert ("results/COMPLETE" in files) == (files == whole)
 
-    _kill_at(argv, tmp_path, RUN_KILLS * (took + 1.5), check)  # the child's start (imports) comes on top
+    kill_at(argv, tmp_path, RUN_KILLS * (took + 1.5), check)  # the child's start (imports) comes on top
     assert cli.main(argv) == 0
-    assert _visible(killed) == whole
+    assert visible(killed) == whole
     assert not list(killed.rglob(".*"))  # no temporary or lock of the killed runs left
 
 
@@ -433,7 +367,7 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
     from test_batch import read_fleet
 
     whole, took, calibrated = whole_run
-    inputs = _visible(small_session)
+    inputs = visible(small_session)
     fleet = tmp_path / "fleet"
     root = fleet / "s"
     shutil.copytree(small_session, root)
@@ -442,7 +376,7 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
     manifest = root / "batch" / "manifest.toml"
 
     def check():
-        files = {k: v for k, v in _visible(root).items() if not k.startswith("batch/")}
+        files = {k: v for k, v in visible(root).items() if not k.startswith("batch/")}
         assert {name: files.get(name) for name in inputs} == inputs
         _whole_or_passed_through(files, whole, calibrated)
         if manifest.exists():
@@ -451,14 +385,14 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
             assert not (out / name).exists() or (out / name).read_text().endswith("\n")
 
     kills = np.random.default_rng(342).uniform(0.2, 0.8, 2)
-    _kill_at(argv, tmp_path, [kills[0] * (took + 4.0)], check)  # Dask's start on top of the stages
-    _kill_at(argv, tmp_path, [kills[1] * took], check, after=manifest.exists)
+    kill_at(argv, tmp_path, [kills[0] * (took + 4.0)], check)  # Dask's start on top of the stages
+    kill_at(argv, tmp_path, [kills[1] * took], check, after=manifest.exists)
     recorded = set(tomllib.loads(manifest.read_text())["stages"])
     assert recorded
     assert cli.main(argv) == 0
     row = read_fleet(out)["s"]
     assert row["status"] == "ok" and int(row["stages_skipped"]) == len(recorded), (row, recorded)
-    results = {k: v for k, v in _visible(root).items() if not k.startswith("batch/")}
+    results = {k: v for k, v in visible(root).items() if not k.startswith("batch/")}
     serial = {k: v for k, v in whole.items() if k not in ("results/session_report.html", "results/COMPLETE")}
     assert results == serial  # `mocap run`'s files but its report and COMPLETE
     assert not list(root.rglob(".*"))  # no temporary of the killed runs left
@@ -482,11 +416,11 @@ def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterru
                 "--source", f"cam1={small_session / 'videos' / 'cam1.mp4'}",
                 "--source", f"cam2={small_session / 'videos' / 'cam2.mp4'}",
                 "--out", str(tmp_path / "poses.csv"), "--record", str(record)]
-    inputs = _visible(small_session)
+    inputs = visible(small_session)
     start = time.perf_counter()
     assert cli.main(argv(tmp_path / "whole")) == 0
     took = time.perf_counter() - start + 1.5
-    recorded = _visible(tmp_path / "whole")
+    recorded = visible(tmp_path / "whole")
     killed = tmp_path / "killed"
     shutil.copytree(tmp_path / "whole", killed)  # an earlier recording: of cam1 alone
     config = load_session_config(killed / "session.toml")
@@ -494,20 +428,20 @@ def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterru
                         killed / "session.toml")
     (killed / "videos" / "cam2.mp4").unlink()
     (killed / "tracks" / "cam2.csv").unlink()
-    earlier = _visible(killed)
+    earlier = visible(killed)
 
     def check():
-        files = _visible(killed)
+        files = visible(killed)
         assert all(recorded[name] == digest for name, digest in files.items() if name != "session.toml")
         if files != earlier:  # (killed before it took up the folder: the earlier recording as it was)
             assert ("session.toml" in files) == (files == recorded)  # written last, and only then
-        assert _visible(small_session) == inputs
+        assert visible(small_session) == inputs
 
     def writing():  # the run has begun to write the recording's files (cam2's video the first new one)
         return any("cam2" in p.name for p in (killed / "videos").iterdir())
-    assert _run_killed(argv(killed), tmp_path, LIVE_KILLS[0] * 0.005, after=writing) is None  # inside the writing
+    assert run_killed(argv(killed), tmp_path, LIVE_KILLS[0] * 0.005, after=writing) is None  # inside the writing
     check()
-    _kill_at(argv(killed), tmp_path, LIVE_KILLS[1:] * took, check)
+    kill_at(argv(killed), tmp_path, LIVE_KILLS[1:] * took, check)
     assert cli.main(argv(killed)) == 0
-    assert _visible(killed) == recorded
+    assert visible(killed) == recorded
     assert not list(killed.rglob(".*"))

@@ -1,0 +1,82 @@
+"""Killing a command at chosen moments, and what a reader then sees: shared by the
+kill-and-resume tests (tests/test_faults.py) and the kill soak (benchmarks/bench_faults.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def visible(root) -> dict[str, str]:
+    """{relative path: sha256} of the files under `root` a reader takes for results (hidden
+    temporaries and lock files excluded)."""
+    from badinput_files import snapshot
+
+    return {k: v for k, v in snapshot(root).items() if not any(part.startswith(".") for part in k.split("/"))}
+
+
+def run_killed(argv: list[str], cwd, delay: float, after=None) -> int | None:
+    """Run `mocap argv` in a child process and SIGKILL it, and every process it started (a
+    batch's Dask workers), after `delay` s, counted from when `after()` first holds if given
+    (None: it ended first, its exit status else)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    while after is not None and child.poll() is None and not after():
+        time.sleep(0.002)
+    try:
+        return child.wait(timeout=delay)
+    except subprocess.TimeoutExpired:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.wait()
+        deadline = time.monotonic() + 10
+        while group_alive(child.pid) and time.monotonic() < deadline:  # its workers gone too
+            time.sleep(0.05)
+        return None
+
+
+def group_alive(group: int) -> bool:
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def kill_at(argv: list[str], cwd, delays, check, after=None) -> list[int | None]:
+    """Run `mocap argv` killed after each of `delays` s in turn (from when `after()` holds if
+    given), each run taking up what the last one left; `check()` after each. A run that ends
+    before its moment (a machine faster than timed) must end with 0, and is run again with half
+    the delay. Returns the exit statuses (None: killed); every moment killed one."""
+    codes = []
+    for delay in delays:
+        for _ in range(3):
+            codes.append(run_killed(argv, cwd, delay, after))
+            assert codes[-1] in (None, 0), codes
+            check()
+            if codes[-1] is None:
+                break
+            delay /= 2
+        assert codes[-1] is None, codes  # killed mid-way
+    return codes
+
+
+def make_small_session(root: Path) -> Path:
+    """A session as a user brings it to `mocap run`: two cameras at 480x270 and 5 fps, one dig
+    cycle, the calibration frame's labels digitised."""
+    from mocap import cli
+    from mocap.demo import digitise_first_frame
+    from mocap.session import Session
+
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cameras", "2", "--cycles", "1", "--size", "480x270",
+                     "--fps", "5", "--clean", "--out", str(root)]) == 0
+    digitise_first_frame(Session.open(root), np.random.default_rng(1))
+    return root
