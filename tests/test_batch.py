@@ -326,12 +326,17 @@ def certificates(tmp_path_factory):
 def test_batch_through_a_tls_scheduler(fleet, certificates, tmp_path, capsys):
     """A scheduler and a worker that speak TLS only, on loopback: the batch reaches them with
     the cluster's CA and a certificate it signed, and its session's results are those of its
-    stages run one after the other here; without the certificates it is refused in one line, and a
+    stages run one after the other here (a session another command holds is listed failed
+    with its one line, its lock left to its holder); without the certificates it is refused in one line, and a
     missing or unreadable file is one line naming it (exit 2)."""
+    import os
+    import socket
+
     from distributed import LocalCluster
     from distributed.security import Security
 
     from mocap.batch.run import run_stages
+    from mocap.io.lock import LOCK_NAME
 
     ca, cert, key = certificates
     top, serial = tmp_path / "fleet", tmp_path / "serial"
@@ -348,8 +353,13 @@ def test_batch_through_a_tls_scheduler(fleet, certificates, tmp_path, capsys):
         address = cluster.scheduler_address
         assert address.startswith("tls://127.0.0.1:")
         options = BatchOptions(scheduler=address, out=tmp_path, tls_ca_file=ca, tls_cert=cert, tls_key=key)
+        (top / "s2").mkdir()  # and a session another command writes (its lock held by a live process)
+        shutil.copy(top / "s1" / "session.toml", top / "s2" / "session.toml")
+        (top / "s2" / LOCK_NAME).write_text(f"{os.getppid()} {socket.gethostname()} mocap run s2\n")
         report, failed = run_batch([top], options, chain_for=chain)
-        assert failed == 0, report
+        assert failed == 1 and "  s2: " in report and "in use by `mocap run s2`" in report, report
+        assert (top / "s2" / LOCK_NAME).is_file() and not (top / "s1" / LOCK_NAME).exists()
+        shutil.rmtree(top / "s2")
         assert read_fleet(tmp_path)["s1"]["stages_run"] == str(len(chain(top / "s1")))
         for name in ("calibration/cameras.toml", "tracks/cam1.csv", "results/motion.csv"):
             assert (top / "s1" / name).read_bytes() == (serial / "s1" / name).read_bytes(), name

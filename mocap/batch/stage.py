@@ -209,6 +209,7 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
     """
     from mocap.io.atomic import write_text
     from mocap.io.fleet_csv import save_fleet
+    from mocap.io.lock import folder_lock
     from mocap.pipeline import RunOptions
 
     start = time.perf_counter()
@@ -226,22 +227,32 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
 
     labels = session_labels(sessions)
     summaries: dict[Path, SessionSummary] = {}
-    with dask_client(options.scheduler, options.workers, cluster_security(options)) as client:
-        futures = {}
-        for root in sessions:
+    security = cluster_security(options)
+    with contextlib.ExitStack() as held:
+        for root in sessions:  # each session's lock held while its tasks run (a killed batch's is taken over)
             try:
-                futures[root] = submit_session(client, root, labels[root], chain_for(root))
-            except InputError as exc:
+                held.enter_context(folder_lock(root, "mocap batch"))
+            except InputError as exc:  # another command writes it: listed as failed, the others go on
                 summaries[root] = _failed(root, labels[root], str(exc))
-        from distributed import as_completed
+        with dask_client(options.scheduler, options.workers, security) as client:
+            futures = {}
+            for root in sessions:
+                if root in summaries:
+                    continue
+                try:
+                    futures[root] = submit_session(client, root, labels[root], chain_for(root))
+                except InputError as exc:
+                    summaries[root] = _failed(root, labels[root], str(exc))
+            from distributed import as_completed
 
-        order = {future.key: root for root, future in futures.items()}
-        for future in progress(as_completed(futures.values()), total=len(futures), desc="sessions", unit="session"):
-            root = order[future.key]
-            try:
-                summaries[root] = future.result()
-            except Exception as exc:  # a worker died under the session (out of memory, a crash)
-                summaries[root] = _failed(root, labels[root], f"{type(exc).__name__}: {exc}")
+            order = {future.key: root for root, future in futures.items()}
+            for future in progress(as_completed(futures.values()), total=len(futures), desc="sessions",
+                                   unit="session"):
+                root = order[future.key]
+                try:
+                    summaries[root] = future.result()
+                except Exception as exc:  # a worker died under the session (out of memory, a crash)
+                    summaries[root] = _failed(root, labels[root], f"{type(exc).__name__}: {exc}")
     ordered = [summaries[root] for root in sessions]
     wall = time.perf_counter() - start
     save_fleet(ordered, Path(options.out) / "fleet.csv")
