@@ -327,8 +327,8 @@ def test_batch_through_a_tls_scheduler(fleet, certificates, tmp_path, capsys):
     """A scheduler and a worker that speak TLS only, on loopback: the batch reaches them with
     the cluster's CA and a certificate it signed, and its session's results are those of its
     stages run one after the other here (a session another command holds is listed failed
-    with its one line, its lock left to its holder); without the certificates it is refused in one line, and a
-    missing or unreadable file is one line naming it (exit 2)."""
+    with its one line, its lock left to its holder); without the certificates it is refused
+    in one line, and a missing, unreadable or not-PEM file is one line naming it (exit 2)."""
     import os
     import socket
 
