@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 TRUNCATE = 0.3  # scaled joint-value difference beyond which a sample counts as an outlier
 NOISY = 10.0  # a rigid pose parameter varying less than this many of its SDs is not aligned on
 TRUNCATE_SD = 4.0  # a joint's difference beyond this many of its own scatter counts as an outlier
+SMOOTH_S = 0.15  # s: the span of the smoothing of the joint-value curves
 _NOISE_FLOOR = 1e-5  # of a joint's spread: the least noise assumed (exact curves)
 
 
@@ -51,14 +52,16 @@ _COARSE_SAMPLES = 2_000  # samples compared at each offset of the coarse grid
 
 @dataclass(frozen=True)
 class SyncResult:
-    """`offsets` (C,) s (the reference's 0; NaN where not found), `residual` (C,) RMS of
-    the scaled joint-value difference at the offset, `overlap` (C,) samples compared,
-    `reasons` (C,) why a camera's offset was not found ('' when it was)."""
+    """`offsets` (C,) s (camera 0's 0; NaN where not found), `residual` (C,) robust RMS of
+    the scaled joint-value difference at the offset (`_Reference.scatter`), `overlap` (C,)
+    samples compared, `reasons` (C,) why a camera's offset was not found ('' when it was),
+    `reference` the camera the others' curves were laid on."""
 
     offsets: np.ndarray
     residual: np.ndarray
     overlap: np.ndarray
     reasons: tuple[str, ...]
+    reference: int = 0
 
     def __post_init__(self) -> None:
         n = len(self.offsets)
@@ -162,7 +165,7 @@ def synchronise(
         if not reasons[k]:
             log.info("camera %d: offset %.4f s (%.3f reference frames), residual %.3f", k, offsets[k],
                      offsets[k] * fps[0], residual[k])
-    return SyncResult(np.where([not r for r in reasons], offsets, np.nan), residual, overlap, tuple(reasons))
+    return SyncResult(np.where([not why for why in reasons], offsets, np.nan), residual, overlap, tuple(reasons), r)
 
 
 def _against(reference: _Reference, r: int, curves: list[JointCurves], fps: np.ndarray, max_offset: float,
@@ -193,8 +196,7 @@ def _against(reference: _Reference, r: int, curves: list[JointCurves], fps: np.n
             continue
         coarse = float(grid[np.argmin(costs)])
         shifts[k] = reference.refine(time, values, coarse, 2 * step, need)
-        cost, count = reference.cost(time + shifts[k], smooth, need)
-        residual[k], overlap[k] = float(np.sqrt(cost)), count
+        residual[k], overlap[k] = reference.scatter(time + shifts[k], smooth)
         if not residual[k] <= max_residual:
             reasons[k] = (
                 f"no offset within ±{max_offset:g} s makes the motions agree with {name} "
@@ -221,13 +223,15 @@ def _noise_sd(time: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def _smoothed(time: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Values (F, J) with each joint's noise smoothed away (a smoothing spline, its weight
-    chosen by generalised cross-validation) where it has 8 valid samples or more."""
+    """Values (F, J) at `time` (F,) with each joint's noise smoothed away where it has 8 valid
+    samples or more: a smoothing spline whose equivalent kernel spans SMOOTH_S (a symmetric
+    kernel moves no feature in time, and every camera's curves get the same)."""
     out = values.copy()
     for j in range(values.shape[1]):
         ok = np.isfinite(values[:, j])
         if ok.sum() >= 8 and np.ptp(values[ok, j]) > 0:
-            out[ok, j] = make_smoothing_spline(time[ok], values[ok, j])(time[ok])
+            rate = (ok.sum() - 1) / np.ptp(time[ok])  # samples per second
+            out[ok, j] = make_smoothing_spline(time[ok], values[ok, j], lam=rate * SMOOTH_S**4)(time[ok])
     return out
 
 
@@ -309,6 +313,21 @@ class _Reference:
             bounds=(coarse - width, coarse + width), method="bounded", options={"xatol": 1e-5 * width},
         )
         return float(fine.x)
+
+    def scatter(self, time: np.ndarray, joints: np.ndarray) -> tuple[float, int]:
+        """A robust RMS of the scaled `joints` (N, J) at `time` (N,) about these curves (1.4826
+        times the median absolute difference: a stretch of mirror solutions, under half of
+        the samples, does not set it) and the frames compared; inf when none."""
+        differences, frames = [], np.zeros(len(time), dtype=bool)
+        for j, curve in enumerate(self.curves):
+            if curve is None:
+                continue
+            predicted, inside = curve.at(time, self.gap, False)
+            inside &= np.isfinite(joints[:, j])
+            differences.append(joints[inside, j] / self.scale[j] - predicted[inside])
+            frames |= inside
+        d = np.concatenate(differences) if differences else np.zeros(0)
+        return (1.4826 * float(np.median(np.abs(d))) if len(d) else np.inf), int(frames.sum())
 
     def cost(self, time: np.ndarray, joints: np.ndarray, need: int, linear: bool = False,
              weights: np.ndarray | None = None, truncate: float = TRUNCATE) -> tuple[float, int]:
