@@ -268,8 +268,10 @@ class _Reference:
 
     @classmethod
     def build(cls, joints: JointCurves, fps: float) -> _Reference | None:
-        spread = np.nan_to_num(np.nanstd(joints.joints, axis=0)) if np.any(np.isfinite(joints.joints)) else None
-        if spread is None or spread.max() < 1e-6:
+        counted = np.isfinite(joints.joints).sum(axis=0) >= 2  # (J,) joints seen twice or more
+        spread = np.zeros(joints.joints.shape[1])
+        spread[counted] = np.nanstd(joints.joints[:, counted], axis=0)
+        if spread.max(initial=0.0) < 1e-6:
             return None
         ok = np.any(np.isfinite(joints.joints), axis=1)
         time = joints.frames[ok] / fps
