@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 TRUNCATE = 0.3  # scaled joint-value difference beyond which a sample counts as an outlier
 NOISY = 10.0  # a rigid pose parameter varying less than this many of its SDs is not aligned on
 TRUNCATE_SD = 4.0  # a joint's difference beyond this many of its own scatter counts as an outlier
-SMOOTH_S = 0.15  # s: the span of the smoothing of the joint-value curves
+SMOOTH_S = 0.1  # s: the span of the smoothing of the joint-value curves and of the pixel tracks
 _NOISE_FLOOR = 1e-5  # of a joint's spread: the least noise assumed (exact curves)
 
 

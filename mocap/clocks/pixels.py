@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.interpolate import make_smoothing_spline
 from scipy.optimize import minimize_scalar
 
 from mocap.camera import Camera
@@ -40,6 +41,24 @@ class CameraPixels:
     def __post_init__(self) -> None:
         if np.ndim(self.pixels) != 3 or len(self.pixels) != len(self.frames) or np.shape(self.pixels)[2] != 2:
             raise ValueError(f"CameraPixels: pixels must be (F={len(self.frames)}, M, 2), got {np.shape(self.pixels)}")
+
+    @classmethod
+    def smoothed(cls, frames: np.ndarray, pixels: np.ndarray, fps: float, span_s: float) -> CameraPixels:
+        """The pixels (F, M, 2) smoothed along each marker's track over stretches seen
+        without a break: a smoothing spline whose kernel spans `span_s` (symmetric: it moves
+        nothing in time). Interpolated raw pixels carry noise that changes as the search
+        moves a clock between two frames; smoothed, that noise barely changes."""
+        out = np.array(pixels, dtype=float)
+        seen = np.all(np.isfinite(out), axis=-1)  # (F, M)
+        time = np.asarray(frames, dtype=float) / fps
+        for m in range(out.shape[1]):
+            edges = np.flatnonzero(np.diff(np.r_[0, seen[:, m].astype(int), 0]))  # starts and ends of seen runs
+            for a, b in zip(edges[::2], edges[1::2]):
+                if b - a >= 8:
+                    for axis in range(2):
+                        out[a:b, m, axis] = make_smoothing_spline(time[a:b], out[a:b, m, axis],
+                                                                  lam=fps * span_s**4)(time[a:b])
+        return cls(np.asarray(frames), out, float(fps))
 
     def at(self, time: np.ndarray, offset: float, span: float = 0.0) -> np.ndarray:
         """(T, M, 2) the pixels at reference-clock `time` (T,) s, the camera's frame f showing

@@ -12,7 +12,7 @@ from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, Calibration, load_
 from mocap.io.machine_toml import load_machine
 from mocap.machine import Machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.clocks.align import SyncResult, joint_curves, pose_curves, synchronise, window_frames
+from mocap.clocks.align import SMOOTH_S, SyncResult, joint_curves, pose_curves, synchronise, window_frames
 from mocap.clocks.pixels import CameraPixels, refine_offsets
 
 
@@ -102,7 +102,8 @@ def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps
 
 def on_pixels(machine: Machine, calibration: Calibration, tracks: Tracks, fps: np.ndarray, result: SyncResult,
               span_s: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets (C,) s of `result` refined on the pixels (`mocap.clocks.pixels`), each
+    """The offsets (C,) s of `result` refined on the pixels (`mocap.clocks.pixels`; every
+    camera's tracks smoothed over SMOOTH_S alike), each
     within a frame of the reference's, over up to `span_s` of the reference camera's first
     frames; and (C,) each camera's RMS reprojection residual (px) fitted with the reference
     (NaN for the reference and a camera not synchronised). A refined offset that runs to
@@ -125,7 +126,8 @@ def on_pixels(machine: Machine, calibration: Calibration, tracks: Tracks, fps: n
         frames = np.arange(max(low, int(frame.min())), min(high, int(frame.max())) + 1)
         if len(frames) < 2:
             frames = np.arange(int(frame.min()), int(frame.min()) + 2)
-        recordings.append(CameraPixels(frames, tracks.dense_of_camera(name, machine.marker_names, frames), float(fps[k])))
+        pixels = tracks.dense_of_camera(name, machine.marker_names, frames)
+        recordings.append(CameraPixels.smoothed(frames, pixels, float(fps[k]), SMOOTH_S))
     refined, rms = refine_offsets(machine, list(calibration.cameras), recordings, result.offsets, r, width)
     edge = np.abs(refined - result.offsets) > 0.95 * width
     refined = np.where(edge | ~np.isfinite(refined), result.offsets, refined)
