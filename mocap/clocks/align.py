@@ -3,12 +3,16 @@
 Each camera alone, with the machine model, measures the joint values at its own frames
 (the batched kinematic fit, one camera at a time): joint-value curves over each camera's
 own clock. Camera k's frame f shows time ``f / fps_k + offset_k`` (DESIGN.md; the first
-camera is the reference, offset 0). Its offset is the shift that best lays its curves on
-the reference camera's: a coarse search over shifts of half a reference frame (the mean
-squared difference of the joint values, each scaled by its spread over the reference
-recording, against the reference curves interpolated at the shifted times), then a
-sub-frame refinement of that difference with cubic-spline interpolation. Different frame
-rates (29.97 and 30) are handled by the time axes themselves.
+camera is the reference, offset 0). The curves are smoothed (a smoothing spline spanning
+SMOOTH_S: the same symmetric kernel for every camera moves nothing in time) and laid on the
+curves of the camera that fixes time best (the most joint motion per noise): a coarse
+search over shifts of half a frame (the mean squared difference of the joint values, each
+scaled by its spread, against the other curves interpolated at the shifted times), then a
+sub-frame refinement in which each joint is weighted by its own scatter about the other
+camera's curves and a difference beyond TRUNCATE_SD of it (a stretch of mirror solutions)
+counts as a fixed penalty. The offsets are then expressed against camera 0's clock.
+Different frame rates (29.97 and 30) are handled by the time axes themselves. The offsets
+are refined further on the pixels (`mocap.clocks.pixels`).
 
 Shapes: C cameras, F frames, M markers, J joints.
 """
