@@ -2,12 +2,15 @@
 
 The joint-value curves (`align`) come from single-camera fits: a view that sees a joint
 edge-on, or lands on a mirror solution for a stretch, leaves them biased or noisy. Once
-every offset is known to a frame, each camera's offset is refined by what the offsets
-are for: the machine model fitted to all cameras at once (`fit_joints`) at a set of the
-reference camera's frames, every other camera's pixels interpolated to those times on its own clock, explains the pixels best (the least robust sum of squared reprojection
-residuals) when that camera's clock is right. Each camera's offset is searched within a
-window around its start, fitted with the reference camera alone (a pair: no other camera's
-own offset error drags it).
+every offset is known to a frame, each camera's offset is refined by what the offsets are
+for: the machine model (its base's bouncing included) fitted to that camera and the
+reference camera together (`fit_joints`), the camera's pixels interpolated onto times of
+the reference's clock, explains the pixels best (the least robust sum of squared
+reprojection residuals) when the camera's clock is right. Each camera is searched within
+a window around its start with the reference alone (a pair: no third camera's own offset
+error drags it). The tracks are smoothed first (`CameraPixels.smoothed`, every camera's
+alike) and the fitted times spread over every share of a frame (VERNIER), so that the
+noise left after interpolation does not change as the search moves the clock.
 
 Shapes: C cameras, F frames, M markers, J joints.
 """
@@ -24,8 +27,8 @@ from mocap.camera import Camera
 from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 
-MAX_FRAMES = 240  # reference frames the refinement fits (evenly spread)
-VERNIER = 7
+MAX_FRAMES = 240  # about as many times of the reference's clock fitted (evenly spread)
+VERNIER = 7  # the fitted times step by whole frames and a VERNIER-th of one
 _OPTIONS = FitOptions(base_motion=True)  # the base's bouncing, seen by two cameras, is fitted
 
 
