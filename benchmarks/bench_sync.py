@@ -136,7 +136,8 @@ def main() -> None:
     print("| method | worst | p90 | within 0.1 frame | refused (scenes) |")
     print("|---|---|---|---|---|")
     for name, s in (("mocap sync", ours), ("peer: speed cross-correlation", peer)):
-        print(f"| {name} | {s['worst']:.3f} | {s['p90']:.3f} | {s['within']:.0%} | {s['refused']} ({s['refused_scenes']}) |")
+        print(f"| {name} | {s['worst']:.3f} | {s['p90']:.3f} | {s['within']:.0%} | "
+              f"{s['refused']} ({s['refused_scenes']}) |")
     print(f"| ratio peer / ours | {peer['worst'] / ours['worst']:.1f} | {peer['p90'] / ours['p90']:.1f} | | |")
     worst = sorted(rows, key=lambda r: -np.nan_to_num(r["ours_frames"], nan=np.inf))[:5]
     print("\nours' worst cameras:")

@@ -54,7 +54,8 @@ class ClockScene:
 
     machine: the exact model; kind: one of KINDS; cameras: C true cameras; fps (C,) frame
     rates; offsets (C,) s, the truth sync should find (0 for the reference, camera 0);
-    start_s: the reference clock's time of the reference camera's frame 0 in the plan;
+    start_s: the reference clock's time of the reference camera's frame 0 in the plan; duration_s:
+    each camera's recording (s);
     noise_px: the pixel noise SD; tracks: every camera's observations on its own frames,
     with the time column ``frame / fps``; joints: (J,) the true joint values at the
     reference camera's frame 0 (what a calibration of that frame reports)."""
@@ -73,7 +74,8 @@ class ClockScene:
     def __post_init__(self) -> None:
         n = len(self.cameras)
         if np.shape(self.fps) != (n,) or np.shape(self.offsets) != (n,):
-            raise ValueError(f"ClockScene: fps and offsets must be ({n},), got {np.shape(self.fps)} and {np.shape(self.offsets)}")
+            raise ValueError(f"ClockScene: fps and offsets must be ({n},), got {np.shape(self.fps)} and "
+                             f"{np.shape(self.offsets)}")
 
     def calibration(self) -> Calibration:
         """The true cameras as a calibration file gives them, with the frame-0 joint values
@@ -98,7 +100,8 @@ def clock_scene(rng: np.random.Generator, options: ClockOptions = ClockOptions()
     miss = float(rng.uniform(*options.miss))
     tracks = concatenate([_observe(camera, machine, points, fps[k], noise, miss, rng)
                           for k, (camera, points) in enumerate(zip(cameras, world))])
-    return ClockScene(machine, kind, cameras, fps, offsets, start, duration, noise, tracks, plan.joints(np.array([start]))[0])
+    first = plan.joints(np.array([start]))[0]  # (J,) at the reference camera's frame 0
+    return ClockScene(machine, kind, cameras, fps, offsets, start, duration, noise, tracks, first)
 
 
 def _planned(rng: np.random.Generator, kind: str, least_s: float) -> tuple[Machine, DigMotion]:
