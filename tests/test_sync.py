@@ -152,3 +152,34 @@ def test_coarse_costs_of_all_offsets_equal_each_offsets_cost():
     assert np.isinf(each).any() and np.array_equal(np.isinf(together), np.isinf(each))
     finite = np.isfinite(each)
     np.testing.assert_allclose(together[finite], each[finite], rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [13, 17, 27])
+def test_scenes_the_project_did_not_make(seed):
+    """Random diggers (front shovel or excavator), 2-4 random cameras on their own clocks
+    and frame rates, 8-30 s, 0.3-1.5 px of noise (`mocap.synthetic.clock_scene`): every
+    offset within 0.2 frame per pixel of noise (the error of a time shift grows with the
+    noise; bench_sync.py's worst over 100 held-out scenes is 0.16 frame per px) and within
+    0.1 frame (its worst there: 0.091). Seed 17's third camera lands on a mirror solution
+    for 45 % of its frames (its curves alone were refused before)."""
+    from mocap.clocks.stage import sync_cameras
+    from mocap.synthetic.clock_scene import clock_scene
+
+    scene = clock_scene(np.random.default_rng(seed))
+    synced, report = sync_cameras(scene.machine, scene.calibration(), scene.tracks)
+    assert not report.partial
+    found = np.array([extra["time_offset"] for extra in synced.extras])
+    error = np.abs(found - scene.offsets) * scene.fps[0]  # reference frames
+    assert np.all(error <= 0.2 * scene.noise_px) and np.all(error <= 0.1), (error, scene.noise_px)
+
+
+def test_exact_pixels_give_the_exact_offsets():
+    """Without pixel noise the refinement on the pixels lands on the truth (nothing but the
+    interpolation between frames and the fit's tolerance is left)."""
+    from mocap.clocks.stage import sync_cameras
+    from mocap.synthetic.clock_scene import ClockOptions, clock_scene
+
+    scene = clock_scene(np.random.default_rng(27), ClockOptions(noise_px=(0.0, 0.0), miss=(0.0, 0.0)))
+    synced, _ = sync_cameras(scene.machine, scene.calibration(), scene.tracks)
+    found = np.array([extra["time_offset"] for extra in synced.extras])
+    assert np.max(np.abs(found - scene.offsets) * scene.fps[0]) < 0.01

@@ -1,5 +1,5 @@
 """The sync stage: load the machine, calibration and tracks; fit each camera alone and align
-its joint-value curves with the reference camera's; write the calibration with each
+its joint-value curves with the reference camera's; refine each offset on the pixels; write the calibration with each
 camera's time offset and frame rate; return the report."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, Calibration, load_
 from mocap.io.machine_toml import load_machine
 from mocap.machine import Machine
 from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
-from mocap.clocks.align import joint_curves, pose_curves, synchronise, window_frames
+from mocap.clocks.align import SMOOTH_S, SyncResult, joint_curves, pose_curves, synchronise, window_frames
+from mocap.clocks.pixels import CameraPixels, refine_offsets
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:
@@ -71,6 +72,7 @@ def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps
         else:  # a rigid object: its pose is the motion to align
             curves.append(pose_curves(machine, camera, frames, pixels))
     result = synchronise(curves, fps, max_offset)
+    offsets, pixel_rms = on_pixels(machine, calibration, tracks, fps, result)
     if machine.n_joints == 0 and any("do not vary" in r for r in result.reasons):
         raise InputError(f"the rigid object {machine.name!r} does not move in {calibration.names[0]}'s view: "
                          "no motion to synchronise on; give each camera's time_offset in the calibration "
@@ -88,13 +90,48 @@ def sync_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, fps
             lines.append(f"{name}: not synchronised ({result.reasons[k]}); time_offset {kept:+.4f} s kept, "
                          f"fps {fps[k]:g}")
             continue
-        synced = synced.with_extras(k, time_offset=float(result.offsets[k]), fps=float(fps[k]))
-        lines.append(f"{name}: time_offset {result.offsets[k]:+.4f} s ({result.offsets[k] * fps[0]:+.3f} frames), "
-                     f"fps {fps[k]:g}, residual {result.residual[k]:.3f}")
+        synced = synced.with_extras(k, time_offset=float(offsets[k]), fps=float(fps[k]))
+        pixels = f", {pixel_rms[k]:.2f} px from the pair's fit" if np.isfinite(pixel_rms[k]) else ""
+        lines.append(f"{name}: time_offset {offsets[k]:+.4f} s ({offsets[k] * fps[0]:+.3f} frames), "
+                     f"fps {fps[k]:g}, residual {result.residual[k]:.3f}{pixels}")
     partial = "; ".join(
         f"camera {calibration.names[k]} not synchronised ({result.reasons[k]}): its time_offset "
         f"{float(calibration.extras[k].get('time_offset', 0.0)):+.4f} s kept" for k in failed)
     return synced, Report("\n".join(lines), partial)
+
+
+def on_pixels(machine: Machine, calibration: Calibration, tracks: Tracks, fps: np.ndarray, result: SyncResult,
+              span_s: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets (C,) s of `result` refined on the pixels (`mocap.clocks.pixels`; every
+    camera's tracks smoothed over SMOOTH_S alike), each
+    within a frame of the reference's, over up to `span_s` of the reference camera's first
+    frames; and (C,) each camera's RMS reprojection residual (px) fitted with the reference
+    (NaN for the reference and a camera not synchronised). A refined offset that runs to
+    the edge of its window (the pixels do not pin it there) keeps the curves' offset."""
+    found = np.isfinite(result.offsets)
+    r = result.reference
+    if found.sum() < 2 or not found[r]:
+        return result.offsets, np.full(len(found), np.nan)
+    width = 1.0 / fps[r]
+    names = calibration.names
+    own = np.unique(tracks.frame[tracks.rows_of_camera(names[r])])
+    own = own[own <= own[0] + span_s * fps[r]]
+    first, last = own[0] / fps[r] + result.offsets[r], own[-1] / fps[r] + result.offsets[r]  # camera 0's clock
+    recordings = []
+    for k, name in enumerate(names):
+        frame = tracks.frame[tracks.rows_of_camera(name)]
+        reach = 2 * width if k != r else 0.0
+        low = int(np.floor((first - np.nan_to_num(result.offsets[k]) - reach) * fps[k]))
+        high = int(np.ceil((last - np.nan_to_num(result.offsets[k]) + reach) * fps[k]))
+        frames = np.arange(max(low, int(frame.min())), min(high, int(frame.max())) + 1)
+        if len(frames) < 2:
+            frames = np.arange(int(frame.min()), int(frame.min()) + 2)
+        pixels = tracks.dense_of_camera(name, machine.marker_names, frames)
+        recordings.append(CameraPixels.smoothed(frames, pixels, float(fps[k]), SMOOTH_S))
+    refined, rms = refine_offsets(machine, list(calibration.cameras), recordings, result.offsets, r, width)
+    edge = np.abs(refined - result.offsets) > 0.95 * width
+    refined = np.where(edge | ~np.isfinite(refined), result.offsets, refined)
+    return refined - refined[0], np.where(edge, np.nan, rms)  # camera 0 may have moved: onto its clock again
 
 
 def parse_fps(values: list[str], names) -> dict[str, float]:
