@@ -14,7 +14,7 @@ from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
-from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions, disks_in_view
+from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions, _near_any, disks_in_view
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +212,7 @@ def track_frames(
             in_view += tracker.state.visible
             placed[result.markers] += tracker.state.visible[result.markers]
             if n_fitted % _DARK_EVERY == 0:
-                hidden, spot = _dark_spots(tracker, gray, result.joints)
+                hidden, spot = _dark_spots(tracker, gray, result.joints, result.detections.xy)
                 looked += hidden
                 dark += hidden & spot
                 hidden_placed[result.markers] += hidden[result.markers]
@@ -241,11 +241,14 @@ def track_frames(
                                 tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why))
 
 
-def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray,
+                taken: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M,) the disk markers in the image that the model's boxes hide or turn away at the fitted
     `joints`, and (M,) whether a disk refined from where the fit puts it as the tracker refines
     one there (`Tracker._search_fitted`), of the marker's size face on (its ellipse's major
-    semi-axis), lies within the tight gate of that place."""
+    semi-axis), lies within the tight gate of that place and is not one of the disks `taken`
+    (K, 2) image pixels, labelled as other markers in the frame (a hidden marker whose image
+    falls on a shown one's disk is no evidence)."""
     model, options = tracker.model, tracker.options
     view = model.view(joints[None])
     hidden = disks_in_view(model, view, occlusion=False) & ~disks_in_view(model, view, options.occlusion)
@@ -257,6 +260,8 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple
     radius = face_on[markers]
     at = view.uv[0, markers] + tracker.state.shift
     found = tracker._search_fitted(gray, view.uv[0] + tracker.state.shift, markers, face_on)
+    if taken is not None and len(found):
+        found = found.select(~_near_any(found.xy, taken, 0.5 * np.maximum(found.radius, 2.0)))
     if len(found):
         near = np.linalg.norm(at[:, None] - found.xy[None], axis=-1) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
         ratio = found.axes[None, :, 0] / radius[:, None]
