@@ -178,3 +178,34 @@ def test_markers_wholly_in_view_are_drawn_over_whatever_is_behind_them():
             assert np.all(np.abs(grey[at[:, 1], at[:, 0]] - look.disk_grey) < 40), (f, name)
             checked += 1
     assert checked >= 20
+
+
+def test_link_boxes_stated_in_the_model_file_are_the_trackers():
+    """A link's `box = {min, max}` in the machine file replaces the box guessed around its
+    markers: the file round-trips, the tracker's model takes the stated box (and the normals
+    of its markers from its faces), the links without one keep the guess, and a box that is
+    not one is refused with the link named."""
+    machine = load_machine("hitachi_ex3500")
+    guessed = link_boxes(machine)
+    data = machine_to_dict(machine)
+    house = [link["name"] for link in data["links"]].index(machine.links[1].name)
+    stated = guessed[1] + np.array([[-3.0, -0.2, 0.0], [0.5, 0.2, 3.0]])  # a counterweight and a cab beyond
+    data["links"][house]["box"] = {"min": stated[0].tolist(), "max": stated[1].tolist()}
+    with_box = machine_from_dict(data)
+    assert np.allclose(machine_from_dict(machine_to_dict(with_box)).link_boxes[1], stated)
+    model = CameraModel(with_box, make_session(machine, "hitachi_ex3500", n_cameras=1, n_cycles=1,
+                                               size=(320, 180)).cameras[0].camera)
+    assert np.allclose(model.boxes[1], stated)
+    others = np.arange(len(guessed)) != 1
+    assert np.allclose(model.boxes[others], guessed[others])
+    assert np.allclose(model.normals, marker_normals(with_box, model.boxes))
+    on_house = with_box.marker_links == 1
+    assert not np.allclose(model.normals[on_house], marker_normals(machine, guessed)[on_house])
+    for box, message in (({"min": [0, 0, 0], "max": [1, 0, 1]}, "must be below max"),
+                         ({"min": [0, 0, 0]}, "missing 'max'"),
+                         ({"min": [0, 0, 0], "max": [1, 1, 1], "radius": 2}, "unknown key"),
+                         ([0, 1], "box must be an inline table")):
+        data["links"][house]["box"] = box
+        with pytest.raises(InputError, match=message) as raised:
+            machine_from_dict(data, "m.toml")
+        assert machine.links[1].name in str(raised.value)
