@@ -14,7 +14,7 @@ from mocap.synthetic.render import RenderOptions
 from mocap.synthetic.session import make_session
 from mocap.synthetic.videos import renderer_for
 from mocap.tracking import CameraModel, track_frames
-from mocap.tracking.normals import NormalEvidence, normal_candidates
+from mocap.tracking.normals import NormalEvidence, NormalLearner, normal_candidates
 from mocap.visibility import plane_axes
 
 
@@ -105,3 +105,23 @@ def test_one_camera_alone_never_settles_the_mirror_wrongly(evidence):
         wrong = alone.resolved & (_angle(alone.normals, session.normals) > 3.0)
         assert not np.any(wrong), [machine.marker_names[m] for m in np.flatnonzero(wrong)]
         assert np.sum(alone.resolved) < np.sum(pooled.resolved)
+
+
+def test_a_learner_holds_a_bounded_share_of_a_long_run():
+    """A run of 5000 frames: the learner holds between `keep` and 2 x `keep` observations of
+    each marker (memory and learning time do not grow with the run), and their candidates hold
+    the disks' normals."""
+    learner = NormalLearner(2, keep=100)
+    centre = np.array([[0.5, 0.2, 20.0], [-1.0, 0.3, 25.0]])
+    matrix = np.array([[1000.0, 0, 640], [0, 1000.0, 360], [0, 0, 1]])
+    axes = np.array([[6.0, 6.0], [5.0, 5.0]])
+    shape = axes[:, :, None] ** 2 * np.eye(2)[None]
+    for _ in range(5000):
+        learner.add(np.array([0, 1]), axes, shape, centre, np.tile(np.eye(3), (2, 1, 1)), matrix, np.zeros(5))
+    evidence = learner.evidence()
+    assert np.all((np.bincount(evidence.markers) >= 100) & (np.bincount(evidence.markers) <= 200))
+    # round images off the axis: disks square to the optical axis, not to their lines of sight
+    # (those would show stretched along the radius); one of each pair of candidates is that
+    off_axis = np.degrees(np.arctan(np.linalg.norm(centre[:, :2], axis=1) / centre[:, 2]))
+    error = _angle(evidence.candidates, np.array([0.0, 0.0, -1.0])).min(axis=1)
+    assert np.all(error < 0.05 * off_axis[evidence.markers])

@@ -27,6 +27,7 @@ from mocap.camera import project_cam
 MIN_AXIS_PX = 2.5  # a disk whose major semi-axis is smaller says little of its turn
 AGREE_DEG = 6.0  # candidates within this of each other agree
 MIN_SEEN = 8  # observations a marker needs for a learned normal
+KEEP_PER_MARKER = 120  # observations a learner holds per marker: between this and twice it
 
 
 @dataclass(frozen=True)
@@ -95,13 +96,15 @@ class NormalEvidence:
 
 class NormalLearner:
     """Collects the candidate normals of labelled disks, frame by frame (`add`), as
-    `NormalEvidence`."""
+    `NormalEvidence`: at most 2 x `keep` observations per marker, spread over the whole run
+    (when a marker has more, every other one is let go), so that a run of hours holds as
+    little as a minute's and learning costs the same."""
 
-    def __init__(self, n_markers: int, min_axis_px: float = MIN_AXIS_PX):
+    def __init__(self, n_markers: int, min_axis_px: float = MIN_AXIS_PX, keep: int = KEEP_PER_MARKER):
         self.n_markers = n_markers
         self.min_axis_px = min_axis_px
-        self._markers: list[np.ndarray] = []
-        self._candidates: list[np.ndarray] = []
+        self.keep = keep
+        self._candidates: list[list[np.ndarray]] = [[] for _ in range(n_markers)]
 
     def add(self, markers: np.ndarray, axes: np.ndarray, shape: np.ndarray, centre_cam: np.ndarray,
             cam_from_link: np.ndarray, matrix: np.ndarray, distortion: np.ndarray) -> None:
@@ -113,14 +116,18 @@ class NormalLearner:
             return
         in_cam = normal_candidates(shape[keep], centre_cam[keep], matrix, distortion)
         in_link = np.einsum("kji,kcj->kci", cam_from_link[keep], in_cam)  # link_from_cam = transpose
-        finite = np.all(np.isfinite(in_link), axis=(1, 2))
-        self._markers.append(np.asarray(markers)[keep][finite])
-        self._candidates.append(in_link[finite])
+        for m, pair in zip(np.asarray(markers)[keep], in_link):
+            if np.all(np.isfinite(pair)):
+                held = self._candidates[m]
+                held.append(pair)
+                if len(held) > 2 * self.keep:
+                    del held[1::2]
 
     def evidence(self) -> NormalEvidence:
         """What was collected so far."""
-        markers = np.concatenate(self._markers) if self._markers else np.zeros(0, dtype=int)
-        candidates = np.concatenate(self._candidates) if self._candidates else np.zeros((0, 2, 3))
+        counts = [len(c) for c in self._candidates]
+        markers = np.repeat(np.arange(self.n_markers), counts)
+        candidates = np.array([p for c in self._candidates for p in c]).reshape(-1, 2, 3)
         return NormalEvidence(markers, candidates, self.n_markers)
 
 

@@ -245,9 +245,13 @@ def track_frames(
     why = [f"the model shows it in {in_view[m]} fitted frames but no disk passing the tests lay where the fit put "
            f"it in {in_view[m] - placed[m]} of them (covered, worn paint, or its position in the model is off)"
            for m in np.flatnonzero(unplaced)]
+    learned = learner.evidence().learn(model.normals)
+    settled = learned.learned & learned.resolved & (learned.spread_deg <= _LEARNED_SPREAD_DEG)
     why += [f"the model's link boxes call it hidden or turned away, yet a disk of its size lay where the fit put it "
             f"in {dark[m]} of {looked[m]} frames looked at and was not taken (fainter than the detection's "
-            f"--min-contrast?): state its `normal` in the machine file" for m in np.flatnonzero(spotted)]
+            f"--min-contrast?): state its `normal` in the machine file"
+            + (f" (its disk's ellipses give normal = [{', '.join(f'{v:.3f}' for v in learned.normals[m])}])"
+               if settled[m] else "") for m in np.flatnonzero(spotted)]
     order = np.r_[np.flatnonzero(unplaced), np.flatnonzero(spotted)]
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks) + let_go, restarts,
                                 tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why),
