@@ -46,7 +46,9 @@ its guessed boxes, hoses, markers on plates turned 10-40 degrees from the boxes'
 truth's visibility computed against them. Both modes print, beside the mean, the worst
 camera-marker pair: among the markers clearly visible in at least half of a camera's frames
 (wholly in view; with `--looks` also >= 3 px across), the share of those frames in which the
-marker is labelled right, its mean, the worst pair and how many are below 90 %.
+marker is labelled right, its mean, the worst pair and how many are below 90 %. With `--looks`
+also the markers' normals learned from their disks' ellipses (`mocap.tracking.normals`, a
+look's cameras pooled) against the truth's, beside the boxes' guess.
 
 `--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
 the settings that change the render) and tracks the kept clips on later runs: for comparing
