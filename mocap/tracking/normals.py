@@ -28,6 +28,7 @@ MIN_AXIS_PX = 2.5  # a disk whose major semi-axis is smaller says little of its 
 AGREE_DEG = 6.0  # candidates within this of each other agree
 MIN_SEEN = 8  # observations a marker needs for a learned normal
 KEEP_PER_MARKER = 120  # observations a learner holds per marker: between this and twice it
+PROPOSALS = 40  # observations whose candidates are scored as the normal (spread over all)
 
 
 @dataclass(frozen=True)
@@ -147,10 +148,11 @@ def learn_normals(markers: np.ndarray, candidates: np.ndarray, n_markers: int, p
     cos_agree = np.cos(np.radians(agree_deg))
     for m in np.flatnonzero(seen >= min_seen):
         pairs = candidates[markers == m]  # (K, 2, 3)
-        flat = pairs.reshape(-1, 3)  # (2K, 3)
-        # support of each candidate: the observations with a candidate within agree_deg of it
-        close = np.einsum("ci,kdi->ckd", flat, pairs) > cos_agree  # (2K, K, 2)
-        support = np.sum(np.any(close, axis=2), axis=1)
+        # the candidates of up to PROPOSALS observations spread over them, each scored by its
+        # support: the observations with a candidate within agree_deg of it
+        flat = pairs[np.unique(np.linspace(0, len(pairs) - 1, PROPOSALS).astype(int))].reshape(-1, 3)
+        dots = (pairs.reshape(-1, 3) @ flat.T).reshape(len(pairs), 2, len(flat))  # (K, 2, P)
+        support = np.sum(dots.max(axis=1) > cos_agree, axis=0)
         order = np.argsort(-support)
         best = flat[order[0]]
         far = flat[order] @ best < np.cos(np.radians(2 * agree_deg))

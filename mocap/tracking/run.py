@@ -23,7 +23,8 @@ _MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to
 UNPLACED_MIN_FRAMES = 10
 _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
 _DARK_EVERY = 8  # fitted frames between looks at the markers the boxes hide (`TrackSummary.why`)
-_LEARN_EVERY = 30  # fitted frames between updates of the model's normals from the disks' ellipses
+_LEARN_SAMPLE = 3  # after the first _LEARN_EVERY fitted frames, those whose disks' ellipses are kept: every 3rd
+_LEARN_EVERY = 60  # fitted frames between updates of the model's normals from them
 _LEARNED_SPREAD_DEG = 5.0  # a learned normal whose agreeing candidates spread more is not used
 
 
@@ -218,9 +219,10 @@ def track_frames(
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)
         if result.fitted:
-            _learn(learner, model, result)
+            if n_fitted <= _LEARN_EVERY or n_fitted % _LEARN_SAMPLE == 0:
+                _learn(learner, model, result)
             if n_fitted % _LEARN_EVERY == 0:
-                model = tracker.model = _learned_model(model, stated, learner)
+                model = tracker.model = _learned_model(model, stated, learner.evidence())
             in_view += tracker.state.visible
             placed[result.markers] += tracker.state.visible[result.markers]
             if n_fitted % _DARK_EVERY == 0:
@@ -258,12 +260,12 @@ def track_frames(
                                 learner.evidence())
 
 
-def _learned_model(model: CameraModel, stated: np.ndarray, learner: NormalLearner) -> CameraModel:
+def _learned_model(model: CameraModel, stated: np.ndarray, evidence: NormalEvidence) -> CameraModel:
     """`model` with the normals its disks' ellipses settled (resolved, candidates agreeing
     within `_LEARNED_SPREAD_DEG`) in place of the guessed ones, where the machine file
     states none (`stated` (M,) bool); a prior like the guess: it orders the search and sizes
     the disks expected, and a marker it turns away is still looked for where the fit puts it."""
-    learned = learner.evidence().learn(model.normals)
+    learned = evidence.learn(model.normals)
     use = learned.learned & learned.resolved & (learned.spread_deg <= _LEARNED_SPREAD_DEG) & ~stated
     turn = np.einsum("mi,mi->m", np.nan_to_num(learned.normals), model.normals)
     use &= turn < np.cos(np.radians(1.0))  # no new model for a change too small to matter
