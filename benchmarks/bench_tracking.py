@@ -172,7 +172,8 @@ def normals_line(errors: list[tuple[np.ndarray, np.ndarray, int]]) -> str:
     if not len(learned):
         return f"normals learned from the disks' ellipses: none of {total} settled"
     return (f"normals learned from the disks' ellipses (a look's cameras pooled): {len(learned)} of {total} settled, "
-            f"off the truth's by median {np.median(learned):.2f} deg, 95th percentile {np.percentile(learned, 95):.2f}, "
+            f"off the truth's by median {np.median(learned):.2f} deg, "
+            f"95th percentile {np.percentile(learned, 95):.2f}, "
             f"most {learned.max():.2f} (the boxes' guess: median {np.median(guess):.1f}, most {guess.max():.1f})")
 
 

@@ -69,7 +69,8 @@ def normal_candidates(shape: np.ndarray, centre_cam: np.ndarray, matrix: np.ndar
     cos = np.sqrt(np.clip(values[:, 0], 0.0, None) / np.maximum(values[:, 1], 1e-300))
     sin = np.sqrt(np.clip(1.0 - cos**2, 0.0, None))
     lean = np.einsum("nij,nj->ni", plane, vectors[:, :, 0])  # (N, 3) the minor axis in 3-D
-    candidates = -cos[:, None, None] * d[:, None] + np.array([1.0, -1.0])[None, :, None] * sin[:, None, None] * lean[:, None]
+    signs = np.array([1.0, -1.0])[None, :, None]
+    candidates = -cos[:, None, None] * d[:, None] + signs * sin[:, None, None] * lean[:, None]
     return np.where(np.all(np.isfinite(j), axis=(1, 2))[:, None, None] & (centre_cam[:, None, 2:] > 0), candidates,
                     np.nan)
 
