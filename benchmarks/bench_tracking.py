@@ -46,7 +46,9 @@ its guessed boxes, hoses, markers on plates turned 10-40 degrees from the boxes'
 truth's visibility computed against them. Both modes print, beside the mean, the worst
 camera-marker pair: among the markers clearly visible in at least half of a camera's frames
 (wholly in view; with `--looks` also >= 3 px across), the share of those frames in which the
-marker is labelled right, its mean, the worst pair and how many are below 90 %.
+marker is labelled right, its mean, the worst pair and how many are below 90 %. With `--looks`
+also the markers' normals learned from their disks' ellipses (`mocap.tracking.normals`, a
+look's cameras pooled) against the truth's, beside the boxes' guess.
 
 `--keep DIR` renders each look's clips once into DIR (a folder per look, named by a hash of
 the settings that change the render) and tracks the kept clips on later runs: for comparing
@@ -81,6 +83,7 @@ from mocap.synthetic.render import RenderOptions
 from mocap.synthetic.videos import renderer_for
 from mocap.synthetic.session import SHAPES, marker_sizes
 from mocap.tracking import CameraModel, track_frames
+from mocap.tracking.normals import NormalEvidence
 
 
 WIDE_PX = 3.0  # px: disks at least this wide across their narrowest way are also counted apart
@@ -156,6 +159,24 @@ def worst_pair_line(pairs: list[tuple[str, str, float]], what: str = "wholly vis
             f"those frames on average, worst {shares[k]:.2%} ({pairs[k][0]} {pairs[k][1]}), {below} below 90 %")
 
 
+def _degrees(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+def normals_line(errors: list[tuple[np.ndarray, np.ndarray, int]]) -> str:
+    """The normals learned from the disks' ellipses (each look's cameras pooled) against the
+    truth's, beside the boxes' guess, over (learned errors, guess errors, markers) per look."""
+    learned = np.concatenate([e[0] for e in errors] + [np.zeros(0)])
+    guess = np.concatenate([e[1] for e in errors] + [np.zeros(0)])
+    total = sum(e[2] for e in errors)
+    if not len(learned):
+        return f"normals learned from the disks' ellipses: none of {total} settled"
+    return (f"normals learned from the disks' ellipses (a look's cameras pooled): {len(learned)} of {total} settled, "
+            f"off the truth's by median {np.median(learned):.2f} deg, "
+            f"95th percentile {np.percentile(learned, 95):.2f}, "
+            f"most {learned.max():.2f} (the boxes' guess: median {np.median(guess):.1f}, most {guess.max():.1f})")
+
+
 def disk_widths(session, field, truth, diameter_m: float) -> np.ndarray:
     """(N,) the width (px) of each truth row's disk image across its narrowest way: the
     disk's diameter at its distance times the cosine of its face's turn from the line of
@@ -220,7 +241,7 @@ def track_looks(args) -> int:
               f"{'p95 px':>7} {'found again':>11}  look")
     print(header)
     print("-" * (len(header) + 40))
-    results, pairs = [], []
+    results, pairs, normal_errors = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for k in ([args.look] if args.look is not None else range(args.looks)):
             look = random_look(np.random.default_rng([args.seed, k]), name=f"look {k}")
@@ -232,7 +253,7 @@ def track_looks(args) -> int:
                                    readout=look.readout, shapes=args.shapes)
             options = RenderOptions(effects=EffectOptions(look.noise, look.blur, look.exposure, look.dust), look=look)
             rng = np.random.default_rng([args.seed, k, 1])
-            look_rows = []
+            look_rows, evidence = [], []
             folder, kept = (kept_clips(args, k, [f.name for f in session.cameras]) if args.keep
                             else (Path(tmp), False))
             folder.mkdir(parents=True, exist_ok=True)
@@ -252,7 +273,8 @@ def track_looks(args) -> int:
                 try:
                     video = ((first + i, grey) for i, grey in Video(path).frames(prefetch=4))
                     joints = session.plan.joints(field.times(np.array([first])))[0]
-                    tracks, _ = track_frames(model, video, joints, None, field.fps)
+                    tracks, summary = track_frames(model, video, joints, None, field.fps)
+                    evidence.append(summary.normals)
                 except ValueError as exc:  # the first frame could not be labelled
                     print(f"{k:>4} {field.name:>6}: {exc}")
                     tracks = None
@@ -278,6 +300,12 @@ def track_looks(args) -> int:
                 if not args.keep:
                     path.unlink()
             results.append((look, look_rows))
+            if evidence:  # the look's cameras pooled
+                guessed = CameraModel(machine, session.cameras[0].camera).normals
+                learned = NormalEvidence.pooled(evidence).learn(guessed)
+                settled = learned.learned & learned.resolved
+                normal_errors.append((_degrees(learned.normals[settled], session.normals[settled]),
+                                      _degrees(guessed[settled], session.normals[settled]), len(guessed)))
     share = [sum(r[1] * r[0] for r in rows) / max(sum(r[0] for r in rows), 1) for _, rows in results]
     visible = sum(r[0] for _, rows in results for r in rows)
     labelled = sum(r[1] * r[0] for _, rows in results for r in rows) / max(visible, 1)
@@ -291,6 +319,7 @@ def track_looks(args) -> int:
     print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
           f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
     print(worst_pair_line(pairs, f"wholly visible and >= {WIDE_PX:g} px across"))
+    print(normals_line(normal_errors))
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
     again = [r[4] for _, rows in results for r in rows]
     known = [a for a in again if a is not None]

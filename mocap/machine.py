@@ -120,6 +120,7 @@ class Machine:
     tag_dictionary: str | None = None  # the tags' OpenCV dictionary, e.g. "DICT_4X4_50"
     tolerance: Tolerance | None = None  # how far the measured marker positions may be off, if stated
     marker_normals: np.ndarray | None = None  # (M, 3) unit disk normals in the link frames where stated, NaN rows not
+    link_boxes: np.ndarray | None = None  # (L, 2, 3) stated solids (min, max corners) in the link frames, NaN rows not
 
     # --- structure -------------------------------------------------------------------
     @cached_property

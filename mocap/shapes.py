@@ -1,4 +1,4 @@
-"""Solid shapes of a machine's links, derived from the model, for rendering and replay.
+"""Solid shapes of a machine's links, stated in the model or derived from it, for rendering and replay.
 
 Each link is drawn as the box in its own frame that holds its joint origin, its markers and
 points and its children's joint origins, so that markers at the extremes lie on its faces;
@@ -17,7 +17,8 @@ def link_boxes(machine: Machine, thickness: float | None = None) -> np.ndarray:
     """Axis-aligned boxes in each link's frame: (L, 2, 3) = (min corner, max corner), metres.
 
     `thickness`, the least size of a box along any axis, defaults to 3 % of the machine's
-    extent (at least 5 cm).
+    extent (at least 5 cm). A link whose box the model states (`Machine.link_boxes`, the
+    machine file's `box`) has that one instead.
     """
     extent = np.ptp(machine.markers(np.zeros((1, machine.n_joints)))[0], axis=0).max()
     thickness = max(0.05, 0.03 * extent) if thickness is None else thickness
@@ -35,6 +36,9 @@ def link_boxes(machine: Machine, thickness: float | None = None) -> np.ndarray:
         low, high = pts.min(axis=0), pts.max(axis=0)
         grow = np.maximum(thickness - (high - low), 0.0) / 2
         boxes[i, 0], boxes[i, 1] = low - grow, high + grow
+    if machine.link_boxes is not None:
+        stated = np.all(np.isfinite(machine.link_boxes), axis=(1, 2))
+        boxes[stated] = machine.link_boxes[stated]
     return boxes
 
 

@@ -16,7 +16,8 @@ MAX_LENGTH_M = 1e4  # 10 km: no machine's marker, joint origin or stroke lies fa
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
 
 _TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags", "tolerance"}
-_LINK_KEYS = {"name", "parent", "joint"}
+_LINK_KEYS = {"name", "parent", "joint", "box"}
+_BOX_KEYS = {"min", "max"}
 _JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
 _ITEM_KEYS = {"name", "link", "position"}
 _MARKER_KEYS = _ITEM_KEYS | {"tag", "normal"}
@@ -56,6 +57,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
     if not isinstance(raw_links, list) or not raw_links:
         raise InputError("no [[links]]: a machine needs at least its base link", path=path)
     links = _links(raw_links, path)
+    boxes = _boxes(raw_links, links, path)
     link_index = {link.name: i for i, link in enumerate(links)}
 
     markers = _items(data.get("markers", []), "markers", link_index, path, _MARKER_KEYS)
@@ -104,7 +106,31 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         tag_dictionary=dictionary,
         tolerance=tolerance,
         marker_normals=np.array(markers[4]).reshape(-1, 3) if np.any(np.isfinite(markers[4])) else None,
+        link_boxes=boxes,
     )
+
+
+def _boxes(raw_links: list, links: list[Link], path) -> np.ndarray | None:
+    """(L, 2, 3) the links' stated boxes `box = {min = [x, y, z], max = [x, y, z]}` (metres, the
+    link's frame), in the order of `links` (NaN rows: not stated); None if no link states one."""
+    order = {link.name: i for i, link in enumerate(links)}
+    boxes = np.full((len(links), 2, 3), np.nan)
+    for raw in raw_links:
+        if "box" not in raw:
+            continue
+        where = f"link {raw['name']!r} box"
+        box = raw["box"]
+        if not isinstance(box, dict):
+            raise InputError("box must be an inline table {min = [x, y, z], max = [x, y, z]} (metres, the link's "
+                             "frame)", path=path, where=where)
+        _check_keys(box, _BOX_KEYS, path, where)
+        low = _length(_vector(box, "min", path, where), path, where, "min")
+        high = _length(_vector(box, "max", path, where), path, where, "max")
+        if not np.all(low < high):
+            raise InputError(f"min {low.tolist()} must be below max {high.tolist()} on every axis", path=path,
+                             where=where)
+        boxes[order[raw["name"]]] = low, high
+    return boxes if np.any(np.isfinite(boxes)) else None
 
 
 def _tags(data: dict, tags: list, path) -> tuple[np.ndarray | None, str | None]:
@@ -336,6 +362,9 @@ def machine_to_dict(machine: Machine) -> dict:
             }
             if np.all(np.isfinite(limits)):
                 entry["joint"]["limits"] = np.asarray(limits).tolist()
+        box = None if machine.link_boxes is None else machine.link_boxes[len(links)]
+        if box is not None and np.all(np.isfinite(box)):
+            entry["box"] = {"min": box[0].tolist(), "max": box[1].tolist()}
         links.append(entry)
 
     def items(names, link_ids, positions, tags=None, normals=None):

@@ -172,6 +172,18 @@ def _plate(centre: np.ndarray, normal: np.ndarray, half: float, thickness: float
     return centre + np.outer(c[:, 0], first[0]) + np.outer(c[:, 1], second[0]) + np.outer(c[:, 2], normal)
 
 
+def marker_test_points(squares: np.ndarray, disks: np.ndarray) -> np.ndarray:
+    """(M, 25 + N, 3) the points a marker must show to be wholly in view: a 5 x 5 grid over
+    its square (corners (M, 4, 3)) and its disk's outline (M, N, 3), in its link frame (a thin
+    hose may cross the square between its corners and edges' midpoints)."""
+    grid = np.linspace(0.0, 1.0, 5)
+    a, b = np.meshgrid(grid, grid, indexing="ij")
+    across = squares[:, 1] - squares[:, 0], squares[:, 3] - squares[:, 0]  # (M, 3) each
+    square_grid = (squares[:, None, 0] + a.reshape(1, -1, 1) * across[0][:, None]
+                   + b.reshape(1, -1, 1) * across[1][:, None])
+    return np.concatenate([square_grid, disks], axis=1)
+
+
 def solids_in_view(machine: Machine, solids: Solids, normals: np.ndarray, link_poses: np.ndarray,
                    cam_from_world: np.ndarray, matrix: np.ndarray, distortion: np.ndarray, size: tuple[int, int],
                    points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

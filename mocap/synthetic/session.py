@@ -30,7 +30,7 @@ from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
 from mocap.machine import Machine
 from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.cameras import FieldCamera, place_cameras
-from mocap.synthetic.meshes import Solids, machine_solids, solids_in_view
+from mocap.synthetic.meshes import Solids, machine_solids, marker_test_points, solids_in_view
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
 from mocap.synthetic.shutter import rolling_pixels
@@ -245,14 +245,8 @@ def make_session(machine: Machine, machine_ref: str | None = None, options: Sess
     # each true row's score: how much of the marker's painted square is in view (1: all)
     squares, disks = marker_outlines(machine, normals, *marker_sizes(reach), n_points=16)
     outline = square_outline(squares)
-    # with solids: a 5 x 5 grid over the square and the disk's outline (a thin hose may cross
-    # the square between its corners and edges' midpoints)
-    grid = np.linspace(0.0, 1.0, 5)
-    a, b = np.meshgrid(grid, grid, indexing="ij")
-    across = squares[:, 1] - squares[:, 0], squares[:, 3] - squares[:, 0]  # (M, 3) each
-    square_grid = (squares[:, None, 0] + a.reshape(1, -1, 1) * across[0][:, None]
-                   + b.reshape(1, -1, 1) * across[1][:, None])
-    disk_outline = np.concatenate([square_grid, disks], axis=1)
+    # with solids: a grid over the square and the disk's outline (`marker_test_points`)
+    disk_outline = marker_test_points(squares, disks)
     parts, views = [], np.zeros(markers.shape[:2], dtype=int)
     names = np.asarray(machine.marker_names, dtype=object)
     for camera in cameras:

@@ -7,7 +7,7 @@ Shapes: F frames, M markers, J joints, L links.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import NamedTuple
 
@@ -61,6 +61,13 @@ class CameraModel:
         if np.shape(self.boxes) != (len(self.machine.links), 2, 3):
             raise ValueError(f"boxes must be (L={len(self.machine.links)}, 2, 3), got {np.shape(self.boxes)}")
         object.__setattr__(self, "normals", marker_normals(self.machine, self.boxes))
+
+    def with_normals(self, normals: np.ndarray) -> CameraModel:
+        """The same model with the markers' normals (M, 3) in their link frames replaced
+        where finite (e.g. learned, `mocap.tracking.normals`); the rest as they were."""
+        normals = np.where(np.all(np.isfinite(normals), axis=1)[:, None], normals, self.normals)
+        machine = replace(self.machine, marker_normals=normals)
+        return CameraModel(machine, self.camera, self.boxes, self.solid)
 
     def pixels(self, joints: np.ndarray) -> np.ndarray:
         """Marker pixels (F, M, 2) for joint values (F, J); NaN behind the camera."""

@@ -14,7 +14,8 @@ from mocap.io.tracks_csv import Tracks, concatenate
 from mocap.machine import Machine
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
-from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions, disks_in_view
+from mocap.tracking.normals import NormalEvidence, NormalLearner
+from mocap.tracking.tracker import FrameResult, Tracker, TrackOptions, _near_any, disks_in_view
 
 log = logging.getLogger(__name__)
 
@@ -22,6 +23,9 @@ _MAX_SEARCH_INTERVAL = 16  # full-frame searches for an unseen joint back off to
 UNPLACED_MIN_FRAMES = 10
 _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found again within a second
 _DARK_EVERY = 8  # fitted frames between looks at the markers the boxes hide (`TrackSummary.why`)
+_LEARN_SAMPLE = 3  # after the first _LEARN_EVERY fitted frames, those whose disks' ellipses are kept: every 3rd
+_LEARN_EVERY = 60  # fitted frames between updates of the model's normals from them
+_LEARNED_SPREAD_DEG = 5.0  # a learned normal whose agreeing candidates spread more is not used
 
 
 class TooFewMarkersError(ValueError):
@@ -38,7 +42,9 @@ class TrackSummary:
     markers the model's boxes call hidden or turned away but where a disk of their size lay
     where the fit put them in most of the frames looked at (every `_DARK_EVERY`th fitted one, at
     least 3) while they were labelled in under a tenth of them; `why` says for each of
-    `unplaced` why it was not labelled."""
+    `unplaced` why it was not labelled; `normals` the evidence of the markers' normals their
+    disks' ellipses gave (`mocap.tracking.normals`; pool the cameras' and `learn`), None for a
+    machine of tags."""
 
     frames: int
     fitted: int
@@ -46,6 +52,7 @@ class TrackSummary:
     restarts: int
     unplaced: tuple[str, ...] = ()
     why: tuple[str, ...] = ()
+    normals: NormalEvidence | None = None
 
 
 def label_first_frame(
@@ -146,6 +153,9 @@ def track_frames(
     interval = options.lost_frames  # frames between full-frame searches; doubles while they fail
     let_go = 0  # rows handed to `on_frame` and not kept
     blank_disks = 0  # while lost: disks the last failed full-frame search had (or fewest since)
+    learner = NormalLearner(len(names))
+    stated = (np.all(np.isfinite(model.machine.marker_normals), axis=1) if model.machine.marker_normals is not None
+              else np.zeros(len(names), dtype=bool))
     for index, gray in frames:
         n_frames += 1
         tags = tag_pixels(model.machine, gray, finder)
@@ -209,10 +219,14 @@ def track_frames(
                 interval = options.lost_frames
         n_fitted += bool(result.fitted)
         if result.fitted:
+            if n_fitted <= _LEARN_EVERY or n_fitted % _LEARN_SAMPLE == 0:
+                _learn(learner, model, result)
+            if n_fitted % _LEARN_EVERY == 0:
+                model = tracker.model = _learned_model(model, stated, learner.evidence())
             in_view += tracker.state.visible
             placed[result.markers] += tracker.state.visible[result.markers]
             if n_fitted % _DARK_EVERY == 0:
-                hidden, spot = _dark_spots(tracker, gray, result.joints)
+                hidden, spot = _dark_spots(tracker, gray, result.joints, result.detections.xy)
                 looked += hidden
                 dark += hidden & spot
                 hidden_placed[result.markers] += hidden[result.markers]
@@ -233,19 +247,58 @@ def track_frames(
     why = [f"the model shows it in {in_view[m]} fitted frames but no disk passing the tests lay where the fit put "
            f"it in {in_view[m] - placed[m]} of them (covered, worn paint, or its position in the model is off)"
            for m in np.flatnonzero(unplaced)]
+    learned = learner.evidence().learn(model.normals)
+    settled = learned.learned & learned.resolved & (learned.spread_deg <= _LEARNED_SPREAD_DEG)
     why += [f"the model's link boxes call it hidden or turned away, yet a disk of its size lay where the fit put it "
             f"in {dark[m]} of {looked[m]} frames looked at and was not taken (fainter than the detection's "
-            f"--min-contrast?): state its `normal` in the machine file" for m in np.flatnonzero(spotted)]
+            f"--min-contrast?): state its `normal` in the machine file"
+            + (f" (its disk's ellipses give normal = [{', '.join(f'{v:.3f}' for v in learned.normals[m])}])"
+               if settled[m] else "") for m in np.flatnonzero(spotted)]
     order = np.r_[np.flatnonzero(unplaced), np.flatnonzero(spotted)]
     return tracks, TrackSummary(n_frames, n_fitted, len(tracks) + let_go, restarts,
-                                tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why))
+                                tuple(np.asarray(names, dtype=object)[order].tolist()), tuple(why),
+                                learner.evidence())
 
 
-def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _learned_model(model: CameraModel, stated: np.ndarray, evidence: NormalEvidence) -> CameraModel:
+    """`model` with the normals its disks' ellipses settled (resolved, candidates agreeing
+    within `_LEARNED_SPREAD_DEG`) in place of the guessed ones, where the machine file
+    states none (`stated` (M,) bool); a prior like the guess: it orders the search and sizes
+    the disks expected, and a marker it turns away is still looked for where the fit puts it."""
+    learned = evidence.learn(model.normals)
+    use = learned.learned & learned.resolved & (learned.spread_deg <= _LEARNED_SPREAD_DEG) & ~stated
+    turn = np.einsum("mi,mi->m", np.nan_to_num(learned.normals), model.normals)
+    use &= turn < np.cos(np.radians(1.0))  # no new model for a change too small to matter
+    if not np.any(use):
+        return model
+    return model.with_normals(np.where(use[:, None], learned.normals, np.nan))
+
+
+def _learn(learner: NormalLearner, model: CameraModel, result: FrameResult) -> None:
+    """A fitted frame's labelled disks handed to `learner`, with their centres and links'
+    rotations in the camera frame by the fit."""
+    machine, camera = model.machine, model.camera
+    disks = machine.tags[result.markers] < 0
+    markers = result.markers[disks]
+    if not len(markers):
+        return
+    poses = machine.link_poses(result.joints[None])[0, machine.marker_links[markers]]  # (K, 4, 4)
+    rotation, translation = camera.cam_from_world.rotation, camera.cam_from_world.translation
+    cam_from_link = rotation @ poses[:, :3, :3]
+    centre = np.einsum("kij,kj->ki", cam_from_link, machine.marker_positions[markers])
+    centre += poses[:, :3, 3] @ rotation.T + translation
+    detections = result.detections.select(disks)
+    learner.add(markers, detections.axes, detections.shape, centre, cam_from_link, camera.matrix, camera.distortion)
+
+
+def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray,
+                taken: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(M,) the disk markers in the image that the model's boxes hide or turn away at the fitted
     `joints`, and (M,) whether a disk refined from where the fit puts it as the tracker refines
     one there (`Tracker._search_fitted`), of the marker's size face on (its ellipse's major
-    semi-axis), lies within the tight gate of that place."""
+    semi-axis), lies within the tight gate of that place and is not one of the disks `taken`
+    (K, 2) image pixels, labelled as other markers in the frame (a hidden marker whose image
+    falls on a shown one's disk is no evidence)."""
     model, options = tracker.model, tracker.options
     view = model.view(joints[None])
     hidden = disks_in_view(model, view, occlusion=False) & ~disks_in_view(model, view, options.occlusion)
@@ -257,6 +310,8 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray) -> tuple
     radius = face_on[markers]
     at = view.uv[0, markers] + tracker.state.shift
     found = tracker._search_fitted(gray, view.uv[0] + tracker.state.shift, markers, face_on)
+    if taken is not None and len(found):
+        found = found.select(~_near_any(found.xy, taken, 0.5 * np.maximum(found.radius, 2.0)))
     if len(found):
         near = np.linalg.norm(at[:, None] - found.xy[None], axis=-1) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
         ratio = found.axes[None, :, 0] / radius[:, None]

@@ -516,6 +516,10 @@ class Tracker:
         shapes = np.where((self.state.missed[markers] <= 2)[:, None, None], self.state.shape[markers], circles)
         found = refine_and_accept(gray, uv[markers], shapes, detect)
         missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        # the slower refinements for those missed for long (covered, or truly hidden) only every
+        # 4th frame, as `_search` looks around them
+        missed = self.state.missed[markers]
+        missing &= (missed <= 3) | (missed % 4 == 0)
         if np.any(missing):
             found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect)]))
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
