@@ -393,10 +393,10 @@ def profile_calibrate(machine, scenes, median_ms: float) -> None:
     parts = {
         "start: place_camera (PnP over focal lengths)": ("initial.py", "place_camera"),
         "start: joints_along_chain (beam search)": ("initial.py", "joints_along_chain"),
-        "fit: least_squares (all calls)": ("solve.py", "_least_squares"),
+        "fit: least_squares (all calls)": ("fit.py", "_least_squares"),
         "  of which residuals + Jacobian": ("problem.py", "_evaluate"),
         "check_jacobian (SVD)": ("identify.py", "check_jacobian"),
-        "paper-parameter sd (finite differences)": ("solve.py", "_paper_sd"),
+        "paper-parameter sd (finite differences)": ("fit.py", "_paper_sd"),
     }
     total = sum(v[3] for k, v in stats.items() if k[2] == "calibrate" and k[0].endswith("solve.py"))
     rows = []
