@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from mocap.reconstruct.linear_kernel import solve_into
+
 LOSS_CODES = {"huber": 0, "cauchy": 1, "linear": 2}
 
 
@@ -206,33 +208,6 @@ def world_markers(joints, rotation, translation, first, second, revolute, parent
 
 
 @njit(cache=True, nogil=True)
-def _solve(lhs, rhs, out):
-    """out (P,) with lhs (P, P) out = rhs (P,), by Gaussian elimination with partial
-    pivoting (lhs and rhs are overwritten)."""
-    n = rhs.shape[0]
-    for col in range(n):
-        pivot = col
-        for r in range(col + 1, n):
-            if abs(lhs[r, col]) > abs(lhs[pivot, col]):
-                pivot = r
-        if pivot != col:
-            for c in range(n):
-                lhs[col, c], lhs[pivot, c] = lhs[pivot, c], lhs[col, c]
-            rhs[col], rhs[pivot] = rhs[pivot], rhs[col]
-        for r in range(col + 1, n):
-            factor = lhs[r, col] / lhs[col, col]
-            if factor != 0.0:
-                for c in range(col, n):
-                    lhs[r, c] -= factor * lhs[col, c]
-                rhs[r] -= factor * rhs[col]
-    for r in range(n - 1, -1, -1):
-        total = rhs[r]
-        for c in range(r + 1, n):
-            total -= lhs[r, c] * out[c]
-        out[r] = total / lhs[r, r]
-
-
-@njit(cache=True, nogil=True)
 def _rotvec_matrix(w, out):
     """out (3, 3): the rotation of Rodrigues vector w (3,) (a series near zero)."""
     theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -308,6 +283,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
     t_hessian = np.empty((n_params, n_params))
     t_residual, t_weight = np.empty(n_rows, np.float32), np.empty(n_rows, np.float32)
     lhs, rhs, delta = np.empty((n_params, n_params)), np.empty(n_params), np.empty(n_params)
+    rhs_column, delta_column = rhs.reshape((n_params, 1)), delta.reshape((n_params, 1))  # views, for solve_into
     t_joints = np.empty(n_joints)
     t_rotation, t_translation, turn = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
     relative, rotvec, gap = np.empty((3, 3)), np.empty(3), np.empty(n_params)
@@ -327,7 +303,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
                     lhs[p, q] = hessian[f, p, q]
                 lhs[p, p] += damping * hessian[f, p, p] + eps_info
                 rhs[p] = gradient[p]
-            _solve(lhs, rhs, delta)
+            solve_into(lhs, rhs_column, delta_column)
             for j in range(n_joints):
                 value = joints[f, j] + delta[j]
                 if wrap[j]:
