@@ -57,14 +57,15 @@ from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate
 from mocap.calibration.dlt import dlt_camera
 from mocap.calibration.problem import Layout, Problem
 from mocap.calibration.solve import template_camera
-from mocap.camera import Camera, intrinsic_matrix
+from mocap.core.calibration import Calibration
+from mocap.core.camera import Camera, intrinsic_matrix
+from mocap.core.geometry import Rigid, matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
 from mocap.errors import InputError
-from mocap.geometry import Rigid, matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
 from mocap.io.tracks_csv import save_tracks
-from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.bounds import numeric_jacobian
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 HERE = Path(__file__).resolve().parent
 NOISE_PX = 0.5

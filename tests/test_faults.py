@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.core.geometry import rpy_to_matrix
 from mocap.errors import EXIT_INTERRUPTED, InputError
-from mocap.geometry import rpy_to_matrix
 from mocap.io.motion_csv import base_columns
 
 
@@ -219,7 +219,8 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
 
     from test_track import make_scene, write_video
 
-    from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+    from mocap.core.calibration import Calibration, joints_to_table
+    from mocap.io.cameras_toml import save_calibration
 
     frames, uv, seen, model, joints = make_scene(n_frames=16, clutter=4, seed=3)
     inputs = tmp_path / "in"

@@ -19,16 +19,16 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mocap"
 # the layers, lowest first; a module's layer is that of its longest matching prefix
 LAYERS = {
     # core types and geometry, beside each other, below everything
-    "mocap.errors": 0, "mocap.geometry": 0, "mocap.camera": 0, "mocap.camera_kernel": 0, "mocap.machine": 0,
-    "mocap.shapes": 0, "mocap.visibility": 0, "mocap.ik": 0, "mocap.disk_kernel": 0, "mocap.progress": 0,
+    "mocap.errors": 0, "mocap.core.geometry": 0, "mocap.core.camera": 0, "mocap.core.camera_kernel": 0, "mocap.core.machine": 0,
+    "mocap.core.shapes": 0, "mocap.core.visibility": 0, "mocap.core.ik": 0, "mocap.tracking.disk_kernel": 0, "mocap.progress": 0,
     "mocap.core": 0,
     # formats: read and write the core types
     "mocap.io": 1,
     # the stages: compute from core types, read and write through io
-    "mocap.detect": 2, "mocap.calibration": 2, "mocap.tracking": 2, "mocap.clocks": 2, "mocap.reconstruct": 2,
-    "mocap.analysis": 2, "mocap.report": 2, "mocap.interchange": 2, "mocap.viewer": 2, "mocap.synthetic": 2, "mocap.session": 2,
+    "mocap.tracking.detect": 2, "mocap.calibration": 2, "mocap.tracking": 2, "mocap.clocks": 2, "mocap.reconstruct": 2,
+    "mocap.analysis": 2, "mocap.report": 2, "mocap.interchange": 2, "mocap.viewer": 2, "mocap.synthetic": 2, "mocap.io.session": 2,
     # orchestration: the chain of stages, the API
-    "mocap.evaluate": 3, "mocap.pipeline": 3, "mocap.batch": 3, "mocap.demo": 3, "mocap.api": 3, "mocap.live": 3,
+    "mocap.orchestration.evaluate": 3, "mocap.orchestration.pipeline": 3, "mocap.batch": 3, "mocap.orchestration.demo": 3, "mocap.api": 3, "mocap.live": 3,
     # the command line
     "mocap.commands": 4, "mocap.cli": 5, "mocap.__main__": 6,
 }
@@ -185,6 +185,6 @@ def test_stages_do_not_import_each_others_stage_modules():
 def test_the_rules_see_the_imports():
     """The reader finds imports at the top, in functions, relative ones, and leaves out TYPE_CHECKING."""
     assert "mocap.commands" in GRAPH["mocap.cli"] and "mocap.cli" in GRAPH["mocap.__main__"]
-    assert "mocap.pipeline" in GRAPH["mocap.demo"]  # imported inside run_demo
+    assert "mocap.orchestration.pipeline" in GRAPH["mocap.orchestration.demo"]  # imported inside run_demo
     assert "mocap.reconstruct.kinfit" in GRAPH["mocap.reconstruct.stage"]  # inside fit_motion
     assert "mocap.batch.stage" in GRAPH["mocap.commands.batch"]  # relative to nothing, inside run()

@@ -11,10 +11,10 @@ import numpy as np
 
 from mocap.calibration import noise
 from mocap.calibration.problem import DISTORTION_MODELS, Layout, Observations, Problem
-from mocap.camera import Camera
+from mocap.core.camera import Camera
 from mocap.core.guess import Guess
+from mocap.core.machine import Machine, Tolerance
 from mocap.errors import InputError
-from mocap.machine import Machine, Tolerance
 
 
 @dataclass(frozen=True)

@@ -32,10 +32,10 @@ from mocap.calibration.start import (
     wild_base_pixels,
     worst_links_markers,
 )
-from mocap.camera import Camera, default_principal_point, intrinsic_matrix
+from mocap.core.camera import Camera, default_principal_point, intrinsic_matrix
 from mocap.core.guess import Guess
+from mocap.core.machine import Machine, Tolerance
 from mocap.errors import InputError
-from mocap.machine import Machine, Tolerance
 from mocap.reconstruct.offsets import tape_sd
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "Guess", "Residual", "calibrate", "template_camera"]

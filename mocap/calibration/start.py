@@ -14,9 +14,9 @@ import numpy as np
 from mocap.calibration import initial
 from mocap.calibration.context import CalibrationResult, FitContext
 from mocap.calibration.problem import Layout, Observations
-from mocap.camera import Camera, PaperCamera
+from mocap.core.camera import Camera, PaperCamera
 from mocap.core.guess import Guess
-from mocap.machine import Machine
+from mocap.core.machine import Machine
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ without the Jacobian of all observations in memory; and the markers' world posit
 their derivatives by the parameters for every frame (`world_markers`).
 
 Per observation (camera c, marker m) of frame f: the marker's camera-frame position, its
-pixel through the OpenCV lens (mocap.camera.project_cam) and the pixel's derivative by the
+pixel through the OpenCV lens (mocap.core.camera.project_cam) and the pixel's derivative by the
 frame's parameters (d pixel / d camera point · R_c · d world / d parameters). Residuals are
 divided by the model-tolerance weight (kinmodel.KinematicModel), robustified per
 observation (2-D length: Huber, Cauchy or none) and summed into JᵀWJ (P, P), JᵀWr (P,)
@@ -193,7 +193,7 @@ def world_markers(joints, rotation, translation, first, second, revolute, parent
 
     joints (F, J); rotation (F, 3, 3) and translation (F, 3) ``world_from_base``, or both
     empty (F = 0 rows) for a fixed base; first, second (J, 4, 4) the joints' motion terms
-    (mocap.machine.Machine._motion_terms); revolute (J,); parents (J,) parent links;
+    (mocap.core.machine.Machine._motion_terms); revolute (J,); parents (J,) parent links;
     at_zero (J, 4, 4); joint_links (J,); axes (J, 3) in the links' frames; marker_links (M,);
     marker_positions (M, 3) on their links; moves (J, M) which joints move which markers.
     """

@@ -19,10 +19,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mocap.core.classes import OTHER
+from mocap.core.geometry import rpy_to_matrix
+from mocap.core.ik import PlanarChain
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.geometry import rpy_to_matrix
-from mocap.ik import PlanarChain
-from mocap.machine import Machine
 from mocap.synthetic.paths import (BACKHOE, CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk,
                                    nominal_shape, stretch)
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mocap.shapes import BOX_FACES
+from mocap.core.shapes import BOX_FACES
 from mocap.synthetic.render import CameraRenderer, RenderOptions, draw_marker
 from mocap.synthetic.session import SyntheticSession
 

@@ -27,12 +27,12 @@ from collections.abc import Sequence
 import numpy as np
 import rerun as rr
 
+from mocap.core.calibration import Calibration
 from mocap.core.classes import DIG_CLASSES, OTHER
-from mocap.io.cameras_toml import Calibration
-from mocap.io.motion_csv import Motion
-from mocap.io.points_csv import Points
-from mocap.machine import Machine
-from mocap.shapes import link_boxes
+from mocap.core.machine import Machine
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.shapes import link_boxes
 from mocap.viewer import scene
 from mocap.viewer.video import Video, first_frame_jpeg
 

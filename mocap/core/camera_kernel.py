@@ -1,5 +1,5 @@
 """The camera model's projection of one point, compiled (numba), for the compiled solvers
-(the tracker's joint fit, triangulation): `mocap.camera`'s own lens model and Jacobian
+(the tracker's joint fit, triangulation): `mocap.core.camera`'s own lens model and Jacobian
 (`distorted`, `distorted_jacobian`) compiled, with the Jacobian by the camera-frame point."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 
 from numba import njit
 
-from mocap.camera import distorted, distorted_jacobian
+from mocap.core.camera import distorted, distorted_jacobian
 
 _distorted = njit(cache=True, nogil=True)(distorted)
 _distorted_jacobian = njit(cache=True, nogil=True)(distorted_jacobian)

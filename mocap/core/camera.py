@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mocap.geometry import Rigid
+from mocap.core.geometry import Rigid
 
 # paper camera axes -> OpenCV camera axes: x_cv = -Y_p, y_cv = -Z_p, z_cv = X_p
 # the lens models a fit may free: their coefficients' places in OpenCV's (k1, k2, p1, p2, k3)
