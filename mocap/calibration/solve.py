@@ -38,7 +38,7 @@ from mocap.core.machine import Machine, Tolerance
 from mocap.errors import InputError
 from mocap.reconstruct.offsets import tape_sd
 
-__all__ = ["CalibrationOptions", "CalibrationResult", "Guess", "Residual", "calibrate", "template_camera"]
+__all__ = ["CalibrationOptions", "CalibrationResult", "Residual", "calibrate", "template_camera"]
 
 log = logging.getLogger(__name__)
 
