@@ -56,12 +56,15 @@ from mocap.analysis.core import analyze
 from mocap.analysis.score import planned_truth, score_analysis
 from mocap.analysis.series import tip_series
 from mocap.analysis.stage import run_analyze
+from mocap.core.calibration import Calibration
+from mocap.core.motion import Motion
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.cycles_csv import load_cycle_table
 from mocap.io.machine_toml import load_machine, save_machine
-from mocap.io.motion_csv import Motion, load_motion, save_motion
-from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks
+from mocap.io.motion_csv import load_motion, save_motion
+from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.synthetic.machines import SceneOptions, random_cameras, random_digger
 from mocap.synthetic.motion import plan_session
 from mocap.synthetic.paths import BACKHOE, CLASSES

@@ -33,8 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mocap.demo import digitise_first_frame  # noqa: E402
-from mocap.session import Session  # noqa: E402
+from mocap.io.session import Session  # noqa: E402
+from mocap.orchestration.demo import digitise_first_frame  # noqa: E402
 
 RESULTS = ("calibration/cameras.toml", "tracks/cam1.csv", "tracks/cam2.csv", "tracks/cam3.csv",
            "results/points.csv", "results/motion.csv")

@@ -57,14 +57,15 @@ from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate
 from mocap.calibration.dlt import dlt_camera
 from mocap.calibration.problem import Layout, Problem
 from mocap.calibration.solve import template_camera
-from mocap.camera import Camera, intrinsic_matrix
+from mocap.core.calibration import Calibration
+from mocap.core.camera import Camera, intrinsic_matrix
+from mocap.core.geometry import Rigid, matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
 from mocap.errors import InputError
-from mocap.geometry import Rigid, matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
 from mocap.io.tracks_csv import save_tracks
-from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.bounds import numeric_jacobian
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 HERE = Path(__file__).resolve().parent
 NOISE_PX = 0.5
@@ -393,10 +394,10 @@ def profile_calibrate(machine, scenes, median_ms: float) -> None:
     parts = {
         "start: place_camera (PnP over focal lengths)": ("initial.py", "place_camera"),
         "start: joints_along_chain (beam search)": ("initial.py", "joints_along_chain"),
-        "fit: least_squares (all calls)": ("solve.py", "_least_squares"),
+        "fit: least_squares (all calls)": ("fit.py", "_least_squares"),
         "  of which residuals + Jacobian": ("problem.py", "_evaluate"),
         "check_jacobian (SVD)": ("identify.py", "check_jacobian"),
-        "paper-parameter sd (finite differences)": ("solve.py", "_paper_sd"),
+        "paper-parameter sd (finite differences)": ("fit.py", "_paper_sd"),
     }
     total = sum(v[3] for k, v in stats.items() if k[2] == "calibrate" and k[0].endswith("solve.py"))
     rows = []

@@ -47,9 +47,10 @@ from mocap import cli  # noqa: E402
 from mocap.batch.plan import Stage, stage_from_command  # noqa: E402
 from mocap.batch.run import run_stages  # noqa: E402
 from mocap.batch.stage import BatchOptions, run_batch  # noqa: E402
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration  # noqa: E402
+from mocap.core.calibration import Calibration  # noqa: E402
+from mocap.io.cameras_toml import load_calibration, save_calibration  # noqa: E402
+from mocap.io.session import Session  # noqa: E402
 from mocap.io.tracks_csv import load_tracks, save_tracks  # noqa: E402
-from mocap.session import Session  # noqa: E402
 
 RESULTS = ("calibration/cameras.toml", "tracks/cam1.csv", "tracks/cam2.csv", "results/points.csv",
            "results/motion.csv")
@@ -160,7 +161,7 @@ def kill_soak(command: str, kills: int, sessions: int, workers: int, seed: int, 
     from kills import make_small_session, run_killed, visible
 
     from mocap.io.lock import LOCK_NAME
-    from mocap.pipeline import RunOptions, session_steps
+    from mocap.orchestration.pipeline import RunOptions, session_steps
 
     small = work / "small" / "s"
     if not (small / "calibration" / "labels.csv").exists():

@@ -18,8 +18,8 @@ import multiprocessing
 import numpy as np
 
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
+from mocap.core.machine import Tolerance
 from mocap.errors import DegenerateError, InputError
-from mocap.machine import Tolerance
 from mocap.reconstruct.camera_share import CameraCovariance, camera_share
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets

@@ -36,10 +36,11 @@ import numpy as np  # noqa: E402
 
 from mocap.calibration import CalibrationOptions, Observations, calibrate  # noqa: E402
 from mocap.calibration.solve import template_camera  # noqa: E402
-from mocap.camera import Camera  # noqa: E402
-from mocap.geometry import Rigid, rotvec_to_matrix  # noqa: E402
+from mocap.core.camera import Camera  # noqa: E402
+from mocap.core.geometry import Rigid, rotvec_to_matrix  # noqa: E402
+from mocap.core.tracks import Tracks  # noqa: E402
 from mocap.io.machine_toml import save_machine  # noqa: E402
-from mocap.io.tracks_csv import Tracks, save_tracks  # noqa: E402
+from mocap.io.tracks_csv import save_tracks  # noqa: E402
 from mocap.reconstruct.refine import RefineOptions, refine  # noqa: E402
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate  # noqa: E402
 from mocap.synthetic.lens_scene import board_scene, chessboard  # noqa: E402

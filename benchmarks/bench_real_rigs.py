@@ -40,10 +40,11 @@ import numpy as np  # noqa: E402
 
 from mocap.calibration import CalibrationOptions, Observations, calibrate  # noqa: E402
 from mocap.calibration.solve import template_camera  # noqa: E402
-from mocap.camera import Camera  # noqa: E402
-from mocap.geometry import Rigid  # noqa: E402
+from mocap.core.camera import Camera  # noqa: E402
+from mocap.core.geometry import Rigid  # noqa: E402
+from mocap.core.tracks import concatenate  # noqa: E402
 from mocap.io.machine_toml import load_machine  # noqa: E402
-from mocap.io.tracks_csv import concatenate, load_tracks  # noqa: E402
+from mocap.io.tracks_csv import load_tracks  # noqa: E402
 from mocap.reconstruct.kinfit import fit_joints  # noqa: E402
 from mocap.reconstruct.refine import RefineOptions, refine  # noqa: E402
 from mocap.reconstruct.timing import tracks_on_reference_clock  # noqa: E402

@@ -76,9 +76,9 @@ from scipy.optimize import least_squares
 
 from mocap.calibration import CalibrationOptions, Guess, calibrate, template_camera
 from mocap.calibration.problem import Layout, Problem
-from mocap.camera import project
+from mocap.core.camera import project
+from mocap.core.machine import Tolerance
 from mocap.errors import DegenerateError, InputError
-from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets, tape_sd

@@ -4,7 +4,7 @@ Boards of DICT_4X4_50 tags (cv2.aruco.generateImageMarker) seen through a lens w
 k1 = -0.35, drifting across the view, rendered per condition (tag size, inverted print,
 motion blur, rolling shutter, defocus), H.264-encoded and decoded as `mocap track` reads
 them (luma). Per condition: the share of the wholly visible tags found (frames x tags) by
-`mocap.detect.TagFinder` (one per video, as `mocap track` runs it) and by two peers:
+`mocap.tracking.detect.TagFinder` (one per video, as `mocap track` runs it) and by two peers:
 `cv2.aruco.ArucoDetector` with its default settings ("OpenCV", as a new user runs it) and
 with its corners refined on the tag's contour ("OpenCV contour": `cornerRefinementMethod =
 CORNER_REFINE_CONTOUR`, OpenCV's most accurate refinement here), both given the picture
@@ -13,7 +13,7 @@ places corners differently, by 0.2 px at the centre); the tags either peer finds
 ours misses; the median distance between our centre and each peer's
 where both find a tag; each one's centre error against the truth (median and 95th
 percentile); and the time per frame of ours and of the default peer. A centre is the
-crossing of the tag's diagonals (`mocap.detect.diagonal_intersection`) for all three.
+crossing of the tag's diagonals (`mocap.tracking.detect.diagonal_intersection`) for all three.
 
     python benchmarks/bench_tags.py [--frames 10] [--size 1280x720] [--seed 1]
 """
@@ -29,10 +29,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mocap.detect import TagFinder, diagonal_intersection, tag_dictionary
 from mocap.io.video import Video
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.tag_board import BoardLook, render_board
+from mocap.tracking.detect import TagFinder, diagonal_intersection, tag_dictionary
 
 CONDITIONS = {
     "12 px": dict(tag_px=12),

@@ -22,11 +22,11 @@ import numpy as np
 import rerun as rr
 from scipy.interpolate import CubicSpline
 
-from mocap.io.cameras_toml import Calibration
+from mocap.core.calibration import Calibration
+from mocap.core.motion import Motion
+from mocap.core.points import Points
 from mocap.io.machine_toml import load_machine
-from mocap.io.motion_csv import Motion
 from mocap.synthetic.encode import video_writer
-from mocap.io.points_csv import Points
 from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.viewer import Cycles, Replay, Sinks, run_replay
 from mocap.viewer import record, scene

@@ -21,13 +21,16 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Machine
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine as _load_machine
 from mocap.io.machine_toml import save_machine
-from mocap.io.points_csv import Points, load_points, points_columns, save_points
-from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks, tracks_columns
-from mocap.machine import Machine
+from mocap.io.points_csv import load_points, points_columns, save_points
+from mocap.io.tracks_csv import load_tracks, save_tracks, tracks_columns
 
 __all__ = [
     "Cameras", "Cycles", "InputError", "Motion", "PointsTable", "Refined", "Session", "analyze", "calibrate",
@@ -76,7 +79,7 @@ def tracks_to_arrow(tracks: Tracks) -> pa.Table:
 
 
 class Cameras(Calibration):
-    """A camera calibration (mocap.io.cameras_toml.Calibration) that writes itself."""
+    """A camera calibration (mocap.core.calibration.Calibration) that writes itself."""
 
     @classmethod
     def of(cls, calibration: Calibration) -> Cameras:
@@ -94,7 +97,7 @@ def read_calibration(path: str | Path) -> Cameras:
 
 @dataclass(frozen=True)
 class PointsTable:
-    """Triangulated points (`points`: mocap.io.points_csv.Points) and the stage's report."""
+    """Triangulated points (`points`: mocap.core.points.Points) and the stage's report."""
 
     points: Points
     report: str = ""
@@ -119,7 +122,7 @@ def read_points(path: str | Path) -> PointsTable:
 
 @dataclass(frozen=True)
 class Motion:
-    """A machine's motion (`motion`: mocap.io.motion_csv.Motion, radians and metres inside)
+    """A machine's motion (`motion`: mocap.core.motion.Motion, radians and metres inside)
     with its model; the table has the motion file's columns and units (degrees, metres)."""
 
     motion: object
@@ -305,7 +308,7 @@ class Session:
     writes the folder's files exactly as `mocap run` does and returns the stage's report."""
 
     def __init__(self, path: str | Path) -> None:
-        from mocap.session import Session as Folder
+        from mocap.io.session import Session as Folder
 
         self.folder = Folder.open(path)
 
@@ -337,7 +340,7 @@ class Session:
         Cameras.of(cameras).write(path)
 
     def _steps(self, refine: bool = False, view: bool = True, labels: str | Path | None = None) -> dict:
-        from mocap.pipeline import RunOptions, session_steps
+        from mocap.orchestration.pipeline import RunOptions, session_steps
 
         options = RunOptions(Path(labels) if labels else None, refine, view)
         return {step.name: step for step in session_steps(self.folder, options)}
@@ -380,7 +383,7 @@ class Session:
     def run(self, refine: bool = False, view: bool = True, labels: str | Path | None = None) -> int:
         """The whole chain, as `mocap run` (each stage's report printed); 0, or 2 when a stage
         refused its input (its one line on stderr)."""
-        from mocap.pipeline import RunOptions, run_session
+        from mocap.orchestration.pipeline import RunOptions, run_session
 
         return run_session(self.root, RunOptions(Path(labels) if labels else None, refine, view))
 

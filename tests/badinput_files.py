@@ -11,7 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import MACHINES_DIR, load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks

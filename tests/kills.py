@@ -73,8 +73,8 @@ def make_small_session(root: Path) -> Path:
     """A session as a user brings it to `mocap run`: two cameras at 480x270 and 5 fps, one dig
     cycle, the calibration frame's labels digitised."""
     from mocap import cli
-    from mocap.demo import digitise_first_frame
-    from mocap.session import Session
+    from mocap.io.session import Session
+    from mocap.orchestration.demo import digitise_first_frame
 
     assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cameras", "2", "--cycles", "1", "--size", "480x270",
                      "--fps", "5", "--clean", "--out", str(root)]) == 0

@@ -17,8 +17,8 @@ from mocap.analysis.score import planned_truth, score_analysis
 from mocap.analysis.series import tip_series
 from mocap.analysis.shape import build_templates, DigPaths
 from mocap.analysis.similarity import group_digs
+from mocap.core.ik import PlanarChain
 from mocap.errors import InputError
-from mocap.ik import PlanarChain
 from mocap.io.cycles_csv import load_cycle_table, save_cycle_table
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import save_motion

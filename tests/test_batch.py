@@ -15,14 +15,15 @@ from mocap import cli
 from mocap.batch.fleet import CLASSES
 from mocap.batch.plan import ANALYSIS_DIR, Stage, find_sessions, split_tasks, stage_from_command
 from mocap.batch.stage import BatchOptions, run_batch
+from mocap.core.calibration import Calibration
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.cycles_csv import load_cycles
 from mocap.io.motion_csv import load_motion
+from mocap.io.session import Session
 from mocap.io.session_toml import load_session_config, save_session_config
 from mocap.io.tracks_csv import load_tracks, save_tracks
-from mocap.pipeline import sync_step, triangulate_step
-from mocap.session import Session
+from mocap.orchestration.pipeline import sync_step, triangulate_step
 
 pytest.importorskip("distributed")
 cloudpickle = pytest.importorskip("cloudpickle")

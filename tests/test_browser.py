@@ -19,8 +19,8 @@ from mocap import cli
 from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.cycles_csv import load_cycle_table
 from mocap.io.motion_csv import load_motion, save_motion
+from mocap.io.session import Session
 from mocap.io.tracks_csv import load_tracks, save_tracks
-from mocap.session import Session
 
 CHECK = (Path(__file__).parent / "data" / "page_check.js").read_text()
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")

@@ -10,7 +10,8 @@ from conftest import write_opencv_intrinsics
 from mocap.calibration import Observations, calibrate, template_camera
 from mocap.calibration.solve import CalibrationOptions
 from mocap.cli import main
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.core.calibration import Calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.bounds import calibration_centre_sd

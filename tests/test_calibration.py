@@ -7,9 +7,9 @@ from conftest import scene
 from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate, template_camera
 from mocap.calibration.dlt import decompose_projection, dlt_camera
 from mocap.calibration.problem import Layout, Problem
-from mocap.camera import Camera, PaperCamera
+from mocap.core.camera import Camera, PaperCamera
+from mocap.core.geometry import rotation_angle_between
 from mocap.errors import ConvergenceError, DegenerateError
-from mocap.geometry import rotation_angle_between
 from mocap.io.machine_toml import machine_from_dict, machine_to_dict
 from mocap.synthetic.scenes import look_at_camera, observe
 

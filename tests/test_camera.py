@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mocap.camera import Camera, PaperCamera, project, project_cam
+from mocap.core.camera import Camera, PaperCamera, project, project_cam
 from mocap.synthetic.scenes import look_at_camera
 
 
@@ -64,7 +64,7 @@ def test_paper_view_round_trips_exactly():
 def test_paper_equations_give_the_opencv_pixels():
     """x = M y_C / x_C and y = M z_C / x_C, measured from the principal point leftward and
     upward, with C_P = R^T (A_P - A_P_C) and R = Rz(a) Ry(e) Rx(t)."""
-    from mocap.geometry import rot_x, rot_y, rot_z
+    from mocap.core.geometry import rot_x, rot_y, rot_z
 
     paper = PaperCamera(np.radians(170), np.radians(12), np.radians(-3), np.array([45.0, -6, 10]), 2200.0)
     camera = Camera.from_paper("c", (1920, 1080), paper)

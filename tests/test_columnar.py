@@ -5,12 +5,15 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine
-from mocap.io.motion_csv import Motion, load_motion, save_motion
-from mocap.io.points_csv import Points, load_points, save_points
+from mocap.io.motion_csv import load_motion, save_motion
+from mocap.io.points_csv import load_points, save_points
 from mocap.io.text import read_text
-from mocap.io.tracks_csv import Tracks, _parse, _validate, load_tracks, save_tracks
+from mocap.io.tracks_csv import _parse, _validate, load_tracks, save_tracks
 
 FIELDS = ("camera", "frame", "marker", "xy", "time", "score")
 

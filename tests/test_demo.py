@@ -5,8 +5,8 @@ dig cycles to stay fast, scored against the truth."""
 import numpy as np
 
 from mocap.cli import main
-from mocap.evaluate import score_session
 from mocap.io.cameras_toml import load_calibration
+from mocap.orchestration.evaluate import score_session
 
 
 def test_demo_chain_reaches_the_truth(tmp_path, capsys):

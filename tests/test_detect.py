@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mocap.detect import (
+from mocap.tracking.detect import (
     DetectOptions,
     Detections,
     detect_disks,

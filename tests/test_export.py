@@ -6,15 +6,19 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.core.calibration import Calibration
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
 from mocap.interchange.markers import marker_table
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine, machine_from_dict, save_machine
-from mocap.io.motion_csv import Motion, save_motion
-from mocap.io.points_csv import Points, load_points, save_points
+from mocap.io.motion_csv import save_motion
+from mocap.io.points_csv import load_points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
+from mocap.io.tracks_csv import save_tracks
 from mocap.io.trc import load_trc
-from mocap.io.tracks_csv import Tracks, save_tracks
 from mocap.synthetic.scenes import random_joints, ring_of_cameras
 
 FPS = 29.97

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.core.geometry import rpy_to_matrix
 from mocap.errors import EXIT_INTERRUPTED, InputError
-from mocap.geometry import rpy_to_matrix
 from mocap.io.motion_csv import base_columns
 
 from kills import kill_at, run_killed, visible
@@ -192,7 +192,8 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
 
     from test_track import make_scene, write_video
 
-    from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+    from mocap.core.calibration import Calibration, joints_to_table
+    from mocap.io.cameras_toml import save_calibration
 
     frames, uv, seen, model, joints = make_scene(n_frames=16, clutter=4, seed=3)
     inputs = tmp_path / "in"
@@ -307,8 +308,8 @@ def whole_run(small_session, tmp_path_factory):
     import shutil
     import time
 
-    from mocap.pipeline import RunOptions, session_steps
-    from mocap.session import Session
+    from mocap.io.session import Session
+    from mocap.orchestration.pipeline import RunOptions, session_steps
 
     root = tmp_path_factory.mktemp("whole") / "s"
     shutil.copytree(small_session, root)

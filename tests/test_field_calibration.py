@@ -9,8 +9,8 @@ import pytest
 
 from mocap.calibration import CalibrationOptions, calibrate, initial, template_camera
 from mocap.calibration.noise import pixel_noise, robust_sigma
+from mocap.core.machine import Tolerance
 from mocap.errors import DegenerateError
-from mocap.machine import Tolerance
 from mocap.synthetic.bounds import calibration_centre_sd
 from mocap.synthetic.machines import SceneOptions, random_scene
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Tolerance
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import save_machine
 from mocap.io.tracks_csv import save_tracks
-from mocap.machine import Tolerance
 from mocap.reconstruct.ambiguity import second_solutions
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.uncertainty import point_quantities

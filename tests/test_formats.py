@@ -3,14 +3,17 @@ import tomllib
 import numpy as np
 import pytest
 
-from mocap.camera import Camera
+from mocap.core.calibration import Calibration
+from mocap.core.camera import Camera
+from mocap.core.geometry import Rigid
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
-from mocap.geometry import Rigid
 from mocap.io import toml_writer
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
-from mocap.io.points_csv import Points, load_points, save_points
+from mocap.io.cameras_toml import load_calibration, save_calibration
+from mocap.io.points_csv import load_points, save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, load_session_config, save_session_config
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+from mocap.io.tracks_csv import load_tracks, save_tracks
 
 
 def _calibration(n=11):

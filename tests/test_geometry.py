@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mocap.geometry import (
+from mocap.core.geometry import (
     Rigid,
     matrix_to_rpy,
     rot_x,

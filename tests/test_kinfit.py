@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mocap.geometry import rotvec_to_matrix
+from mocap.core.geometry import rotvec_to_matrix
 from mocap.io.machine_toml import load_machine
 from mocap.reconstruct import kinfit, kinmodel
 from mocap.reconstruct.kinfit import FitOptions, fit_joints

@@ -129,7 +129,7 @@ def test_streaming_tracker_labels_as_mocap_track_and_the_recorded_session(short_
     """Read as fast as tracked (no frame dropped), the labels `mocap live --record` keeps for
     each camera are those of `mocap track` on the same video; the session folder names the
     cameras, videos and calibration for the offline chain; a .parquet output has every row."""
-    from mocap.session import Session
+    from mocap.io.session import Session
 
     root, session = short_session
     record = tmp_path / "session"

@@ -5,8 +5,8 @@ tracks never make a frame `unexplained`; frames that no pose explains still are.
 import numpy as np
 import pytest
 
+from mocap.core.tracks import concatenate
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import concatenate
 from mocap.reconstruct.kinfit import fit_joints, noise_floor
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.synthetic.machines import random_motion

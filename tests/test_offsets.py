@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Tolerance
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.tracks_csv import save_tracks
-from mocap.machine import Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import MarkerOffsets, bounded_step, fit_with_offsets, tape_bound, tape_sd
 from mocap.reconstruct.timing import tracks_on_reference_clock

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import EXIT_OK, EXIT_PARTIAL
-from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
-from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
+from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.machines import random_motion
 from mocap.synthetic.scenes import observe, ring_of_cameras
 
@@ -125,9 +127,9 @@ def test_a_batch_stage_that_did_part_of_its_work_is_partial_also_when_skipped(tm
 def test_run_carries_on_after_a_partial_stage_and_exits_3_unless_allowed(tmp_path, monkeypatch, capsys):
     """`mocap run`'s chain: a stage that did part of its work prints its line, the stages
     after it run, the run exits 3; with --allow-partial (as the demo runs it) 0."""
-    from mocap import pipeline
     from mocap.errors import Report
-    from mocap.pipeline import RunOptions, Step, run_session
+    from mocap.orchestration import pipeline
+    from mocap.orchestration.pipeline import RunOptions, Step, run_session
 
     ran = []
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
+from mocap.core.machine import Tolerance
 from mocap.errors import DegenerateError
 from mocap.io.machine_toml import machine_from_dict, machine_to_dict
-from mocap.machine import Tolerance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.timing import tracks_on_reference_clock
 from mocap.reconstruct.triangulate import triangulate, triangulate_tracks

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from mocap import cli
+from mocap.core.calibration import Calibration
+from mocap.core.geometry import Rigid, rotvec_to_matrix
 from mocap.errors import ConvergenceError, DegenerateError
-from mocap.geometry import Rigid, rotvec_to_matrix
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.tracks_csv import save_tracks
 from mocap.reconstruct.kinfit import fit_joints

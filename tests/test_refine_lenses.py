@@ -12,8 +12,8 @@ from mocap.calibration.solve import template_camera
 from mocap.io.machine_toml import load_machine
 from mocap.reconstruct.refine import RefineOptions, _Bundle, refine
 from mocap.reconstruct.triangulate import TriangulateOptions, triangulate
-from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.lens_scene import board_scene
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 
 NOISE = 0.3
 
@@ -113,7 +113,8 @@ def test_unknown_lens_model_is_refused():
 
 
 def write_inputs(folder, scene, cameras):
-    from mocap.io.cameras_toml import Calibration, save_calibration
+    from mocap.core.calibration import Calibration
+    from mocap.io.cameras_toml import save_calibration
     from mocap.io.machine_toml import save_machine
     from mocap.io.tracks_csv import save_tracks
 

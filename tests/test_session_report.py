@@ -12,9 +12,9 @@ from mocap import cli
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.motion_csv import load_motion, save_motion
+from mocap.io.session import Session
 from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.report.session_report import advice, marker_shares, session_quality, write_session_report
-from mocap.session import Session
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 from mocap import cli
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.core.calibration import Calibration
+from mocap.core.tracks import Tracks
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import load_motion
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.reconstruct.motion import reconstruct_motion
 from mocap.reconstruct.smooth import SmoothOptions, smooth
 from mocap.reconstruct.uncertainty import point_quantities

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
-from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
-from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
-from mocap.synthetic.scenes import observe, ring_of_cameras
 from mocap.clocks.align import JointCurves, joint_curves, synchronise, window_frames
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.tracks import Tracks, concatenate
+from mocap.io.cameras_toml import save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.tracks_csv import save_tracks
+from mocap.synthetic.scenes import observe, ring_of_cameras
 
 FPS = np.array([30.0, 29.97, 25.0])
 OFFSETS = np.array([0.0, 0.437, -1.213])

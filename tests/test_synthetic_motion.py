@@ -6,6 +6,9 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
+from mocap.core.ik import PlanarChain
+from mocap.core.shapes import link_boxes
+from mocap.core.visibility import marker_normals, segment_hits_box
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import MACHINES_DIR, load_machine
@@ -13,13 +16,10 @@ from mocap.io.motion_csv import load_motion, world_from_base_of
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import load_session_config
 from mocap.io.tracks_csv import load_tracks
-from mocap.synthetic.scenes import random_joints
 from mocap.synthetic import SessionOptions, make_session
-from mocap.ik import PlanarChain
 from mocap.synthetic.motion import check_limits, plan_session
 from mocap.synthetic.paths import min_jerk
-from mocap.visibility import marker_normals, segment_hits_box
-from mocap.shapes import link_boxes
+from mocap.synthetic.scenes import random_joints
 
 MACHINES = ("hitachi_ex3500", "bobcat_225")
 
@@ -309,7 +309,7 @@ def test_small_objects_check_their_shapes(session):
 
 def test_cli_copies_a_model_from_outside_into_the_session(tmp_path):
     from mocap.io.machine_toml import MACHINES_DIR
-    from mocap.session import Session
+    from mocap.io.session import Session
 
     model = tmp_path / "my_excavator.toml"
     model.write_text((MACHINES_DIR / "bobcat_225.toml").read_text())

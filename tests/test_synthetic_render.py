@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
+from mocap.core.visibility import segment_hits_box
 from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import load_session_config
 from mocap.io.tracks_csv import load_tracks
@@ -15,7 +16,6 @@ from mocap.synthetic.effects import CameraEffects, EffectOptions
 from mocap.synthetic.encode import frame_rate, video_writer
 from mocap.synthetic.render import BLACK, WHITE, CameraRenderer, RenderOptions
 from mocap.synthetic.videos import render_videos
-from mocap.visibility import segment_hits_box
 
 
 @pytest.fixture(scope="module")

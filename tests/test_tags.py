@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from mocap.cli import main
-from mocap.detect import detect_tags, diagonal_intersection, tag_dictionary
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
 from mocap.synthetic.encode import video_writer
 from mocap.synthetic.tag_board import BoardLook, render_board
+from mocap.tracking.detect import detect_tags, diagonal_intersection, tag_dictionary
 from mocap.tracking.preview import marker_colours
 
 LOOKS = {

@@ -9,7 +9,7 @@ import pytest
 
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
 from mocap.calibration.report import format_report
-from mocap.machine import Tolerance
+from mocap.core.machine import Tolerance
 from mocap.synthetic.machines import SceneOptions, random_scene
 
 from test_field_calibration import _bound, _field_scene

@@ -10,18 +10,20 @@ import cv2
 import numpy as np
 import pytest
 
-from mocap.camera import project_cam
 from mocap.cli import main
-from mocap.visibility import visible_markers
-from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.camera import project_cam
+from mocap.core.tracks import Tracks
+from mocap.core.visibility import visible_markers
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.io.video import Video
 from mocap.synthetic.scenes import look_at_camera
 from mocap.tracking import CameraModel, TrackOptions, track_frames
+from mocap.tracking.detect import detect_disks
 from mocap.tracking.labels import labels_from_pixels
 from mocap.tracking.tracker import assign
-from mocap.detect import detect_disks
 from test_detect import background, draw_clutter, draw_markers, finish
 
 MARKER_RADIUS = 0.07  # m, on the Bobcat
@@ -201,7 +203,7 @@ def test_compiled_fit_is_the_numpy_fit(distortion):
 
 
 def numpy_view(model: CameraModel, joints: np.ndarray):
-    """`CameraModel.view` by `mocap.visibility`'s vectorised numpy: pixels, seen, px per metre."""
+    """`CameraModel.view` by `mocap.core.visibility`'s vectorised numpy: pixels, seen, px per metre."""
     poses = model.machine.link_poses(joints)
     camera = model.camera
     cam_from_world = np.broadcast_to(camera.cam_from_world.matrix, (len(joints), 4, 4))
@@ -221,7 +223,7 @@ def numpy_view(model: CameraModel, joints: np.ndarray):
 
 @pytest.mark.parametrize("solid", [True, False])
 def test_compiled_view_is_the_numpy_view(solid):
-    """The compiled view gives `mocap.visibility`'s pixels and hidden markers, and the same
+    """The compiled view gives `mocap.core.visibility`'s pixels and hidden markers, and the same
     scale, over a machine's motion (markers turning away, hidden by links, leaving the
     picture), through a distorting lens."""
     rng = np.random.default_rng(9)
@@ -432,7 +434,7 @@ def draw_tags(image, camera, centres, normals, ids, side: float, dictionary: str
     3) drawn into `image` by their plane's homography; returns the true centres (N, 2)."""
     from test_detect import disk_frame
 
-    from mocap.detect import tag_dictionary
+    from mocap.tracking.detect import tag_dictionary
 
     tile_px = 60
     for centre, normal, tag_id in zip(centres, normals, ids):

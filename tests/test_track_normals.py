@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from mocap.camera import project_cam
+from mocap.core.camera import project_cam
+from mocap.core.visibility import plane_axes
 from mocap.io.machine_toml import load_machine
 from mocap.synthetic.render import RenderOptions
 from mocap.synthetic.session import make_session
@@ -16,7 +17,6 @@ from mocap.synthetic.videos import renderer_for
 from mocap.tracking import CameraModel, track_frames
 from mocap.tracking.normals import NormalEvidence, NormalLearner, normal_candidates
 from mocap.tracking.run import _learned_model
-from mocap.visibility import plane_axes
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:

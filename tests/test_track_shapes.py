@@ -8,18 +8,18 @@ import cv2
 import numpy as np
 import pytest
 
+from mocap.core.shapes import box_corners, link_boxes
+from mocap.core.visibility import marker_normals, visible_markers
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, machine_from_dict, machine_to_dict
-from mocap.shapes import box_corners, link_boxes
 from mocap.synthetic.meshes import Solids, machine_solids, solids_in_view
 from mocap.synthetic.looks import random_look
 from mocap.synthetic.render import RenderOptions
-from mocap.synthetic.videos import renderer_for
 from mocap.synthetic.session import make_session
+from mocap.synthetic.videos import renderer_for
 from mocap.tracking import CameraModel, track_frames
 from mocap.tracking.run import _dark_spots, label_first_frame
 from mocap.tracking.tracker import Tracker, TrackOptions
-from mocap.visibility import marker_normals, visible_markers
 
 N_FRAMES = 40
 

@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 
 from mocap import cli
-from mocap.camera import Camera
-from mocap.geometry import Rigid, rotvec_to_matrix
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.core.calibration import Calibration
+from mocap.core.camera import Camera
+from mocap.core.geometry import Rigid, rotvec_to_matrix
+from mocap.core.tracks import Tracks
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points
-from mocap.io.tracks_csv import Tracks, save_tracks
+from mocap.io.tracks_csv import save_tracks
 from mocap.reconstruct.outliers import track_outliers
 from mocap.reconstruct.timing import resample, tracks_on_reference_clock
 from mocap.reconstruct.triangulate import (
@@ -38,7 +40,7 @@ def rig(n_cameras, seed, distorted=True):
 
 def cramer_rao_mahalanobis(cameras, world, used, error):
     """error^T (J^T J / sigma^2) error per point, J the projection Jacobian at the truth."""
-    from mocap.camera import project_cam
+    from mocap.core.camera import project_cam
 
     info = np.zeros(world.shape[:-1] + (3, 3))
     for c, camera in enumerate(cameras):

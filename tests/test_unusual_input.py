@@ -20,17 +20,19 @@ from test_track import make_scene, write_video
 
 import mocap.synthetic.videos as videos
 from mocap.cli import main
+from mocap.clocks.stage import frame_rates
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.geometry import rotvec_to_matrix
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path, write_text
-from mocap.geometry import rotvec_to_matrix
-from mocap.io.cameras_toml import Calibration, joints_to_table, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.points_csv import load_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
-from mocap.io.tracks_csv import Tracks, concatenate, load_tracks, save_tracks
+from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.synthetic.scenes import look_at_camera
-from mocap.clocks.stage import frame_rates
 
 
 @pytest.fixture(scope="module")

@@ -15,15 +15,18 @@ from rerun.chunk import RrdReader
 from scipy.interpolate import CubicSpline
 
 from mocap.cli import main
+from mocap.core.calibration import Calibration
+from mocap.core.motion import Motion
+from mocap.core.points import Points
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.motion_csv import Motion, load_motion, save_motion
-from mocap.io.points_csv import Points, save_points
+from mocap.io.motion_csv import load_motion, save_motion
+from mocap.io.points_csv import save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
-from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.synthetic.encode import video_writer
+from mocap.synthetic.scenes import observe, random_joints, ring_of_cameras
 from mocap.viewer import Cycles, Replay, Sinks, load_cycles, run_replay
 from mocap.viewer import replay as replay_module
 from mocap.viewer import scene

@@ -134,7 +134,7 @@ def format_analysis_score(score: AnalysisScore) -> str:
 def planned_truth(machine, plan, fps: float = 30.0):
     """The truth motion (Motion at `fps`, base bouncing included) and truth cycles table of
     a planned synthetic session (`mocap.synthetic.motion.plan_session`), without cameras."""
-    from mocap.io.motion_csv import Motion
+    from mocap.core.motion import Motion
 
     times = np.arange(0.0, plan.duration, 1.0 / fps)
     joints = plan.joints(times)

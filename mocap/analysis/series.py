@@ -21,8 +21,8 @@ import numpy as np
 from scipy.ndimage import median_filter
 from scipy.signal import savgol_filter
 
+from mocap.core.motion import Motion
 from mocap.errors import InputError
-from mocap.io.motion_csv import Motion
 
 TIP = "bucket_tip"
 GLITCH_DEG = 20.0  # a bucket angle this far from its 1.5 s running median is a fitting glitch

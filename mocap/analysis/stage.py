@@ -11,9 +11,10 @@ from mocap.analysis.core import Analysis, analyze
 from mocap.analysis.report import render_report
 from mocap.analysis.series import tip_series
 from mocap.analysis.templates import templates_table
+from mocap.core.cycles import Cycles
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
-from mocap.io.cycles_csv import Cycles, load_cycles, save_cycle_table
+from mocap.io.cycles_csv import load_cycles, save_cycle_table
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.templates_toml import save_templates
@@ -48,7 +49,7 @@ def run_analyze(machine_path: str | Path, motion_path: str | Path, out: str | Pa
 
 
 def analyze_motion(motion, cycles: Cycles | None = None, cycles_path=None) -> Analysis:
-    """The dig cycles of a motion (mocap.io.motion_csv.Motion); with `cycles`, only the digs
+    """The dig cycles of a motion (mocap.core.motion.Motion); with `cycles`, only the digs
     inside those cycles (`cycles_path` names them in messages)."""
     series = tip_series(motion)
     analysis = analyze(series)

@@ -11,9 +11,9 @@ import logging
 import numpy as np
 
 from mocap.analysis.core import Analysis
+from mocap.core.ik import PlanarChain
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.ik import PlanarChain
-from mocap.machine import Machine
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,8 @@ import datetime
 
 import numpy as np
 
+from mocap.core.cycles import Cycles
 from mocap.core.session_summary import CLASSES, SessionSummary
-from mocap.io.cycles_csv import Cycles
 
 def machine_and_day(metadata: dict, model_name: str) -> tuple[str, str]:
     machine = str(metadata.get("machine_id", model_name))

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mocap.errors import InputError
-from mocap.pipeline import RunOptions, session_steps
-from mocap.session import Session
+from mocap.io.session import Session
+from mocap.orchestration.pipeline import RunOptions, session_steps
 
 _OUTPUT_FLAGS = ("--out", "--points")  # the flags whose value a stage writes
 ANALYSIS_DIR = Path("results")  # where `mocap run`'s analyze stage writes cycles.csv

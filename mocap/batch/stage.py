@@ -133,7 +133,7 @@ def summarize(root: Path, label: str, results: list[TaskResult]) -> SessionSumma
     """A session's summary (named `label`) from its tasks' results and, if its chain ran, its cycles."""
     from mocap.io.cycles_csv import load_cycles
     from mocap.io.motion_csv import load_motion
-    from mocap.session import Session
+    from mocap.io.session import Session
 
     session = Session.open(root)
     config = session.config()
@@ -210,7 +210,7 @@ def run_batch(paths, options: BatchOptions, chain_for: Callable[[Path], list[Sta
     from mocap.io.atomic import write_text
     from mocap.io.fleet_csv import save_fleet
     from mocap.io.lock import folder_lock
-    from mocap.pipeline import RunOptions
+    from mocap.orchestration.pipeline import RunOptions
 
     start = time.perf_counter()
     sessions = find_sessions(paths)

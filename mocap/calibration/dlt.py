@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from mocap.camera import Camera
+from mocap.core.camera import Camera
+from mocap.core.geometry import Rigid
 from mocap.errors import DegenerateError
-from mocap.geometry import Rigid
 
 COPLANAR_RATIO = 1e-3
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mocap.core.machine import Machine
 from mocap.errors import DegenerateError
-from mocap.machine import Machine
 
 COLLINEAR_RATIO = 1e-3  # second / first singular value of centred points below which they are a line
 RANK_TOL = 1e-10  # relative singular value treated as zero

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from mocap.camera import Camera, intrinsic_matrix
-from mocap.geometry import Rigid
-from mocap.machine import REVOLUTE, Machine
+from mocap.core.camera import Camera, intrinsic_matrix
+from mocap.core.geometry import Rigid
+from mocap.core.machine import REVOLUTE, Machine
 
 FOCAL_GRID = np.geomspace(0.2, 12.0, 28)  # focal lengths tried, in image widths
 BEAM = 4

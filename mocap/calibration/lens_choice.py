@@ -16,11 +16,12 @@ from dataclasses import replace
 import numpy as np
 
 from mocap.calibration.problem import Observations
-from mocap.reconstruct.chi2 import upper_quantile
-from mocap.calibration.solve import CalibrationOptions, CalibrationResult, Guess, calibrate
-from mocap.camera import Camera
+from mocap.calibration.solve import CalibrationOptions, CalibrationResult, calibrate
+from mocap.core.camera import Camera
+from mocap.core.guess import Guess
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.machine import Machine
+from mocap.reconstruct.chi2 import upper_quantile
 
 log = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from mocap.camera import DISTORTION_MODELS, Camera, project_cam
-from mocap.geometry import Rigid
+from mocap.core.camera import DISTORTION_MODELS, Camera, project_cam
+from mocap.core.geometry import Rigid
 
 BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that the solver can start)
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")

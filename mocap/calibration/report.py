@@ -6,10 +6,10 @@ import numpy as np
 
 from mocap.calibration.dlt import DltResult
 from mocap.calibration.solve import CalibrationResult
-from mocap.camera import Camera
-from mocap.io.cameras_toml import Calibration, joints_to_table
-from mocap.io.points_csv import Points
-from mocap.machine import REVOLUTE, Machine
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.camera import Camera
+from mocap.core.machine import REVOLUTE, Machine
+from mocap.core.points import Points
 from mocap.reconstruct.camera_share import CameraCovariance
 
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")

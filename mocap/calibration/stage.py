@@ -13,13 +13,14 @@ from mocap.calibration.dlt import dlt_camera
 from mocap.calibration.lens_choice import calibrate_choosing_lens
 from mocap.calibration.problem import Observations
 from mocap.calibration.solve import CalibrationOptions, calibrate, template_camera
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
 from mocap.io.cameras_toml import save_calibration
 from mocap.io.guess_toml import load_guess
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points, save_points
-from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
+from mocap.io.tracks_csv import check_in_images, load_tracks
 
 
 @dataclass(frozen=True)
@@ -48,12 +49,12 @@ class Calibrated:
 
     @property
     def calibration(self):
-        """The cameras (mocap.io.cameras_toml.Calibration), with the joints and the frame."""
+        """The cameras (mocap.core.calibration.Calibration), with the joints and the frame."""
         return report.to_calibration(self.result, self.frame)
 
     @property
     def reference_points(self):
-        """The markers' 3-D positions at the calibration frame (mocap.io.points_csv.Points)."""
+        """The markers' 3-D positions at the calibration frame (mocap.core.points.Points)."""
         return report.reference_points(self.result, self.frame)
 
     def report(self, out, points_out) -> str:
@@ -177,8 +178,8 @@ def _size(sizes: dict, name: str) -> tuple[int, int]:
 def video_sizes(tracks_paths) -> dict:
     """{camera: ((w, h), video path)} of the videos of the session the tracks files lie in
     (a folder with session.toml, the tracks in it or in its tracks/), where they exist."""
+    from mocap.io.session import Session
     from mocap.io.video import Video
-    from mocap.session import Session
 
     for path in tracks_paths:
         here = Path(path).resolve().parent

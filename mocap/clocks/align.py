@@ -26,8 +26,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline, make_smoothing_spline
 from scipy.optimize import minimize_scalar
 
-from mocap.camera import Camera
-from mocap.machine import Machine
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 
 log = logging.getLogger(__name__)

@@ -23,8 +23,8 @@ import numpy as np
 from scipy.interpolate import make_smoothing_spline
 from scipy.optimize import minimize_scalar
 
-from mocap.camera import Camera
-from mocap.machine import Machine
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 
 MAX_FRAMES = 240  # about as many times of the reference's clock fitted (evenly spread)

@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.errors import InputError, Report
-from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, Calibration, load_calibration, save_calibration
-from mocap.io.machine_toml import load_machine
-from mocap.machine import Machine
-from mocap.io.tracks_csv import Tracks, check_in_images, load_tracks
 from mocap.clocks.align import SMOOTH_S, SyncResult, joint_curves, pose_curves, synchronise, window_frames
 from mocap.clocks.pixels import CameraPixels, refine_offsets
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks
+from mocap.errors import InputError, Report
+from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, load_calibration, save_calibration
+from mocap.io.machine_toml import load_machine
+from mocap.io.tracks_csv import check_in_images, load_tracks
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:

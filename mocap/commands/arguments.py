@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # mocap.machine (and scipy with it) only when the option is given
-    from mocap.machine import Tolerance
+if TYPE_CHECKING:  # mocap.core.machine (and scipy with it) only when the option is given
+    from mocap.core.machine import Tolerance
 
 
 DISTORTION_CHOICES = ("auto", "none", "k1", "k1k2", "full")  # the calibration's models and auto, without scipy
@@ -15,7 +15,7 @@ DISTORTION_CHOICES = ("auto", "none", "k1", "k1k2", "full")  # the calibration's
 def tolerance(text: str) -> Tolerance:
     """--tolerance: "5%" or 0.05 (a fraction of each marker's distance from its link's
     origin), or "0.03m" / "3cm" / "30mm" (a length)."""
-    from mocap.machine import Tolerance
+    from mocap.core.machine import Tolerance
 
     try:
         return Tolerance.parse(text)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from mocap.commands import COMMANDS
-from mocap.demo import DemoOptions, run_demo
+from mocap.orchestration.demo import DemoOptions, run_demo
 
 
 def add_parser(sub) -> None:

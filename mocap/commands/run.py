@@ -33,7 +33,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from mocap.io.lock import folder_lock
-    from mocap.pipeline import RunOptions, run_session
+    from mocap.orchestration.pipeline import RunOptions, run_session
 
     with folder_lock(args.session, "mocap run"):  # one command at a time writes the session
         return run_session(args.session, RunOptions(args.labels, args.refine, not args.no_view, args.allow_partial))

@@ -73,7 +73,7 @@ def _locked(out: str | None):
 
 
 def run(args) -> int:
-    from mocap.detect import DetectOptions
+    from mocap.tracking.detect import DetectOptions
     from mocap.tracking.stage import TrackRequest, run_track
     from mocap.tracking.tracker import TrackOptions
 

@@ -67,7 +67,7 @@ def run(args) -> int:
     if args.open and sinks.save is None:
         if args.session is None:
             raise InputError("--open opens a saved recording: pass --save FILE.rrd or a session folder")
-        from mocap.session import Session
+        from mocap.io.session import Session
 
         sinks = Sinks(Session.open(args.session).recording_path, args.connect, args.serve, args.spawn)
     print(run_view(files, args.session, sinks, on_serving=lambda where: print(where, flush=True)))

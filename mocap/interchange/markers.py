@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.errors import InputError
 from mocap.core.marker_table import MarkerTable
-from mocap.io.motion_csv import Motion
-from mocap.io.points_csv import Points
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.errors import InputError
 
 
 def marker_table(

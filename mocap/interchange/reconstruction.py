@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocap.core.points import Points
 from mocap.errors import InputError
-from mocap.io.points_csv import Points
 
 
 @dataclass(frozen=True)

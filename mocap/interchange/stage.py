@@ -9,7 +9,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.interchange.markers import marker_table
 from mocap.interchange.reconstruction import reconstruction
-from mocap.session import Session
+from mocap.io.session import Session
 
 MARKER_FORMATS = ("c3d", "trc")
 

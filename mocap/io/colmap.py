@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.camera import Camera
+from mocap.core.camera import Camera
 from mocap.errors import InputError
 from mocap.io.text import read_text
 

@@ -17,12 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.core.calibration import joints_from_table
+from mocap.core.camera import PaperCamera
 from mocap.core.guess import Guess
-from mocap.camera import PaperCamera
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.io.cameras_toml import joints_from_table, numbers
+from mocap.io.cameras_toml import numbers
 from mocap.io.text import read_toml
-from mocap.machine import Machine
 
 _KEYS = {"azimuth_deg", "elevation_deg", "tilt_deg", "position", "focal_px"}
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.camera import Camera
+from mocap.core.camera import Camera
 from mocap.errors import InputError
 
 _OPENCV_SUFFIXES = (".yaml", ".yml", ".xml")

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.core.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine, Tolerance
 from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
 from mocap.io.text import read_toml
-from mocap.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine, Tolerance
 
 MAX_LENGTH_M = 1e4  # 10 km: no machine's marker, joint origin or stroke lies farther
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"

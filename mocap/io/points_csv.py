@@ -6,11 +6,11 @@ the point; `views` the number of cameras that saw it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from mocap.core.points import Points
 from mocap.errors import InputError
 from mocap.io import columnar
 from mocap.io.columnar import is_parquet
@@ -18,25 +18,6 @@ from mocap.io.text import csv_rows, read_text
 from mocap.io.tracks_csv import ascii_digits
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
-
-
-@dataclass(frozen=True)
-class Points:
-    """N rows: frame (N,) int, marker (N,) str, xyz (N, 3) m, error_px (N,), views (N,) int."""
-
-    frame: np.ndarray
-    marker: np.ndarray
-    xyz: np.ndarray
-    error_px: np.ndarray
-    views: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = len(self.frame)
-        if np.shape(self.xyz) != (n, 3) or len(self.marker) != n:
-            raise ValueError(f"Points needs marker (N,) and xyz (N, 3) for N={n}")
-
-    def __len__(self) -> int:
-        return len(self.frame)
 
 
 def points_columns(points: Points) -> dict[str, np.ndarray]:
@@ -116,5 +97,3 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path, unit
     _, first = np.unique(keys, return_index=True)
     fail(~np.isin(np.arange(n), first), "this frame and marker appear twice; keep one row each")
     return Points(frame, marker, xyz, error, views.astype(int))
-
-

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.core.machine import Machine
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
-from mocap.machine import Machine
 
 MARKER_PREFIX = "marker_"
 POINT_PREFIX = "point_"

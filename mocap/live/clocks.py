@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera
 from mocap.clocks.align import joint_curves, synchronise
-from mocap.machine import Machine
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
 
 log = logging.getLogger(__name__)
 

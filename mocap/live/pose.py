@@ -15,10 +15,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.geometry import matrix_to_rotvec
+from mocap.core.camera import Camera
+from mocap.core.geometry import matrix_to_rotvec
+from mocap.core.machine import Machine
 from mocap.io.motion_csv import base_columns
-from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions, FrameFitter, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.smooth import SmoothOptions, smooth

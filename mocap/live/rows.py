@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from mocap.core.machine import REVOLUTE, Machine
 from mocap.io import columnar
 from mocap.io.columnar import is_parquet
 from mocap.io.motion_csv import base_columns
 from mocap.live.pose import Pose
-from mocap.machine import REVOLUTE, Machine
 
 
 def header(machine: Machine, base_motion: bool = False) -> list[str]:

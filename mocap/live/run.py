@@ -30,17 +30,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
-from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
+from mocap.io.tracks_csv import save_tracks
 from mocap.live.feed import Feed
 from mocap.live.pose import CameraHistory, FixedLagSmoother, WarmFit
 from mocap.live.rows import PoseWriter, row
 from mocap.live.sources import FILE, SourceReader, SourceSpec
-from mocap.machine import Machine
 from mocap.reconstruct.kinfit import FitOptions
 from mocap.tracking.model import CameraModel
 from mocap.tracking.run import track_frames

@@ -24,11 +24,11 @@ import rerun as rr
 import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration
 from mocap.io.motion_csv import world_from_base_of
 from mocap.live.pose import Pose
-from mocap.machine import Machine
 from mocap.viewer.record import entity, link_path, log_cameras, log_link_boxes, log_world, trail_path
 from mocap.viewer.scene import joint_display_units
 

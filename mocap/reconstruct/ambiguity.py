@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.machine import Machine
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinfit import FAR_SDS, PREFERRED_CHI2, FitOptions, JointFit, refit
 from mocap.reconstruct.kinmodel import FrameState
 

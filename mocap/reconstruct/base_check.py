@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.machine import Machine, Tolerance
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine, Tolerance
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 
 SAMPLE_FRAMES = 100  # frames the check fits both ways, spread over the session

@@ -20,9 +20,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera, project_cam
-from mocap.geometry import Rigid, rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.core.camera import Camera, project_cam
+from mocap.core.geometry import Rigid, rotvec_to_matrix
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 
 CAMERA_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz", "f", "cx", "cy", "k1", "k2", "p1", "p2", "k3")

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
-from mocap.machine import Machine, Tolerance
+from mocap.core.camera import Camera
+from mocap.core.geometry import matrix_to_rotvec, rotvec_to_matrix
+from mocap.core.machine import Machine, Tolerance
 from mocap.progress import progress
 from mocap.reconstruct.chi2 import upper_quantile
 from mocap.reconstruct.kinmodel import LOSSES, FrameState, KinematicModel, base_matrices

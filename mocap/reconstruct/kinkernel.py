@@ -5,7 +5,7 @@ without the Jacobian of all observations in memory; and the markers' world posit
 their derivatives by the parameters for every frame (`world_markers`).
 
 Per observation (camera c, marker m) of frame f: the marker's camera-frame position, its
-pixel through the OpenCV lens (mocap.camera.project_cam) and the pixel's derivative by the
+pixel through the OpenCV lens (mocap.core.camera.project_cam) and the pixel's derivative by the
 frame's parameters (d pixel / d camera point · R_c · d world / d parameters). Residuals are
 divided by the model-tolerance weight (kinmodel.KinematicModel), robustified per
 observation (2-D length: Huber, Cauchy or none) and summed into JᵀWJ (P, P), JᵀWr (P,)
@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from mocap.reconstruct.linear_kernel import solve_into
 
 LOSS_CODES = {"huber": 0, "cauchy": 1, "linear": 2}
 
@@ -191,7 +193,7 @@ def world_markers(joints, rotation, translation, first, second, revolute, parent
 
     joints (F, J); rotation (F, 3, 3) and translation (F, 3) ``world_from_base``, or both
     empty (F = 0 rows) for a fixed base; first, second (J, 4, 4) the joints' motion terms
-    (mocap.machine.Machine._motion_terms); revolute (J,); parents (J,) parent links;
+    (mocap.core.machine.Machine._motion_terms); revolute (J,); parents (J,) parent links;
     at_zero (J, 4, 4); joint_links (J,); axes (J, 3) in the links' frames; marker_links (M,);
     marker_positions (M, 3) on their links; moves (J, M) which joints move which markers.
     """
@@ -203,33 +205,6 @@ def world_markers(joints, rotation, translation, first, second, revolute, parent
         _world_frame(joints[f], base_rotation, base_translation, first, second, revolute, parents, at_zero,
                      joint_links, axes, marker_links, marker_positions, moves, markers[f], d_world[f],
                      poses, motion, local, ax)
-
-
-@njit(cache=True, nogil=True)
-def _solve(lhs, rhs, out):
-    """out (P,) with lhs (P, P) out = rhs (P,), by Gaussian elimination with partial
-    pivoting (lhs and rhs are overwritten)."""
-    n = rhs.shape[0]
-    for col in range(n):
-        pivot = col
-        for r in range(col + 1, n):
-            if abs(lhs[r, col]) > abs(lhs[pivot, col]):
-                pivot = r
-        if pivot != col:
-            for c in range(n):
-                lhs[col, c], lhs[pivot, c] = lhs[pivot, c], lhs[col, c]
-            rhs[col], rhs[pivot] = rhs[pivot], rhs[col]
-        for r in range(col + 1, n):
-            factor = lhs[r, col] / lhs[col, col]
-            if factor != 0.0:
-                for c in range(col, n):
-                    lhs[r, c] -= factor * lhs[col, c]
-                rhs[r] -= factor * rhs[col]
-    for r in range(n - 1, -1, -1):
-        total = rhs[r]
-        for c in range(r + 1, n):
-            total -= lhs[r, c] * out[c]
-        out[r] = total / lhs[r, r]
 
 
 @njit(cache=True, nogil=True)
@@ -308,6 +283,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
     t_hessian = np.empty((n_params, n_params))
     t_residual, t_weight = np.empty(n_rows, np.float32), np.empty(n_rows, np.float32)
     lhs, rhs, delta = np.empty((n_params, n_params)), np.empty(n_params), np.empty(n_params)
+    rhs_column, delta_column = rhs.reshape((n_params, 1)), delta.reshape((n_params, 1))  # views, for solve_into
     t_joints = np.empty(n_joints)
     t_rotation, t_translation, turn = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
     relative, rotvec, gap = np.empty((3, 3)), np.empty(3), np.empty(n_params)
@@ -327,7 +303,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
                     lhs[p, q] = hessian[f, p, q]
                 lhs[p, p] += damping * hessian[f, p, p] + eps_info
                 rhs[p] = gradient[p]
-            _solve(lhs, rhs, delta)
+            solve_into(lhs, rhs_column, delta_column)
             for j in range(n_joints):
                 value = joints[f, j] + delta[j]
                 if wrap[j]:

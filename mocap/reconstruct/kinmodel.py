@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera, project_cam
-from mocap.geometry import rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.core.camera import Camera, project_cam
+from mocap.core.geometry import rotvec_to_matrix
+from mocap.core.machine import Machine
 
 LOSSES = ("huber", "cauchy", "linear")
 

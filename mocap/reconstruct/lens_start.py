@@ -7,9 +7,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.geometry import matrix_to_rotvec, rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.core.camera import Camera
+from mocap.core.geometry import matrix_to_rotvec, rotvec_to_matrix
+from mocap.core.machine import Machine
 
 
 def board_poses(machine: Machine, cameras: list[Camera], pixels: np.ndarray) -> np.ndarray:

@@ -20,11 +20,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.io.motion_csv import Motion, base_columns
-from mocap.machine import Machine
-from mocap.reconstruct.camera_share import CameraCovariance, camera_share
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
+from mocap.core.motion import Motion
+from mocap.io.motion_csv import base_columns
 from mocap.reconstruct.base_check import BaseCheck, check_base_motion
+from mocap.reconstruct.camera_share import CameraCovariance, camera_share
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets

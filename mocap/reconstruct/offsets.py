@@ -36,9 +36,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.camera import Camera, project_cam
-from mocap.geometry import rotvec_to_matrix
-from mocap.machine import Machine, Tolerance
+from mocap.core.camera import Camera, project_cam
+from mocap.core.geometry import rotvec_to_matrix
+from mocap.core.machine import Machine, Tolerance
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel, base_matrices
 

@@ -6,7 +6,7 @@ errors that one frame cannot reveal; many frames of a moving machine can. The pr
 solved by Levenberg-Marquardt on the normal equations (mocap.reconstruct.sparse_lm; a Huber
 loss with its scale in pixels) of an analytic sparse Jacobian: every residual depends on one camera, one frame
 and one marker. A marker's offset from its measured position has a Gaussian prior of SD
-``Tolerance.sd`` per coordinate (mocap.machine), expressed in pixel units through
+``Tolerance.sd`` per coordinate (mocap.core.machine), expressed in pixel units through
 the pixel noise. The priors also fix the gauge: a rigid motion of the base's markers
 together with the cameras, or a turn of a link's markers about its joint together with
 that joint's values, leaves the pixels unchanged and is resolved towards the measured
@@ -35,10 +35,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse import coo_matrix
 
-from mocap.camera import DISTORTION_MODELS, Camera, project_cam
+from mocap.core.camera import DISTORTION_MODELS, Camera, project_cam
+from mocap.core.geometry import Rigid, cross, matrix_to_rotvec, rotvec_to_matrix
+from mocap.core.machine import Machine, Tolerance
 from mocap.errors import ConvergenceError, DegenerateError
-from mocap.geometry import Rigid, cross, matrix_to_rotvec, rotvec_to_matrix
-from mocap.machine import Machine, Tolerance
 from mocap.reconstruct.camera_share import CAMERA_PARAMETERS, CameraCovariance, named_parameters
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel

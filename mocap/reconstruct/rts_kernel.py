@@ -10,37 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, nogil=True)
-def _solve(a, b):
-    """x with a x = b for a (N, N) and b (N, K), by Gauss-Jordan elimination with partial
-    pivoting (a and b are left unchanged)."""
-    n, k = b.shape
-    m = a.copy()
-    x = b.copy()
-    for col in range(n):
-        pivot = col
-        for r in range(col + 1, n):
-            if abs(m[r, col]) > abs(m[pivot, col]):
-                pivot = r
-        if pivot != col:
-            for c in range(n):
-                m[col, c], m[pivot, c] = m[pivot, c], m[col, c]
-            for c in range(k):
-                x[col, c], x[pivot, c] = x[pivot, c], x[col, c]
-        d = m[col, col]
-        for c in range(n):
-            m[col, c] /= d
-        for c in range(k):
-            x[col, c] /= d
-        for r in range(n):
-            if r != col and m[r, col] != 0.0:
-                factor = m[r, col]
-                for c in range(n):
-                    m[r, c] -= factor * m[col, c]
-                for c in range(k):
-                    x[r, c] -= factor * x[col, c]
-    return x
+from mocap.reconstruct.linear_kernel import solve
 
 
 @njit(cache=True, nogil=True)
@@ -106,7 +76,7 @@ def rts(steps, values, information, valid, q, gate, start, prior_var):
             info = information[k]
             innovation = values[k] - x[:p]
             # (H P Hᵀ + R)⁻¹ = info (I + P_pp info)⁻¹, which allows a singular info
-            s_info = _mul(info, _solve(eye_p + _mul(cov[:p, :p], info), eye_p))
+            s_info = _mul(info, solve(eye_p + _mul(cov[:p, :p], info), eye_p))
             distance = np.sum(innovation * _mul(s_info, innovation.reshape(p, 1))[:, 0])
             if distance > gate:
                 rejected[k] = True
@@ -123,7 +93,7 @@ def rts(steps, values, information, valid, q, gate, start, prior_var):
         for i in range(p):
             transition[i, p + i] = steps[k + 1]
         # gain = post_cov[k] Fᵀ pred_cov[k+1]⁻¹, by solving pred_cov[k+1] gainᵀ = F post_cov[k]
-        gain = _solve(pred_cov[k + 1], _mul(transition, post_cov[k])).T
+        gain = solve(pred_cov[k + 1], _mul(transition, post_cov[k])).T
         mean[k] = post_mean[k] + _mul(gain, (mean[k + 1] - pred_mean[k + 1]).reshape(s, 1))[:, 0]
         smoothed[k] = post_cov[k] + _mul(_mul(gain, smoothed[k + 1] - pred_cov[k + 1]), gain.T)
     return mean, smoothed, rejected

@@ -10,14 +10,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mocap.core.calibration import Calibration
+from mocap.core.machine import Machine, Tolerance
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError, Report
-from mocap.io.cameras_toml import Calibration, load_calibration, save_calibration
+from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
-from mocap.io.points_csv import Points, save_points
-from mocap.io.tracks_csv import SPARSE_SPAN, Tracks, check_in_images, load_tracks
-from mocap.machine import Machine, Tolerance
+from mocap.io.points_csv import save_points
+from mocap.io.tracks_csv import SPARSE_SPAN, check_in_images, load_tracks
 from mocap.progress import progress
 from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
@@ -185,7 +188,7 @@ class Fitted:
     """`fit_motion`'s result: the motion, the model it was fitted with (its markers moved by
     the estimated offsets, if any) and the figures of the report."""
 
-    motion: object  # mocap.io.motion_csv.Motion
+    motion: object  # mocap.core.motion.Motion
     machine: Machine
     result: object  # mocap.reconstruct.motion.MotionResult
     ambiguity: str  # the report's sentence on second solutions ("" if none)

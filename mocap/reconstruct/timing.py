@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.io.tracks_csv import Tracks
+from mocap.core.tracks import Tracks
 from mocap.reconstruct.outliers import track_outliers
 
 log = logging.getLogger(__name__)

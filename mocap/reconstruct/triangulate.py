@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mocap.camera import Camera, project_cam
+from mocap.core.camera import Camera, project_cam
 from mocap.reconstruct.outliers import PREDICTORS, dense_tracks, noise_from_fits
 
 _EPS = 1e-9

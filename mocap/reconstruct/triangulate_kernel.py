@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from mocap.camera_kernel import project_point
+from mocap.core.camera_kernel import project_point
 
 EPS = 1e-9  # as mocap.reconstruct.triangulate._EPS
 

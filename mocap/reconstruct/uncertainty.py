@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mocap.machine import Machine
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinmodel import KinematicModel, FrameState, base_matrices
 
 
@@ -84,7 +84,7 @@ def _bucket_angle(ends: np.ndarray, jac: np.ndarray):
     """The bucket angle (F,) and its gradient by the parameters (F, P) from the bucket
     link's origin and the tip of its unit direction, then the house link's origin and the
     tip of its forward (x) axis (F, 4, 3), and their Jacobians (F, 4, 3, P)
-    (as mocap.machine.Machine.bucket_angles: atan2 of the direction's height over its
+    (as mocap.core.machine.Machine.bucket_angles: atan2 of the direction's height over its
     component along the forward axis made horizontal and unit)."""
     direction, d_direction = ends[:, 1] - ends[:, 0], jac[:, 1] - jac[:, 0]  # (F, 3), (F, 3, P)
     forward, d_forward = ends[:, 3] - ends[:, 2], jac[:, 3] - jac[:, 2]

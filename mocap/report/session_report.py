@@ -16,12 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from mocap.analysis.report import figure_png, page_subplots, html_table, plt
+from mocap.core.calibration import Calibration
+from mocap.core.motion import Motion
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
 from mocap.io.atomic import write_text
-from mocap.io.cameras_toml import Calibration, load_calibration
-from mocap.io.motion_csv import Motion, load_motion
-from mocap.io.tracks_csv import Tracks, load_tracks
-from mocap.session import Session
+from mocap.io.cameras_toml import load_calibration
+from mocap.io.motion_csv import load_motion
+from mocap.io.session import Session
+from mocap.io.tracks_csv import load_tracks
 
 REPORT = "session_report.html"
 BIN_S = 2.0  # the heat map's time bins (s)

@@ -12,8 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mocap.camera import Camera, project_cam
-from mocap.shapes import BOX_FACES, box_corners
+from mocap.core.camera import Camera, project_cam
+from mocap.core.shapes import BOX_FACES, box_corners
 from mocap.synthetic.motion import Pile, Truck
 
 SKY = np.array([235.0, 200.0, 150.0])  # BGR, zenith

@@ -13,9 +13,9 @@ import numpy as np
 
 from mocap.calibration.identify import inverse_information
 from mocap.calibration.problem import Layout, Observations, Problem
-from mocap.camera import Camera, project_cam
-from mocap.geometry import rotvec_to_matrix
-from mocap.machine import Machine
+from mocap.core.camera import Camera, project_cam
+from mocap.core.geometry import rotvec_to_matrix
+from mocap.core.machine import Machine
 from mocap.reconstruct.kinmodel import FrameState, KinematicModel
 from mocap.reconstruct.uncertainty import point_quantities
 

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.geometry import Rigid, rot_x, rot_y, rpy_to_matrix
-from mocap.synthetic.scenes import look_at_camera
+from mocap.core.camera import Camera
+from mocap.core.geometry import Rigid, rot_x, rot_y, rpy_to_matrix
 from mocap.synthetic.paths import SmoothNoise
+from mocap.synthetic.scenes import look_at_camera
 
 FRAME_RATES = (29.97, 30.0)
 

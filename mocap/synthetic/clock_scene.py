@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks, concatenate
 from mocap.errors import InputError
-from mocap.io.cameras_toml import Calibration, joints_to_table
-from mocap.io.tracks_csv import Tracks, concatenate
-from mocap.machine import Machine
 from mocap.synthetic.machines import SceneOptions, random_cameras, random_digger
 from mocap.synthetic.motion import DigMotion, plan_session
 from mocap.synthetic.paths import BACKHOE, CLASSES

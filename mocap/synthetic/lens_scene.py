@@ -10,11 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.geometry import rotvec_to_matrix
+from mocap.core.camera import Camera
+from mocap.core.geometry import rotvec_to_matrix
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks
 from mocap.io.machine_toml import machine_from_dict
-from mocap.io.tracks_csv import Tracks
-from mocap.machine import Machine
 from mocap.synthetic.scenes import look_at_camera
 
 

@@ -21,11 +21,11 @@ import numpy as np
 
 from mocap.calibration import identify
 from mocap.calibration.problem import Observations
-from mocap.camera import Camera
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks
 from mocap.errors import DegenerateError
 from mocap.io.machine_toml import machine_from_dict
-from mocap.io.tracks_csv import Tracks
-from mocap.machine import Machine
 from mocap.synthetic.scenes import look_at_camera
 from mocap.synthetic.session import marker_sizes
 

@@ -1,7 +1,7 @@
 """A machine drawn with shapes the tracker does not assume: tapered, kinked links, a cab and a
 counterweight sticking out, hoses that cross in front of markers, markers on slanted plates.
 
-The tracker guesses each link's solid as the box around its markers (`mocap.shapes.link_boxes`)
+The tracker guesses each link's solid as the box around its markers (`mocap.core.shapes.link_boxes`)
 and each marker's normal as the nearest face of that box. A world drawn from the same boxes
 cannot show what that guess costs. Here every link is one or two convex hexahedra (the box
 shrunk, each end's cross-section scaled and shifted: a tapered, bent boom), the upper works
@@ -10,7 +10,7 @@ standing off one face, and each marker sits on its own thin plate whose normal i
 face's turned by 10-40°. Visibility (the truth's) is computed against these solids; the
 renderer (`MeshRenderer`) draws them.
 
-A hexahedron is 8 corners in its link's frame ordered as `mocap.shapes.box_corners` (faces
+A hexahedron is 8 corners in its link's frame ordered as `mocap.core.shapes.box_corners` (faces
 `BOX_FACES`), convex; its face normals come from its corners.
 
 Shapes: S solids, F frames, M markers, P points per marker.
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from mocap.camera import project_cam
-from mocap.machine import Machine
-from mocap.shapes import BOX_FACES, box_corners, link_boxes
-from mocap.visibility import MIN_FACING_COS, marker_normals, plane_axes
+from mocap.core.camera import project_cam
+from mocap.core.machine import Machine
+from mocap.core.shapes import BOX_FACES, box_corners, link_boxes
+from mocap.core.visibility import MIN_FACING_COS, marker_normals, plane_axes
 
 TILT_DEG = (10.0, 40.0)  # a marker plate's turn from its box face
 LIFT_M = 1e-3  # a marker's point is tested from this far above its plate

@@ -18,10 +18,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mocap.core.classes import OTHER
+from mocap.core.geometry import rpy_to_matrix
+from mocap.core.ik import PlanarChain
+from mocap.core.machine import Machine
 from mocap.errors import InputError
-from mocap.geometry import rpy_to_matrix
-from mocap.ik import PlanarChain
-from mocap.machine import Machine
 from mocap.synthetic.paths import (BACKHOE, CLASSES, DigShape, Redirection, SmoothNoise, dig_shape, min_jerk,
                                    nominal_shape, stretch)
 
@@ -253,7 +254,7 @@ def plan_session(
         segments.append(_Segment(at_truck, tipped, carry, dump))
         end = tipped + 0.5 * t_dump
         segments.append(_Segment(tipped, end, dump, carry))
-        cycles.append(Cycle(i, "other" if label == BACKHOE else label,
+        cycles.append(Cycle(i, OTHER if label == BACKHOE else label,
                             "proportional" if proportional else "non-proportional",
                             (float(scale[0]), float(scale[1])),
                             "none" if redirection is None else ("kept" if redirection.kept else "temporary"),

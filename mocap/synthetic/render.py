@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from mocap.camera import project_cam
-from mocap.shapes import BOX_FACES, box_corners
+from mocap.core.camera import project_cam
+from mocap.core.shapes import BOX_FACES, box_corners
 from mocap.synthetic.backdrop import BOX_NORMALS, render_backdrop
 from mocap.synthetic.effects import CameraEffects, EffectOptions, Weather
 from mocap.synthetic.encode import CODECS

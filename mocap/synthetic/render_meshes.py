@@ -17,11 +17,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mocap.shapes import BOX_FACES
+from mocap.core.shapes import BOX_FACES
+from mocap.core.visibility import marker_outlines
 from mocap.synthetic.meshes import marker_test_points, solids_in_view
 from mocap.synthetic.render import CameraRenderer, RenderOptions, draw_marker
 from mocap.synthetic.session import SyntheticSession, marker_sizes
-from mocap.visibility import marker_outlines
 
 HOSE = np.array([42.0, 42.0, 46.0])  # BGR
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.camera import Camera, default_principal_point, intrinsic_matrix
-from mocap.geometry import Rigid
-from mocap.io.tracks_csv import Tracks
-from mocap.machine import Machine
+from mocap.core.camera import Camera, default_principal_point, intrinsic_matrix
+from mocap.core.geometry import Rigid
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks
 
 
 def look_at_camera(

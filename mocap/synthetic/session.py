@@ -16,25 +16,29 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.camera import project_cam
+from mocap.core.calibration import Calibration, joints_to_table
+from mocap.core.camera import project_cam
+from mocap.core.machine import Machine
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.shapes import box_corners, link_boxes
+from mocap.core.tracks import Tracks, concatenate
+from mocap.core.visibility import marker_cover, marker_normals, marker_outlines, square_outline, visible_markers
 from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
-from mocap.io.cameras_toml import Calibration, joints_to_table, save_calibration
+from mocap.io.cameras_toml import save_calibration
 from mocap.io.cycles_csv import save_cycles
 from mocap.io.machine_toml import MACHINES_DIR
-from mocap.io.motion_csv import Motion, base_columns, save_motion
-from mocap.io.points_csv import Points, save_points
+from mocap.io.motion_csv import base_columns, save_motion
+from mocap.io.points_csv import save_points
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
-from mocap.io.tracks_csv import Tracks, concatenate, save_tracks
-from mocap.machine import Machine
-from mocap.shapes import box_corners, link_boxes
+from mocap.io.tracks_csv import save_tracks
 from mocap.synthetic.cameras import FieldCamera, place_cameras
 from mocap.synthetic.meshes import Solids, machine_solids, marker_test_points, solids_in_view
 from mocap.synthetic.motion import DigMotion, check_limits, plan_session
 from mocap.synthetic.paths import CLASSES, min_jerk
 from mocap.synthetic.shutter import rolling_pixels
-from mocap.visibility import marker_cover, marker_normals, marker_outlines, square_outline, visible_markers
 
 
 SHAPES = ("boxes", "meshes")  # how the links are drawn (`SessionOptions.shapes`)
@@ -45,7 +49,7 @@ class SessionOptions:
     """What `make_session` varies. Angles in degrees, sizes in pixels; `readout` the cameras'
     rolling shutter: their rows are read one after another over that share of the frame
     interval, the middle row at the frame's time (0: a global shutter); `shapes` the links'
-    solids: "boxes" (the boxes `mocap.shapes.link_boxes` guesses, as the tracker does) or
+    solids: "boxes" (the boxes `mocap.core.shapes.link_boxes` guesses, as the tracker does) or
     "meshes" (tapered, kinked links, cab, counterweight, hoses, markers on slanted plates:
     `mocap.synthetic.meshes`)."""
 

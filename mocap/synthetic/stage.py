@@ -12,7 +12,7 @@ import numpy as np
 from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.io.outputs import check_output_folder
-from mocap.session import Session, mark_complete
+from mocap.io.session import Session, mark_complete
 
 log = logging.getLogger(__name__)
 

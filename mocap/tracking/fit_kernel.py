@@ -16,7 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
-from mocap.camera_kernel import project_point
+from mocap.core.camera_kernel import project_point
 
 
 @njit(cache=True, nogil=True)

@@ -20,7 +20,7 @@ import logging
 
 import numpy as np
 
-from mocap.detect import Detections
+from mocap.tracking.detect import Detections
 from mocap.tracking.model import CameraModel
 from mocap.tracking.tracker import FrameResult, assign
 

@@ -13,11 +13,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mocap.camera import Camera
-from mocap.machine import Machine
-from mocap.shapes import link_boxes
+from mocap.core.camera import Camera
+from mocap.core.machine import Machine
+from mocap.core.shapes import link_boxes
+from mocap.core.visibility import MIN_FACING_COS, marker_normals
 from mocap.tracking.fit_kernel import fit_joints, marker_pixels, marker_view
-from mocap.visibility import MIN_FACING_COS, marker_normals
 
 
 class Fit(NamedTuple):
@@ -44,7 +44,7 @@ class View:
 @dataclass(frozen=True)
 class CameraModel:
     """A machine model and one calibrated camera; `boxes` (L, 2, 3) link solids in link
-    frames (default: `mocap.shapes.link_boxes`), `normals` (M, 3) each marker's disk normal
+    frames (default: `mocap.core.shapes.link_boxes`), `normals` (M, 3) each marker's disk normal
     in its link frame (the nearest face of its box). `solid` False: the boxes are not the
     machine's shape (a rigid object's one box is the hull of its markers), so every marker
     in front of the camera and inside the image counts as seen."""
@@ -94,7 +94,7 @@ class CameraModel:
 
     def visible(self, joints: np.ndarray) -> np.ndarray:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
-        box (the painting convention of `mocap.visibility`: markers on the faces
+        box (the painting convention of `mocap.core.visibility`: markers on the faces
         of the links' boxes)."""
         return self.view(joints).visible
 

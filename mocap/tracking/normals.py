@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.camera import project_cam
+from mocap.core.camera import project_cam
 
 MIN_AXIS_PX = 2.5  # a disk whose major semi-axis is smaller says little of its turn
 AGREE_DEG = 6.0  # candidates within this of each other agree

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mocap.io.tracks_csv import Tracks
+from mocap.core.tracks import Tracks
 from mocap.io.video import Video
 from mocap.synthetic.encode import video_writer
 

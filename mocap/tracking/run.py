@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.detect import TagFinder, detect_disks
-from mocap.io.tracks_csv import Tracks, concatenate
-from mocap.machine import Machine
+from mocap.core.machine import Machine
+from mocap.core.tracks import Tracks, concatenate
+from mocap.tracking.detect import TagFinder, detect_disks
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
 from mocap.tracking.normals import NormalEvidence, NormalLearner

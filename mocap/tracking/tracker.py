@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
+from mocap.tracking.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
                           refine_and_accept, refine_converged, unique)
 from mocap.tracking.model import CameraModel, View
 

@@ -16,12 +16,12 @@ import numpy as np
 
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
+from mocap.io.cycles_csv import load_cycles
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.points_csv import load_points
+from mocap.io.session import Session
 from mocap.io.tracks_csv import load_tracks
-from mocap.session import Session
-from mocap.io.cycles_csv import load_cycles
 from mocap.viewer.replay import Replay
 
 log = logging.getLogger(__name__)

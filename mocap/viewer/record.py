@@ -27,11 +27,12 @@ from collections.abc import Sequence
 import numpy as np
 import rerun as rr
 
-from mocap.io.cameras_toml import Calibration
-from mocap.io.motion_csv import Motion
-from mocap.io.points_csv import Points
-from mocap.machine import Machine
-from mocap.shapes import link_boxes
+from mocap.core.calibration import Calibration
+from mocap.core.classes import DIG_CLASSES, OTHER
+from mocap.core.machine import Machine
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.shapes import link_boxes
 from mocap.viewer import scene
 from mocap.viewer.video import Video, first_frame_jpeg
 
@@ -47,7 +48,7 @@ TRAIL_COLORS = np.array(
     dtype=np.uint8,
 )
 FIRST_FRAME_DRAW_ORDER = -30.0  # below the video's frames (Rerun draws video at -15)
-CLASS_COLORS = {"Type 1": (31, 119, 180), "Type 2": (255, 127, 14), "Type 3": (44, 160, 44), "other": (150, 150, 150)}
+CLASS_COLORS = dict(zip((*DIG_CLASSES, OTHER), [(31, 119, 180), (255, 127, 14), (44, 160, 44), (150, 150, 150)]))
 
 
 def entity(*parts: str) -> str:

@@ -20,17 +20,17 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
+from mocap.core.calibration import Calibration
+from mocap.core.cycles import Cycles
+from mocap.core.machine import Machine
+from mocap.core.motion import Motion
+from mocap.core.points import Points
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.cameras_toml import Calibration
-from mocap.io.motion_csv import Motion
-from mocap.io.points_csv import Points
-from mocap.io.tracks_csv import Tracks
-from mocap.machine import Machine
 from mocap.progress import progress
 from mocap.viewer import record, scene
 from mocap.viewer.blueprint import default_blueprint
-from mocap.io.cycles_csv import Cycles
 from mocap.viewer.video import load_video
 
 log = logging.getLogger(__name__)

@@ -15,10 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mocap.camera import Camera
-from mocap.io.motion_csv import BASE_ANGLES, BASE_POSITION, Motion, world_from_base_of
-from mocap.io.tracks_csv import Tracks
-from mocap.machine import REVOLUTE, Machine
+from mocap.core.camera import Camera
+from mocap.core.machine import REVOLUTE, Machine
+from mocap.core.motion import Motion
+from mocap.core.tracks import Tracks
+from mocap.io.motion_csv import BASE_ANGLES, BASE_POSITION, world_from_base_of
 
 # OpenCV puts the centre of the top-left pixel at (0, 0), Rerun its top-left corner.
 RERUN_FROM_OPENCV_PIXEL = 0.5

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from mocap.errors import InputError
 from mocap.io.outputs import check_outputs
+from mocap.io.session import Session
 from mocap.io.video import probe_video
-from mocap.session import Session
 from mocap.viewer.inputs import ReplayFiles, load_replay, with_session
 from mocap.viewer.replay import Sinks, run_replay
 

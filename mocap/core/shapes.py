@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.machine import Machine
+from mocap.core.machine import Machine
 
 
 def link_boxes(machine: Machine, thickness: float | None = None) -> np.ndarray:

@@ -16,7 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
-from mocap.geometry import cross, rpy_to_matrix
+from mocap.core.geometry import cross, rpy_to_matrix
 
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"

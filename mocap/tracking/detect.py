@@ -4,7 +4,7 @@ ArUco / AprilTag markers.
 Disks are found in two steps. Candidates are the connected dark regions of an adaptive
 threshold (darker than their neighbourhood's mean), kept when their area and shape are in
 range, each with the ellipse of its region's moments. Each candidate is then refined on
-its own window (compiled: `mocap.disk_kernel`): the centre is the centroid of the
+its own window (compiled: `mocap.tracking.disk_kernel`): the centre is the centroid of the
 darkness ``w = clip((white - I) / (white - black), 0, 1)`` inside an elliptical window a
 little larger than the disk, "white" being the bright end (85th percentile) of an
 elliptical ring around it on the white square and "black" the mean of the disk's
@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from mocap.core.tags import tag_dictionary
-from mocap.disk_kernel import refine_disks, refine_disks_converged
+from mocap.tracking.disk_kernel import refine_disks, refine_disks_converged
 
 
 FULL_FRAME_BLOCKS = (9, 15, 25)  # px, the smaller adaptive-threshold neighbourhoods of a full-frame search

@@ -20,9 +20,9 @@ from pathlib import Path
 
 from mocap.errors import EXIT_OK, EXIT_PARTIAL, InputError, one_line
 from mocap.io.outputs import check_outputs
+from mocap.io.session import Session, mark_complete
 from mocap.io.tracks_csv import load_tracks
 from mocap.io.video import Video
-from mocap.session import Session, mark_complete
 
 log = logging.getLogger(__name__)
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocap.core.machine import REVOLUTE, Machine
 from mocap.errors import InputError
-from mocap.machine import REVOLUTE, Machine
 
 
 @dataclass(frozen=True)

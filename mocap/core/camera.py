@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mocap.geometry import Rigid
+from mocap.core.geometry import Rigid
 
 # paper camera axes -> OpenCV camera axes: x_cv = -Y_p, y_cv = -Z_p, z_cv = X_p
 # the lens models a fit may free: their coefficients' places in OpenCV's (k1, k2, p1, p2, k3)
@@ -175,14 +175,36 @@ def project_cam(
         jac[..., 1, 1] = fy * inv_z
         jac[..., 1, 2] = -fy * y * inv_z
         return uv, jac
-    k1, k2, p1, p2, k3 = distortion
+    uv = np.stack(distorted(x, y, matrix, distortion), axis=-1)
+    if not with_jacobian:
+        return uv
+    jac = np.stack(distorted_jacobian(x, y, 1.0 / z_safe, matrix, distortion), axis=-1)
+    return uv, jac.reshape(p.shape[:-1] + (2, 3))
+
+
+def distorted(x, y, matrix, distortion):
+    """The pixel (u, v) of normalised coordinates x, y (scalars or arrays alike) through the
+    OpenCV lens (k1, k2, p1, p2, k3) and `matrix` (3, 3). The one lens model: `project_cam`
+    runs it on arrays, numba compiles it for the kernels (`camera_kernel.project_point`)."""
+    fx, s, cx = matrix[0, 0], matrix[0, 1], matrix[0, 2]
+    fy, cy = matrix[1, 1], matrix[1, 2]
+    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    uv = np.stack([fx * xd + s * yd + cx, fy * yd + cy], axis=-1)
-    if not with_jacobian:
-        return uv
+    return fx * xd + s * yd + cx, fy * yd + cy
+
+
+def distorted_jacobian(x, y, inv_z, matrix, distortion):
+    """d(u, v) / d(X, Y, Z) of the camera-frame point (X, Y, Z) = (x, y, 1) / inv_z through
+    `distorted`, as its six entries row by row (du/dX, du/dY, du/dZ, dv/dX, dv/dY, dv/dZ);
+    scalars or arrays alike, as `distorted`."""
+    fx, s = matrix[0, 0], matrix[0, 1]
+    fy = matrix[1, 1]
+    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     dradial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
     dxd_dx = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
     dxd_dy = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y
@@ -192,16 +214,9 @@ def project_cam(
     du_dy = fx * dxd_dy + s * dyd_dy
     dv_dx = fy * dyd_dx
     dv_dy = fy * dyd_dy
-    inv_z = 1.0 / z_safe
     # (x, y) = (X / Z, Y / Z): d/dX = (1/Z, 0), d/dY = (0, 1/Z), d/dZ = (-x/Z, -y/Z)
-    jac = np.empty(p.shape[:-1] + (2, 3))
-    jac[..., 0, 0] = du_dx * inv_z
-    jac[..., 0, 1] = du_dy * inv_z
-    jac[..., 0, 2] = -(du_dx * x + du_dy * y) * inv_z
-    jac[..., 1, 0] = dv_dx * inv_z
-    jac[..., 1, 1] = dv_dy * inv_z
-    jac[..., 1, 2] = -(dv_dx * x + dv_dy * y) * inv_z
-    return uv, jac
+    return (du_dx * inv_z, du_dy * inv_z, -(du_dx * x + du_dy * y) * inv_z,
+            dv_dx * inv_z, dv_dy * inv_z, -(dv_dx * x + dv_dy * y) * inv_z)
 
 
 def project(cameras: list[Camera], points_world: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Which painted markers a camera sees: facing it, inside the image, not behind a link.
 
-Markers are painted on the faces of the links' boxes (mocap.shapes.link_boxes): each
+Markers are painted on the faces of the links' boxes (mocap.core.shapes.link_boxes): each
 marker's surface normal is the outward normal of the nearest face of its own link's box.
 A marker is hidden when the segment from it to the camera centre passes through another
 link's box (its own box never hides it: the paint is on the surface). How much of a
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocap.camera import project_cam
-from mocap.machine import Machine
+from mocap.core.camera import project_cam
+from mocap.core.machine import Machine
 
 MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable marker
 

@@ -4,7 +4,7 @@ For one candidate at a time, each iteration visits the pixels of the ellipse's o
 and inside it twice: for the ring's grey levels (a 256-bin histogram, for the 15th, 50th and
 85th percentiles) and the mean of the disk's middle, then for the darkness centroid and second
 moments inside the window; a last pass takes the levels around the final ellipse. The window follows the ellipse as
-it moves and grows, up to `max_major` px of major semi-axis. `mocap.detect` describes the
+it moves and grows, up to `max_major` px of major semi-axis. `mocap.tracking.detect` describes the
 method; this module only computes it.
 
 Shapes: N candidates.
@@ -82,7 +82,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
     """Refine N candidates: start centres xy (N, 2), semi-axis matrices shape (N, 2, 2),
     the largest major semi-axis allowed (N,) px. Returns centres (N, 2), semi-axes (N, 2)
     a >= b, angle (N,), contrast (N,), fill (N,), the ring's spread (N,) and its
-    unevenness (N,) (see `mocap.detect.refine`)."""
+    unevenness (N,) (see `mocap.tracking.detect.refine`)."""
     n = xy.shape[0]
     height, width = gray.shape
     out_xy = xy.copy()

@@ -6,12 +6,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mocap.geometry import rotation_angle_between
+from mocap.core.geometry import rotation_angle_between
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.motion_csv import load_motion
 from mocap.io.points_csv import load_points
+from mocap.io.session import Session
 from mocap.io.tracks_csv import load_tracks
-from mocap.session import Session
 
 MATCH_PX = 2.0  # a tracked marker within this of its true centre is labelled right
 

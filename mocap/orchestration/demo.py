@@ -17,7 +17,7 @@ from mocap.io.outputs import check_output_folder
 if TYPE_CHECKING:  # the chain's modules are imported when the demo runs, not for `mocap demo --help`
     import numpy as np
 
-    from mocap.session import Session
+    from mocap.io.session import Session
 
 DIGITISING_NOISE_PX = 0.5
 
@@ -36,7 +36,8 @@ class DemoOptions:
 def digitise_first_frame(session: Session, rng: np.random.Generator) -> Path:
     """Stand in for the person who clicks each camera's markers in its first frame: the true
     centres of the visible markers with 0.5 px of clicking noise, written as the labels CSV."""
-    from mocap.io.tracks_csv import Tracks, load_tracks, save_tracks
+    from mocap.core.tracks import Tracks
+    from mocap.io.tracks_csv import load_tracks, save_tracks
 
     truth = load_tracks(session.truth_dir / "tracks.csv")
     frame = int(session.config().options.get("calibration_frame", 0))
@@ -72,9 +73,9 @@ def run_demo(options: DemoOptions) -> int:
     import numpy as np
 
     from mocap.analysis.score import format_analysis_score, score_files
-    from mocap.evaluate import format_score, score_session
-    from mocap.pipeline import RunOptions, run_session
-    from mocap.session import Session
+    from mocap.io.session import Session
+    from mocap.orchestration.evaluate import format_score, score_session
+    from mocap.orchestration.pipeline import RunOptions, run_session
     from mocap.synthetic.stage import SynthRequest, run_synth
 
     start = time.perf_counter()

@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from mocap.core.machine import Machine
 from mocap.io.atomic import write_text
 from mocap.io.machine_toml import load_machine, resolve_machine_path
 from mocap.io.session_toml import SessionConfig, load_session_config
-from mocap.machine import Machine
 
 
 @dataclass(frozen=True)
