@@ -65,6 +65,13 @@ def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
     storage.release()
 
 
+def pytest_collection_modifyitems(items):
+    """The tests marked `long` (tens of seconds each) first: with xdist's work stealing they
+    start at once, and the short ones fill both cores around them, so that no long test is
+    left to run alone at the end."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
 def pytest_terminal_summary(terminalreporter):
     """The bad-input corpus (test_bad_input.py, cases named command/case) counted per command."""
     counts: dict[str, list[int]] = {}

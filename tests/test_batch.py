@@ -109,6 +109,7 @@ def read_fleet(out: Path) -> dict[str, dict]:
         return {row["session"]: row for row in csv.DictReader(fh)}
 
 
+@pytest.mark.long
 def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     top, roots = fleet
     assert find_sessions([top, roots[0]]) == sorted(r.resolve() for r in roots)
@@ -269,6 +270,7 @@ def chain_with_a_killed_worker(root: Path) -> list[Stage]:
                   camera=s.camera) if s.camera == "cam1" else s for s in stages]
 
 
+@pytest.mark.long
 def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path, capsys):
     """A worker killed mid-task costs only that task's re-run (Dask's own): its session's
     results equal those of a session that ran untouched; the broken session is listed with
@@ -324,6 +326,7 @@ def certificates(tmp_path_factory):
     return d / "ca.pem", d / "node.pem", d / "node.key"
 
 
+@pytest.mark.long
 def test_batch_through_a_tls_scheduler(fleet, certificates, tmp_path, capsys):
     """A scheduler and a worker that speak TLS only, on loopback: the batch reaches them with
     the cluster's CA and a certificate it signed, and its session's results are those of its

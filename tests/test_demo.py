@@ -3,12 +3,14 @@ defaults: an EX3500 session, three cameras at half of 1920x1080, 15 fps), on two
 dig cycles to stay fast, scored against the truth."""
 
 import numpy as np
+import pytest
 
 from mocap.cli import main
 from mocap.io.cameras_toml import load_calibration
 from mocap.orchestration.evaluate import score_session
 
 
+@pytest.mark.long
 def test_demo_chain_reaches_the_truth(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--cycles", "2"]) == 0

@@ -332,6 +332,7 @@ def _whole_or_passed_through(files: dict, whole: dict, calibrated: str) -> None:
 RUN_KILLS = np.random.default_rng(341).uniform(0.15, 0.9, 3)  # fractions of an uninterrupted run's time
 
 
+@pytest.mark.long
 def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, whole_run, tmp_path):
     """SIGKILL of `mocap run` at seeded random moments, each run taking up the folder the last
     one left (its lock a dead process's: taken over): the inputs stay byte-identical, every
@@ -357,6 +358,7 @@ def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run
     assert not list(killed.rglob(".*"))  # no temporary or lock of the killed runs left
 
 
+@pytest.mark.long
 def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small_session, whole_run, tmp_path):
     """SIGKILL of `mocap batch` (and its Dask workers) at a seeded random moment of the whole
     and another after the first stage is in the manifest: every file whole, the inputs
@@ -402,6 +404,7 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
 LIVE_KILLS = np.random.default_rng(343).uniform(0.3, 0.95, 3)
 
 
+@pytest.mark.long
 def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, tmp_path):
     """SIGKILL of `mocap live --record DIR` (files read as fast as tracked) at seeded moments,
     into a folder holding an earlier, other recording: a killed run leaves no session.toml

@@ -153,6 +153,7 @@ def test_a_scene_whose_wild_pixel_bent_a_cameras_placement_is_calibrated():
     assert result.sigma_px < 1.0
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("seed", [1000143, 1000187])
 def test_a_wild_pixel_the_residuals_far_above_the_noise_betray_is_named(seed):
     """Four cameras each: a wild pixel let through (taken back with a good one whose gain

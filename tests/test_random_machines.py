@@ -189,6 +189,7 @@ def test_field_triangulation_asks_the_markers_3d_tracks():
     assert np.median(lost) < 0.01  # a point is dropped only with a wrong view and no second good one
 
 
+@pytest.mark.long
 def test_field_calibration_fits_the_markers_within_the_tolerance():
     """Field conditions (every marker coordinate off by up to 5 %, 2 % wild pixels, 15 %
     occlusion, 0.8 px): with the tolerance stated, the markers are fitted within it, the
