@@ -89,7 +89,7 @@ def fleet(tmp_path_factory):
     """Three copies of one truth-only session, on two machines and two days; the third has
     lost its truth calibration, so its first stage fails."""
     base = tmp_path_factory.mktemp("base") / "s"
-    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--no-video", "--out", str(base)]) == 0
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--fps", "10", "--no-video", "--out", str(base)]) == 0
     top = tmp_path_factory.mktemp("fleet")
     roots = [top / "site_a" / "s1", top / "site_a" / "s2", top / "site_b" / "deep" / "s3"]
     metadata = [{"machine_id": "EX3500 #1", "date": datetime.date(2026, 11, 30)},
@@ -224,7 +224,10 @@ def test_a_failing_stage_gives_its_one_line(tmp_path):
     assert "file not found" in (logs / "fit.log").read_text() and "file not found" in (logs / "triangulate.log").read_text()
 
 
-def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
+def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys, monkeypatch):
+    from mocap.batch import stage
+
+    monkeypatch.setattr(stage, "CONNECT_TIMEOUT_S", 0.5)  # nothing listens: no need to wait 5 s to be sure
     (tmp_path / "s1").mkdir()
     (tmp_path / "s1" / "session.toml").write_text('machine = "hitachi_ex3500"\n')
     assert cli.main(["batch", str(tmp_path), "--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path)]) == 2

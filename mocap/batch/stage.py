@@ -99,6 +99,9 @@ def cluster_security(options: BatchOptions):
     return Security(tls_ca_file=ca, tls_client_cert=cert, tls_client_key=key, require_encryption=True)
 
 
+CONNECT_TIMEOUT_S = 5.0  # how long a scheduler given by --scheduler may take to answer
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None, workers: int, security=None):
     """A Dask client: of the scheduler at `scheduler` (over TLS with `security`, Dask's
@@ -109,7 +112,7 @@ def dask_client(scheduler: str | None, workers: int, security=None):
         logging.getLogger("distributed").setLevel(logging.WARNING)
     if scheduler:
         try:
-            client = Client(scheduler, timeout="5s", security=security)
+            client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", security=security)
         except (OSError, TimeoutError) as exc:
             raise InputError(
                 f"cannot reach the Dask scheduler ({exc}); start one with `dask scheduler` and workers "
