@@ -70,7 +70,7 @@ class LiveRequest:
     duration: float | None = None
     lag: int = 1
     depth: int = 2
-    wait_frames: float = 1.5
+    wait_frames: float = 1.0
     feed: tuple[str, int] | None = None
     record: Path | None = None
     view: str | None = None
