@@ -11,8 +11,8 @@ throughout), what became of the reference camera's frames (a row each, or why no
 dropped, latency p50 / p99 / max (from the reference frame's arrival to its row written,
 the smoother's lag included) and its parts' medians (the reference frame's tracking, the
 wait for the other cameras, the fit, the smoother's lag); the process's CPU time per row
-(all its threads: decoding, tracking, fitting: load-independent where the wall figures are upper bounds on a shared machine); its
-resident memory after the first tenth of the run and at its end (flat?); beside it the
+(all its threads: decoding, tracking, fitting: load-independent where the wall figures
+are upper bounds on a shared machine); its resident memory after the first tenth of the run and at its end (flat?); beside it the
 decode-only rate of the same streams (the tracker's own grey decoding, all the cameras'
 frames of that duration one after another: the floor) and the frames the cameras deliver;
 and the bucket tip's RMSE against the truth, live and by the offline chain (`mocap track`
