@@ -3,20 +3,20 @@ offline chain on the same videos.
 
 For each size of `--sizes` and seed of `--seeds`, writes a session with `mocap synth` (the
 default look, or with `--look random` the seed's random look: paint, light, lens, noise ...;
-the largest of `--cameras` cameras; the first camera at 30 fps, the others at 29.97), then
-for each count of `--cameras`: the first N videos played as their cameras delivered them
-(`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`):
-rows out per second of the run (the session outlasts the run: its cameras deliver
-throughout), what became of the reference camera's frames (a row each, or why not), frames
-dropped, latency p50 / p99 / max (from the reference frame's arrival to its row written,
-the smoother's lag included) and its parts' medians (the reference frame's tracking, the
-wait for the other cameras, the fit, the smoother's lag); the process's CPU time per row
-(all its threads: decoding, tracking, fitting: load-independent where the wall figures
-are upper bounds on a shared machine); its resident memory after the first tenth of the run and at its end (flat?); beside it the
-decode-only rate of the same streams (the tracker's own grey decoding, all the cameras'
-frames of that duration one after another: the floor) and the frames the cameras deliver;
-and the bucket tip's RMSE against the truth, live and by the offline chain (`mocap track`
-each camera, then `mocap fit`, over the whole videos) over the same frames.
+the largest of `--cameras` cameras; the first camera at 30 fps, the others at 29.97), then for
+each count of `--cameras`: the first N videos played as their cameras delivered them
+(`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`): rows
+out per second of the run (the session outlasts the run: its cameras deliver throughout), what
+became of the reference camera's frames (a row each, or why not), frames dropped, latency p50 /
+p99 / max (from the reference frame's arrival to its row written, the smoother's lag included)
+and its parts' medians (the reference frame's tracking, the wait for the other cameras, the
+fit, the smoother's lag); the process's CPU time per row (all its threads: decoding, tracking,
+fitting: load-independent where the wall figures are upper bounds on a shared machine); its
+resident memory after the first tenth of the run and at its end (flat?); beside it the
+decode-only rate of the same streams (the tracker's own grey decoding, all the cameras' frames
+of that duration one after another: the floor) and the frames the cameras deliver; and the
+bucket tip's RMSE against the truth, live and by the offline chain (`mocap track` each camera,
+then `mocap fit`, over the whole videos) over the same frames.
 
 `--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
 run (its frames in that time never arrive, as from a camera unplugged and plugged back).
