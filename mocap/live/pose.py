@@ -134,10 +134,6 @@ class WarmFit:
             state = self._from_grid(frame)
         else:
             start = self.last[-1] if len(self.last) < 2 else 2 * self.last[-1] - self.last[-2]
-            import os
-            if os.environ.get("XBASE") and len(self.last) == 2:
-                start = self.last[-1].copy()
-                start[:n_joints] += self.last[-1][:n_joints] - self.last[-2][:n_joints]
             state = self.fitter.fit(frame, start[None, :n_joints], start[None, n_joints:])
             per_obs = state.cost[0] / n_obs
             if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
