@@ -3,19 +3,20 @@ offline chain on the same videos.
 
 For each size of `--sizes` and seed of `--seeds`, writes a session with `mocap synth` (the
 default look, or with `--look random` the seed's random look: paint, light, lens, noise ...;
-the largest of `--cameras` cameras; the first camera at 30 fps, the others at 29.97), then
-for each count of `--cameras`: the first N videos played as their cameras delivered them
-(`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`):
-rows out per second of the run, frames dropped, latency p50 / p99 / max (from the
-reference frame's arrival to its row written, the smoother's lag included) and its parts'
-medians (the reference frame's tracking, the wait for the other cameras, the fit, the
-smoother's lag); the process's CPU time per row (all its threads: decoding, tracking,
+the largest of `--cameras` cameras; the first camera at 30 fps, the others at 29.97), then for
+each count of `--cameras`: the first N videos played as their cameras delivered them
+(`--realtime`) for `--duration` seconds through `mocap live` (`mocap.live.run.run_live`): rows
+out per second of the run (the session outlasts the run: its cameras deliver throughout), what
+became of the reference camera's frames (a row each, or why not), frames dropped, latency p50 /
+p99 / max (from the reference frame's arrival to its row written, the smoother's lag included)
+and its parts' medians (the reference frame's tracking, the wait for the other cameras, the
+fit, the smoother's lag); the process's CPU time per row (all its threads: decoding, tracking,
 fitting: load-independent where the wall figures are upper bounds on a shared machine); its
 resident memory after the first tenth of the run and at its end (flat?); beside it the
-decode-only rate of the same streams (the tracker's own grey decoding, all the cameras'
-frames of that duration one after another: the floor) and the frames the cameras deliver;
-and the bucket tip's RMSE against the truth, live and by the offline chain (`mocap track`
-each camera, then `mocap fit`, over the whole videos) over the same frames.
+decode-only rate of the same streams (the tracker's own grey decoding, all the cameras' frames
+of that duration one after another: the floor) and the frames the cameras deliver; and the
+bucket tip's RMSE against the truth, live and by the offline chain (`mocap track` each camera,
+then `mocap fit`, over the whole videos) over the same frames.
 
 `--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
 run (its frames in that time never arrive, as from a camera unplugged and plugged back).
@@ -59,17 +60,30 @@ MACHINE = "hitachi_ex3500"
 GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
 
 
-CYCLE_S = 25.0  # a dig cycle lasts at least this long: the session has enough cycles for the run
+HOLD_S = 0.5  # the session's still start (`mocap synth --hold`)
+
+
+def cycles_for(duration: float, seed: int) -> int:
+    """The fewest dig cycles whose session (as `mocap synth` plans it for `seed`) outlasts a
+    run of `duration` s by a second: the sources then deliver for the whole run (a session
+    of 24 cycles lasts 588 s, not the 600 of a 10-minute run)."""
+    from mocap.synthetic.motion import plan_session
+
+    machine = load_machine(MACHINE)
+    cycles = 1
+    while plan_session(machine, cycles, np.random.default_rng(seed), hold=HOLD_S).duration < duration + 1.0:
+        cycles += 1
+    return cycles
 
 
 def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default", duration: float = 20.0) -> Path:
-    cycles = max(1, int(np.ceil(duration / CYCLE_S)))
+    cycles = cycles_for(duration, seed)
     name = f"live_{size}_{cameras}_{seed}" + (f"_{look}" if look != "default" else "") + (f"_{cycles}c" if cycles > 1
                                                                                          else "")
     session = root / name
     if not (session / "COMPLETE").exists():
         assert cli.main(["synth", "--machine", MACHINE, "--cameras", str(cameras), "--cycles", str(cycles), "--seed",
-                         str(seed), "--size", size, "--hold", "0.5", "--look", look, "--out", str(session)]) == 0
+                         str(seed), "--size", size, "--hold", str(HOLD_S), "--look", look, "--out", str(session)]) == 0
     return session
 
 
@@ -307,6 +321,11 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
         line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")
     print(line, flush=True)
+    account = report.reference
+    print(f"     {account.text()}" + (f" (and {report.rows_of_others} rows of other cameras' frames)"
+                                      if report.rows_of_others else "")
+          + "".join(f"; {c.camera} labelled afresh {c.resumed}x after a gap" for c in report.cameras if c.resumed),
+          flush=True)
     if gap is not None:
         rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
         without = np.array([gap not in str(c).split(";") for c in np.atleast_1d(rows["cameras"])])

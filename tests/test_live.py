@@ -31,6 +31,8 @@ from mocap.viewer import scene
 FRAMES = (105, 45)  # frames rendered per camera: cam2 (from 0.9 s on the reference clock) ends at 2.4 s, cam1 at 3.5 s
 SUMMARY = re.compile(r"^(\d+) rows to \S+; cam1 in (\d+) out (\d+) dropped (\d+); cam2 in (\d+) out (\d+) dropped (\d+); "
                      r"latency p50 (\d+) ms, p99 (\d+) ms, max (\d+) ms \(the smoother's lag of 33 ms included\)")
+# what became of the reference camera's frames: its rows, then each reason a frame has none
+ACCOUNT = re.compile(r"; cam1's (\d+) frames: (\d+) rows((?:, \d+ [a-z ]+)*)(?: \(and (\d+) rows of the other)?")
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +107,14 @@ def test_live_rows_follow_the_truth_with_a_camera_ending_early_and_a_feed(short_
     assert out1 + dropped1 <= read1 and out2 + dropped2 <= read2 and out1 >= 0.8 * read1
     frames = [int(r["frame"]) for r in rows]
     assert frames == sorted(set(frames)) and len(rows) >= 0.8 * FRAMES[0]
+    # every frame cam1 delivered has its row or is counted with the reason it has none
+    account = ACCOUNT.search(summary)
+    assert account, summary
+    read, own_rows = int(account.group(1)), int(account.group(2))
+    reasons = [int(n) for n in re.findall(r", (\d+) ", account.group(3))]
+    assert read == FRAMES[0] and own_rows + int(account.group(4) or 0) == n_rows
+    assert own_rows + sum(reasons) == read, summary
+    assert len(set(range(FRAMES[0])) - set(frames)) <= read - own_rows
     # the first second with cam1 alone (cam2 starts at 0.9 s), both, cam1 again after cam2's end at 2.4 s
     used = {int(r["frame"]): r["cameras"] for r in rows}
     assert all(used[f] == "cam1" for f in used if f < 25 or f > 78)
@@ -193,6 +203,52 @@ def check_view(path: Path, poses, machine) -> None:
     assert np.allclose([segments[f][0] for f in frame[1:]], np.stack([tip[:-1], tip[1:]], axis=1), atol=1e-5)
     angle = series("/plots/bucket/bucket_angle", "Scalars:scalars")
     assert np.allclose([angle[f][0] for f in frame], poses.column("bucket_angle_deg").to_numpy(), atol=1e-9)
+
+
+def test_a_camera_back_after_a_gap_is_labelled_afresh(short_session):
+    """cam1's frames with 2 s missing (unplugged, then back): its frames after the gap are
+    labelled afresh from the joints of before it, every marker where the truth has it
+    (carrying on from the tracker's state of before the gap took one marker for another on
+    25 frames, 11-12 markers labelled where 14 are)."""
+    import queue
+
+    from mocap.live.run import CameraWorker
+    from mocap.live.sources import Frame
+    from mocap.io.video import Video
+    from mocap.tracking.model import CameraModel
+    from mocap.tracking.tracker import TrackOptions
+
+    root, session = short_session
+    machine = load_machine("hitachi_ex3500")
+    gap = (15, 75)
+
+    class Reader:  # cam1's frames but those of the gap, as fast as they are taken
+        spec = type("Spec", (), {"camera": "cam1"})
+        frames = [Frame(i, i / 30, 0.0, gray) for i, gray in Video(root / "cam1.mp4").frames(gray=True)
+                  if not gap[0] <= i < gap[1]]
+        done = False
+
+        def take(self):
+            self.done = not self.frames
+            return self.frames.pop(0) if self.frames else None
+
+    labelled: queue.Queue = queue.Queue()
+    worker = CameraWorker(0, Reader(), CameraModel(machine, session.cameras[0].camera, solid=True),
+                          machine.clip_to_limits(session.calibration.joints(machine)), 30.0, TrackOptions(), labelled,
+                          threading.Event(), resume=lambda: session.motion.joints[gap[0] - 1])
+    worker.run()
+    truth = session.tracks.select(session.tracks.camera == "cam1")
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    after = []
+    while not labelled.empty():
+        _, t, _, pixels, _ = labelled.get()
+        frame = int(round(t * 30))
+        seen = [m for m, name in enumerate(machine.marker_names) if np.isfinite(pixels[m, 0])]
+        error = [np.linalg.norm(pixels[m] - true_xy.get((frame, machine.marker_names[m]), np.inf)) for m in seen]
+        assert max(error) < 3.0, (frame, error)  # the labels' error is a few tenths of a pixel
+        if frame >= gap[1]:
+            after.append(len(seen))
+    assert worker.resumed == 1 and len(after) == 105 - gap[1] and min(after[:3]) >= 13, after
 
 
 def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):

@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 STALL_S = 1.0  # a clock camera silent this long hands the rows' clock to the next camera
 BEHIND_S = 0.5  # a clock frame this long waiting for the fit (the process is starved of CPU) is skipped
 FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (a search of the whole frame)
+RESUME_S = 1.0  # a camera's frame this long after its last one (it was unplugged, its stream failed) is labelled afresh
 
 
 @dataclass(frozen=True)
@@ -81,13 +82,42 @@ class LiveRequest:
 
 @dataclass(frozen=True)
 class CameraCounts:
-    """Frames `read` from the source, `out` tracked and handed to the fit, `dropped` late."""
+    """Frames `read` from the source, `out` tracked and handed to the fit, `dropped` late;
+    `resumed` the gaps after which its labelling started afresh (`RESUME_S`)."""
 
     camera: str
     read: int
     out: int
     dropped: int
     reconnects: int
+    resumed: int = 0
+
+
+@dataclass(frozen=True)
+class FrameAccount:
+    """What became of the reference camera's frames: `read` from its source, each either a
+    row (`rows`) or without one for a reason: `dropped` late at the source (the tracker
+    behind), `unlabelled` (a first frame, or one after a gap, whose labelling failed; the
+    next was tried), `skipped` (its fit more than `BEHIND_S` behind), `displaced` (labelled
+    while another camera drove the rows), `unfinished` (read but not yet through when the
+    run ended)."""
+
+    camera: str
+    read: int
+    rows: int
+    dropped: int = 0
+    unlabelled: int = 0
+    skipped: int = 0
+    displaced: int = 0
+    unfinished: int = 0
+
+    REASONS = (("dropped", "dropped late"), ("unlabelled", "not labelled"), ("skipped", "skipped behind"),
+               ("displaced", "while another camera drove the rows"), ("unfinished", "unfinished at the end"))
+
+    def text(self) -> str:
+        """"cam1's 600 frames: 592 rows, 8 dropped late" (the reasons that occurred)."""
+        return f"{self.camera}'s {self.read} frames: {self.rows} rows" + "".join(
+            f", {getattr(self, name)} {words}" for name, words in self.REASONS if getattr(self, name))
 
 
 @dataclass(frozen=True)
@@ -107,18 +137,24 @@ class LiveReport:
     # per row (R, 4) ms: the reference frame's tracking (arrival to its labels in the main thread), the wait
     # for the other cameras' frames, the fit, and the smoother's lag (the fit to the row written)
     stages_ms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    reference: FrameAccount | None = None  # what became of the reference camera's frames
+    rows_of_others: int = 0  # rows of other cameras' frames (while they drove the rows)
 
     def summary(self, out) -> str:
         """The run's one summary line."""
         counts = "; ".join(f"{c.camera} in {c.read} out {c.out} dropped {c.dropped}"
-                           + (f" reconnected {c.reconnects}x" if c.reconnects else "") for c in self.cameras)
+                           + (f" reconnected {c.reconnects}x" if c.reconnects else "")
+                           + (f" labelled afresh {c.resumed}x after a gap" if c.resumed else "") for c in self.cameras)
         if len(self.latency_ms):
             p50, p99, worst = np.percentile(self.latency_ms, [50, 99]).tolist() + [float(self.latency_ms.max())]
             latency = f"latency p50 {p50:.0f} ms, p99 {p99:.0f} ms, max {worst:.0f} ms"
         else:
             latency = "latency -"
         return (f"{self.rows} rows to {out}; {counts}; {latency} (the smoother's lag of {self.lag_ms:.0f} ms "
-                f"included)" + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
+                f"included)" + (f"; {self.reference.text()}" if self.reference is not None else "")
+                + (f" (and {self.rows_of_others} rows of the other cameras' frames while they drove the rows)"
+                   if self.rows_of_others else "")
+                + (f"; {self.skipped} frames' rows skipped, more than {BEHIND_S:g} s behind (too little "
                                 "CPU)" if self.skipped else "") + "".join(
                     f"; {name} clock offset {now:+.4f} s at its frame {at:.0f} (calibrated {then:+.4f} s)"
                     for name, now, at, then in self.clocks)
@@ -129,30 +165,46 @@ class LiveReport:
 class CameraWorker(threading.Thread):
     """One camera's tracker (`track_frames`, the code of `mocap track`) fed frame by frame from
     its source; each frame's labels go to `labelled` as (camera index, time, arrived,
-    pixels (M, 2)). A first frame that cannot be labelled is skipped and the next one tried."""
+    pixels (M, 2)). A first frame that cannot be labelled is skipped and the next one tried.
+    A frame more than `RESUME_S` after the one before (the camera was unplugged, its stream
+    failed) is labelled afresh as a first frame, from the joints `resume()` gives (the rows'
+    newest fit, None: `start`): the tracker's state of before the gap would follow the machine
+    from where it was (a marker taken for another while it catches up)."""
 
     def __init__(self, k: int, reader: SourceReader, model: CameraModel, start: np.ndarray, fps: float,
-                 options: TrackOptions, labelled: queue.Queue, stop: threading.Event, keep: bool = True):
+                 options: TrackOptions, labelled: queue.Queue, stop: threading.Event, keep: bool = True,
+                 resume=None):
         super().__init__(name=f"track {reader.spec.camera}", daemon=True)
         self.k, self.reader, self.model, self.start_joints, self.fps = k, reader, model, start, fps
         self.keep = keep  # the labels kept for `tracks()` (--record); else memory stays flat however long the run
         self.options, self.labelled, self.stop = options, labelled, stop
         self.markers = {name: m for m, name in enumerate(model.machine.marker_names)}
+        self.resume = resume or (lambda: None)
         self.out = 0
+        self.unlabelled = 0  # frames taken whose labelling as a first frame failed
+        self.resumed = 0  # gaps after which the tracking started afresh
         self.parts: list[Tracks] = []
         self.finished = threading.Event()
         self._meta: dict[int, tuple[float, float]] = {}
         self._exhausted = False
+        self._held = None  # the frame after a gap, for the next run of the tracker
+        self._last = -np.inf  # the time of the last frame handed to the tracker
 
     def run(self) -> None:
         try:
+            start = self.start_joints
             while not self._exhausted and not self.stop.is_set():
                 try:
-                    tracks, _ = track_frames(self.model, self._frames(), self.start_joints, None, self.fps, self.options,
+                    tracks, _ = track_frames(self.model, self._frames(), start, None, self.fps, self.options,
                                              on_frame=self._on_frame, keep=self.keep)
                     self.parts.append(tracks)
                 except ValueError as exc:  # the first frame not labelled: try the next ones
+                    self.unlabelled += len(self._meta)
+                    self._meta.clear()
                     log.info("camera %s: %s; trying the next frame", self.reader.spec.camera, exc)
+                if self._held is not None:  # a gap: the tracking starts afresh from the rows' newest joints
+                    now = self.resume()
+                    start = self.start_joints if now is None else now
         except Exception as exc:  # one line; the traceback at debug level
             log.error("camera %s: tracking failed (%s: %s); the others carry on", self.reader.spec.camera,
                       type(exc).__name__, exc)
@@ -161,12 +213,26 @@ class CameraWorker(threading.Thread):
             self.finished.set()
 
     def _frames(self):
+        """The source's frames for one run of the tracker: it ends before a frame that comes
+        after a gap (held for the next run)."""
+        first = True
         while not self.stop.is_set():
-            frame = self.reader.take()
+            if self._held is not None:
+                frame, self._held = self._held, None
+            else:
+                frame = self.reader.take()
             if frame is None:
                 if self.reader.done:
                     break
                 continue
+            if not first and frame.time - self._last > RESUME_S:
+                log.info("camera %s: no frame for %.1f s; its next one labelled afresh", self.reader.spec.camera,
+                         frame.time - self._last)
+                self._held = frame
+                self.resumed += 1
+                return
+            first = False
+            self._last = frame.time
             self._meta[frame.index] = (frame.time, frame.arrived)
             yield frame.index, frame.gray
         self._exhausted = True
@@ -227,6 +293,8 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
 
             follower = ClockFollower(machine, cameras, fps, offsets, stop)
         loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
+        for worker in workers:  # after a gap a camera's labelling starts afresh from the rows' newest joints
+            worker.resume = lambda: loop.joints_now
         with ExitStack() as videos:
             _recorders(request, readers, cameras, fps, videos)
             for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
@@ -244,8 +312,11 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                     view.close()
         if request.record is not None:
             _record(request, machine, calibration, order, cameras, fps, workers)
-    counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects)
+    counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects, w.resumed)
                    for c, r, w in zip(cameras, readers, workers))
+    reference = FrameAccount(cameras[0].name, readers[0].read, loop.clocked[0] - loop.skipped_by[0], readers[0].dropped,
+                             workers[0].unlabelled, loop.skipped_by[0], loop.displaced[0],
+                             readers[0].read - readers[0].dropped - workers[0].unlabelled - loop.received[0])
     return LiveReport(
         loop.rows, counts, np.array(loop.latency), 1000.0 * request.lag / fps[0], loop.interrupted, loop.skipped,
         feed.url if feed is not None else None,
@@ -254,7 +325,8 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
         clocks=() if follower is None else tuple((c.name, follower.offset(k), follower.at[k], float(offsets[k]))
                                                  for k, c in enumerate(cameras) if k > 0),
         clock_update_ms=1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
-        else float("nan"), stages_ms=np.array(loop.stages).reshape(-1, 4))
+        else float("nan"), stages_ms=np.array(loop.stages).reshape(-1, 4), reference=reference,
+        rows_of_others=sum(c - s for c, s in zip(loop.clocked[1:], loop.skipped_by[1:])))
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
@@ -280,12 +352,17 @@ class _Loop:
         self.history = [CameraHistory(f) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
-        # clock frames waiting: (frame, time, arrived, labels in)
-        self.pending: list[tuple[int, float, float, float]] = []
+        # clock frames waiting: (frame, time, arrived, labels in, the camera whose frame it is)
+        self.pending: list[tuple[int, float, float, float, int]] = []
         self.waiting: list[tuple[int, float, float, list[str], object, tuple]] = []  # fitted, awaiting the smoother
         self.last_frame = -1
         self.ahead = -1  # the clock frame fitted ahead of its cameras (`_fit_ahead`)
         self.rows = self.skipped = 0
+        n_cameras = len(cameras)
+        # per camera: labelled frames taken in, those that became clock frames, those of them
+        # skipped (too far behind), and those that came while another camera drove the rows
+        self.received, self.clocked, self.skipped_by, self.displaced = ([0] * n_cameras for _ in range(4))
+        self.joints_now: np.ndarray | None = None  # the newest fit's joints (a camera back after a gap starts there)
         self.latency: list[float] = []
         self.stages: list[tuple[float, float, float, float]] = []
         self.interrupted = False
@@ -320,10 +397,13 @@ class _Loop:
                 time_ref = index / self.fps[k] + self.follower.offset(k)
             self.history[k].add(time_ref, pixels)
             self.seen[k] = time.perf_counter()
-            if k == self._clock():
-                frame = int(round(time_ref * self.fps[0]))
-                if frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
-                    self.pending.append((frame, frame / self.fps[0], arrived, labelled_at))
+            self.received[k] += 1
+            frame = int(round(time_ref * self.fps[0]))
+            if k == self._clock() and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
+                self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
+                self.clocked[k] += 1
+            else:
+                self.displaced[k] += 1
             self._emit()
         self._emit(final=True)  # the frames still waiting for a camera: with those there are
         for pose_and_meta in self._drain():
@@ -344,7 +424,7 @@ class _Loop:
         """Fit the waiting clock frames whose cameras are all in (or waited for long enough)."""
         now = time.perf_counter()
         while self.pending:
-            frame, t, arrived, labelled_at = self.pending[0]
+            frame, t, arrived, labelled_at, k = self.pending[0]
             ready = final
             if not ready:
                 late = not self.patient and now > arrived + self.request.wait_frames / self.fps[0]
@@ -356,10 +436,11 @@ class _Loop:
             if not self.patient and now - arrived > BEHIND_S:
                 if frame != self.ahead:
                     self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
+                    self.skipped_by[k] += 1
                 continue
             self._fit(frame, t, arrived, (labelled_at, now))
         if self.early and self.pending and self.pending[-1][0] != self.ahead and self.fit.warm:
-            self._fit_ahead(*self.pending[-1])
+            self._fit_ahead(*self.pending[-1][:4])
 
     def _pixels(self, t: float) -> tuple[np.ndarray, list[str]]:
         """(C, M, 2) every camera's pixels at `t` and the cameras that see a marker."""
@@ -372,6 +453,8 @@ class _Loop:
         """`stamps`: when the frame's labels came, when the other cameras' were all in."""
         pixels, used = self._pixels(t)
         fitted = self.fit(pixels)
+        if fitted.valid and self.machine.n_joints:
+            self.joints_now = self.machine.clip_to_limits(fitted.values[: self.machine.n_joints])
         for history in self.history:
             history.forget(t)
         self.last_frame = frame
