@@ -14,6 +14,14 @@ kept, and only those OpenPose found (it writes 0, 0, 0 for a keypoint it did not
 camera sees several people, the one kept is the one whose neck lies nearest the neck
 triangulated from the cameras that see one person (Pose2Sim's own association rule: the
 tracked keypoint `Neck`, by reprojection error), with the pinhole projection Pose2Sim uses.
+
+Derived: `board_corners.csv`, the inner corners of the 4x7 chessboard (60 mm squares, the
+demo's `intrinsics_corners_nb` and `intrinsics_square_size`) in the demo's intrinsic
+calibration images (`calibration/intrinsics/int_camN_img/camNN_KK_int.jpg`), found by
+OpenCV as Pose2Sim finds them (`findChessboardCorners`, then `cornerSubPix` in an 11x11
+window): camera `cam_NN`, frame = image KK - 1, marker `C<row><column>` in OpenCV's order;
+an image where the board is not found has no rows. `board.toml`: that board as a rigid
+machine model (metres).
 """
 
 from __future__ import annotations
@@ -95,6 +103,41 @@ def keypoint_rows(wheel: zipfile.ZipFile, calibration: dict) -> list[tuple]:
     return rows
 
 
+BOARD_COLUMNS, BOARD_ROWS, SQUARE_M = 4, 7, 0.060  # Config.toml: intrinsics_corners_nb [4, 7], 60 mm
+
+
+def board_rows(wheel: zipfile.ZipFile) -> list[tuple]:
+    import cv2
+
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.001)
+    rows = []
+    for name in sorted(wheel.namelist()):
+        match = re.fullmatch(re.escape(DEMO) + r"calibration/intrinsics/int_cam\d+_img/cam(\d+)_(\d+)_int\.jpg", name)
+        if not match:
+            continue
+        gray = cv2.imdecode(np.frombuffer(wheel.read(name), np.uint8), cv2.IMREAD_GRAYSCALE)
+        found, corners = cv2.findChessboardCorners(gray, (BOARD_COLUMNS, BOARD_ROWS),
+                                                   cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            continue
+        corners = cv2.cornerSubPix(gray, corners, (11, 11), (-1, -1), criteria).reshape(-1, 2)
+        for k, (x, y) in enumerate(corners):
+            rows.append((f"cam_{int(match[1]):02d}", int(match[2]) - 1, f"C{k // BOARD_COLUMNS}{k % BOARD_COLUMNS}",
+                         f"{x:.3f}", f"{y:.3f}"))
+    return rows
+
+
+def board_model() -> str:
+    lines = [f'name = "chessboard {BOARD_COLUMNS} x {BOARD_ROWS}"',
+             f'source = "Pose2Sim demo: {BOARD_COLUMNS} x {BOARD_ROWS} inner corners, {SQUARE_M * 1000:g} mm squares"',
+             "", "[[links]]", 'name = "board"']
+    for k in range(BOARD_COLUMNS * BOARD_ROWS):
+        row, column = divmod(k, BOARD_COLUMNS)
+        lines += ["", "[[markers]]", f'name = "C{row}{column}"', 'link = "board"',
+                  f"position = [{column * SQUARE_M:.3f}, {row * SQUARE_M:.3f}, 0.0]"]
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("wheel", type=Path, help="pose2sim-0.4.15-py3-none-any.whl")
@@ -108,11 +151,18 @@ def main() -> None:
         (args.out / "LICENSE").write_bytes(wheel.read(licence))
         calibration = tomllib.loads(wheel.read(DEMO + "calibration/Calib_qualisys.toml").decode())
         rows = keypoint_rows(wheel, calibration)
+        corners = board_rows(wheel)
+    with open(args.out / "board_corners.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["camera", "frame", "marker", "x", "y"])
+        writer.writerows(corners)
+    (args.out / "board.toml").write_text(board_model())
     with open(args.out / "keypoints.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["camera", "frame", "marker", "x", "y", "score"])
         writer.writerows(rows)
-    print(f"{len(rows)} keypoints of {len({r[0] for r in rows})} cameras written to {args.out}")
+    print(f"{len(rows)} keypoints of {len({r[0] for r in rows})} cameras, {len(corners)} board corners "
+          f"written to {args.out}")
 
 
 if __name__ == "__main__":

@@ -151,3 +151,64 @@ def test_api_max_noise_px_guard():
     with pytest.raises(mocap.InputError, match="max_noise_px -1"):
         mocap.triangulate(mocap.read_calibration(DATA / "Calib_qualisys.toml"),
                           mocap.read_tracks(DATA / "keypoints.csv"), max_noise_px=-1)
+
+
+# The demo's intrinsic images: a 4x7 chessboard of 60 mm squares shown to each camera alone
+# (6 images each; corners found by OpenCV as Pose2Sim finds them). mocap calibrates each camera
+# from one image and refines it over all six (the board's pose per image, lens and principal
+# point freed); the peer is Pose2Sim's own intrinsic calibration, OpenCV's calibrateCamera.
+BOARD = mocap.load_machine(DATA / "board.toml")
+
+
+@pytest.fixture(scope="module")
+def board_lenses(tmp_path_factory):
+    from mocap.reconstruct.refine import RefineOptions
+
+    corners = mocap.read_tracks(DATA / "board_corners.csv")
+    out = tmp_path_factory.mktemp("board")
+    lenses = {}
+    for name in corners.cameras:
+        seen = corners.of_camera(name)
+        one = mocap.calibrate(BOARD, seen, size=(1088, 1920))
+        refined = mocap.refine(BOARD, one, seen, options=RefineOptions(distortion="auto", fit_principal_point=True,
+                                                                       base_motion=True))
+        refined.cameras.write(out / f"{name}.toml")
+        lenses[name] = (one, mocap.read_calibration(out / f"{name}.toml"), seen)
+    return lenses
+
+
+def opencv_focal(seen) -> float:
+    """Pose2Sim's intrinsics: cv2.calibrateCamera on the same corners (its default model)."""
+    objp = BOARD.marker_positions.astype(np.float32)
+    images = [seen.of_frame(f) for f in seen.frames]
+    pixels = [image.xy[[BOARD.marker_names.index(m) for m in image.marker]].astype(np.float32) for image in images]
+    assert all(len(p) == len(objp) for p in pixels)
+    matrix = cv2.calibrateCamera([objp] * len(pixels), pixels, (1088, 1920), None, None)[1]
+    return float(matrix[0, 0])
+
+
+def test_board_focal_lengths_meet_qualisys_no_worse_than_opencv(board_lenses):
+    for (name, (_, refined, seen)), qualisys in zip(board_lenses.items(), qualisys_cameras(), strict=True):
+        focal, sd = refined.cameras[0].matrix[0, 0], refined.extras[0]["sd"]["focal_px"]
+        ours, peer = abs(focal - qualisys["f"][0]), abs(opencv_focal(seen) - qualisys["f"][0])
+        # the board and the Qualisys wand are separate calibrations: each within 1 %, and ours
+        # no further from Qualisys's than OpenCV's beyond our own SD
+        assert ours < 0.01 * qualisys["f"][0] and ours < peer + 3 * sd, (name, focal, qualisys["f"][0], peer)
+
+
+def test_refined_file_describes_the_refined_cameras(board_lenses):
+    """refine's file once kept the one-frame calibration's per-camera numbers: a `paper`
+    focal of 1759 px beside a refined matrix of 1672 px, its residual and SDs."""
+    for name, (one, refined, _) in board_lenses.items():
+        camera, extra = refined.cameras[0], refined.extras[0]
+        assert extra["paper"]["focal_px"] == pytest.approx(camera.matrix[0, 0])
+        assert extra["paper"]["position"] == pytest.approx(camera.center.tolist())
+        # the residual RMS (px, of the distances) over every corner of the six images: one
+        # camera, so the file's RMS per coordinate times sqrt(2)
+        assert extra["error"] == pytest.approx(np.sqrt(2) * refined.metadata["error"], rel=1e-9)
+        assert extra["error"] != one.extras[0]["error"]
+        # the covariance's SDs, not the one frame's
+        covariance = refined.metadata["camera_covariance"]
+        f = covariance["parameters"].index(f"{name}.f")
+        assert extra["sd"]["focal_px"] == pytest.approx(np.sqrt(covariance["matrix"][f][f]))
+        assert extra["sd"]["focal_px"] < one.extras[0]["sd"]["focal_px"]
