@@ -8,20 +8,28 @@ same keypoints: each camera's reprojection error of mocap's points and of Pose2S
 projected by the same cameras), and the 3-D distance between the two, raw and after
 Pose2Sim's own gap filling and filter (4th-order Butterworth, 6 Hz) applied to mocap's.
 
+Then the demo's intrinsic images (a 4x7 chessboard of 60 mm squares shown to each camera
+alone): mocap's lens (one image, then refine over the six with the board's pose per image,
+lens and principal point freed) and Pose2Sim's (OpenCV's calibrateCamera, the peer) against
+the Qualisys calibration's, on the same corners.
+
     .venv/bin/python benchmarks/bench_pose2sim.py
 """
 
 from __future__ import annotations
 
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.signal import butter, filtfilt
 
 import mocap
 from mocap.io.trc import load_trc
 from mocap.reconstruct.outliers import noise_from_fits
+from mocap.reconstruct.refine import RefineOptions
 
 DATA = Path(__file__).parent.parent / "tests" / "data" / "pose2sim"
 MIN_SCORE, FPS, CUTOFF_HZ, ORDER = 0.3, 60.0, 6.0, 4  # the demo's Config.toml
@@ -88,6 +96,48 @@ def main() -> None:
     for label, xyz in (("raw", ours), ("gaps filled, Butterworth 6 Hz", filled_and_filtered(ours))):
         distance = np.linalg.norm(xyz - peer, axis=2)[np.isfinite(xyz[..., 0])] * 1e3
         print(f"{label:>28} {np.median(distance):>7.1f} {np.percentile(distance, 95):>7.1f} {distance.max():>7.1f}")
+
+    board_table(cams)
+
+
+def qualisys_lenses() -> list[tuple[float, float, float, float, float]]:
+    """Per camera: focal (px), principal point (px), k1, k2 as Qualisys wrote them (its
+    pixel values in 1/64 px; its radial coefficients unscaled, unlike Pose2Sim 0.4's TOML)."""
+    out = []
+    for element in ET.parse(DATA / "Calib.qca.txt").getroot().iter("camera"):
+        i = {k: float(v) for k, v in element.find("intrinsic").attrib.items()}
+        out.append((i["focalLengthU"] / 64, i["centerPointU"] / 64, i["centerPointV"] / 64,
+                    i["radialDistortion1"], i["radialDistortion2"]))
+    return out
+
+
+def board_table(cams) -> None:
+    board = mocap.load_machine(DATA / "board.toml")
+    corners = mocap.read_tracks(DATA / "board_corners.csv")
+    objp = board.marker_positions.astype(np.float32)
+    print("\n3. Lenses from the demo's chessboard images (6 per camera), against the Qualisys calibration: "
+          "focal length px, principal point px, k1, k2")
+    print(f"{'camera':>7} {'source':>22} {'focal':>8} {'|df|':>6} {'cx':>6} {'cy':>6} {'k1':>7} {'k2':>7} {'CPU s':>6}")
+    for name, (f_q, cx_q, cy_q, k1_q, k2_q) in zip(cams.names, qualisys_lenses(), strict=True):
+        seen = corners.of_camera(name)
+        start = time.process_time()
+        one = mocap.calibrate(board, seen, size=(1088, 1920))
+        refined = mocap.refine(board, one, seen, options=RefineOptions(distortion="auto", fit_principal_point=True,
+                                                                       base_motion=True))
+        ours_s = time.process_time() - start
+        lens = refined.cameras.cameras[0]
+        sd = refined.cameras.extras[0]["sd"]["focal_px"]
+        images = [seen.of_frame(f) for f in seen.frames]
+        pixels = [i.xy[[board.marker_names.index(m) for m in i.marker]].astype(np.float32) for i in images]
+        start = time.process_time()
+        _, matrix, distortion, _, _ = cv2.calibrateCamera([objp] * len(pixels), pixels, (1088, 1920), None, None)
+        peer_s = time.process_time() - start
+        rows = (("Qualisys", f_q, cx_q, cy_q, k1_q, k2_q, None),
+                (f"mocap (SD {sd:.1f} px)", lens.matrix[0, 0], *lens.matrix[:2, 2], *lens.distortion[:2], ours_s),
+                ("Pose2Sim (OpenCV)", matrix[0, 0], *matrix[:2, 2], *distortion.ravel()[:2], peer_s))
+        for source, f, cx, cy, k1, k2, cpu in rows:
+            print(f"{name:>7} {source:>22} {f:>8.1f} {abs(f - f_q):>6.1f} {cx:>6.1f} {cy:>6.1f} {k1:>7.3f} {k2:>7.3f} "
+                  + (f"{cpu:>6.2f}" if cpu is not None else f"{'':>6}"))
 
 
 if __name__ == "__main__":
