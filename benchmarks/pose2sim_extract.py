@@ -87,7 +87,9 @@ def keypoint_rows(wheel: zipfile.ZipFile, calibration: dict) -> list[tuple]:
     for frame in frames:
         people = {c: files.get((c, frame), []) for c in cameras}
         single = [c for c in cameras if len(people[c]) == 1 and people[c][0][NECK, 2] > 0]
-        neck = dlt([p_of[c] for c in single], np.array([people[c][0][NECK, :2] for c in single])) if len(single) >= 2 else None
+        neck = None
+        if len(single) >= 2:
+            neck = dlt([p_of[c] for c in single], np.array([people[c][0][NECK, :2] for c in single]))
         for camera in cameras:
             if not people[camera]:
                 continue
@@ -147,7 +149,7 @@ def main() -> None:
     with zipfile.ZipFile(args.wheel) as wheel:
         for source, target in COPIED.items():
             (args.out / target).write_bytes(wheel.read(DEMO + source))
-        licence = next(n for n in wheel.namelist() if n.endswith(".dist-info/LICENSE") or n.endswith("/licenses/LICENSE"))
+        licence = next(n for n in wheel.namelist() if n.endswith((".dist-info/LICENSE", "/licenses/LICENSE")))
         (args.out / "LICENSE").write_bytes(wheel.read(licence))
         calibration = tomllib.loads(wheel.read(DEMO + "calibration/Calib_qualisys.toml").decode())
         rows = keypoint_rows(wheel, calibration)

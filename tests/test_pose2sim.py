@@ -77,7 +77,8 @@ def test_pose2sim_calibration_is_the_qualisys_one():
         assert np.allclose(-cam_from_world.rotation.T @ cam_from_world.translation, qualisys["position"], atol=1e-9)
         # Qualisys's camera looks down its -z with y up: OpenCV's axes are its rows with y, z negated
         assert np.allclose(cam_from_world.rotation, np.diag([1.0, -1.0, -1.0]) @ qualisys["r"], atol=1e-9)
-        assert np.allclose(cv2.Rodrigues(np.array(file[camera.name]["rotation"]))[0], cam_from_world.rotation, atol=1e-12)
+        rotation_in_file = cv2.Rodrigues(np.array(file[camera.name]["rotation"]))[0]
+        assert np.allclose(rotation_in_file, cam_from_world.rotation, atol=1e-12)
         assert np.allclose(np.diag(camera.matrix)[:2], qualisys["f"], atol=1e-6)
         assert np.allclose(camera.matrix[:2, 2], qualisys["c"], atol=1e-6)
         # four coefficients in the file (no k3): read as k1, k2, p1, p2 and k3 = 0

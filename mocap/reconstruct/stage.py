@@ -440,8 +440,6 @@ def refined_extras(extras: tuple[dict, ...], result) -> tuple[dict, ...]:
     view (`paper`) are the refined camera's, from the bundle's residuals and covariance
     (the one-frame calibration's described the camera it started from); the rest (time
     offset, fps, joints) kept."""
-    from mocap.calibration.report import paper_table
-
     sd_of = {}
     if result.camera_covariance is not None:
         covariance = result.camera_covariance
@@ -454,6 +452,10 @@ def refined_extras(extras: tuple[dict, ...], result) -> tuple[dict, ...]:
         if all(k in own for k in ("rx", "ry", "rz", "tx", "ty", "tz")):
             sd = {"rotation": [own[f"r{a}"] for a in "xyz"], "translation": [own[f"t{a}"] for a in "xyz"]}
             table["sd"] = sd | {"focal_px" if k == "f" else k: v for k, v in own.items() if k[0] not in "rt"}
-        table["paper"] = paper_table(camera)
+        paper = camera.to_paper()  # the paper's 7 parameters in file units (degrees, metres, px)
+        table["paper"] = {"azimuth_deg": float(np.degrees(paper.azimuth)),
+                          "elevation_deg": float(np.degrees(paper.elevation)),
+                          "tilt_deg": float(np.degrees(paper.tilt)), "position": paper.position.tolist(),
+                          "focal_px": float(paper.focal)}
         tables.append(table)
     return tuple(tables)
