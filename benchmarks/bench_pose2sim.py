@@ -60,7 +60,7 @@ def main() -> None:
         mocap.triangulate(cams, kept)
         print("mocap triangulate with its defaults: ran")
     except mocap.InputError as error:
-        print(f"mocap triangulate with its defaults: refused ({str(error).split(':')[0]})")
+        print(f"mocap triangulate with its defaults: refused ({str(error).split(' (the pixel noise')[0]})")
 
     start = time.process_time()
     result = mocap.triangulate(cams, kept, max_noise_px=30.0)
