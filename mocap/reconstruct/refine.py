@@ -107,7 +107,8 @@ class RefineResult:
     residuals (robust SD per coordinate, px); clock_frames (C,) each camera's clock offset
     from the first's, frames (a fraction of a frame: cameras not genlocked); track_noise_px
     the noise the 2-D tracks show by themselves (`track_noise`, px), against which the
-    distances are judged."""
+    distances are judged; rms_px (C,) each camera's residual RMS (px, of the distances)
+    over its seen points."""
 
     cameras: tuple[Camera, ...]
     machine: Machine
@@ -124,6 +125,7 @@ class RefineResult:
     clock_frames: tuple[float, ...] = ()
     track_noise_px: float = float("nan")
     camera_covariance: CameraCovariance | None = None
+    rms_px: tuple[float, ...] = ()
 
 
 def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: RefineOptions | None = None) -> RefineResult:
@@ -177,6 +179,8 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     residual = problem.pixel_residuals(solution.x)  # (C, K, M, 2), 0 where not seen
     distance = np.linalg.norm(residual, axis=-1)
     medians = tuple(float(np.median(d[seen])) if np.any(seen) else 0.0 for d, seen in zip(distance, problem.seen))
+    rms = tuple(float(np.sqrt(np.mean(d[seen] ** 2))) if np.any(seen) else float("nan")
+                for d, seen in zip(distance, problem.seen))
     noise = float(1.4826 * np.median(np.abs(residual[problem.seen]))) if problem.seen.any() else float("nan")
     names = [camera.name for camera in cameras]
     clocks = problem.clocks(solution.x)
@@ -193,7 +197,7 @@ def refine(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options:
     return RefineResult(tuple(cams), refined, frames, joints, before, after, str(solution.message), base, model,
                         criterion if len(models) > 1 else {}, medians, noise,
                         tuple(float(c) for c in clocks), own_noise,
-                        camera_covariance(problem, solution.x, options.scale_px, noise))
+                        camera_covariance(problem, solution.x, options.scale_px, noise), rms)
 
 
 def camera_covariance(problem: "_Bundle", x: np.ndarray, scale_px: float, noise_px: float) -> CameraCovariance | None:

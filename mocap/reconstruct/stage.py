@@ -431,5 +431,31 @@ def refine_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, o
     metadata.update({"refined_frames": int(len(result.frames)), "error": float(result.rms_after)})
     if result.camera_covariance is not None:
         metadata["camera_covariance"] = result.camera_covariance.to_table()
-    refined = Calibration(result.cameras, calibration.extras, metadata)
+    refined = Calibration(result.cameras, refined_extras(calibration.extras, result), metadata)
     return Refinement(refined, result.machine, result, frozenset(options.fixed_intrinsics))
+
+
+def refined_extras(extras: tuple[dict, ...], result) -> tuple[dict, ...]:
+    """Each camera's table after refine: its residual RMS (`error`), SDs (`sd`) and paper
+    view (`paper`) are the refined camera's, from the bundle's residuals and covariance
+    (the one-frame calibration's described the camera it started from); the rest (time
+    offset, fps, joints) kept."""
+    sd_of = {}
+    if result.camera_covariance is not None:
+        covariance = result.camera_covariance
+        sd_of = dict(zip(covariance.names, np.sqrt(np.diag(covariance.matrix)).tolist()))
+    tables = []
+    for extra, camera, rms in zip(extras, result.cameras, result.rms_px, strict=True):
+        own = {name.rsplit(".", 1)[1]: sd for name, sd in sd_of.items() if name.rsplit(".", 1)[0] == camera.name}
+        table = {k: v for k, v in extra.items() if k not in ("error", "sd", "paper")}
+        table["error"] = rms
+        if all(k in own for k in ("rx", "ry", "rz", "tx", "ty", "tz")):
+            sd = {"rotation": [own[f"r{a}"] for a in "xyz"], "translation": [own[f"t{a}"] for a in "xyz"]}
+            table["sd"] = sd | {"focal_px" if k == "f" else k: v for k, v in own.items() if k[0] not in "rt"}
+        paper = camera.to_paper()  # the paper's 7 parameters in file units (degrees, metres, px)
+        table["paper"] = {"azimuth_deg": float(np.degrees(paper.azimuth)),
+                          "elevation_deg": float(np.degrees(paper.elevation)),
+                          "tilt_deg": float(np.degrees(paper.tilt)), "position": paper.position.tolist(),
+                          "focal_px": float(paper.focal)}
+        tables.append(table)
+    return tuple(tables)
