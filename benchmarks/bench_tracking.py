@@ -36,7 +36,8 @@ With `--diggers N`: machines nobody designed, N random diggers
 (`mocap.synthetic.machines.random_digger`, seeds 1..N) filmed by `--cameras` cameras in the
 default look, the first `--frames` frames rendered (not encoded) at `--size` (960x540) and
 tracked from the true calibration without a labels file; a camera whose first frame cannot
-be labelled (too few markers in view) is counted apart.
+be labelled (too few markers in view) is counted apart, and of those the ones whose first
+frame shows at least a fit's markers (5) wholly.
 
     python benchmarks/bench_tracking.py --diggers 12 [--cameras 3] [--frames 120]
 
@@ -83,6 +84,7 @@ from mocap.synthetic.render import RenderOptions
 from mocap.synthetic.videos import renderer_for
 from mocap.synthetic.session import SHAPES, marker_sizes
 from mocap.tracking import CameraModel, track_frames
+from mocap.tracking.tracker import TrackOptions
 from mocap.tracking.normals import NormalEvidence
 
 
@@ -338,6 +340,7 @@ def track_diggers(args) -> int:
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"{'seed':>4} {'camera':>6} {'markers':>7} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
     visible, started, refused, errors, wrongs, pairs = 0, 0, 0, [], [], []
+    refused_seeing = 0  # refused cameras in whose first frame enough markers for a fit are wholly visible
     for seed in range(1, args.diggers + 1):
         machine = random_digger(np.random.default_rng(seed))
         session = make_session(machine, "random digger", n_cameras=args.cameras, n_cycles=1, seed=seed,
@@ -356,6 +359,7 @@ def track_diggers(args) -> int:
                 shown = int(np.sum((truth.frame == 0) & (truth.score >= 1.0)))
                 print(f"{seed:>4} {field.name:>6}: {exc} ({shown} wholly visible)")
                 refused += 1
+                refused_seeing += shown >= TrackOptions().min_markers
                 continue
             labelled, wrong, error, right = score(truth, tracks)
             pairs += [(f"seed {seed} {field.name}", m, v) for m, v in pair_shares(truth, right).items()]
@@ -367,7 +371,8 @@ def track_diggers(args) -> int:
                   f"{np.median(error) if len(error) else np.nan:>9.3f} "
                   f"{np.percentile(error, 95) if len(error) else np.nan:>7.3f}")
     error = np.concatenate(errors + [np.zeros(0)])
-    print(f"{started} cameras tracked, {refused} refused at the first frame; of the tracked: "
+    print(f"{started} cameras tracked, {refused} refused at the first frame ({refused_seeing} of them with at least "
+          f"{TrackOptions().min_markers} markers wholly visible in it); of the tracked: "
           f"{len(error) / max(visible, 1):.2%} of {visible} visible markers labelled, "
           f"{np.mean(wrongs) if wrongs else np.nan:.3%} wrong (mean over cameras), centre error median "
           f"{np.median(error) if len(error) else np.nan:.3f} px, 95th percentile "
