@@ -89,6 +89,7 @@ from mocap.tracking.normals import NormalEvidence
 
 
 WIDE_PX = 3.0  # px: disks at least this wide across their narrowest way are also counted apart
+WIDTH_BINS_PX = (0.0, 1.0, 2.0, 3.0, np.inf)  # the labelled share by the disk's narrowest width
 
 
 def decode_floor(path: Path) -> tuple[float, int]:
@@ -285,15 +286,20 @@ def track_looks(args) -> int:
                                      & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
                 whole = int(np.sum(truth.score >= 1.0))
                 seen = truth.select(truth.score >= 1.0)
-                wide = disk_widths(session, field, seen, look.disk_ratio * marker_sizes(session.reach)[1]) >= WIDE_PX
+                widths = disk_widths(session, field, seen, look.disk_ratio * marker_sizes(session.reach)[1])
+                wide = widths >= WIDE_PX
                 if tracks is None:
                     labelled, wrong, errors, again, right = 0.0, 0.0, np.zeros(0), None, set()
                 else:
                     labelled, wrong, errors, right = score(truth, tracks)
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
                 pairs += [(f"look {k} {field.name}", m, v) for m, v in pair_shares(truth, right, wide).items()]
-                wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
-                look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
+                hits = np.array([(int(f), m) in right for f, m in zip(seen.frame, seen.marker)], dtype=bool)
+                wide_right = int(np.sum(hits & wide))
+                width_bin = np.digitize(widths, WIDTH_BINS_PX[1:-1])
+                by_width = (np.bincount(width_bin, minlength=len(WIDTH_BINS_PX) - 1),
+                            np.bincount(width_bin[hits], minlength=len(WIDTH_BINS_PX) - 1))
+                look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right, by_width))
                 wide_share = wide_right / max(int(wide.sum()), 1)
                 print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wide_share:>8.2%} {wrong:>7.3%} "
                       f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
@@ -320,6 +326,15 @@ def track_looks(args) -> int:
     wide = sum(r[5] for _, rows in results for r in rows)
     print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
           f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
+    shown = sum(r[7][0] for _, rows in results for r in rows)
+    found = sum(r[7][1] for _, rows in results for r in rows)
+    print("labelled by the disk's width across its narrowest way: " + ", ".join(
+        f"{low:g}-{high:g} px {found[k] / max(shown[k], 1):.2%} of {shown[k]}" if np.isfinite(high)
+        else f">= {low:g} px {found[k] / max(shown[k], 1):.2%} of {shown[k]}"
+        for k, (low, high) in enumerate(zip(WIDTH_BINS_PX[:-1], WIDTH_BINS_PX[1:]))))
+    clear = shown[2:].sum()
+    print(f"of the {clear} clearly visible (wholly in view and >= {WIDTH_BINS_PX[2]:g} px across its narrowest "
+          f"way): {found[2:].sum() / max(clear, 1):.2%} labelled")
     print(worst_pair_line(pairs, f"wholly visible and >= {WIDE_PX:g} px across"))
     print(normals_line(normal_errors))
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
