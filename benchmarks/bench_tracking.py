@@ -229,9 +229,10 @@ def fastest_window(session, field, count: int) -> int:
 def kept_clips(args, k: int, names: list[str]) -> tuple[Path, bool]:
     """The folder of look `k`'s clips under `args.keep`, keyed on every setting that changes
     what is rendered (the look's seed and index, its shutter, the size, the cameras, the
-    window and the cover), and whether all of its cameras' clips are there. The cameras of
+    window, the cover and the shapes), and whether all of its cameras' clips are there. The cameras of
     a look share one random stream, so a look's clips are rendered all together or not at all."""
-    key = repr((args.machine, args.size, args.cameras, args.seed, k, args.readout, args.fast, args.frames, args.hide))
+    key = repr((args.machine, args.size, args.cameras, args.seed, k, args.readout, args.fast, args.frames, args.hide)
+               + ((args.shapes,) if args.shapes != "boxes" else ()))
     folder = Path(args.keep) / f"look{k}-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
     return folder, all((folder / f"{name}.mp4").is_file() for name in names)
 
