@@ -36,7 +36,8 @@ With `--diggers N`: machines nobody designed, N random diggers
 (`mocap.synthetic.machines.random_digger`, seeds 1..N) filmed by `--cameras` cameras in the
 default look, the first `--frames` frames rendered (not encoded) at `--size` (960x540) and
 tracked from the true calibration without a labels file; a camera whose first frame cannot
-be labelled (too few markers in view) is counted apart.
+be labelled (too few markers in view) is counted apart, and of those the ones whose first
+frame shows at least a fit's markers (5) wholly.
 
     python benchmarks/bench_tracking.py --diggers 12 [--cameras 3] [--frames 120]
 
@@ -83,10 +84,12 @@ from mocap.synthetic.render import RenderOptions
 from mocap.synthetic.videos import renderer_for
 from mocap.synthetic.session import SHAPES, marker_sizes
 from mocap.tracking import CameraModel, track_frames
+from mocap.tracking.tracker import TrackOptions
 from mocap.tracking.normals import NormalEvidence
 
 
 WIDE_PX = 3.0  # px: disks at least this wide across their narrowest way are also counted apart
+WIDTH_BINS_PX = (0.0, 1.0, 2.0, 3.0, np.inf)  # the labelled share by the disk's narrowest width
 
 
 def decode_floor(path: Path) -> tuple[float, int]:
@@ -226,9 +229,10 @@ def fastest_window(session, field, count: int) -> int:
 def kept_clips(args, k: int, names: list[str]) -> tuple[Path, bool]:
     """The folder of look `k`'s clips under `args.keep`, keyed on every setting that changes
     what is rendered (the look's seed and index, its shutter, the size, the cameras, the
-    window and the cover), and whether all of its cameras' clips are there. The cameras of
+    window, the cover and the shapes), and whether all of its cameras' clips are there. The cameras of
     a look share one random stream, so a look's clips are rendered all together or not at all."""
-    key = repr((args.machine, args.size, args.cameras, args.seed, k, args.readout, args.fast, args.frames, args.hide))
+    key = repr((args.machine, args.size, args.cameras, args.seed, k, args.readout, args.fast, args.frames, args.hide)
+               + ((args.shapes,) if args.shapes != "boxes" else ()))
     folder = Path(args.keep) / f"look{k}-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
     return folder, all((folder / f"{name}.mp4").is_file() for name in names)
 
@@ -283,15 +287,20 @@ def track_looks(args) -> int:
                                      & ~((truth.frame >= hide[0]) & (truth.frame < hide[1])))
                 whole = int(np.sum(truth.score >= 1.0))
                 seen = truth.select(truth.score >= 1.0)
-                wide = disk_widths(session, field, seen, look.disk_ratio * marker_sizes(session.reach)[1]) >= WIDE_PX
+                widths = disk_widths(session, field, seen, look.disk_ratio * marker_sizes(session.reach)[1])
+                wide = widths >= WIDE_PX
                 if tracks is None:
                     labelled, wrong, errors, again, right = 0.0, 0.0, np.zeros(0), None, set()
                 else:
                     labelled, wrong, errors, right = score(truth, tracks)
                     again = found_again(truth, tracks, hide[1]) if hide[1] > hide[0] else 0
                 pairs += [(f"look {k} {field.name}", m, v) for m, v in pair_shares(truth, right, wide).items()]
-                wide_right = sum((int(f), m) in right for f, m in zip(seen.frame[wide], seen.marker[wide]))
-                look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right))
+                hits = np.array([(int(f), m) in right for f, m in zip(seen.frame, seen.marker)], dtype=bool)
+                wide_right = int(np.sum(hits & wide))
+                width_bin = np.digitize(widths, WIDTH_BINS_PX[1:-1])
+                by_width = (np.bincount(width_bin, minlength=len(WIDTH_BINS_PX) - 1),
+                            np.bincount(width_bin[hits], minlength=len(WIDTH_BINS_PX) - 1))
+                look_rows.append((whole, labelled, wrong, errors, again, int(wide.sum()), wide_right, by_width))
                 wide_share = wide_right / max(int(wide.sum()), 1)
                 print(f"{k:>4} {field.name:>6} {size[0]:>4}x{size[1]:<4} {whole:>7} {labelled:>8.2%} {wide_share:>8.2%} {wrong:>7.3%} "
                       f"{np.median(errors) if len(errors) else np.nan:>9.3f} "
@@ -318,6 +327,15 @@ def track_looks(args) -> int:
     wide = sum(r[5] for _, rows in results for r in rows)
     print(f"of the {wide} whose disk is at least {WIDE_PX:g} px across its narrowest way: "
           f"{sum(r[6] for _, rows in results for r in rows) / max(wide, 1):.2%} labelled")
+    shown = sum(r[7][0] for _, rows in results for r in rows)
+    found = sum(r[7][1] for _, rows in results for r in rows)
+    print("labelled by the disk's width across its narrowest way: " + ", ".join(
+        f"{low:g}-{high:g} px {found[k] / max(shown[k], 1):.2%} of {shown[k]}" if np.isfinite(high)
+        else f">= {low:g} px {found[k] / max(shown[k], 1):.2%} of {shown[k]}"
+        for k, (low, high) in enumerate(zip(WIDTH_BINS_PX[:-1], WIDTH_BINS_PX[1:]))))
+    clear = shown[2:].sum()
+    print(f"of the {clear} clearly visible (wholly in view and >= {WIDTH_BINS_PX[2]:g} px across its narrowest "
+          f"way): {found[2:].sum() / max(clear, 1):.2%} labelled")
     print(worst_pair_line(pairs, f"wholly visible and >= {WIDE_PX:g} px across"))
     print(normals_line(normal_errors))
     worst = int(np.argmin(share))  # an index of `results`; the look's own number is in its name
@@ -338,6 +356,7 @@ def track_diggers(args) -> int:
     width, height = (int(v) for v in args.size.lower().split("x"))
     print(f"{'seed':>4} {'camera':>6} {'markers':>7} {'visible':>7} {'labelled':>8} {'wrong':>7} {'median px':>9} {'p95 px':>7}")
     visible, started, refused, errors, wrongs, pairs = 0, 0, 0, [], [], []
+    refused_seeing = 0  # refused cameras in whose first frame enough markers for a fit are wholly visible
     for seed in range(1, args.diggers + 1):
         machine = random_digger(np.random.default_rng(seed))
         session = make_session(machine, "random digger", n_cameras=args.cameras, n_cycles=1, seed=seed,
@@ -356,6 +375,7 @@ def track_diggers(args) -> int:
                 shown = int(np.sum((truth.frame == 0) & (truth.score >= 1.0)))
                 print(f"{seed:>4} {field.name:>6}: {exc} ({shown} wholly visible)")
                 refused += 1
+                refused_seeing += shown >= TrackOptions().min_markers
                 continue
             labelled, wrong, error, right = score(truth, tracks)
             pairs += [(f"seed {seed} {field.name}", m, v) for m, v in pair_shares(truth, right).items()]
@@ -367,7 +387,8 @@ def track_diggers(args) -> int:
                   f"{np.median(error) if len(error) else np.nan:>9.3f} "
                   f"{np.percentile(error, 95) if len(error) else np.nan:>7.3f}")
     error = np.concatenate(errors + [np.zeros(0)])
-    print(f"{started} cameras tracked, {refused} refused at the first frame; of the tracked: "
+    print(f"{started} cameras tracked, {refused} refused at the first frame ({refused_seeing} of them with at least "
+          f"{TrackOptions().min_markers} markers wholly visible in it); of the tracked: "
           f"{len(error) / max(visible, 1):.2%} of {visible} visible markers labelled, "
           f"{np.mean(wrongs) if wrongs else np.nan:.3%} wrong (mean over cameras), centre error median "
           f"{np.median(error) if len(error) else np.nan:.3f} px, 95th percentile "

@@ -103,6 +103,25 @@ class Tolerance:
 
 
 @dataclass(frozen=True)
+class LinkSolid:
+    """A solid the model states for a link, other than a box: a cylinder or a mesh file's
+    surface, as `triangles` (T, 3, 3) in the link's frame (metres) wound outward (their
+    right-hand normals point out of the solid). `kind` "cylinder" or "mesh"; `source` the
+    entry as the model file states it (written back as it was read, a mesh's file made absolute)."""
+
+    link: int
+    kind: str
+    triangles: np.ndarray
+    source: dict = field(default_factory=dict)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(T, 3) the triangles' outward unit normals."""
+        n = np.cross(self.triangles[:, 1] - self.triangles[:, 0], self.triangles[:, 2] - self.triangles[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+
+
+@dataclass(frozen=True)
 class Machine:
     """An articulated machine model. Links are in topological order (parents first)."""
 
@@ -121,6 +140,7 @@ class Machine:
     tolerance: Tolerance | None = None  # how far the measured marker positions may be off, if stated
     marker_normals: np.ndarray | None = None  # (M, 3) unit disk normals in the link frames where stated, NaN rows not
     link_boxes: np.ndarray | None = None  # (L, 2, 3) stated solids (min, max corners) in the link frames, NaN rows not
+    link_solids: tuple[LinkSolid, ...] = ()  # stated cylinders and meshes (a link may have several)
 
     # --- structure -------------------------------------------------------------------
     @cached_property

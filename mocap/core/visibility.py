@@ -5,6 +5,9 @@ marker's surface normal is the outward normal of the nearest face of its own lin
 A marker is hidden when the segment from it to the camera centre passes through another
 link's box (its own box never hides it: the paint is on the surface). How much of a
 marker is in view (`marker_cover`) asks the same of the corners and edges of its square.
+A link whose cylinders or meshes the model states (`Machine.link_solids`) hides by those
+instead of its box, and a marker on it takes the normal of the solid's nearest facet
+(a marker's stated `normal` still comes first).
 
 Shapes: F frames, L links, M markers.
 """
@@ -15,6 +18,7 @@ import numpy as np
 
 from mocap.core.camera import project_cam
 from mocap.core.machine import Machine
+from mocap.core.shapes import hidden_by_solids, solid_arrays, solid_normals
 
 MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable marker
 
@@ -28,6 +32,9 @@ def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
     face = np.argmin(np.abs(gaps), axis=1)
     normals = np.zeros((len(p), 3))
     normals[np.arange(len(p)), face % 3] = np.where(face < 3, -1.0, 1.0)
+    if machine.link_solids:
+        on_solid = solid_normals(machine, p, machine.marker_links)
+        normals = np.where(np.isfinite(on_solid), on_solid, normals)
     if machine.marker_normals is not None:
         stated = np.all(np.isfinite(machine.marker_normals), axis=1)
         normals[stated] = machine.marker_normals[stated]
@@ -121,6 +128,7 @@ def _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, siz
     rotation_t = np.swapaxes(link_poses[..., :3, :3], -1, -2)  # link_from_world (F, L, 3, 3)
     shift = -np.einsum("flij,flj->fli", rotation_t, link_poses[..., :3, 3])
     other = (links[None, :] != np.arange(n_links)[:, None])[:, :, None]  # (L, M, 1): its own box never hides
+    other &= ~box_replaced(machine)[:, None, None]  # a link's stated cylinders or meshes hide instead of its box
     step = max(1, _CHUNK_POINTS // max(n_links * points.shape[0] * points.shape[1], 1))
     for k in range(0, len(world), step):
         part = slice(k, k + step)
@@ -128,7 +136,23 @@ def _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, siz
         end = np.einsum("flij,fj->fli", rotation_t[part], centre[part]) + shift[part]
         hit = segment_hits_box(start, np.broadcast_to(end[:, :, None, None], start.shape), boxes[None, :, None, None])
         seen[part] &= ~np.any(hit & other[None], axis=1)
+    if machine.link_solids:
+        n_frames, n_markers, n_points = world.shape[:3]
+        flat = np.ascontiguousarray(world.reshape(n_frames, n_markers * n_points, 3))
+        hidden = hidden_by_solids(flat, np.ascontiguousarray(centre), np.ascontiguousarray(link_poses, dtype=float),
+                                  np.repeat(links, n_points).astype(np.int64), *solid_arrays(machine))
+        seen &= ~hidden.reshape(n_frames, n_markers, n_points)
     return uv, seen
+
+
+def box_replaced(machine: Machine) -> np.ndarray:
+    """(L,) bool: the links whose stated cylinders or meshes hide markers instead of a box
+    (one whose box the model states hides by that box too)."""
+    replaced = np.zeros(len(machine.links), dtype=bool)
+    replaced[[s.link for s in machine.link_solids]] = True
+    if machine.link_boxes is not None:
+        replaced &= ~np.all(np.isfinite(machine.link_boxes), axis=(1, 2))
+    return replaced
 
 
 _CHUNK_POINTS = 1 << 16  # link x marker x point segments tested at once

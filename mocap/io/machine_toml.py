@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mocap.core.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, Machine, Tolerance
+from mocap.core.geometry import rpy_to_matrix
+from mocap.core.machine import PRISMATIC, REVOLUTE, BucketAngle, Joint, Link, LinkSolid, Machine, Tolerance
+from mocap.core.shapes import cylinder_triangles
 from mocap.errors import InputError
 from mocap.io import toml_writer
 from mocap.io.atomic import write_text
@@ -16,8 +18,10 @@ MAX_LENGTH_M = 1e4  # 10 km: no machine's marker, joint origin or stroke lies fa
 MACHINES_DIR = Path(__file__).resolve().parents[2] / "calibrations" / "machines"
 
 _TOP_KEYS = {"name", "source", "links", "markers", "points", "bucket_angle", "tags", "tolerance"}
-_LINK_KEYS = {"name", "parent", "joint", "box"}
+_LINK_KEYS = {"name", "parent", "joint", "box", "cylinder", "mesh"}
 _BOX_KEYS = {"min", "max"}
+_CYLINDER_KEYS = {"a", "b", "radius"}
+_MESH_KEYS = {"file", "scale", "origin", "rpy_deg"}
 _JOINT_KEYS = {"name", "type", "axis", "origin", "rpy_deg", "limits"}
 _ITEM_KEYS = {"name", "link", "position"}
 _MARKER_KEYS = _ITEM_KEYS | {"tag", "normal"}
@@ -58,6 +62,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         raise InputError("no [[links]]: a machine needs at least its base link", path=path)
     links = _links(raw_links, path)
     boxes = _boxes(raw_links, links, path)
+    solids = _solids(raw_links, links, path)
     link_index = {link.name: i for i, link in enumerate(links)}
 
     markers = _items(data.get("markers", []), "markers", link_index, path, _MARKER_KEYS)
@@ -107,6 +112,7 @@ def machine_from_dict(data: dict, path: str | Path = "<machine>") -> Machine:
         tolerance=tolerance,
         marker_normals=np.array(markers[4]).reshape(-1, 3) if np.any(np.isfinite(markers[4])) else None,
         link_boxes=boxes,
+        link_solids=solids,
     )
 
 
@@ -131,6 +137,87 @@ def _boxes(raw_links: list, links: list[Link], path) -> np.ndarray | None:
                              where=where)
         boxes[order[raw["name"]]] = low, high
     return boxes if np.any(np.isfinite(boxes)) else None
+
+
+def _solids(raw_links: list, links: list[Link], path) -> tuple[LinkSolid, ...]:
+    """The links' stated cylinders `cylinder = {a = [x, y, z], b = [x, y, z], radius = r}` and
+    meshes `mesh = {file = "boom.stl", scale = s, origin = [x, y, z], rpy_deg = [r, p, y]}`
+    (each a table or an array of tables; metres, the link's frame; a mesh file's path relative
+    to the model file's folder, its vertices scaled, turned by rpy_deg and moved by origin
+    as a URDF's visual origin), in link order."""
+    order = {link.name: i for i, link in enumerate(links)}
+    solids = []
+    for raw in raw_links:
+        for kind, keys, read in (("cylinder", _CYLINDER_KEYS, _cylinder), ("mesh", _MESH_KEYS, _mesh)):
+            entries = raw.get(kind, [])
+            entries = [entries] if isinstance(entries, dict) else entries
+            if not isinstance(entries, list):
+                raise InputError(f"{kind} must be an inline table or an array of them (see docs/formats.md)",
+                                 path=path, where=f"link {raw['name']!r} {kind}")
+            for k, entry in enumerate(entries):
+                where = f"link {raw['name']!r} {kind}" + (f"[{k}]" if len(entries) > 1 else "")
+                if not isinstance(entry, dict):
+                    raise InputError(f"{kind} must be an inline table (see docs/formats.md)", path=path, where=where)
+                _check_keys(entry, keys, path, where)
+                triangles, source = read(entry, path, where)
+                solids.append(LinkSolid(order[raw["name"]], kind, triangles, source))
+    return tuple(sorted(solids, key=lambda s: s.link))
+
+
+def _cylinder(raw: dict, path, where) -> tuple[np.ndarray, dict]:
+    a = _length(_vector(raw, "a", path, where), path, where, "a")
+    b = _length(_vector(raw, "b", path, where), path, where, "b")
+    radius = raw.get("radius")
+    if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not 0 < radius <= MAX_LENGTH_M:
+        raise InputError(f"radius {radius!r} must be a number of metres above 0", path=path, where=where)
+    if np.linalg.norm(b - a) <= 0:
+        raise InputError(f"a and b are the same point {a.tolist()}: give the two ends of the cylinder's axis",
+                         path=path, where=where)
+    return cylinder_triangles(a, b, float(radius)), {"a": a.tolist(), "b": b.tolist(), "radius": float(radius)}
+
+
+def _mesh(raw: dict, path, where) -> tuple[np.ndarray, dict]:
+    name = _string(raw, "file", path, where)
+    file = Path(name)
+    if not file.is_absolute() and Path(path).is_file():
+        file = Path(path).parent / file
+    if not file.is_file():
+        raise InputError(f"mesh file {str(file)!r} not found: give its path relative to the model file's folder",
+                         path=path, where=where)
+    scale = raw.get("scale", 1.0)
+    scale = [scale] * 3 if isinstance(scale, (int, float)) and not isinstance(scale, bool) else scale
+    scale = np.asarray(_numbers(scale, 3, path, where, "scale"))
+    if not np.all(scale > 0):
+        raise InputError(f"scale {scale.tolist()} must be above 0 (a number, or 3 numbers)", path=path, where=where)
+    origin = _length(_vector(raw, "origin", path, where, default=[0, 0, 0]), path, where, "origin")
+    rpy_deg = _vector(raw, "rpy_deg", path, where, default=[0, 0, 0])
+    triangles = _mesh_triangles(file, path, where) * scale
+    triangles = triangles @ rpy_to_matrix(np.radians(rpy_deg)).T + origin
+    if np.any(np.abs(triangles) > MAX_LENGTH_M):
+        raise InputError(f"mesh {str(file)!r} reaches beyond {MAX_LENGTH_M:g} m: give its scale to metres",
+                         path=path, where=where)
+    if np.prod(scale) < 0:  # a mirroring scale turns the winding inside out
+        triangles = triangles[:, ::-1]
+    source = {"file": str(file.resolve()), "scale": scale.tolist(), "origin": origin.tolist(),
+              "rpy_deg": rpy_deg.tolist()}
+    return np.ascontiguousarray(triangles), source
+
+
+def _mesh_triangles(file: Path, path, where) -> np.ndarray:
+    """(T, 3, 3) a mesh file's triangles (STL, OBJ, PLY, DAE, ... as `trimesh` reads them),
+    wound outward where the surface is closed."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(file, force="mesh")
+    except Exception as exc:  # the reader's own message names what is wrong
+        raise InputError(f"mesh file {str(file)!r} cannot be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}): "
+                         "give an STL, OBJ, PLY or DAE file", path=path, where=where) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(f"mesh file {str(file)!r} holds no triangles: give a surface mesh", path=path, where=where)
+    if mesh.is_watertight:
+        trimesh.repair.fix_normals(mesh)
+    return np.asarray(mesh.vertices, dtype=float)[np.asarray(mesh.faces)]
 
 
 def _tags(data: dict, tags: list, path) -> tuple[np.ndarray | None, str | None]:
@@ -365,6 +452,10 @@ def machine_to_dict(machine: Machine) -> dict:
         box = None if machine.link_boxes is None else machine.link_boxes[len(links)]
         if box is not None and np.all(np.isfinite(box)):
             entry["box"] = {"min": box[0].tolist(), "max": box[1].tolist()}
+        for kind in ("cylinder", "mesh"):
+            stated = [dict(s.source) for s in machine.link_solids if s.link == len(links) and s.kind == kind]
+            if stated:
+                entry[kind] = stated[0] if len(stated) == 1 else stated
         links.append(entry)
 
     def items(names, link_ids, positions, tags=None, normals=None):

@@ -183,11 +183,11 @@ def _hits_box(start, end, low_corner, high_corner):
 
 @njit(cache=True, nogil=True)
 def marker_view(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, boxes, normals,
-                width, height, solid, min_facing):
+                width, height, solid, min_facing, box_hides):
     """What the camera sees at joints (F, J) (`CameraModel.view`): marker pixels (F, M, 2),
     whether each is seen (F, M) (in the image, facing the camera by more than `min_facing`
-    and not behind another link's box; with `solid` False, in front of the camera and in the
-    image) and px per metre (F, M)."""
+    and not behind another link's box, of the links `box_hides` (L,) marks; with `solid` False,
+    in front of the camera and in the image) and px per metre (F, M)."""
     revolute, parents, joint_links, at_zero, first, second, axes, n_links = chain
     n_frames, n_markers = joints.shape[0], positions.shape[0]
     uv = np.empty((n_frames, n_markers, 2))
@@ -221,7 +221,7 @@ def marker_view(joints, chain, marker_links, positions, rotation, translation, m
                 for other in range(n_links):
                     if not visible:
                         break
-                    if other == link:  # its own box never hides it
+                    if other == link or not box_hides[other]:  # its own box never hides it
                         continue
                     for a in range(3):  # link_from_world: R^T (p - t)
                         start[a] = ((poses[other, 0, a] * (world[0] - poses[other, 0, 3])

@@ -11,6 +11,14 @@ a coarse gate lets a marker that was not detected take a neighbour's disk and tu
 to reach it); the refined start that labels the most detections within the tight gate (then
 the lowest residual) wins.
 
+Which markers the camera sees (`CameraModel.view`: facing it, not behind another link's
+guessed box) is a prior, never a veto: the coarse gates match the markers it calls seen
+(unless fewer than three are), the fine ones every marker inside the image, one the prior
+calls hidden or turned away paying `_HIDDEN_SHARE` of the gate² (it loses a disk to a seen
+one, and must lie nearer its disk to take it). A machine's guessed boxes are not its shape:
+a tapered boom, a cab beyond the box or a plate turned from the box's face shows markers the
+boxes hide.
+
 Shapes: M markers, N detections, J joints.
 """
 
@@ -21,7 +29,7 @@ import logging
 import numpy as np
 
 from mocap.tracking.detect import Detections
-from mocap.tracking.model import CameraModel
+from mocap.tracking.model import CameraModel, View
 from mocap.tracking.tracker import FrameResult, assign
 
 log = logging.getLogger(__name__)
@@ -29,6 +37,8 @@ log = logging.getLogger(__name__)
 _GATES_PX = (120.0, 60.0, 30.0, 15.0, 8.0, 4.0)
 _SHIFT_GATE_PX = 15.0  # from this gate down, the image's shift from the model is fitted too
 _FINE_START_PX = 8.0  # each start is also refined from this gate down only
+_PRIOR_GATE_PX = 15.0  # from this gate down, the markers the prior calls hidden are matched too
+_HIDDEN_SHARE = 0.25  # of a gate², the price of a pair for a marker the prior calls hidden
 
 
 def starts_around(model: CameraModel, joints: np.ndarray, n_swing: int = 7, spread_deg: float = 25.0) -> np.ndarray:
@@ -70,7 +80,8 @@ def propose_labels(
     best, best_key = None, None
     for k in np.flatnonzero(alive):
         uv = view.uv[k] + shift[k]
-        markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), view.visible[k])
+        candidates, penalty = _prior(model, view, k, tight_px)
+        markers, index = assign(uv, detections.xy, np.full(n_markers, tight_px), candidates, penalty=penalty)
         if len(markers) == 0:
             continue
         rms = float(np.sqrt(np.mean(np.sum((uv[markers] - detections.xy[index]) ** 2, axis=-1))))
@@ -95,7 +106,9 @@ def _search(model: CameraModel, detections: Detections, starts: np.ndarray, gate
         view = model.view(joints)
         observed = np.full((n_starts, n_markers, 2), np.nan)
         for k in np.flatnonzero(alive):
-            markers, index = assign(view.uv[k] + shift[k], detections.xy, np.full(n_markers, gate), view.visible[k])
+            candidates, penalty = _prior(model, view, k, gate)
+            markers, index = assign(view.uv[k] + shift[k], detections.xy, np.full(n_markers, gate), candidates,
+                                    penalty=penalty)
             alive[k] = len(markers) >= 3
             observed[k, markers] = detections.xy[index]
         if not np.any(alive):
@@ -108,6 +121,21 @@ def _search(model: CameraModel, detections: Detections, starts: np.ndarray, gate
             median = np.nanmedian(np.where(seen[..., None], left, np.nan), axis=1) if np.any(seen) else 0.0
             shift[alive] += np.where(np.sum(seen, axis=1)[:, None] >= 5, np.nan_to_num(median), 0.0)
     return joints, shift, alive
+
+
+def _prior(model: CameraModel, view: View, k: int, gate: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """The markers start `k` of `view` may match within `gate` px (M,) bool, and the price
+    (M,) px² of a pair for each (None: none): above `_PRIOR_GATE_PX` those the prior calls seen
+    (all inside the image if fewer than three), from it down all inside the image, those the
+    prior calls hidden at `_HIDDEN_SHARE` of gate²."""
+    seen = view.visible[k]
+    uv = view.uv[k]
+    width, height = model.camera.size
+    inside = (np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= width - 1) & (uv[:, 1] >= 0)
+              & (uv[:, 1] <= height - 1) & np.isfinite(view.scale[k]))
+    if gate > _PRIOR_GATE_PX and np.sum(seen) >= 3:
+        return seen, None
+    return inside | seen, np.where(seen, 0.0, _HIDDEN_SHARE * gate**2)
 
 
 def _determined(model: CameraModel, result: FrameResult) -> FrameResult:

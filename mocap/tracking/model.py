@@ -15,8 +15,8 @@ import numpy as np
 
 from mocap.core.camera import Camera
 from mocap.core.machine import Machine
-from mocap.core.shapes import link_boxes
-from mocap.core.visibility import MIN_FACING_COS, marker_normals
+from mocap.core.shapes import hidden_by_solids, link_boxes, solid_arrays
+from mocap.core.visibility import MIN_FACING_COS, box_replaced, marker_normals
 from mocap.tracking.fit_kernel import fit_joints, marker_pixels, marker_view
 
 
@@ -104,9 +104,22 @@ class CameraModel:
         joints = np.ascontiguousarray(np.atleast_2d(joints), dtype=float)
         chain, links, positions, rotation, translation, matrix, distortion, _ = self._kernel_arguments
         width, height = self.camera.size
-        return View(*marker_view(joints, chain, links, positions, rotation, translation, matrix, distortion,
-                                 np.ascontiguousarray(self.boxes, dtype=float), np.ascontiguousarray(self.normals),
-                                 float(width), float(height), self.solid, MIN_FACING_COS))
+        uv, seen, scale = marker_view(joints, chain, links, positions, rotation, translation, matrix, distortion,
+                                      np.ascontiguousarray(self.boxes, dtype=float), np.ascontiguousarray(self.normals),
+                                      float(width), float(height), self.solid, MIN_FACING_COS, self._box_hides)
+        if self.solid and self.machine.link_solids and np.any(seen):  # the stated cylinders and meshes hide too
+            machine = self.machine
+            poses = np.ascontiguousarray(machine.link_poses(joints), dtype=float)
+            world = np.ascontiguousarray(machine.markers(joints))
+            centre = np.broadcast_to(-rotation.T @ translation, (len(joints), 3))
+            seen &= ~hidden_by_solids(world, np.ascontiguousarray(centre), poses, links, *solid_arrays(machine))
+        return View(uv, seen, scale)
+
+    @cached_property
+    def _box_hides(self) -> np.ndarray:
+        """(L,) bool: the links whose box hides markers (not those whose stated cylinders or
+        meshes do instead)."""
+        return np.ascontiguousarray(~box_replaced(self.machine))
 
     def centre_offsets(self, joints: np.ndarray, radius_m: float) -> np.ndarray:
         """(F, M, 2) px from the centre of each disk's image ellipse to the image of the

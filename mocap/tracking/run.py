@@ -25,6 +25,8 @@ _MAX_LOST_INTERVAL = 2  # those for a lost machine to 2 x lost_frames: found aga
 _DARK_EVERY = 8  # fitted frames between looks at the markers the boxes hide (`TrackSummary.why`)
 _LEARN_SAMPLE = 3  # after the first _LEARN_EVERY fitted frames, those whose disks' ellipses are kept: every 3rd
 _LEARN_EVERY = 60  # fitted frames between updates of the model's normals from them
+_LEARN_RESIDUAL, _LEARN_RESIDUAL_PX = 3.0, 0.15  # a disk this many times the frame's median residual off, and
+# this many px, is left out of the normals' evidence
 _LEARNED_SPREAD_DEG = 5.0  # a learned normal whose agreeing candidates spread more is not used
 
 
@@ -279,6 +281,11 @@ def _learn(learner: NormalLearner, model: CameraModel, result: FrameResult) -> N
     rotations in the camera frame by the fit."""
     machine, camera = model.machine, model.camera
     disks = machine.tags[result.markers] < 0
+    # a disk the fit leaves off its place (partly covered: its outline cut, its ellipse not the
+    # disk's) is no evidence of its normal
+    residual = np.linalg.norm(result.detections.xy - model.pixels(result.joints[None])[0, result.markers], axis=-1)
+    if np.any(disks):
+        disks &= residual <= max(_LEARN_RESIDUAL * float(np.median(residual[disks])), _LEARN_RESIDUAL_PX)
     markers = result.markers[disks]
     if not len(markers):
         return

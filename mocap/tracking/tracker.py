@@ -642,6 +642,7 @@ def assign(
     size_ratio: float = 1.33,
     size_px: float = 1.0,
     allowed: np.ndarray | None = None,
+    penalty: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Optimal one-to-one assignment of detections to predicted markers: the least sum of
     squared distances, a marker left unassigned counting as a pair at its gate.
@@ -650,7 +651,9 @@ def assign(
     and (M,), pairs whose radii differ by more than `size_ratio` and by more than `size_px`
     are not allowed (a small disk's radius, measured on a few blurred pixels, varies by
     more than a third from frame to frame); `allowed` (M, N) bool, where given, the only pairs
-    allowed at all.
+    allowed at all; `penalty` (M,) px², where given, added to each of a marker's pairs (a
+    marker the prior calls unlikely loses a disk to one it does not, and stays unassigned
+    sooner: the gate is not widened).
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
     if len(detected) == 0 or not np.any(visible):
@@ -663,6 +666,8 @@ def assign(
     cols = np.nonzero(np.any(allowed, axis=0))[0]
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    if penalty is not None:
+        cost = cost + penalty[:, None]
     sub = np.where(allowed, cost, _INFEASIBLE)[rows][:, cols]
     # a marker may stay unassigned at the cost of a pair at its gate: without that choice
     # every marker takes some detection, and one not detected takes another's and passes
