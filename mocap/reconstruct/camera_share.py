@@ -145,7 +145,8 @@ def point_covariance(cameras: list[Camera], xyz: np.ndarray, used: np.ndarray, n
     for a point with fewer than two used views or not finite."""
     xyz, used = np.asarray(xyz, dtype=float), np.asarray(used, dtype=bool)
     index = {c.name: k for k, c in enumerate(cameras)}
-    names = [] if covariance is None else [n for n in covariance.names if n.rsplit(".", 1)[0] in index]
+    names = [] if covariance is None else [n for n in covariance.names if n.rsplit(".", 1)[0] in index
+                                           and n.rsplit(".", 1)[-1] in CAMERA_PARAMETERS]
     normal = np.zeros((len(xyz), 3, 3))
     jacobians, predicted, views = [], [], np.zeros(len(xyz), int)
     for c, camera in enumerate(cameras):
