@@ -16,6 +16,7 @@ from mocap.io.points_csv import load_points, save_points
 from mocap.reconstruct.camera_share import CameraCovariance, perturbed, point_covariance
 from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.stage import triangulate
+from mocap.reconstruct.triangulate import triangulate as triangulate_points
 from mocap.reconstruct.triangulate import triangulate_tracks
 from mocap.synthetic.machines import SceneOptions, random_scene
 
@@ -65,7 +66,7 @@ def test_propagated_covariance_matches_points_through_drawn_cameras(calibrated):
             owner, parameter = name.rsplit(".", 1)
             k = [c.name for c in cameras].index(owner)
             moved[k] = perturbed(moved[k], parameter, delta)
-        squared.append(np.sum((triangulate_tracks(moved, exact[:, None]).xyz[0] - world) ** 2, axis=1))
+        squared.append(np.sum((triangulate_points(moved, exact).xyz - world) ** 2, axis=1))
     ratio = np.mean(squared, axis=0) / predicted
     assert np.all(ratio > chi2.ppf(0.001, DRAWS) / DRAWS) and np.all(ratio < chi2.ppf(0.999, DRAWS) / DRAWS), ratio
 
