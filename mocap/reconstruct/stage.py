@@ -174,7 +174,8 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
             f"{worst}): the calibration, the time offsets or the labels do not match the tracks; nothing "
             f"written (check them, or raise --max-noise-px {max_noise_px:g})", path=calibration_path)
     used = np.concatenate([r[5] for r in rows], axis=1)
-    points = replace(points, sd=_points_sd(cameras, points.xyz, used, noise, covariance_of(calibration, calibration_path)))
+    covariance = covariance_of(calibration, calibration_path)
+    points = replace(points, sd=_points_sd(cameras, points.xyz, used, noise, covariance))
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return Triangulation(points, seen, contradicted, clock.dropped)
 
