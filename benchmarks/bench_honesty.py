@@ -4,6 +4,10 @@ and that calibration refined over the scene's frames, on random clean and field 
 An honest SD scores 1; a camera's error is common to a scene's frames, so each scene gives
 one ratio. `with camera covariance` adds the calibration's covariance to the fit's
 (mocap.reconstruct.camera_share), `pixel noise only` is the fit's covariance alone.
+The triangulation's columns do the same for the markers' points as `mocap triangulate`
+makes them (`triangulate_tracks`, the pixel noise estimated from the points' residuals):
+the RMS over a scene's points and coordinates of error / stated SD, with the cameras'
+covariance propagated through the triangulation (`point_covariance`) and without.
 
     .venv/bin/python benchmarks/bench_honesty.py --scenes 8
     .venv/bin/python benchmarks/bench_honesty.py --scenes 8 --kind field --no-refine
@@ -20,11 +24,13 @@ import numpy as np
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
 from mocap.core.machine import Tolerance
 from mocap.errors import DegenerateError, InputError
-from mocap.reconstruct.camera_share import CameraCovariance, camera_share
+from mocap.reconstruct.camera_share import CameraCovariance, camera_share, point_covariance
 from mocap.reconstruct.kinfit import FitOptions, fit_joints
 from mocap.reconstruct.offsets import fit_with_offsets
+from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.refine import RefineOptions, refine
 from mocap.reconstruct.timing import tracks_on_reference_clock
+from mocap.reconstruct.triangulate import triangulate_tracks
 from mocap.reconstruct.uncertainty import point_quantities
 from mocap.synthetic.machines import SceneOptions, random_scene
 
@@ -72,7 +78,24 @@ def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
             if len(z):
                 out[key + suffix] = float(np.sqrt(np.mean(z**2)))
 
+    def triangulated(key: str, cameras_used, covariance: CameraCovariance | None) -> None:
+        if len(cameras_used) < 2:
+            return
+        points = triangulate_tracks(cameras_used, pixels)
+        xyz, used = points.xyz.reshape(-1, 3), points.used.reshape(len(cameras_used), -1)
+        ok = np.isfinite(xyz[:, 0])
+        if not ok.any():
+            return
+        views, error = points.views.reshape(-1)[ok], points.error_px.reshape(-1)[ok]
+        noise = noise_from_fits(error**2 * views, 2 * views - 3)
+        truth = machine.markers(scene.joints).reshape(-1, 3)[ok]
+        for suffix, carried in (("", covariance), ("_pixels", None)):
+            spread = point_covariance(cameras_used, xyz[ok], used[:, ok], noise, carried)
+            z = (xyz[ok] - truth) / np.sqrt(np.diagonal(spread, axis1=1, axis2=2))
+            out["points_" + key + suffix] = float(np.sqrt(np.mean(z[np.isfinite(z)] ** 2)))
+
     ratios("true", cameras, None)
+    triangulated("true", cameras, None)
     try:
         templates = [template_camera(c.name, c.size) for c in cameras]
         result = calibrate(scene.model, scene.observations(), templates, CalibrationOptions(tolerance=tolerance))
@@ -81,6 +104,7 @@ def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
         return out
     covariance = CameraCovariance.of_cameras(result.parameter_names, result.covariance, result.cameras)
     ratios("one_frame", list(result.cameras), covariance)
+    triangulated("one_frame", list(result.cameras), covariance)
     if with_refine:
         try:
             refined = refine(scene.model, list(result.cameras), pixels, RefineOptions(frames=FRAMES, tolerance=tolerance))
@@ -88,6 +112,7 @@ def one_scene(seed: int, field: bool, with_refine: bool) -> dict:
             out["refine_refused"] = str(exc)[:80]
             return out
         ratios("refined", list(refined.cameras), refined.camera_covariance, refined.machine, field)
+        triangulated("refined", list(refined.cameras), refined.camera_covariance)
     return out
 
 
@@ -120,6 +145,11 @@ def main(argv=None) -> int:
     for key, label in (("true", "true"), ("one_frame", "one-frame"), ("refined", "refined")):
         print(row(f"{label}, with camera covariance", [r.get(key, np.nan) for r in rows]))
         print(row(f"{label}, pixel noise only", [r.get(key + "_pixels", np.nan) for r in rows]))
+    print(f"\nmarkers' points (mocap triangulate): RMS over a scene's points and coordinates of error / stated SD")
+    print(f"{'cameras, SDs':<34} {'scenes':>6} {'median':>8} {'p90':>8} {'RMS':>8} {'in 0.8-1.25':>8}")
+    for key, label in (("true", "true"), ("one_frame", "one-frame"), ("refined", "refined")):
+        print(row(f"{label}, with camera covariance", [r.get("points_" + key, np.nan) for r in rows]))
+        print(row(f"{label}, pixel noise only", [r.get("points_" + key + "_pixels", np.nan) for r in rows]))
     for r in rows:
         if "refused" in r or "refine_refused" in r:
             print(f"seed {r['seed']}: {r.get('refused') or r.get('refine_refused')}")

@@ -1,7 +1,8 @@
 """The triangulated / reference points CSV: ``frame,marker,x,y,z,error_px,views``.
 
 Positions in metres in the world (base) frame; `error_px` the RMS reprojection error of
-the point; `views` the number of cameras that saw it.
+the point; `views` the number of cameras that saw it; then, where computed, ``x_sd,y_sd,z_sd``
+each coordinate's standard deviation (metres: the pixel noise's and the calibration's).
 """
 
 from __future__ import annotations
@@ -18,13 +19,17 @@ from mocap.io.text import csv_rows, read_text
 from mocap.io.tracks_csv import ascii_digits
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
+SD_COLUMNS = ("x_sd", "y_sd", "z_sd")
 
 
 def points_columns(points: Points) -> dict[str, np.ndarray]:
     """The points file's columns, each (N,)."""
-    return {"frame": points.frame.astype(np.int64), "marker": points.marker, "x": points.xyz[:, 0],
-            "y": points.xyz[:, 1], "z": points.xyz[:, 2], "error_px": points.error_px,
-            "views": points.views.astype(np.int64)}
+    columns = {"frame": points.frame.astype(np.int64), "marker": points.marker, "x": points.xyz[:, 0],
+               "y": points.xyz[:, 1], "z": points.xyz[:, 2], "error_px": points.error_px,
+               "views": points.views.astype(np.int64)}
+    if points.sd is not None:
+        columns.update({name: points.sd[:, k] for k, name in enumerate(SD_COLUMNS)})
+    return columns
 
 
 def save_points(points: Points, path: str | Path) -> None:
@@ -32,7 +37,8 @@ def save_points(points: Points, path: str | Path) -> None:
     if is_parquet(path):
         columnar.write_parquet(points_columns(points), path)
         return
-    columnar.write_csv(points_columns(points), path, {"x": 5, "y": 5, "z": 5, "error_px": 4})
+    columnar.write_csv(points_columns(points), path, {"x": 5, "y": 5, "z": 5, "error_px": 4,
+                                                      **{name: 6 for name in SD_COLUMNS}})
 
 
 def load_points(path: str | Path) -> Points:
@@ -65,7 +71,7 @@ def _load_parquet(path: Path) -> Points:
         raise InputError(f"lacks the columns {', '.join(missing)}; expected {','.join(COLUMNS)}", path=path)
     column = {h: np.char.strip(np.array([("nan" if h in ("x", "y", "z") else "") if v is None else str(v)
                                          for v in table[h].to_pylist()], dtype=str).reshape(-1))
-              for h in table.column_names if h in COLUMNS}  # a null position is not finite
+              for h in table.column_names if h in COLUMNS + SD_COLUMNS}  # a null position is not finite
     return _validate(column, np.arange(1, table.num_rows + 1), path, unit="row")
 
 
@@ -96,4 +102,9 @@ def _validate(column: dict[str, np.ndarray], lines: np.ndarray, path: Path, unit
     keys = np.char.add(np.char.add(column["frame"], "\0"), column["marker"])
     _, first = np.unique(keys, return_index=True)
     fail(~np.isin(np.arange(n), first), "this frame and marker appear twice; keep one row each")
-    return Points(frame, marker, xyz, error, views.astype(int))
+    sd = None
+    if all(name in column for name in SD_COLUMNS):
+        sd = np.stack([columnar.parse_floats(np.where(column[c] == "", "nan", column[c]), c, lines, path, unit)
+                       for c in SD_COLUMNS], axis=1).reshape(n, 3)
+        fail(np.any(sd < 0, axis=1), "x_sd, y_sd and z_sd must not be negative (metres; empty where unknown)")
+    return Points(frame, marker, xyz, error, views.astype(int), sd)

@@ -6,7 +6,8 @@ covariance Σ of the cameras' parameters (`CameraCovariance`, as `calibrate` wri
 frame's parameters move by X δc for a camera error δc, X = H⁻¹ Jᵀ W D its response (H =
 Jᵀ W J the frame's weighted normal matrix, D the predicted pixels' derivative by the camera
 parameters), so that X Σ Xᵀ is added to the frame's covariance, as the markers' offsets' is
-(mocap.reconstruct.offsets).
+(mocap.reconstruct.offsets). A triangulated point is the same with its three coordinates
+for parameters (`point_covariance`).
 
 Camera parameters, named ``<camera>.<parameter>`` as the calibration names them: ``rx ry
 rz`` the Rodrigues vector of ``cam_from_world``, ``tx ty tz`` its translation (m), ``f`` the
@@ -132,6 +133,53 @@ def camera_share(machine: Machine, cameras: list[Camera], fit, covariance: Camer
 
 
 _OFFSETS = ("dx", "dy", "dz")
+
+
+def point_covariance(cameras: list[Camera], xyz: np.ndarray, used: np.ndarray, noise_px: float,
+                     covariance: CameraCovariance | None = None) -> np.ndarray:
+    """(N, 3, 3) the covariance of triangulated points xyz (N, 3) from the views `used`
+    (C, N): the pixel noise's, noise_px² (Jᵀ J)⁻¹ (J the used views' projection Jacobian by
+    the point), plus, with the calibration's `covariance`, the cameras' share X Σ Xᵀ (X =
+    (Jᵀ J)⁻¹ Jᵀ D the point's response to the cameras' parameters, D the used views' pixels'
+    derivative by them, one finite difference per parameter for all points at once). NaN
+    for a point with fewer than two used views or not finite."""
+    xyz, used = np.asarray(xyz, dtype=float), np.asarray(used, dtype=bool)
+    index = {c.name: k for k, c in enumerate(cameras)}
+    names = [] if covariance is None else [n for n in covariance.names if n.rsplit(".", 1)[0] in index
+                                           and n.rsplit(".", 1)[-1] in CAMERA_PARAMETERS]
+    normal = np.zeros((len(xyz), 3, 3))
+    jacobians, predicted, views = [], [], np.zeros(len(xyz), int)
+    for c, camera in enumerate(cameras):
+        rot = camera.cam_from_world.rotation
+        uv, d_uv = project_cam(xyz @ rot.T + camera.cam_from_world.translation, camera.matrix, camera.distortion, True)
+        ok = used[c] & np.isfinite(uv).all(-1)
+        jac = np.where(ok[:, None, None], np.nan_to_num(d_uv @ rot), 0.0)  # (N, 2, 3)
+        normal += np.swapaxes(jac, 1, 2) @ jac
+        views += ok
+        jacobians.append(jac)
+        predicted.append(uv)
+    solvable = (views >= 2) & (np.abs(np.linalg.det(normal)) > 0)
+    out = np.full((len(xyz), 3, 3), np.nan)
+    inverse = np.linalg.inv(normal[solvable])
+    out[solvable] = noise_px**2 * inverse
+    if names:
+        chosen = [covariance.names.index(n) for n in names]
+        sigma = covariance.matrix[np.ix_(chosen, chosen)]
+        steps = _STEP_SDS * np.sqrt(np.maximum(np.diag(sigma), 0.0))
+        gradient = np.zeros((int(solvable.sum()), 3, len(names)))
+        for k, (name, step) in enumerate(zip(names, steps)):
+            if not step > 0:
+                continue
+            owner, parameter = name.rsplit(".", 1)
+            c = index[owner]
+            moved = perturbed(cameras[c], parameter, step)
+            rot = moved.cam_from_world.rotation
+            uv = project_cam(xyz[solvable] @ rot.T + moved.cam_from_world.translation, moved.matrix, moved.distortion)
+            d_pixel = np.nan_to_num((uv - predicted[c][solvable]) / step)  # (N, 2)
+            gradient[:, :, k] = np.einsum("nap,na->np", jacobians[c][solvable], d_pixel)
+        response = inverse @ gradient  # (N, 3, K)
+        out[solvable] += response @ sigma @ np.swapaxes(response, 1, 2)
+    return out
 
 
 def _response(machine, cameras, fit, part: slice, weights: np.ndarray, names, steps, index) -> np.ndarray:

@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # the fit and the refinement are imported by the stages that 
 log = logging.getLogger(__name__)
 
 _CHUNK_FRAMES = 2000  # frames triangulated per batch (memory, progress)
+_CHUNK_POINTS = 20_000  # points whose covariance is computed at once (memory: K camera parameters each)
 # a fit is partial (exit status 3) when frames no joint values explain make a stretch of a
 # second or more, or more than a tenth of the fitted frames: a few scattered ones are not
 PARTIAL_STRETCH_S = 1.0
@@ -176,7 +177,7 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
         f, m = np.nonzero(np.isfinite(part.xyz[own, :, 0]))
         f = own[f]
         rows.append((clock.frame[first + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m],
-                     part.views[f, m], first + f, m))
+                     part.views[f, m], part.used[:, f, m], first + f, m))
         contradicted += int(part.contradicted[own].sum())
     if not sum(len(r[0]) for r in rows):
         raise InputError(
@@ -195,11 +196,14 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
     from mocap.reconstruct.refine import track_noise
 
     own_noise = track_noise(clock.pixels)
-    at = np.concatenate([r[5] for r in rows]), np.concatenate([r[6] for r in rows])
+    at = np.concatenate([r[6] for r in rows]), np.concatenate([r[7] for r in rows])
     views = clock.pixels[:, at[0], at[1]]
     if max_noise_px is None and (why := views_contradiction(cameras, points.xyz, views, noise, own_noise)):
         worst = _worst(points.marker, points.error_px)
         raise InputError(f"{why} (most: {worst}); nothing written", path=calibration_path)
+    used = np.concatenate([r[5] for r in rows], axis=1)
+    covariance = covariance_of(calibration, calibration_path)
+    points = replace(points, sd=_points_sd(cameras, points.xyz, used, noise, covariance))
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
     return Triangulation(points, seen, contradicted, clock.dropped, noise, own_noise)
 
@@ -260,6 +264,19 @@ def _pose_explains(camera, xyz: np.ndarray, pixels: np.ndarray) -> float:
     before = float(residual @ residual)
     after = float(np.sum((residual - jacobian @ delta) ** 2))
     return 1.0 - after / before if before > 0 else 0.0
+
+
+def _points_sd(cameras, xyz: np.ndarray, used: np.ndarray, noise: float, covariance) -> np.ndarray:
+    """(N, 3) each coordinate's SD of the points xyz (N, 3) from their views `used` (C, N):
+    the pixel noise's and the calibration's covariance's (None: the pixel noise's alone)."""
+    from mocap.reconstruct.camera_share import point_covariance
+
+    sd = np.empty(xyz.shape)
+    for start in range(0, len(xyz), _CHUNK_POINTS):
+        part = slice(start, start + _CHUNK_POINTS)
+        sd[part] = np.sqrt(np.diagonal(point_covariance(cameras, xyz[part], used[:, part], noise, covariance),
+                                       axis1=1, axis2=2))
+    return sd
 
 
 def _count_distinct(values: np.ndarray) -> int:
