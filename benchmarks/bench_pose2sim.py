@@ -56,11 +56,12 @@ def main() -> None:
 
     print(f"Pose2Sim's demo: {len(cams.names)} cameras, {len(peer)} frames, {len(names)} keypoints; "
           f"{len(tracks)} keypoints found, {len(kept)} of confidence >= {MIN_SCORE}")
-    try:
-        mocap.triangulate(cams, kept)
-        print("mocap triangulate with its defaults: ran")
-    except mocap.InputError as error:
-        print(f"mocap triangulate with its defaults: refused ({str(error).split(' (the pixel noise')[0]})")
+    for label, given in (("every keypoint", tracks), (f"confidence >= {MIN_SCORE}", kept)):
+        try:
+            report = mocap.triangulate(cams, given).report
+            print(f"mocap triangulate with its defaults, {label}: written; {report[report.find('the views disagree'):]}")
+        except mocap.InputError as error:
+            print(f"mocap triangulate with its defaults, {label}: refused: {str(error).split(' (most:')[0]}")
 
     start = time.process_time()
     result = mocap.triangulate(cams, kept, max_noise_px=30.0)

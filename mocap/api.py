@@ -249,14 +249,15 @@ def refine(machine: Machine, cameras: Calibration, tracks: Tracks, *, markers: b
     return Refined(Cameras.of(refined.calibration), refined.machine, refined.report(None))
 
 
-def triangulate(cameras: Calibration, tracks: Tracks, options=None, *, max_noise_px: float = 5.0) -> PointsTable:
-    """3-D marker positions in every reference frame seen by two cameras or more; tracks
-    whose views disagree by more than `max_noise_px` (the pixel noise their residuals
-    imply) are refused, as `mocap triangulate --max-noise-px` does."""
+def triangulate(cameras: Calibration, tracks: Tracks, options=None, *, max_noise_px: float | None = None) -> PointsTable:
+    """3-D marker positions in every reference frame seen by two cameras or more. Refused
+    (InputError) when one camera's views contradict the others', or the views disagree 5
+    times beyond the noise the tracks show by themselves; with `max_noise_px`, also when
+    the views imply a pixel noise beyond it, as `mocap triangulate --max-noise-px` does."""
     from mocap.reconstruct.stage import triangulate as triangulate_points
     from mocap.reconstruct.triangulate import TriangulateOptions
 
-    if not max_noise_px > 0:
+    if max_noise_px is not None and not max_noise_px > 0:
         raise InputError(f"max_noise_px {max_noise_px}: give a positive number of pixels")
     result = triangulate_points(cameras, tracks, options or TriangulateOptions(), max_noise_px)
     return PointsTable(result.points, result.report(None))

@@ -213,3 +213,17 @@ def test_refined_file_describes_the_refined_cameras(board_lenses):
         f = covariance["parameters"].index(f"{name}.f")
         assert extra["sd"]["focal_px"] == pytest.approx(np.sqrt(covariance["matrix"][f][f]))
         assert extra["sd"]["focal_px"] < one.extras[0]["sd"]["focal_px"]
+
+
+def test_defaults_judge_the_keypoints_by_what_explains_their_disagreement():
+    """With its defaults, triangulate writes every keypoint of the demo (their views
+    disagree beyond the 5 px prior, in directions no camera's move explains) and names the
+    disagreement; with the keypoints of confidence 0.3 and more it names cam_01, whose
+    share a small move explains, as the chessboard's focal length does (table 3 of the
+    benchmark)."""
+    cams = mocap.read_calibration(DATA / "Calib_qualisys.toml")
+    tracks = mocap.read_tracks(DATA / "keypoints.csv")
+    written = mocap.triangulate(cams, tracks)
+    assert len(written.points) > 2000 and "the views disagree by" in written.report
+    with pytest.raises(mocap.InputError, match=r"moving camera cam_01 \(\d+ %\) a little explains"):
+        mocap.triangulate(cams, tracks.select(tracks.score >= MIN_SCORE))

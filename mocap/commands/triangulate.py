@@ -33,9 +33,10 @@ def add_parser(sub) -> None:
     p.add_argument("--sigmas", type=float, default=5.0,
                    help="outlier threshold in units of the estimated pixel noise (default 5)")
     p.add_argument("--min-views", type=int, default=2, help="views needed for a point (default 2)")
-    p.add_argument("--max-noise-px", type=float, default=5.0, metavar="PX",
-                   help="refuse (exit 2, nothing written) when the tracks imply a pixel noise beyond this: a wrong "
-                   "model, calibration or labels (default 5)")
+    p.add_argument("--max-noise-px", type=float, default=None, metavar="PX",
+                   help="refuse (exit 2, nothing written) when the views imply a pixel noise beyond this (default: "
+                   "refused only when one camera contradicts the others, or the views disagree 5 times beyond the "
+                   "noise the tracks show by themselves)")
     p.set_defaults(run=run)
 
 
@@ -43,7 +44,7 @@ def run(args) -> int:
     from mocap.reconstruct.stage import run_triangulate
     from mocap.reconstruct.triangulate import TriangulateOptions
 
-    if not args.max_noise_px > 0:
+    if args.max_noise_px is not None and not args.max_noise_px > 0:
         raise InputError(f"--max-noise-px {args.max_noise_px}: give a positive number of pixels")
     check_outputs({"--out": args.out},
                   {"calibration": args.calibration, "tracks": args.tracks})

@@ -105,6 +105,9 @@ def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
 
 
 MAX_NOISE_PX = 5.0  # tracks that lie further than this from any consistent answer: refused
+VIEWS_RATIO = 10.0  # views disagreeing this many times beyond the tracks' own noise (and MAX_NOISE_PX): refused
+POSE_EXPLAINS = 0.5  # ... or this share of one camera's disagreement explained by moving it a little: refused
+DISAGREE_RATIO, DISAGREE_FLOOR_PX = 2.0, 1.0  # views disagreeing beyond both are named in the report
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,8 @@ class Triangulation:
     seen: int  # marker-frames seen by any camera
     contradicted: int  # views dropped that the markers' 3-D tracks contradict
     dropped: int  # pixels dropped that their own tracks contradict
+    noise_px: float = float("nan")  # the pixel noise the views imply
+    own_noise_px: float = float("nan")  # the noise the 2-D tracks show by themselves
 
     def report(self, out) -> str:
         points = self.points
@@ -125,11 +130,21 @@ class Triangulation:
             + (f"; {self.contradicted} view(s) dropped that the markers' 3-D tracks contradict"
                if self.contradicted else "")
             + _dropped(self.dropped)
+            + self._disagreement()
         )
+
+    def _disagreement(self) -> str:
+        """The report's warning when the views disagree well beyond the tracks' own noise
+        (within what `views_contradiction` refuses): "" otherwise."""
+        if not self.noise_px > max(DISAGREE_RATIO * self.own_noise_px, DISAGREE_FLOOR_PX):
+            return ""
+        return (f"; the views disagree by {self.noise_px:.1f} px, {self.noise_px / self.own_noise_px:.1f} times the "
+                f"noise the tracks show by themselves ({self.own_noise_px:.1f} px): points that are not one physical "
+                "point in every view (keypoints), or a calibration or clocks a little off; the points' SDs carry it")
 
 
 def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOptions,
-                    max_noise_px: float = MAX_NOISE_PX) -> str:
+                    max_noise_px: float | None = None) -> str:
     calibration, tracks, markers = load_inputs(calibration_path, tracks_paths)
     result = triangulate(calibration, tracks, options, max_noise_px, markers, calibration_path)
     save_points(result.points, out)
@@ -137,10 +152,15 @@ def run_triangulate(calibration_path, tracks_paths, out, options: TriangulateOpt
 
 
 def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOptions = TriangulateOptions(),
-                max_noise_px: float = MAX_NOISE_PX, markers=None, calibration_path=None) -> Triangulation:
+                max_noise_px: float | None = None, markers=None, calibration_path=None) -> Triangulation:
     """Every marker in every reference frame seen by `options.min_views` cameras or more.
     `markers`: the names to triangulate (default: the tracks'); `calibration_path` names
-    the calibration in messages."""
+    the calibration in messages.
+
+    Refused (InputError) for a contradiction the data show (`views_contradiction`): a
+    camera whose disagreement moving it explains, or views that disagree far beyond the
+    noise the tracks show by themselves. `max_noise_px`, when given, is the user's own
+    limit on the pixel noise the views imply, in place of those checks."""
     if markers is None:
         markers = check_inputs(calibration, tracks, None, calibration_path)
     if options.min_views > len(calibration.cameras):
@@ -157,7 +177,7 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
         f, m = np.nonzero(np.isfinite(part.xyz[own, :, 0]))
         f = own[f]
         rows.append((clock.frame[first + f], np.asarray(markers, dtype=object)[m], part.xyz[f, m], part.error_px[f, m],
-                     part.views[f, m], part.used[:, f, m]))
+                     part.views[f, m], part.used[:, f, m], first + f, m))
         contradicted += int(part.contradicted[own].sum())
     if not sum(len(r[0]) for r in rows):
         raise InputError(
@@ -167,17 +187,83 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
         )
     points = Points(*(np.concatenate([r[k] for r in rows]) for k in range(5)))
     noise = noise_from_fits(points.error_px**2 * points.views, 2 * points.views - 3)
-    if noise > max_noise_px:
+    if max_noise_px is not None and noise > max_noise_px:
         worst = _worst(points.marker, points.error_px)
         raise InputError(
             f"the cameras' views of the markers disagree by {noise:.1f} px (the pixel noise they imply; most: "
-            f"{worst}): the calibration, the time offsets or the labels do not match the tracks; nothing "
-            f"written (check them, or raise --max-noise-px {max_noise_px:g})", path=calibration_path)
+            f"{worst}), beyond --max-noise-px {max_noise_px:g}: the calibration, the time offsets or the labels "
+            f"do not match the tracks; nothing written", path=calibration_path)
+    from mocap.reconstruct.refine import track_noise
+
+    own_noise = track_noise(clock.pixels)
+    at = np.concatenate([r[6] for r in rows]), np.concatenate([r[7] for r in rows])
+    views = clock.pixels[:, at[0], at[1]]
+    if max_noise_px is None and (why := views_contradiction(cameras, points.xyz, views, noise, own_noise)):
+        worst = _worst(points.marker, points.error_px)
+        raise InputError(f"{why} (most: {worst}); nothing written", path=calibration_path)
     used = np.concatenate([r[5] for r in rows], axis=1)
     covariance = covariance_of(calibration, calibration_path)
     points = replace(points, sd=_points_sd(cameras, points.xyz, used, noise, covariance))
     seen = int(np.isfinite(clock.pixels[..., 0]).any(0).sum())
-    return Triangulation(points, seen, contradicted, clock.dropped)
+    return Triangulation(points, seen, contradicted, clock.dropped, noise, own_noise)
+
+
+def views_contradiction(cameras, xyz: np.ndarray, pixels: np.ndarray, noise_px: float, own_noise_px: float) -> str:
+    """The contradiction the views show, or "": `pixels` (C, N, 2) each camera's view of
+    the triangulated points xyz (N, 3) (NaN where unseen), `noise_px` the pixel noise the
+    views imply, `own_noise_px` the noise the 2-D tracks show by themselves (`track_noise`).
+
+    Views within MAX_NOISE_PX (the prior, made for painted markers) are never refused.
+    Beyond it: a camera whose disagreement a small move of that camera explains
+    (POSE_EXPLAINS of its squared distances): the calibration is off; or views that
+    disagree VIEWS_RATIO times beyond the tracks' own noise (the calibration, the clocks
+    or the labels as a whole). Points that are not one physical point in every view (a body's
+    keypoints, each view placing a joint on the outline it sees) disagree by several times
+    their jitter, in directions no camera's move explains, and are written with the noise
+    they show."""
+    if not noise_px > MAX_NOISE_PX:
+        return ""
+    explained = np.array([_pose_explains(camera, xyz, view) for camera, view in zip(cameras, pixels)])
+    moved = [f"{cameras[c].name} ({100 * explained[c]:.0f} %)" for c in np.argsort(-explained)
+             if explained[c] >= POSE_EXPLAINS]
+    if moved:
+        return (f"the cameras' views of the markers disagree by {noise_px:.1f} px (the pixel noise they imply), and "
+                f"moving camera {' or '.join(moved)} a little explains that much of its share: the calibration does "
+                "not match the tracks (run `mocap refine`, or check it)")
+    if np.isfinite(own_noise_px) and noise_px > VIEWS_RATIO * own_noise_px:
+        return (f"the cameras' views of the markers disagree by {noise_px:.1f} px (the pixel noise they imply), "
+                f"{noise_px / own_noise_px:.0f} times the noise the tracks show by themselves ({own_noise_px:.2f} px): "
+                "the calibration, the time offsets or the labels do not match the tracks")
+    return ""
+
+
+def _pose_explains(camera, xyz: np.ndarray, pixels: np.ndarray) -> float:
+    """The share (0-1) of the squared distances of `camera`'s pixels (N, 2) from its view
+    of the points xyz (N, 3) that a small change of its pose (3 rotations, 3 translations,
+    linearised, least squares over every point it sees) explains; 0 where it sees fewer
+    than 4 points."""
+    from dataclasses import replace as replaced
+
+    from mocap.core.geometry import Rigid, rotvec_to_matrix
+
+    seen = np.isfinite(pixels[:, 0])
+    if np.count_nonzero(seen) < 4:
+        return 0.0
+    xyz, pixels = xyz[seen], pixels[seen]
+    pose = camera.cam_from_world
+    residual = (pixels - camera.project(xyz)).ravel()
+    depth = float(np.median((xyz @ pose.rotation.T + pose.translation)[:, 2]))
+    columns = []
+    for k in range(6):  # numeric derivatives: 0.1 mrad and 0.1 mm per metre of depth
+        step = np.zeros(6)
+        step[k] = 1e-4 if k < 3 else 1e-4 * depth
+        moved = Rigid(rotvec_to_matrix(step[:3]) @ pose.rotation, pose.translation + step[3:])
+        columns.append((replaced(camera, cam_from_world=moved).project(xyz).ravel() - camera.project(xyz).ravel()) / 1e-4)
+    jacobian = np.stack(columns, axis=1)
+    delta = np.linalg.lstsq(jacobian, residual, rcond=None)[0]
+    before = float(residual @ residual)
+    after = float(np.sum((residual - jacobian @ delta) ** 2))
+    return 1.0 - after / before if before > 0 else 0.0
 
 
 def _points_sd(cameras, xyz: np.ndarray, used: np.ndarray, noise: float, covariance) -> np.ndarray:
