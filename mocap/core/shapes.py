@@ -13,10 +13,9 @@ and, for what takes a box (the viewer), their bounding box.
 
 from __future__ import annotations
 
-import numpy as np
-
 import math
 
+import numpy as np
 from numba import njit
 
 from mocap.core.machine import Machine
@@ -151,7 +150,7 @@ def hidden_by_solids(world, centre, poses, point_links, triangles, first, solid_
                     end[a] = ((poses[f, link, 0, a] * (centre[f, 0] - poses[f, link, 0, 3])
                                + poses[f, link, 1, a] * (centre[f, 1] - poses[f, link, 1, 3]))
                               + poses[f, link, 2, a] * (centre[f, 2] - poses[f, link, 2, 3]))
-                if not _segment_hits_box(start, end, bounds[s, 0], bounds[s, 1]):
+                if not segment_crosses_box(start, end, bounds[s, 0], bounds[s, 1]):
                     continue
                 for t in range(first[s], first[s + 1]):
                     if _segment_hits_triangle(start, end, triangles[t]):
@@ -163,7 +162,9 @@ def hidden_by_solids(world, centre, poses, point_links, triangles, first, solid_
 
 
 @njit(cache=True, nogil=True)
-def _segment_hits_box(start, end, low_corner, high_corner):
+def segment_crosses_box(start, end, low_corner, high_corner):
+    """Whether the segment from `start` to `end` (3,) passes through the box between its
+    corners (3,) (slabs; the compiled, one-segment form of `visibility.segment_hits_box`)."""
     enter, leave = -math.inf, math.inf
     for a in range(3):
         d = end[a] - start[a]

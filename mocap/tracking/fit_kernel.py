@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from mocap.core.camera_kernel import project_point
+from mocap.core.shapes import segment_crosses_box
 
 
 @njit(cache=True, nogil=True)
@@ -165,23 +166,6 @@ def marker_pixels(joints, chain, marker_links, positions, rotation, translation,
 
 
 @njit(cache=True, nogil=True)
-def _hits_box(start, end, low_corner, high_corner):
-    """Whether the segment from `start` to `end` (3,) passes through the box (`visibility.segment_hits_box`)."""
-    enter, leave = -math.inf, math.inf
-    for a in range(3):
-        d = end[a] - start[a]
-        if d == 0:
-            if not (low_corner[a] <= start[a] <= high_corner[a]):
-                return False
-            continue
-        t1 = (low_corner[a] - start[a]) / d
-        t2 = (high_corner[a] - start[a]) / d
-        enter = max(enter, min(t1, t2))
-        leave = min(leave, max(t1, t2))
-    return leave >= max(enter, 0.0) and enter <= 1.0
-
-
-@njit(cache=True, nogil=True)
 def marker_view(joints, chain, marker_links, positions, rotation, translation, matrix, distortion, boxes, normals,
                 width, height, solid, min_facing, box_hides):
     """What the camera sees at joints (F, J) (`CameraModel.view`): marker pixels (F, M, 2),
@@ -230,7 +214,7 @@ def marker_view(joints, chain, marker_links, positions, rotation, translation, m
                         end[a] = ((poses[other, 0, a] * (centre[0] - poses[other, 0, 3])
                                    + poses[other, 1, a] * (centre[1] - poses[other, 1, 3]))
                                   + poses[other, 2, a] * (centre[2] - poses[other, 2, 3]))
-                    visible = not _hits_box(start, end, boxes[other, 0], boxes[other, 1])
+                    visible = not segment_crosses_box(start, end, boxes[other, 0], boxes[other, 1])
                 seen[f, m] = visible
             else:
                 inside = -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
