@@ -91,7 +91,7 @@ class CameraModel:
                 np.ascontiguousarray(machine.marker_positions, dtype=float), np.ascontiguousarray(rotation, dtype=float),
                 np.ascontiguousarray(translation, dtype=float), np.ascontiguousarray(camera.matrix, dtype=float),
                 np.ascontiguousarray(camera.distortion, dtype=float).reshape(5),
-                np.ascontiguousarray(machine.marker_moves, dtype=bool))  # one compiled version: C order
+                np.require(machine.marker_moves, bool, "CW"))  # one compiled version: C order, writable
 
     def visible(self, joints: np.ndarray) -> np.ndarray:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
