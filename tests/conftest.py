@@ -9,42 +9,6 @@ os.environ.setdefault("RUST_LOG", "off")
 for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
 
-
-def _compile_once_across_workers() -> None:
-    """On a fresh checkout the compiled kernels (numba, `cache=True`) are not yet on disk,
-    and every xdist worker would compile each of them at the same time. The workers of one
-    checkout take turns at numba's compiler lock (a file lock held while a worker holds numba's
-    own): the second finds the kernel in the cache the first wrote and loads it."""
-    if "PYTEST_XDIST_WORKER" not in os.environ:
-        return
-    import fcntl
-    import hashlib
-    import tempfile
-
-    from numba.core.compiler_lock import global_compiler_lock as lock
-
-    checkout = hashlib.sha1(os.path.dirname(os.path.abspath(__file__)).encode()).hexdigest()[:12]
-    handle = open(os.path.join(tempfile.gettempdir(), f"mocap-tests-{checkout}.compile-lock"), "a")
-    acquire, release = lock.acquire, lock.release
-    depth = [0]  # changed only by the thread holding numba's lock
-
-    def acquire_both():
-        acquire()
-        if depth[0] == 0:
-            fcntl.flock(handle, fcntl.LOCK_EX)
-        depth[0] += 1
-
-    def release_both():
-        depth[0] -= 1
-        if depth[0] == 0:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-        release()
-
-    lock.acquire, lock.release = acquire_both, release_both
-
-
-_compile_once_across_workers()
-
 import numpy as np
 import pytest
 
