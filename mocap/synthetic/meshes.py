@@ -212,7 +212,8 @@ def solids_in_view(machine: Machine, solids: Solids, normals: np.ndarray, link_p
     shift = np.ascontiguousarray(link_poses[..., :3, 3])
     seen &= ~_hidden(np.ascontiguousarray(world), np.ascontiguousarray(centre), rotation_t, shift,
                      np.ascontiguousarray(solids.links, dtype=np.int64), np.ascontiguousarray(face_normals),
-                     np.ascontiguousarray(offsets), np.ascontiguousarray(solids.plate_of, dtype=np.int64), seen)
+                     np.ascontiguousarray(offsets), np.ascontiguousarray(solids.plate_of, dtype=np.int64),
+                     np.ascontiguousarray(seen))  # one compiled version: C order
     return uv, seen
 
 

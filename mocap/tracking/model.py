@@ -90,7 +90,8 @@ class CameraModel:
         return (chain, np.ascontiguousarray(machine.marker_links, dtype=np.int64),
                 np.ascontiguousarray(machine.marker_positions, dtype=float), np.ascontiguousarray(rotation, dtype=float),
                 np.ascontiguousarray(translation, dtype=float), np.ascontiguousarray(camera.matrix, dtype=float),
-                np.ascontiguousarray(camera.distortion, dtype=float).reshape(5), np.array(machine.marker_moves))
+                np.ascontiguousarray(camera.distortion, dtype=float).reshape(5),
+                np.require(machine.marker_moves, bool, "CW"))  # one compiled version: C order, writable
 
     def visible(self, joints: np.ndarray) -> np.ndarray:
         """(F, M) bool: in the image, facing the camera and not hidden behind another link's
@@ -192,7 +193,7 @@ class CameraModel:
         Fit: joints (F, J), clipped to the limits, residuals (F, M) px (NaN where not
         observed) and the fitted pixels (F, M, 2).
         """
-        pixels = np.ascontiguousarray(pixels, dtype=float)
+        pixels = np.require(pixels, float, "CW")  # writable too: one compiled version
         starts = np.empty((len(pixels), self.machine.n_joints))
         starts[:] = start
         limits = np.ascontiguousarray(self.machine.joint_limits)
