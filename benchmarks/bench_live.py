@@ -199,6 +199,26 @@ def offline_rmse(motion, frames: np.ndarray, truth) -> float:
     return tip_rmse(keep, motion.point("bucket_tip")[[index[f] for f in keep]], truth)
 
 
+def offline_without(session: Path, names: list[str], work: Path, camera: str, frames: np.ndarray, calibration):
+    """The offline chain on the same tracks but with `camera`'s frames removed where the live
+    rows `frames` (reference frames) went without it: each of its frames whose nearest
+    reference frame is one of those (the like-for-like camera set)."""
+    k = calibration.names.index(camera)
+    fps, offset = calibration.fps()[k], calibration.time_offsets[k]
+    reference_fps = calibration.fps()[calibration.names.index(names[0])]
+    source = session.parent / f"{session.name}_tracks" / f"{camera}.csv"
+    lines = source.read_text().splitlines()
+    frame = np.array([int(line.split(",")[1]) for line in lines[1:]])
+    nearest = np.round((frame / fps + offset) * reference_fps).astype(int)
+    keep = ~np.isin(nearest, frames)
+    path = work / f"{camera}_without.csv"
+    path.write_text("\n".join([lines[0]] + [line for line, k in zip(lines[1:], keep) if k]) + "\n")
+    tracks = [session.parent / f"{session.name}_tracks" / f"{n}.csv" if n != camera else path for n in names]
+    out = work / "motion_without.csv"
+    run_fit(MACHINE, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
+    return load_motion(out, load_machine(MACHINE)), int(len(np.unique(frame[~keep])))
+
+
 def view_cpu(rows_path: Path, calibration, out: Path) -> float:
     """The process's CPU (ms) per row logging the rows of `rows_path` through `LiveView` to an
     .rrd file, flushed (Rerun's own thread included)."""
@@ -304,12 +324,12 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     motion = offline(session, names, work)
     dropped = sum(c.dropped for c in report.cameras)
     read = sum(c.read for c in report.cameras)
-    p50, p99 = np.percentile(report.latency_ms, [50, 99])
+    p50, p99 = np.percentile(report.latency_ms, [50, 99]) if len(report.latency_ms) else (np.nan, np.nan)
     stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
     live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
     width, height = calibration.cameras[0].size
     line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
-            f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max():>6.0f} "
+            f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max() if len(report.latency_ms) else np.nan:>6.0f} "
             + " ".join(f"{x:>5.1f}" for x in stages)
             + f" {1000 * cpu / max(report.rows, 1):>10.1f} {f'{memory.at(0.1):.0f}/{memory.at(1.0):.0f}':>9} "
             f"{decode:>10.0f} {fps.sum():>8.1f} {live:>13.4f} {off:>7.4f} {live / off:>5.2f}")
@@ -334,6 +354,11 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
               f"{offline_rmse(motion, frames[without], truth):.4f} offline (all cameras); the other "
               f"{(~without).sum()} rows: {tip_rmse(frames[~without], tips[~without], truth):.4f} live, "
               f"{offline_rmse(motion, frames[~without], truth):.4f} offline", flush=True)
+        alike, removed = offline_without(session, names, work, gap, frames[without], calibration)
+        like = offline_rmse(alike, frames, truth)
+        print(f"     offline with the same camera set ({gap}'s {removed} frames of those rows removed from its "
+              f"track): {offline_rmse(alike, frames[without], truth):.4f} over the rows without {gap}, "
+              f"{like:.4f} over all rows; live / offline like for like {live / like:.2f}", flush=True)
     for name, offset, at, _ in report.clocks:
         true = calibration.time_offsets[calibration.names.index(name)]
         print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "

@@ -469,4 +469,4 @@ def test_the_smoother_follows_a_swing_that_speeds_up(monkeypatch, pace_steps, tr
     if trails:
         assert late.max() > 4 * sd
     else:
-        assert late.max() < 4 * sd and max(paces[600:]) > 1 and max(paces[300:600]) == 1  # raised there only
+        assert late.max() < 4 * sd and np.max(paces[600:]) > 1 and np.max(paces[300:600]) == 1  # raised there only

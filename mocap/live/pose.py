@@ -214,8 +214,8 @@ class FixedLagSmoother:
         self.process_noise = np.full(len(self.wrap), _FIRST_PROCESS_NOISE)
         self.count = 0
         self.pending = 0  # frames pushed whose pose is not given yet
-        self.pace = 1.0
-        self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square, unraised
+        self.pace = np.ones(len(self.wrap))
+        self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square / dof
 
     def push(self, time: float, fit: FrameFit) -> Pose | None:
         """Add a frame; the pose of the frame `lag` back once there is one."""
@@ -274,34 +274,57 @@ class FixedLagSmoother:
 
     def _smooth_at_pace(self, time, values, information, valid):
         """The window smoothed with the smallest multiple of the process noise that its newest
-        fits do not contradict (none: the estimate itself); the result and the multiple."""
+        fits do not contradict, raised for the parameters those fits observe (none explains
+        them: the estimate itself). The result and the multiples (P,)."""
         newest = slice(max(len(time) - _PACE_FRAMES, 0), None)
-        for step in range(_PACE_STEPS + 1):
-            factor = _PACE_FACTOR**step
+        base = np.ones(len(self.wrap))
+        first = smooth(time, values, information, valid, self.wrap, replace(self.options, process_noise=self.process_noise))
+        kept = valid[newest] & ~first.rejected[newest]
+        typical = _typical_sd(information, valid & np.isfinite(values).all(1))
+        statistic, dof, observed = _disagreement(values[newest], information[newest], kept, first.values[newest],
+                                                 self.wrap, typical, self.options.unobserved_factor)
+        if not dof:
+            return first, base
+        self.disagreement.append(statistic / dof)
+        usual = max(float(np.median(self.disagreement)) * dof / _chi2_quantile(0.5, dof), 1.0)
+        limit = usual * _chi2_quantile(_PACE_PROBABILITY, dof)
+        if statistic <= limit or not observed.any():
+            return first, base
+        for step in range(1, _PACE_STEPS + 1):
+            factor = np.where(observed, _PACE_FACTOR**step, 1.0)
             result = smooth(time, values, information, valid, self.wrap,
                             replace(self.options, process_noise=factor * self.process_noise))
-            statistic, dof = _disagreement(values[newest], information[newest],
-                                           valid[newest] & ~result.rejected[newest], result.values[newest], self.wrap)
-            if not dof:
+            statistic, _, _ = _disagreement(values[newest], information[newest], kept, result.values[newest],
+                                            self.wrap, typical, self.options.unobserved_factor)
+            if statistic <= limit:
                 return result, factor
-            if step == 0:
-                first = result
-                self.disagreement.append(statistic / dof)
-                usual = max(float(np.median(self.disagreement)) / _chi2_quantile(0.5, dof) * dof, 1.0)
-            if statistic <= usual * _chi2_quantile(_PACE_PROBABILITY, dof):
-                return result, factor
-        return first, 1.0
+        return first, base
 
 
 def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,
-                  wrap: np.ndarray) -> tuple[float, int]:
+                  wrap: np.ndarray, typical_sd: np.ndarray, unobserved_factor: float) -> tuple[float, int, np.ndarray]:
     """The chi-square of the fits measured (K, P) with information (K, P, P) about the
     smoothed values (K, P) (angles in `wrap` compared modulo 2 pi), frames not `valid` left
-    out, and its degrees of freedom."""
+    out; its degrees of freedom; and the parameters (P,) observed in every frame kept (their
+    fit's SD within `unobserved_factor` times `typical_sd` (P,), as `smooth` tells)."""
     valid = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
     difference = measured[valid] - smoothed[valid]
     difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
-    return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size
+    p = measured.shape[1]
+    if not valid.any():
+        return 0.0, 0, np.zeros(p, bool)
+    sd = np.sqrt(np.abs(np.diagonal(np.linalg.inv(information[valid] + 1e-12 * np.eye(p)), axis1=1, axis2=2)))
+    observed = np.all(sd <= unobserved_factor * typical_sd, axis=0)
+    return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size, observed
+
+
+def _typical_sd(information: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(P,) the median over the `valid` frames of each parameter's fit SD (information (W, P, P))."""
+    p = information.shape[1]
+    if not valid.any():
+        return np.full(p, np.inf)
+    sd = np.sqrt(np.abs(np.diagonal(np.linalg.inv(information[valid] + 1e-12 * np.eye(p)), axis1=1, axis2=2)))
+    return np.median(sd, axis=0)
 
 
 def _chi2_quantile(probability: float, dof: int) -> float:
