@@ -20,12 +20,16 @@ then `mocap fit`, over the whole videos) over the same frames.
 
 `--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
 run (its frames in that time never arrive, as from a camera unplugged and plugged back).
+`--files`: instead, the whole videos read as fast as they are tracked (no frame dropped; not
+a latency measurement) and the rows' tip RMSE beside that of the same fits through the smoother
+whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
+chain's; with the worst second of the unraised rows.
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
 
     python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
-        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast] [--files]
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.video import Video
 from mocap.live import run as live_module
+from mocap.live.pose import FixedLagSmoother
 from mocap.live.run import LiveRequest, run_live
 from mocap.live.sources import SourceReader, parse_source
 from mocap.reconstruct.kinfit import FitOptions
@@ -114,6 +119,51 @@ def silent(camera: str | None, start: float):
         _Silent.gap = None
 
 
+class _Recording(FixedLagSmoother):
+    """The live smoother, its inputs kept (`calls`) to be given again to another smoother."""
+
+    calls: list[tuple] = []
+
+    def push(self, time, fit):
+        _Recording.calls.append(("push", time, fit))
+        return super().push(time, fit)
+
+    def revise(self, fit) -> None:
+        _Recording.calls.append(("revise", fit))
+        super().revise(fit)
+
+    def flush(self):
+        _Recording.calls.append(("flush",))
+        return super().flush()
+
+
+@contextmanager
+def recording():
+    """While in it, `run_live`'s smoother keeps its inputs in `_Recording.calls` (emptied first)."""
+    _Recording.calls = []
+    live_module.FixedLagSmoother = _Recording
+    try:
+        yield _Recording.calls
+    finally:
+        live_module.FixedLagSmoother = FixedLagSmoother
+
+
+def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> np.ndarray:
+    """(R, 3) the bucket tips of the rows a smoother with `pace_steps` gives from the same inputs."""
+    machine = load_machine(MACHINE)
+    smoother = FixedLagSmoother(machine, lag, base_motion=base_motion, pace_steps=pace_steps)
+    poses = []
+    for call in calls:
+        if call[0] == "push":
+            poses += [p for p in [smoother.push(call[1], call[2])] if p is not None]
+        elif call[0] == "revise":
+            smoother.revise(call[1])
+        else:
+            poses += smoother.flush()
+    tip = machine.point_names.index("bucket_tip")
+    return np.array([p.points[tip] for p in poses]).reshape(-1, 3)
+
+
 class Memory(threading.Thread):
     """The process's resident memory (MB) sampled every 0.2 s until `done` is set."""
 
@@ -151,7 +201,7 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
     return total / (time.perf_counter() - started)
 
 
-def live_run(session: Path, names: list[str], duration: float, lag: int, out: Path, base_motion: bool,
+def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base_motion: bool,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
     """The run's report, its CPU seconds (all threads) and its memory samples."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
@@ -265,6 +315,10 @@ def main() -> None:
                         "per re-estimate")
     parser.add_argument("--as-fast", action="store_true",
                         help="also the files read as fast as they are tracked, and the viewer's cost")
+    parser.add_argument("--files", action="store_true",
+                        help="instead of the real-time runs: the whole videos read as fast as they are tracked (no "
+                        "frame dropped; not a latency measurement), the rows' tip RMSE against the same fits through "
+                        "the smoother with its process noise as estimated over 30 s only (never raised), and offline")
     parser.add_argument("--work", help="folder for the sessions and runs (default: a temporary one); a session "
                         "found there complete is used again")
     args = parser.parse_args()
@@ -272,6 +326,9 @@ def main() -> None:
     cameras = counts(args.cameras)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.work or tmp)
+        if args.files:
+            files_table(args, root, cameras)
+            return
         print(f"{args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
               f"{'fixed base' if args.fixed_base else 'base pose per frame'}"
               + (f", the last camera silent for {GAP_S:g} s from {args.duration / 3:.0f} s" if args.fault != "none"
@@ -305,6 +362,46 @@ def main() -> None:
                  "offline over its rows' frames" if args.as_fast else ""))
         print(f"tip RMSE live / offline over {len(ratios)} runs: median {np.median(ratios):.2f}, worst "
               f"{ratios.max():.2f}; load average {loads[0]:.2f} at the end")
+
+
+def files_table(args, root: Path, cameras: list[int]) -> None:
+    """`--files`: per session and count of cameras, the whole videos read as fast as tracked."""
+    base_motion = not args.fixed_base
+    print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), "
+          f"{'fixed base' if args.fixed_base else 'base pose per frame'}; tip RMSE (m) over the rows: live, the same "
+          "fits through the smoother whose process noise is never raised, and the offline chain over the same frames")
+    print(f"{'session':>28} {'cams':>4} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} {'live/off':>8} "
+          f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7}", flush=True)
+    ratios = []
+    for size in args.sizes.split(","):
+        for seed in counts(args.seeds):
+            session = make_session(root, size, max(cameras), seed, args.look, args.duration)
+            calibration = load_calibration(session / "truth" / "cameras.toml")
+            truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
+            for n in cameras:
+                names = list(calibration.names[:n])
+                work = root / f"files_{session.name}_{n}"
+                work.mkdir(exist_ok=True)
+                with recording() as calls:
+                    live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
+                frames, tips = read_tips(work / "poses.csv")
+                unraised = replay(calls, args.lag, base_motion, pace_steps=0)
+                motion = offline(session, names, work)
+                live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
+                                   offline_rmse(motion, frames, truth))
+                # the second of rows where the unraised smoother is worst
+                error = np.linalg.norm(unraised - truth.point("bucket_tip")[frames], axis=1) ** 2
+                start = int(np.argmax(np.convolve(error, np.ones(30), "valid"))) if len(frames) >= 30 else 0
+                worst = frames[start:start + 30]
+                print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
+                      f"{live / off:>8.2f} {flat / off:>12.2f} "
+                      f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
+                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} {offline_rmse(motion, worst, truth):>7.4f}"
+                      f"  (frames {worst[0]}-{worst[-1]})", flush=True)
+                ratios.append((live / off, flat / off))
+    ratios = np.array(ratios)
+    print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, worst {ratios[:, 0].max():.2f}"
+          f"; never raised: median {np.median(ratios[:, 1]):.2f}, worst {ratios[:, 1].max():.2f}")
 
 
 def bench_row(args, root: Path, session: Path, calibration, truth, size: str, seed: int, n: int) -> float:

@@ -441,15 +441,13 @@ def test_a_provisional_fit_revised_gives_the_rows_of_the_frame_s_own_fit():
 
 
 @pytest.mark.parametrize("pace_steps, trails", [(None, False), (0, True)])
-def test_the_smoother_follows_a_swing_that_speeds_up(monkeypatch, pace_steps, trails):
+def test_the_smoother_follows_a_swing_that_speeds_up(pace_steps, trails):
     """20 s of a slow steady swing (the process noise estimated from it is small), then the
     swing speeds up at 0.6 rad/s² for 1 s; each fit's SD 2 mrad. The rows stay within 4 of
     the fits' SDs of the truth throughout; the process noise of the 20 s alone (no raising)
     trails the swing by more than that."""
     from mocap.live import pose as live_pose
 
-    if pace_steps is not None:
-        monkeypatch.setattr(live_pose, "_PACE_STEPS", pace_steps)
     machine = load_machine("hitachi_ex3500")
     rng = np.random.default_rng(5)
     fps, sd, n = 30.0, 0.002, machine.n_joints
@@ -457,7 +455,7 @@ def test_the_smoother_follows_a_swing_that_speeds_up(monkeypatch, pace_steps, tr
     truth = np.tile(machine.joint_limits.mean(axis=1), (len(time), 1))
     truth[:, 0] = 0.02 * time + 0.3 * np.clip(time - 20.0, 0.0, None) ** 2  # the swing: steady, then speeding up
     fits = truth + sd * rng.normal(size=truth.shape)
-    smoother = live_pose.FixedLagSmoother(machine, 1)
+    smoother = live_pose.FixedLagSmoother(machine, 1, **({} if pace_steps is None else {"pace_steps": pace_steps}))
     poses, paces = [], []
     for t, v in zip(time, fits):
         poses.append(smoother.push(t, live_pose.FrameFit(v, np.eye(n) / sd**2, True, 0.5, 40)))

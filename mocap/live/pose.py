@@ -194,13 +194,13 @@ class FixedLagSmoother:
     their chi-square about the smoothed values (weighed by the fits' information), over the
     usual one (its median over the last rows: the fits' information may be overconfident), is
     held against the quantile `_PACE_PROBABILITY`; beyond it the process noise is raised
-    `_PACE_FACTOR` times and the window smoothed again, up to `_PACE_STEPS` times: the smallest
+    `_PACE_FACTOR` times and the window smoothed again, up to `pace_steps` times: the smallest
     process noise the newest fits do not contradict. Fits that no raise tried explains (a few
     failed fits, not a faster motion) leave the estimate as it is. `pace` is the factor of the
     last row given."""
 
     def __init__(self, machine: Machine, lag: int, window: int = 60, options: SmoothOptions | None = None,
-                 base_motion: bool = False):
+                 base_motion: bool = False, pace_steps: int = _PACE_STEPS):
         if lag < 0 or window <= lag:
             raise ValueError(f"need 0 <= lag < window, got lag {lag}, window {window}")
         self.machine, self.lag, self.window = machine, lag, window
@@ -215,6 +215,7 @@ class FixedLagSmoother:
         self.count = 0
         self.pending = 0  # frames pushed whose pose is not given yet
         self.pace = np.ones(len(self.wrap))
+        self.pace_steps = pace_steps
         self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square / dof
 
     def push(self, time: float, fit: FrameFit) -> Pose | None:
@@ -288,9 +289,9 @@ class FixedLagSmoother:
         self.disagreement.append(statistic / dof)
         usual = max(float(np.median(self.disagreement)) * dof / _chi2_quantile(0.5, dof), 1.0)
         limit = usual * _chi2_quantile(_PACE_PROBABILITY, dof)
-        if statistic <= limit or not observed.any():
+        if statistic <= limit or not observed.any() or not self.pace_steps:
             return first, base
-        for step in range(1, _PACE_STEPS + 1):
+        for step in range(1, self.pace_steps + 1):
             factor = np.where(observed, _PACE_FACTOR**step, 1.0)
             result = smooth(time, values, information, valid, self.wrap,
                             replace(self.options, process_noise=factor * self.process_noise))
