@@ -386,6 +386,8 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                     live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
                 frames, tips = read_tips(work / "poses.csv")
                 unraised = replay(calls, args.lag, base_motion, pace_steps=0)
+                keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
+                frames, tips, unraised = frames[keep], tips[keep], unraised[keep]
                 motion = offline(session, names, work)
                 live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
                                    offline_rmse(motion, frames, truth))
