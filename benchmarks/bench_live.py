@@ -412,7 +412,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     work = root / f"run_{session.name}_{n}"
     work.mkdir(exist_ok=True)
     gap = names[-1] if args.fault == "disconnect" else None
-    with silent(gap, args.duration / 3):
+    with silent(gap, args.duration / 3), recording() as calls:
         report, cpu, memory = live_run(session, names, args.duration, args.lag, work / "poses.csv",
                                        not args.fixed_base, follow_clocks=args.follow_clocks and n > 1)
     frames, tips = read_tips(work / "poses.csv")
@@ -426,6 +426,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     p50, p99 = np.percentile(report.latency_ms, [50, 99]) if len(report.latency_ms) else (np.nan, np.nan)
     stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
     live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
+    unraised = replay(calls, args.lag, not args.fixed_base, pace_steps=0)
     width, height = calibration.cameras[0].size
     line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
             f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max() if len(report.latency_ms) else np.nan:>6.0f} "
@@ -440,6 +441,9 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
         line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")
     print(line, flush=True)
+    print(f"     the same fits through the smoother that never raises its process noise: tip RMSE "
+          + (f"{tip_rmse(frames, unraised, truth):.4f}" if len(unraised) == len(frames) else
+             f"not compared ({len(unraised)} rows given again, {len(frames)} written)"), flush=True)
     account = report.reference
     print(f"     {account.text()}" + (f" (and {report.rows_of_others} rows of other cameras' frames)"
                                       if report.rows_of_others else "")
