@@ -398,11 +398,13 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                 print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
                       f"{live / off:>8.2f} {flat / off:>12.2f} "
                       f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
-                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} {offline_rmse(motion, worst, truth):>7.4f}"
+                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
+                      f"{offline_rmse(motion, worst, truth):>7.4f}"
                       f"  (frames {worst[0]}-{worst[-1]})", flush=True)
                 ratios.append((live / off, flat / off))
     ratios = np.array(ratios)
-    print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, worst {ratios[:, 0].max():.2f}"
+    print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, "
+          f"worst {ratios[:, 0].max():.2f}"
           f"; never raised: median {np.median(ratios[:, 1]):.2f}, worst {ratios[:, 1].max():.2f}")
 
 

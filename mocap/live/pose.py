@@ -279,7 +279,8 @@ class FixedLagSmoother:
         them: the estimate itself). The result and the multiples (P,)."""
         newest = slice(max(len(time) - _PACE_FRAMES, 0), None)
         base = np.ones(len(self.wrap))
-        first = smooth(time, values, information, valid, self.wrap, replace(self.options, process_noise=self.process_noise))
+        first = smooth(time, values, information, valid, self.wrap,
+                       replace(self.options, process_noise=self.process_noise))
         kept = valid[newest] & ~first.rejected[newest]
         typical = _typical_sd(information, valid & np.isfinite(values).all(1))
         statistic, dof, observed = _disagreement(values[newest], information[newest], kept, first.values[newest],
@@ -311,21 +312,23 @@ def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarr
     valid = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
     difference = measured[valid] - smoothed[valid]
     difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
-    p = measured.shape[1]
     if not valid.any():
-        return 0.0, 0, np.zeros(p, bool)
-    sd = np.sqrt(np.abs(np.diagonal(np.linalg.inv(information[valid] + 1e-12 * np.eye(p)), axis1=1, axis2=2)))
-    observed = np.all(sd <= unobserved_factor * typical_sd, axis=0)
+        return 0.0, 0, np.zeros(measured.shape[1], bool)
+    observed = np.all(_fit_sd(information[valid]) <= unobserved_factor * typical_sd, axis=0)
     return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size, observed
 
 
 def _typical_sd(information: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(P,) the median over the `valid` frames of each parameter's fit SD (information (W, P, P))."""
-    p = information.shape[1]
     if not valid.any():
-        return np.full(p, np.inf)
-    sd = np.sqrt(np.abs(np.diagonal(np.linalg.inv(information[valid] + 1e-12 * np.eye(p)), axis1=1, axis2=2)))
-    return np.median(sd, axis=0)
+        return np.full(information.shape[1], np.inf)
+    return np.median(_fit_sd(information[valid]), axis=0)
+
+
+def _fit_sd(information: np.ndarray) -> np.ndarray:
+    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it."""
+    covariance = np.linalg.inv(information + 1e-12 * np.eye(information.shape[1]))
+    return np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
 
 
 def _chi2_quantile(probability: float, dof: int) -> float:
