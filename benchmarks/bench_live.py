@@ -20,12 +20,16 @@ then `mocap fit`, over the whole videos) over the same frames.
 
 `--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
 run (its frames in that time never arrive, as from a camera unplugged and plugged back).
+`--files`: instead, the whole videos read as fast as they are tracked (no frame dropped; not
+a latency measurement) and the rows' tip RMSE beside that of the same fits through the smoother
+whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
+chain's; with the worst second of the unraised rows.
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
 
     python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
-        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast] [--files]
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.video import Video
 from mocap.live import run as live_module
+from mocap.live.pose import FixedLagSmoother
 from mocap.live.run import LiveRequest, run_live
 from mocap.live.sources import SourceReader, parse_source
 from mocap.reconstruct.kinfit import FitOptions
@@ -114,6 +119,51 @@ def silent(camera: str | None, start: float):
         _Silent.gap = None
 
 
+class _Recording(FixedLagSmoother):
+    """The live smoother, its inputs kept (`calls`) to be given again to another smoother."""
+
+    calls: list[tuple] = []
+
+    def push(self, time, fit):
+        _Recording.calls.append(("push", time, fit))
+        return super().push(time, fit)
+
+    def revise(self, fit) -> None:
+        _Recording.calls.append(("revise", fit))
+        super().revise(fit)
+
+    def flush(self):
+        _Recording.calls.append(("flush",))
+        return super().flush()
+
+
+@contextmanager
+def recording():
+    """While in it, `run_live`'s smoother keeps its inputs in `_Recording.calls` (emptied first)."""
+    _Recording.calls = []
+    live_module.FixedLagSmoother = _Recording
+    try:
+        yield _Recording.calls
+    finally:
+        live_module.FixedLagSmoother = FixedLagSmoother
+
+
+def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> np.ndarray:
+    """(R, 3) the bucket tips of the rows a smoother with `pace_steps` gives from the same inputs."""
+    machine = load_machine(MACHINE)
+    smoother = FixedLagSmoother(machine, lag, base_motion=base_motion, pace_steps=pace_steps)
+    poses = []
+    for call in calls:
+        if call[0] == "push":
+            poses += [p for p in [smoother.push(call[1], call[2])] if p is not None]
+        elif call[0] == "revise":
+            smoother.revise(call[1])
+        else:
+            poses += smoother.flush()
+    tip = machine.point_names.index("bucket_tip")
+    return np.array([p.points[tip] for p in poses]).reshape(-1, 3)
+
+
 class Memory(threading.Thread):
     """The process's resident memory (MB) sampled every 0.2 s until `done` is set."""
 
@@ -151,7 +201,7 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
     return total / (time.perf_counter() - started)
 
 
-def live_run(session: Path, names: list[str], duration: float, lag: int, out: Path, base_motion: bool,
+def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base_motion: bool,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
     """The run's report, its CPU seconds (all threads) and its memory samples."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
@@ -197,6 +247,26 @@ def offline_rmse(motion, frames: np.ndarray, truth) -> float:
     index = {int(f): k for k, f in enumerate(motion.frame)}
     keep = np.array([f for f in frames if f in index])
     return tip_rmse(keep, motion.point("bucket_tip")[[index[f] for f in keep]], truth)
+
+
+def offline_without(session: Path, names: list[str], work: Path, camera: str, frames: np.ndarray, calibration):
+    """The offline chain on the same tracks but with `camera`'s frames removed where the live
+    rows `frames` (reference frames) went without it: each of its frames whose nearest
+    reference frame is one of those (the like-for-like camera set)."""
+    k = calibration.names.index(camera)
+    fps, offset = calibration.fps()[k], calibration.time_offsets[k]
+    reference_fps = calibration.fps()[calibration.names.index(names[0])]
+    source = session.parent / f"{session.name}_tracks" / f"{camera}.csv"
+    lines = source.read_text().splitlines()
+    frame = np.array([int(line.split(",")[1]) for line in lines[1:]])
+    nearest = np.round((frame / fps + offset) * reference_fps).astype(int)
+    keep = ~np.isin(nearest, frames)
+    path = work / f"{camera}_without.csv"
+    path.write_text("\n".join([lines[0]] + [line for line, k in zip(lines[1:], keep) if k]) + "\n")
+    tracks = [session.parent / f"{session.name}_tracks" / f"{n}.csv" if n != camera else path for n in names]
+    out = work / "motion_without.csv"
+    run_fit(MACHINE, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
+    return load_motion(out, load_machine(MACHINE)), int(len(np.unique(frame[~keep])))
 
 
 def view_cpu(rows_path: Path, calibration, out: Path) -> float:
@@ -245,6 +315,10 @@ def main() -> None:
                         "per re-estimate")
     parser.add_argument("--as-fast", action="store_true",
                         help="also the files read as fast as they are tracked, and the viewer's cost")
+    parser.add_argument("--files", action="store_true",
+                        help="instead of the real-time runs: the whole videos read as fast as they are tracked (no "
+                        "frame dropped; not a latency measurement), the rows' tip RMSE against the same fits through "
+                        "the smoother with its process noise as estimated over 30 s only (never raised), and offline")
     parser.add_argument("--work", help="folder for the sessions and runs (default: a temporary one); a session "
                         "found there complete is used again")
     args = parser.parse_args()
@@ -252,6 +326,9 @@ def main() -> None:
     cameras = counts(args.cameras)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.work or tmp)
+        if args.files:
+            files_table(args, root, cameras)
+            return
         print(f"{args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
               f"{'fixed base' if args.fixed_base else 'base pose per frame'}"
               + (f", the last camera silent for {GAP_S:g} s from {args.duration / 3:.0f} s" if args.fault != "none"
@@ -287,13 +364,57 @@ def main() -> None:
               f"{ratios.max():.2f}; load average {loads[0]:.2f} at the end")
 
 
+def files_table(args, root: Path, cameras: list[int]) -> None:
+    """`--files`: per session and count of cameras, the whole videos read as fast as tracked."""
+    base_motion = not args.fixed_base
+    print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), "
+          f"{'fixed base' if args.fixed_base else 'base pose per frame'}; tip RMSE (m) over the rows: live, the same "
+          "fits through the smoother whose process noise is never raised, and the offline chain over the same frames")
+    print(f"{'session':>28} {'cams':>4} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} {'live/off':>8} "
+          f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7}", flush=True)
+    ratios = []
+    for size in args.sizes.split(","):
+        for seed in counts(args.seeds):
+            session = make_session(root, size, max(cameras), seed, args.look, args.duration)
+            calibration = load_calibration(session / "truth" / "cameras.toml")
+            truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
+            for n in cameras:
+                names = list(calibration.names[:n])
+                work = root / f"files_{session.name}_{n}"
+                work.mkdir(exist_ok=True)
+                with recording() as calls:
+                    live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
+                frames, tips = read_tips(work / "poses.csv")
+                unraised = replay(calls, args.lag, base_motion, pace_steps=0)
+                keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
+                frames, tips, unraised = frames[keep], tips[keep], unraised[keep]
+                motion = offline(session, names, work)
+                live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
+                                   offline_rmse(motion, frames, truth))
+                # the second of rows where the unraised smoother is worst
+                error = np.linalg.norm(unraised - truth.point("bucket_tip")[frames], axis=1) ** 2
+                start = int(np.argmax(np.convolve(error, np.ones(30), "valid"))) if len(frames) >= 30 else 0
+                worst = frames[start:start + 30]
+                print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
+                      f"{live / off:>8.2f} {flat / off:>12.2f} "
+                      f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
+                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
+                      f"{offline_rmse(motion, worst, truth):>7.4f}"
+                      f"  (frames {worst[0]}-{worst[-1]})", flush=True)
+                ratios.append((live / off, flat / off))
+    ratios = np.array(ratios)
+    print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, "
+          f"worst {ratios[:, 0].max():.2f}"
+          f"; never raised: median {np.median(ratios[:, 1]):.2f}, worst {ratios[:, 1].max():.2f}")
+
+
 def bench_row(args, root: Path, session: Path, calibration, truth, size: str, seed: int, n: int) -> float:
     """One count of cameras' line of the table; the live / offline tip RMSE ratio."""
     names = list(calibration.names[:n])
     work = root / f"run_{session.name}_{n}"
     work.mkdir(exist_ok=True)
     gap = names[-1] if args.fault == "disconnect" else None
-    with silent(gap, args.duration / 3):
+    with silent(gap, args.duration / 3), recording() as calls:
         report, cpu, memory = live_run(session, names, args.duration, args.lag, work / "poses.csv",
                                        not args.fixed_base, follow_clocks=args.follow_clocks and n > 1)
     frames, tips = read_tips(work / "poses.csv")
@@ -304,12 +425,13 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     motion = offline(session, names, work)
     dropped = sum(c.dropped for c in report.cameras)
     read = sum(c.read for c in report.cameras)
-    p50, p99 = np.percentile(report.latency_ms, [50, 99])
+    p50, p99 = np.percentile(report.latency_ms, [50, 99]) if len(report.latency_ms) else (np.nan, np.nan)
     stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
     live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
+    unraised = replay(calls, args.lag, not args.fixed_base, pace_steps=0)
     width, height = calibration.cameras[0].size
     line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
-            f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max():>6.0f} "
+            f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max() if len(report.latency_ms) else np.nan:>6.0f} "
             + " ".join(f"{x:>5.1f}" for x in stages)
             + f" {1000 * cpu / max(report.rows, 1):>10.1f} {f'{memory.at(0.1):.0f}/{memory.at(1.0):.0f}':>9} "
             f"{decode:>10.0f} {fps.sum():>8.1f} {live:>13.4f} {off:>7.4f} {live / off:>5.2f}")
@@ -321,6 +443,9 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
         line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")
     print(line, flush=True)
+    print(f"     the same fits through the smoother that never raises its process noise: tip RMSE "
+          + (f"{tip_rmse(frames, unraised, truth):.4f}" if len(unraised) == len(frames) else
+             f"not compared ({len(unraised)} rows given again, {len(frames)} written)"), flush=True)
     account = report.reference
     print(f"     {account.text()}" + (f" (and {report.rows_of_others} rows of other cameras' frames)"
                                       if report.rows_of_others else "")
@@ -334,6 +459,11 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
               f"{offline_rmse(motion, frames[without], truth):.4f} offline (all cameras); the other "
               f"{(~without).sum()} rows: {tip_rmse(frames[~without], tips[~without], truth):.4f} live, "
               f"{offline_rmse(motion, frames[~without], truth):.4f} offline", flush=True)
+        alike, removed = offline_without(session, names, work, gap, frames[without], calibration)
+        like = offline_rmse(alike, frames, truth)
+        print(f"     offline with the same camera set ({gap}'s {removed} frames of those rows removed from its "
+              f"track): {offline_rmse(alike, frames[without], truth):.4f} over the rows without {gap}, "
+              f"{like:.4f} over all rows; live / offline like for like {live / like:.2f}", flush=True)
     for name, offset, at, _ in report.clocks:
         true = calibration.time_offsets[calibration.names.index(name)]
         print(f"     {name}: offset followed to {offset:+.4f} s around its frame {at:.0f}, true {true:+.4f} s "

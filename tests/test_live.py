@@ -438,3 +438,33 @@ def test_a_provisional_fit_revised_gives_the_rows_of_the_frame_s_own_fit():
     assert np.allclose(expected[-1].joints, got[-1].joints)  # the last: from own fits only
     shift = np.array([abs(a.joints - b.joints).max() for a, b in zip(expected[1:-1], got[1:-1])])
     assert (shift > 0).all() and (shift < 0.05).all()  # the provisional next frame moves a row less than it is off
+
+
+@pytest.mark.parametrize("pace_steps, trails", [(None, False), (0, True)])
+def test_the_smoother_follows_a_swing_that_speeds_up(pace_steps, trails):
+    """20 s of a slow steady swing (the process noise estimated from it is small), then the
+    swing speeds up at 0.6 rad/s² for 1 s; each fit's SD 2 mrad. The rows stay within 4 of
+    the fits' SDs of the truth throughout; the process noise of the 20 s alone (no raising)
+    trails the swing by more than that."""
+    from mocap.live import pose as live_pose
+
+    machine = load_machine("hitachi_ex3500")
+    rng = np.random.default_rng(5)
+    fps, sd, n = 30.0, 0.002, machine.n_joints
+    time = np.arange(630) / fps
+    truth = np.tile(machine.joint_limits.mean(axis=1), (len(time), 1))
+    truth[:, 0] = 0.02 * time + 0.3 * np.clip(time - 20.0, 0.0, None) ** 2  # the swing: steady, then speeding up
+    fits = truth + sd * rng.normal(size=truth.shape)
+    smoother = live_pose.FixedLagSmoother(machine, 1, **({} if pace_steps is None else {"pace_steps": pace_steps}))
+    poses, paces = [], []
+    for t, v in zip(time, fits):
+        poses.append(smoother.push(t, live_pose.FrameFit(v, np.eye(n) / sd**2, True, 0.5, 40)))
+        paces.append(smoother.pace)
+    poses = poses[1:] + smoother.flush()
+    error = np.abs(np.array([p.joints[0] for p in poses]) - truth[:, 0])
+    late = error[time >= 20.0]  # the swing speeding up
+    assert np.all(error[300:600] < 4 * sd)  # steady: smoothed
+    if trails:
+        assert late.max() > 4 * sd
+    else:
+        assert late.max() < 4 * sd and np.max(paces[600:]) > 1 and np.max(paces[300:600]) == 1  # raised there only

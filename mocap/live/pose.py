@@ -32,6 +32,10 @@ _RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above th
 _PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
 _PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
 _FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
+_PACE_FRAMES = 6  # the newest frames whose fits judge whether the process noise suits the motion's pace now
+_PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the smoothed values: the noise is raised
+_PACE_FACTOR = 4.0  # ... by this factor at a time
+_PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
 
 
 class CameraHistory:
@@ -182,10 +186,21 @@ class FixedLagSmoother:
     sliding window of the last `window` frames; a frame's pose is given `lag` frames after it
     came (lag 0: the filter's estimate, from the frames before only). The process noise is
     estimated as `mocap fit` does from the last `_PROCESS_NOISE_FRAMES` frames, every
-    `_PROCESS_NOISE_EVERY` frames once they span `window` frames (before: little smoothing)."""
+    `_PROCESS_NOISE_EVERY` frames once they span `window` frames (before: little smoothing).
+
+    That estimate is the motion's pace over half a minute: where the machine accelerates
+    beyond it (a swing starting) the prediction would outweigh the frames' own fits and the
+    rows trail the truth. So each row's smoothing is judged by its newest `_PACE_FRAMES` fits:
+    their chi-square about the smoothed values (weighed by the fits' information), over the
+    usual one (its median over the last rows: the fits' information may be overconfident), is
+    held against the quantile `_PACE_PROBABILITY`; beyond it the process noise is raised
+    `_PACE_FACTOR` times and the window smoothed again, up to `pace_steps` times: the smallest
+    process noise the newest fits do not contradict. Fits that no raise tried explains (a few
+    failed fits, not a faster motion) leave the estimate as it is. `pace` is the factor of the
+    last row given."""
 
     def __init__(self, machine: Machine, lag: int, window: int = 60, options: SmoothOptions | None = None,
-                 base_motion: bool = False):
+                 base_motion: bool = False, pace_steps: int = _PACE_STEPS):
         if lag < 0 or window <= lag:
             raise ValueError(f"need 0 <= lag < window, got lag {lag}, window {window}")
         self.machine, self.lag, self.window = machine, lag, window
@@ -199,6 +214,9 @@ class FixedLagSmoother:
         self.process_noise = np.full(len(self.wrap), _FIRST_PROCESS_NOISE)
         self.count = 0
         self.pending = 0  # frames pushed whose pose is not given yet
+        self.pace = np.ones(len(self.wrap))
+        self.pace_steps = pace_steps
+        self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square / dof
 
     def push(self, time: float, fit: FrameFit) -> Pose | None:
         """Add a frame; the pose of the frame `lag` back once there is one."""
@@ -246,8 +264,7 @@ class FixedLagSmoother:
         if not valid[: at + 1 + self.lag].any():
             nan = np.full(n_params, np.nan)
             return _pose(machine, nan, np.full((n_params, n_params), np.nan), True, self.base_motion)
-        result = smooth(time, values, information, valid, self.wrap,
-                        replace(self.options, process_noise=self.process_noise))
+        result, self.pace = self._smooth_at_pace(time, values, information, valid)
         values = result.values[at].copy()
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
@@ -255,6 +272,69 @@ class FixedLagSmoother:
         wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(machine.wraps, span, 1.0))
         values[:n_joints] = np.where(machine.wraps, wrapped, joints)
         return _pose(machine, values, result.covariance[at], bool(result.filled[at]), self.base_motion)
+
+    def _smooth_at_pace(self, time, values, information, valid):
+        """The window smoothed with the smallest multiple of the process noise that its newest
+        fits do not contradict, raised for the parameters those fits observe (none explains
+        them: the estimate itself). The result and the multiples (P,)."""
+        newest = slice(max(len(time) - _PACE_FRAMES, 0), None)
+        base = np.ones(len(self.wrap))
+        first = smooth(time, values, information, valid, self.wrap,
+                       replace(self.options, process_noise=self.process_noise))
+        kept = valid[newest] & ~first.rejected[newest]
+        typical = _typical_sd(information, valid & np.isfinite(values).all(1))
+        statistic, dof, observed = _disagreement(values[newest], information[newest], kept, first.values[newest],
+                                                 self.wrap, typical, self.options.unobserved_factor)
+        if not dof:
+            return first, base
+        self.disagreement.append(statistic / dof)
+        usual = max(float(np.median(self.disagreement)) * dof / _chi2_quantile(0.5, dof), 1.0)
+        limit = usual * _chi2_quantile(_PACE_PROBABILITY, dof)
+        if statistic <= limit or not observed.any() or not self.pace_steps:
+            return first, base
+        for step in range(1, self.pace_steps + 1):
+            factor = np.where(observed, _PACE_FACTOR**step, 1.0)
+            result = smooth(time, values, information, valid, self.wrap,
+                            replace(self.options, process_noise=factor * self.process_noise))
+            statistic, _, _ = _disagreement(values[newest], information[newest], kept, result.values[newest],
+                                            self.wrap, typical, self.options.unobserved_factor)
+            if statistic <= limit:
+                return result, factor
+        return first, base
+
+
+def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,
+                  wrap: np.ndarray, typical_sd: np.ndarray, unobserved_factor: float) -> tuple[float, int, np.ndarray]:
+    """The chi-square of the fits measured (K, P) with information (K, P, P) about the
+    smoothed values (K, P) (angles in `wrap` compared modulo 2 pi), frames not `valid` left
+    out; its degrees of freedom; and the parameters (P,) observed in every frame kept (their
+    fit's SD within `unobserved_factor` times `typical_sd` (P,), as `smooth` tells)."""
+    valid = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
+    difference = measured[valid] - smoothed[valid]
+    difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    if not valid.any():
+        return 0.0, 0, np.zeros(measured.shape[1], bool)
+    observed = np.all(_fit_sd(information[valid]) <= unobserved_factor * typical_sd, axis=0)
+    return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size, observed
+
+
+def _typical_sd(information: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(P,) the median over the `valid` frames of each parameter's fit SD (information (W, P, P))."""
+    if not valid.any():
+        return np.full(information.shape[1], np.inf)
+    return np.median(_fit_sd(information[valid]), axis=0)
+
+
+def _fit_sd(information: np.ndarray) -> np.ndarray:
+    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it."""
+    covariance = np.linalg.inv(information + 1e-12 * np.eye(information.shape[1]))
+    return np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
+
+
+def _chi2_quantile(probability: float, dof: int) -> float:
+    from scipy.special import gammaincinv
+
+    return 2.0 * float(gammaincinv(dof / 2.0, probability))
 
 
 def _pose(machine: Machine, values: np.ndarray, covariance: np.ndarray, filled: bool, base_motion: bool) -> Pose:
