@@ -202,7 +202,10 @@ class Tracker:
         # visibility is a prior, not a veto): a clear disk (the full-frame detection's contrast)
         # where the fitted model puts one, within the tight gate, labels it
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
-        again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
+        # ... one of those not labelled for a while (most often truly hidden) every 4th frame, each
+        # on frames of its own, as `_search` looks around the markers missed for long
+        looked_for = visible | (prior_hidden & ((state.missed <= 3) | (state.missed % 4 == 0)))
+        again = looked_for & known & ~_near_any(fitted_uv, found.xy, tight)
         if np.any(again):
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
@@ -221,7 +224,7 @@ class Tracker:
             return self._coast(predicted, uv, visible, seen, expected)
         if np.any(prior_hidden):
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
-                                               joints)
+                                               face_on)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -316,17 +319,18 @@ class Tracker:
         return np.where(use_model, modelled, state.radius)
 
     def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
-                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The assignment (`markers`, `index`) of the markers the model shows, with the markers
         it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
         its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
         disk's radius at its depth face on (the guessed normal is wrong for it). They rank after
         the shown markers (`shown` (M,) bool): a disk goes to a hidden one only if it lies under
         half as far from it as any shown marker (which then gives it up: a marker wrongly shown
-        on a hidden one's disk)."""
+        on a hidden one's disk). `face_on` (M,) px: the disks' radii face on at the fitted joints
+        (`_face_on_radius`)."""
         clear = found.contrast >= self.options.detect.min_contrast
         more, more_index = assign(fitted_uv, np.where(clear[:, None], found.xy, np.inf), tight, hidden,
-                                  found.axes[:, 0], self._face_on_radius(joints))
+                                  found.axes[:, 0], face_on)
         if len(more) == 0:
             return markers, index
         mine = np.linalg.norm(fitted_uv[more] - found.xy[more_index], axis=1)
