@@ -202,10 +202,7 @@ class Tracker:
         # visibility is a prior, not a veto): a clear disk (the full-frame detection's contrast)
         # where the fitted model puts one, within the tight gate, labels it
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
-        # ... one of those not labelled for a while (most often truly hidden) every 4th frame, each
-        # on frames of its own, as `_search` looks around the markers missed for long
-        looked_for = visible | (prior_hidden & ((state.missed <= 3) | (state.missed % 4 == 0)))
-        again = looked_for & known & ~_near_any(fitted_uv, found.xy, tight)
+        again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if np.any(again):
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
