@@ -97,7 +97,18 @@ class Detections:
         return rot @ (self.axes[:, :, None] ** 2 * np.swapaxes(rot, -1, -2))
 
     def select(self, mask: np.ndarray) -> Detections:
-        return Detections(*(getattr(self, f)[mask] for f in _FIELDS))
+        return Detections._trusted(self.xy[mask], self.axes[mask], self.angle[mask], self.contrast[mask],
+                                   self.fill[mask], self.score[mask])
+
+    @classmethod
+    def _trusted(cls, xy, axes, angle, contrast, fill, score) -> Detections:
+        """Detections from fields whose shapes agree by construction (a selection, a
+        concatenation, the refinement's output): without `__post_init__`'s checks, which cost
+        more than the selection itself in a frame's many small ones."""
+        new = object.__new__(cls)
+        for name, value in zip(_FIELDS, (xy, axes, angle, contrast, fill, score)):
+            object.__setattr__(new, name, value)
+        return new
 
     @classmethod
     def empty(cls) -> Detections:
@@ -110,7 +121,7 @@ _FIELDS = ("xy", "axes", "angle", "contrast", "fill", "score")
 def concatenate(parts: list[Detections]) -> Detections:
     if not parts:
         return Detections.empty()
-    return Detections(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
+    return Detections._trusted(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
@@ -189,7 +200,7 @@ def refine(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, iterations: int 
     centre, axes, angle, contrast, fill, spread, uneven = refine_disks(
         np.ascontiguousarray(gray, dtype=np.uint8), np.ascontiguousarray(xy), shape, 2.0 * major + 4.0, iterations
     )
-    return Detections(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)), np.stack([spread, uneven], axis=-1)
+    return Detections._trusted(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)), np.stack([spread, uneven], axis=-1)
 
 
 def _score(contrast: np.ndarray, fill: np.ndarray, spread: np.ndarray) -> np.ndarray:
@@ -243,13 +254,34 @@ def refine_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray) -> tup
     """`refine`, and a candidate that moved more than a quarter of its radius from where it
     started refined once more from where it arrived (`disk_kernel.refine_disks_converged`):
     the Detections (those that stayed first) and their rings, no test applied."""
+    refined = refine_sourced(gray, xy, shape)
+    return refined.detections, refined.ring
+
+
+@dataclass(frozen=True)
+class Refined:
+    """`refine_converged`'s output with `source` (N,), the candidate each row came from: the
+    rows of a subset of the candidates (`of`) are what refining that subset alone gives."""
+
+    detections: Detections
+    ring: np.ndarray
+    source: np.ndarray
+
+    def of(self, chosen: np.ndarray) -> tuple[Detections, np.ndarray]:
+        """The Detections and rings of the candidates `chosen` (bool over the candidates)."""
+        keep = np.asarray(chosen, dtype=bool)[self.source]
+        return self.detections.select(keep), self.ring[keep]
+
+
+def refine_sourced(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray) -> Refined:
+    """`refine_converged`, each row with the index of its candidate."""
     xy, shape = _starts(xy, shape)
     if len(xy) == 0:
-        return Detections.empty(), np.zeros((0, 2))
-    centre, axes, angle, contrast, fill, spread, uneven = refine_disks_converged(
+        return Refined(Detections.empty(), np.zeros((0, 2)), np.zeros(0, dtype=int))
+    centre, axes, angle, contrast, fill, spread, uneven, source = refine_disks_converged(
         np.ascontiguousarray(gray, dtype=np.uint8), xy, shape, 3)
-    return (Detections(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)),
-            np.stack([spread, uneven], axis=-1))
+    return Refined(Detections._trusted(centre, axes, angle, contrast, fill, _score(contrast, fill, spread)),
+                   np.stack([spread, uneven], axis=-1), source)
 
 
 def accepted(found: Detections, ring: np.ndarray, options: DetectOptions) -> Detections:

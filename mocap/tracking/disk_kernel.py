@@ -180,7 +180,7 @@ def refine_disks(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, max_major:
 
 
 @njit(
-    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1]))"
+    "Tuple((f8[:, ::1], f8[:, ::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], i8[::1]))"
     "(u1[:, ::1], f8[:, ::1], f8[:, :, ::1], i8)",
     cache=True,
     nogil=True,
@@ -190,7 +190,9 @@ def refine_disks_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, 
     reaching twice the start's major semi-axis and 4 px; a candidate that moved more than a
     quarter of its radius (at least a pixel's) is refined once more from where it arrived,
     with the ellipse it found. Returns what `refine_disks` returns, the candidates that stayed
-    first, then those refined again, each in their input order."""
+    first, then those refined again, each in their input order, and (N,) the input index of
+    each row (each candidate's result is its own: the rows of a subset of the candidates are
+    those of the whole run, in the same order)."""
     n = xy.shape[0]
     max_major = np.empty(n)
     for i in range(n):
@@ -221,12 +223,15 @@ def refine_disks_converged(gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, 
         major2 = _eigen(start_shape[j, 0, 0], start_shape[j, 0, 1], start_shape[j, 1, 1])[1]
         again_major[j] = 2.0 * math.sqrt(max(major2, 0.25)) + 4.0
     second = refine_disks(gray, start, start_shape, again_major, iterations)
-    results = (np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+    results = (np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n),
+               np.empty(n, dtype=np.int64))
     for j in range(n):
         if j < stayed.shape[0]:
             i, source = stayed[j], first
+            results[7][j] = stayed[j]
         else:
             i, source = j - stayed.shape[0], second
+            results[7][j] = again[i]
         results[0][j, 0], results[0][j, 1] = source[0][i, 0], source[0][i, 1]
         results[1][j, 0], results[1][j, 1] = source[1][i, 0], source[1][i, 1]
         results[2][j] = source[2][i]

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mocap.tracking.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
-                          refine_and_accept, refine_converged, unique)
+                          refine_and_accept, refine_converged, refine_sourced, unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -221,7 +221,7 @@ class Tracker:
             return self._coast(predicted, uv, visible, seen, expected)
         if np.any(prior_hidden):
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
-                                               joints)
+                                               face_on)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -316,17 +316,18 @@ class Tracker:
         return np.where(use_model, modelled, state.radius)
 
     def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
-                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The assignment (`markers`, `index`) of the markers the model shows, with the markers
         it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
         its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
         disk's radius at its depth face on (the guessed normal is wrong for it). They rank after
         the shown markers (`shown` (M,) bool): a disk goes to a hidden one only if it lies under
         half as far from it as any shown marker (which then gives it up: a marker wrongly shown
-        on a hidden one's disk)."""
+        on a hidden one's disk). `face_on` (M,) px: the disks' radii face on at the fitted joints
+        (`_face_on_radius`)."""
         clear = found.contrast >= self.options.detect.min_contrast
         more, more_index = assign(fitted_uv, np.where(clear[:, None], found.xy, np.inf), tight, hidden,
-                                  found.axes[:, 0], self._face_on_radius(joints))
+                                  found.axes[:, 0], face_on)
         if len(more) == 0:
             return markers, index
         mine = np.linalg.norm(fitted_uv[more] - found.xy[more_index], axis=1)
@@ -482,7 +483,8 @@ class Tracker:
         state.unseen += 1
         return FrameResult(markers, found.select(index), predicted, False, float("nan"))
 
-    def _refine_again(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions) -> Detections:
+    def _refine_again(self, gray: np.ndarray, xy: np.ndarray, shape: np.ndarray, detect: DetectOptions,
+                      whole: tuple[Detections, np.ndarray] | None = None) -> Detections:
         """Disks missed by a refinement from `xy` (K, 2) with `shape` (K, 2, 2), looked for
         again. A small disk on a narrow square beside dark paint: a window started at a full
         radius from a prediction a pixel or two off takes in the paint and slides onto it;
@@ -491,11 +493,13 @@ class Tracker:
         darkest part is darker than a clean ring's; such a disk, refused by the ring test,
         is taken with `near_ring_spread` times the test's bound if it stays put when refined
         again from a smaller window where it arrived (a window that straddles a disk's edge,
-        whose ring the disk itself darkens, moves on)."""
+        whose ring the disk itself darkens, moves on). `whole`: the refinement from `xy` with
+        `shape` where the caller has it already (`refine_converged`'s detections and rings)."""
         small = refine_converged(gray, xy, 0.25 * shape)
         strict = accepted(*small, detect)
         loose_options = replace(detect, max_ring_spread=self.options.near_ring_spread * detect.max_ring_spread)
-        loose = unique(concatenate([accepted(*refine_converged(gray, xy, shape), loose_options),
+        whole = refine_converged(gray, xy, shape) if whole is None else whole
+        loose = unique(concatenate([accepted(*whole, loose_options),
                                     accepted(*small, loose_options)]))
         loose = loose.select(~_near_any(loose.xy, strict.xy, 0.5 * np.maximum(loose.radius, 1.0)))
         if len(loose) == 0:
@@ -514,14 +518,16 @@ class Tracker:
         detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         circles = expected[markers, None, None] ** 2 * np.eye(2)
         shapes = np.where((self.state.missed[markers] <= 2)[:, None, None], self.state.shape[markers], circles)
-        found = refine_and_accept(gray, uv[markers], shapes, detect)
+        first = refine_sourced(gray, uv[markers], shapes)
+        found = accepted(first.detections, first.ring, detect)
         missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
         # the slower refinements for those missed for long (covered, or truly hidden) only every
         # 4th frame, as `_search` looks around them
         missed = self.state.missed[markers]
         missing &= (missed <= 3) | (missed % 4 == 0)
         if np.any(missing):
-            found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect)]))
+            found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect,
+                                                                  first.of(missing))]))
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
         if np.any(missing):
             found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
@@ -541,11 +547,12 @@ class Tracker:
         seeds = np.flatnonzero(visible)
         circles = expected[seeds, None, None] ** 2 * np.eye(2)
         shapes = np.where((missed[seeds] <= 2)[:, None, None], self.state.shape[seeds], circles)
-        found = refine_and_accept(gray, uv[seeds], shapes, detect)
+        first = refine_sourced(gray, uv[seeds], shapes)
+        found = accepted(first.detections, first.ring, detect)
         close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
         missing = ~_near_any(uv[seeds], found.xy, close)
         if np.any(missing):
-            again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect)
+            again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect, first.of(missing))
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
         followed = missing & (missed[seeds] <= 2)
