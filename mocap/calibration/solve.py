@@ -102,7 +102,7 @@ def _shown_tolerance(machine: Machine, observations: Observations, templates: li
                       for c, m in zip((result.cameras[k] for k in camera), marker)])
     focal = np.array([result.cameras[k].focal for k in camera])
     scale = focal * spread[marker] / np.maximum(np.abs(depth), 1e-6)
-    return noise.model_error_fraction(squared, scale, marker, options.noise_px, result.sigma_px, left)
+    return noise.model_error_fraction(squared, scale, marker, options.noise_px, result.sigma_px, left, ~inlier)
 
 
 def _calibrate(machine, observations, templates, options, guess) -> CalibrationResult:
