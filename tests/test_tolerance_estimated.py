@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mocap.calibration import CalibrationOptions, calibrate, template_camera
+from mocap.calibration.noise import model_error_fraction
 from mocap.calibration.report import format_report
 from mocap.core.machine import Tolerance
 from mocap.synthetic.machines import SceneOptions, random_scene
@@ -58,3 +59,22 @@ def test_a_clean_scene_shows_no_model_error():
     scene = random_scene(np.random.default_rng(4), SceneOptions(), n_frames=2)
     templates = [template_camera(c.name, c.size) for c in scene.cameras]
     assert calibrate(scene.model, scene.observations(), templates, CalibrationOptions()).estimated_tolerance is None
+
+
+def test_outliers_named_on_many_markers_show_the_model_error():
+    """An exact model's fit that named outliers on several markers (the model error's
+    largest residuals) leaves the rest only 1.3 times the stated noise: the model error is
+    still shown and its tolerance estimated (80 residuals: the estimate's SD is about a
+    ninth of it, the bound 3 SDs); with no outliers named, residuals at 1.3 times the noise
+    show none."""
+    rng = np.random.default_rng(0)
+    marker = np.repeat(np.arange(20), 4)
+    scale = rng.uniform(20.0, 80.0, len(marker))  # px a fraction of 1 moves each observation
+    left = np.full(len(marker), 0.8)  # the share of each residual's variance the fit leaves
+    residual = rng.normal(size=(len(marker), 2)) * np.sqrt((0.8**2 + (0.05 * scale) ** 2) * left)[:, None]
+    squared = np.sum(residual**2, axis=1)
+    named = np.zeros(len(marker), dtype=bool)
+    named[[0, 4, 8, 12]] = True  # four markers' largest residuals named outliers
+    estimate = model_error_fraction(squared, scale, marker, 1.0, 1.3, left, named)
+    assert estimate is not None and abs(estimate - 0.05) < 3 * 0.05 / 9, estimate
+    assert model_error_fraction(squared, scale, marker, 1.0, 1.3, left) is None
