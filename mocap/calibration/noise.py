@@ -102,10 +102,10 @@ def model_error_fraction(squared: np.ndarray, scale: np.ndarray, markers: np.nda
     or above it where the fit named outliers (`named` (N,) bool) on MODEL_ERROR_MARKERS
     markers or more (the model error's largest residuals, named outliers, no longer raise
     the noise the rest show), and MODEL_ERROR_MARKERS markers lie beyond 2 of its SDs: many
-    markers off, not a few wild pixels. Each standardised residual's variance per axis is then noise² + t²
-    scale², t² fitted by weighted least squares on the squared lengths (iterated,
-    residuals beyond 5 of their SDs left out as wild); `scale` is that of the uniform
-    bound (every coordinate off by up to the fraction), so t is the tolerance as
+    markers off, not a few wild pixels. Each standardised residual's variance per axis is
+    then noise² + t² scale², t² fitted by weighted least squares on the squared lengths
+    (iterated, residuals beyond 5 of their SDs left out as wild); `scale` is that of the
+    uniform bound (every coordinate off by up to the fraction), so t is the tolerance as
     `Tolerance` reads it.
     """
     left = np.ones(len(squared)) if left is None else np.clip(np.asarray(left, dtype=float), INFORMATIVE, 1.0)
