@@ -45,7 +45,8 @@ def test_the_estimated_tolerance_is_the_stated_fraction_on_average():
     estimates = []
     for seed in (1000008, 1000010, 1000011, 1000014):
         scene, templates, _ = _field_scene(seed)
-        estimates.append(calibrate(scene.model, scene.observations(), templates, CalibrationOptions()).estimated_tolerance)
+        result = calibrate(scene.model, scene.observations(), templates, CalibrationOptions())
+        estimates.append(result.estimated_tolerance)
     assert None not in estimates, estimates
     assert abs(np.mean(estimates) - FIELD.tolerance) < 2 * SCENE_SPREAD / np.sqrt(len(estimates)), estimates
 
