@@ -85,7 +85,8 @@ _FAR = 5.0  # residuals beyond this many of their SDs (wild pixels) are left out
 
 
 def model_error_fraction(squared: np.ndarray, scale: np.ndarray, markers: np.ndarray, noise_px: float,
-                         shown_px: float) -> float | None:
+                         shown_px: float, left: np.ndarray | None = None,
+                         named: np.ndarray | None = None) -> float | None:
     """The tolerance (a fraction of each marker's coordinates) that a fit's residuals show,
     or None where they show none beyond the pixel noise.
 
@@ -93,17 +94,27 @@ def model_error_fraction(squared: np.ndarray, scale: np.ndarray, markers: np.nda
     fraction of 1 moves it in its image (per axis: the projected SD of every coordinate off
     by up to itself, uniformly); markers (N,) marker indices; noise_px the pixel noise per
     axis (one frame cannot tell it from model error: the stated one); shown_px the noise the
-    fit's residuals show (leverage counted, `pixel_noise`). Model error is shown where that
-    is SHOWN_NOISE_RATIO times the stated noise and MODEL_ERROR_MARKERS markers lie beyond 2
-    of its SDs: many markers off, not a few wild pixels. Each residual's variance
-    per axis is then noise² + t² scale², t² fitted by weighted least squares on the squared
-    lengths (iterated, residuals beyond 5 of their SDs left out as wild). The uniform bound
-    is sqrt(3) times that SD, as `Tolerance` reads it.
+    fit's residuals show (leverage counted, `pixel_noise`); left (N,) the share 1 - leverage
+    of each residual's variance that the fit leaves (`standardised_errors`; 1 for an
+    observation the fit did not see, an outlier): the exact model's fit absorbs part of the
+    model error as it does of the noise, and its residuals alone would show too little.
+    Model error is shown where the noise shown is SHOWN_NOISE_RATIO times the stated one,
+    or above it where the fit named outliers (`named` (N,) bool) on MODEL_ERROR_MARKERS
+    markers or more (the model error's largest residuals, named outliers, no longer raise
+    the noise the rest show), and MODEL_ERROR_MARKERS markers lie beyond 2 of its SDs: many
+    markers off, not a few wild pixels. Each standardised residual's variance per axis is
+    then noise² + t² scale², t² fitted by weighted least squares on the squared lengths
+    (iterated, residuals beyond 5 of their SDs left out as wild); `scale` is that of the
+    uniform bound (every coordinate off by up to the fraction), so t is the tolerance as
+    `Tolerance` reads it.
     """
-    y = np.asarray(squared, dtype=float) / 2.0
+    left = np.ones(len(squared)) if left is None else np.clip(np.asarray(left, dtype=float), INFORMATIVE, 1.0)
+    y = np.asarray(squared, dtype=float) / 2.0 / left
     s2 = np.asarray(scale, dtype=float) ** 2
     noise2 = noise_px**2
-    if len(y) < 8 or shown_px <= SHOWN_NOISE_RATIO * noise_px:
+    named_markers = 0 if named is None else len(np.unique(np.asarray(markers)[np.asarray(named, dtype=bool)]))
+    shown = shown_px > (noise_px if named_markers >= MODEL_ERROR_MARKERS else SHOWN_NOISE_RATIO * noise_px)
+    if len(y) < 8 or not shown:
         return None
     beyond = y > 4.0 * noise2
     if len(np.unique(np.asarray(markers)[beyond])) < MODEL_ERROR_MARKERS:
@@ -117,4 +128,4 @@ def model_error_fraction(squared: np.ndarray, scale: np.ndarray, markers: np.nda
         b = b_new
         if done:
             break
-    return float(min(np.sqrt(3.0 * b), MAX_ESTIMATED_TOLERANCE)) if b > 0 else None
+    return float(min(np.sqrt(b), MAX_ESTIMATED_TOLERANCE)) if b > 0 else None

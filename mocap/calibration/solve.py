@@ -22,8 +22,8 @@ from mocap.calibration.context import (
     robust_cost,
     vector,
 )
-from mocap.calibration.fit import first_fit, fit
-from mocap.calibration.problem import Layout, Observations
+from mocap.calibration.fit import first_fit, fit, free_parameters
+from mocap.calibration.problem import Layout, Observations, Problem
 from mocap.calibration.start import (
     chained_start,
     replaced_cameras,
@@ -65,7 +65,7 @@ def calibrate(
     result = _calibrate(machine, observations, templates, options, guess)
     if options.tolerance is not None or machine.tolerance:  # a tolerance stated (an exact model too) wins
         return result
-    fraction = _shown_tolerance(machine, result, options.noise_px)
+    fraction = _shown_tolerance(machine, observations, templates, options, result)
     if fraction is None:
         return result
     log.info("the residuals show the markers' positions off by about %.1f %% (no tolerance stated): calibrated "
@@ -78,20 +78,31 @@ def calibrate(
     return replace(again, estimated_tolerance=fraction)
 
 
-def _shown_tolerance(machine: Machine, result: CalibrationResult, noise_px: float) -> float | None:
-    """The tolerance the residuals of an exact model's calibration show (`noise.model_error_fraction`)."""
+def _shown_tolerance(machine: Machine, observations: Observations, templates: list[Camera],
+                     options: CalibrationOptions, result: CalibrationResult) -> float | None:
+    """The tolerance the residuals of an exact model's calibration show
+    (`noise.model_error_fraction`), each residual standardised by the share of its variance
+    the fit leaves (its leverage among the inliers the fit saw; an outlier's residual is
+    from a fit without it)."""
     if result.per_camera:
         return None
     index = {c.name: k for k, c in enumerate(result.cameras)}
     camera = np.array([index[r.camera] for r in result.residuals])
     marker = machine.marker_index([r.marker for r in result.residuals])
     squared = np.array([np.sum(r.residual**2) for r in result.residuals])
+    inlier = np.array([not r.outlier for r in result.residuals])
+    layout = Layout(len(templates), machine.n_joints, False, options.fit_principal_point, options.distortion,
+                    fixed_intrinsics=options.fixed_intrinsics)
+    problem = Problem(machine, observations.select(inlier), layout, templates)
+    jacobian = problem.jacobian(result.parameters)[:, free_parameters(layout, templates)]
+    left = np.ones(len(squared))
+    left[inlier] = 1.0 - noise.leverages(jacobian).reshape(-1, 2).mean(axis=1)
     spread = np.linalg.norm(tape_sd(Tolerance(0.5), machine.marker_positions), axis=1) / 0.5 / np.sqrt(3.0)  # (M,) m per axis, a fraction of 1
     depth = np.array([(c.cam_from_world.rotation @ result.markers_world[m] + c.cam_from_world.translation)[2]
                       for c, m in zip((result.cameras[k] for k in camera), marker)])
     focal = np.array([result.cameras[k].focal for k in camera])
     scale = focal * spread[marker] / np.maximum(np.abs(depth), 1e-6)
-    return noise.model_error_fraction(squared, scale, marker, noise_px, result.sigma_px)
+    return noise.model_error_fraction(squared, scale, marker, options.noise_px, result.sigma_px, left, ~inlier)
 
 
 def _calibrate(machine, observations, templates, options, guess) -> CalibrationResult:
