@@ -310,7 +310,8 @@ def test_views_that_disagree_in_no_camera_s_way_are_written_a_turned_camera_refu
     that jitter by 3 px and that each view places 10 px off in its own way (beyond the 5 px
     prior) are triangulated, their disagreement named in the report; a camera turned by
     4 degrees, whose disagreement moving it explains, is refused with its name, and so are
-    0.5 px tracks whose views disagree far beyond that (cameras swapped); an explicit
+    cameras swapped; 0.5 px tracks whose views disagree 10 times beyond their own noise, as no
+    camera's move explains (one camera's labels shuffled) are refused as well; an explicit
     limit is the user's, in place of these checks."""
     from mocap.errors import InputError
     from mocap.reconstruct.stage import MAX_NOISE_PX
@@ -328,5 +329,10 @@ def test_views_that_disagree_in_no_camera_s_way_are_written_a_turned_camera_refu
                               replace(swapped[2], cam_from_world=swapped[0].cam_from_world))
     with pytest.raises(InputError, match="not match the tracks"):
         triangulate_stage(replace(right, cameras=tuple(swapped)), tracks)
+    names = list(machine.marker_names)
+    relabel = dict(zip(names, np.random.default_rng(0).permutation(names)))  # cam2's labels shuffled
+    marker = np.array([relabel[m] if c == "cam2" else m for c, m in zip(tracks.camera, tracks.marker)], dtype=object)
+    with pytest.raises(InputError, match=r"\d+ times the noise the tracks show by themselves"):
+        triangulate_stage(right, Tracks(tracks.camera, tracks.frame, marker, tracks.xy, tracks.time, tracks.score))
     with pytest.raises(InputError, match="beyond --max-noise-px 1"):
         triangulate_stage(right, biased, max_noise_px=1.0)
