@@ -310,8 +310,8 @@ def test_views_that_disagree_in_no_camera_s_way_are_written_a_turned_camera_refu
     that jitter by 3 px and that each view places 10 px off in its own way (beyond the 5 px
     prior) are triangulated, their disagreement named in the report; a camera turned by
     4 degrees, whose disagreement moving it explains, is refused with its name, and so are
-    cameras swapped; 0.5 px tracks whose views disagree 10 times beyond their own noise, as no
-    camera's move explains (one camera's labels shuffled) are refused as well; an explicit
+    cameras swapped; 0.5 px tracks whose views disagree 10 times beyond their own noise where no
+    camera's move explains it (one camera's labels shuffled) are refused as well; an explicit
     limit is the user's, in place of these checks."""
     from mocap.errors import InputError
     from mocap.reconstruct.stage import MAX_NOISE_PX
