@@ -340,15 +340,11 @@ def main() -> None:
             header += f" {'as fast':>7} {'offline':>7} {'view cpu ms/row':>15} {'in loop':>7}"
         print(header, flush=True)
         ratios = []
-        for size in args.sizes.split(","):
-            for seed in counts(args.seeds):
-                session = make_session(root, size, max(cameras), seed, args.look, args.duration)
-                calibration = load_calibration(session / "truth" / "cameras.toml")
-                truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
-                print(f"{session.name}: " + ", ".join(f"{c} {f:.5g} fps" for c, f in zip(calibration.names,
-                                                                                      calibration.fps())), flush=True)
-                for n in cameras:
-                    ratios.append(bench_row(args, root, session, calibration, truth, size, seed, n))
+        for size, seed, session, calibration, truth in sessions(args, root, cameras):
+            print(f"{session.name}: " + ", ".join(f"{c} {f:.5g} fps" for c, f in zip(calibration.names,
+                                                                                  calibration.fps())), flush=True)
+            for n in cameras:
+                ratios.append(bench_row(args, root, session, calibration, truth, size, seed, n))
         loads = os.getloadavg()
         ratios = np.array(ratios)
         print("rows/s: rows written per second of the run (the reference camera delivers 30; each session's cameras' "
@@ -364,6 +360,17 @@ def main() -> None:
               f"{ratios.max():.2f}; load average {loads[0]:.2f} at the end")
 
 
+def sessions(args, root: Path, cameras: list[int]):
+    """Each size and seed's session (made, or found complete under `root`): size, seed, its
+    folder, the true calibration and the true motion."""
+    machine = load_machine(MACHINE)
+    for size in args.sizes.split(","):
+        for seed in counts(args.seeds):
+            session = make_session(root, size, max(cameras), seed, args.look, args.duration)
+            yield (size, seed, session, load_calibration(session / "truth" / "cameras.toml"),
+                   load_motion(session / "truth" / "motion.csv", machine))
+
+
 def files_table(args, root: Path, cameras: list[int]) -> None:
     """`--files`: per session and count of cameras, the whole videos read as fast as tracked."""
     base_motion = not args.fixed_base
@@ -373,35 +380,31 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
     print(f"{'session':>28} {'cams':>4} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} {'live/off':>8} "
           f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7}", flush=True)
     ratios = []
-    for size in args.sizes.split(","):
-        for seed in counts(args.seeds):
-            session = make_session(root, size, max(cameras), seed, args.look, args.duration)
-            calibration = load_calibration(session / "truth" / "cameras.toml")
-            truth = load_motion(session / "truth" / "motion.csv", load_machine(MACHINE))
-            for n in cameras:
-                names = list(calibration.names[:n])
-                work = root / f"files_{session.name}_{n}"
-                work.mkdir(exist_ok=True)
-                with recording() as calls:
-                    live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
-                frames, tips = read_tips(work / "poses.csv")
-                unraised = replay(calls, args.lag, base_motion, pace_steps=0)
-                keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
-                frames, tips, unraised = frames[keep], tips[keep], unraised[keep]
-                motion = offline(session, names, work)
-                live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
-                                   offline_rmse(motion, frames, truth))
-                # the second of rows where the unraised smoother is worst
-                error = np.linalg.norm(unraised - truth.point("bucket_tip")[frames], axis=1) ** 2
-                start = int(np.argmax(np.convolve(error, np.ones(30), "valid"))) if len(frames) >= 30 else 0
-                worst = frames[start:start + 30]
-                print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
-                      f"{live / off:>8.2f} {flat / off:>12.2f} "
-                      f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
-                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
-                      f"{offline_rmse(motion, worst, truth):>7.4f}"
-                      f"  (frames {worst[0]}-{worst[-1]})", flush=True)
-                ratios.append((live / off, flat / off))
+    for size, seed, session, calibration, truth in sessions(args, root, cameras):
+        for n in cameras:
+            names = list(calibration.names[:n])
+            work = root / f"files_{session.name}_{n}"
+            work.mkdir(exist_ok=True)
+            with recording() as calls:
+                live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
+            frames, tips = read_tips(work / "poses.csv")
+            unraised = replay(calls, args.lag, base_motion, pace_steps=0)
+            keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
+            frames, tips, unraised = frames[keep], tips[keep], unraised[keep]
+            motion = offline(session, names, work)
+            live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
+                               offline_rmse(motion, frames, truth))
+            # the second of rows where the unraised smoother is worst
+            error = np.linalg.norm(unraised - truth.point("bucket_tip")[frames], axis=1) ** 2
+            start = int(np.argmax(np.convolve(error, np.ones(30), "valid"))) if len(frames) >= 30 else 0
+            worst = frames[start:start + 30]
+            print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
+                  f"{live / off:>8.2f} {flat / off:>12.2f} "
+                  f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
+                  f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
+                  f"{offline_rmse(motion, worst, truth):>7.4f}"
+                  f"  (frames {worst[0]}-{worst[-1]})", flush=True)
+            ratios.append((live / off, flat / off))
     ratios = np.array(ratios)
     print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, "
           f"worst {ratios[:, 0].max():.2f}"

@@ -21,7 +21,7 @@ from mocap.core.machine import Machine
 from mocap.io.motion_csv import base_columns
 from mocap.reconstruct.kinfit import FitOptions, FrameFitter, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
-from mocap.reconstruct.smooth import SmoothOptions, smooth
+from mocap.reconstruct.smooth import SmoothOptions, chi2_quantile, fit_sds, smooth
 from mocap.reconstruct.uncertainty import point_quantities
 
 log = logging.getLogger(__name__)
@@ -288,8 +288,8 @@ class FixedLagSmoother:
         if not dof:
             return first, base
         self.disagreement.append(statistic / dof)
-        usual = max(float(np.median(self.disagreement)) * dof / _chi2_quantile(0.5, dof), 1.0)
-        limit = usual * _chi2_quantile(_PACE_PROBABILITY, dof)
+        usual = max(float(np.median(self.disagreement)) * dof / chi2_quantile(0.5, dof), 1.0)
+        limit = usual * chi2_quantile(_PACE_PROBABILITY, dof)
         if statistic <= limit or not observed.any() or not self.pace_steps:
             return first, base
         for step in range(1, self.pace_steps + 1):
@@ -314,7 +314,7 @@ def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarr
     difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
     if not valid.any():
         return 0.0, 0, np.zeros(measured.shape[1], bool)
-    observed = np.all(_fit_sd(information[valid]) <= unobserved_factor * typical_sd, axis=0)
+    observed = np.all(fit_sds(information[valid]) <= unobserved_factor * typical_sd, axis=0)
     return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size, observed
 
 
@@ -322,19 +322,7 @@ def _typical_sd(information: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(P,) the median over the `valid` frames of each parameter's fit SD (information (W, P, P))."""
     if not valid.any():
         return np.full(information.shape[1], np.inf)
-    return np.median(_fit_sd(information[valid]), axis=0)
-
-
-def _fit_sd(information: np.ndarray) -> np.ndarray:
-    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it."""
-    covariance = np.linalg.inv(information + 1e-12 * np.eye(information.shape[1]))
-    return np.sqrt(np.abs(np.diagonal(covariance, axis1=1, axis2=2)))
-
-
-def _chi2_quantile(probability: float, dof: int) -> float:
-    from scipy.special import gammaincinv
-
-    return 2.0 * float(gammaincinv(dof / 2.0, probability))
+    return np.median(fit_sds(information[valid]), axis=0)
 
 
 def _pose(machine: Machine, values: np.ndarray, covariance: np.ndarray, filled: bool, base_motion: bool) -> Pose:

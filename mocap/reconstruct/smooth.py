@@ -95,8 +95,7 @@ def smooth(
         raise ValueError("time must increase")
     valid = np.asarray(valid, dtype=bool) & np.isfinite(values).all(1)
     values = _unwrap(values, valid, np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool))
-    covariance_fit = np.linalg.inv(information + 1e-12 * np.eye(p))
-    fit_sd = np.sqrt(np.abs(np.diagonal(covariance_fit, axis1=1, axis2=2)))
+    fit_sd = fit_sds(information)
     typical = np.nanmedian(np.where(valid[:, None], fit_sd, np.nan), axis=0) if valid.any() else np.ones(p)
     observed = valid[:, None] & (fit_sd <= options.unobserved_factor * typical)
     q = _process_noise(time, values, observed, fit_sd, options) if options.process_noise is None else (
@@ -153,6 +152,19 @@ def _long_gaps(time: np.ndarray, valid: np.ndarray, max_gap_s: float) -> np.ndar
     return out
 
 
+def fit_sds(information: np.ndarray) -> np.ndarray:
+    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it."""
+    covariance = np.linalg.inv(information + 1e-12 * np.eye(information.shape[-1]))
+    return np.sqrt(np.abs(np.diagonal(covariance, axis1=-2, axis2=-1)))
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The chi-square distribution's `probability` quantile with `dof` degrees of freedom."""
+    from scipy.special import gammaincinv
+
+    return 2.0 * float(gammaincinv(dof / 2.0, probability))
+
+
 def _rts(time, values, information, valid, q, options):
     """Forward information-form Kalman filter and RTS backward pass (compiled:
     mocap.reconstruct.rts_kernel) -> mean (F, 2P), covariance (F, 2P, 2P), rejected (F,)."""
@@ -160,9 +172,7 @@ def _rts(time, values, information, valid, q, options):
 
     gate = np.inf
     if options.gate_probability < 1:
-        from scipy.special import gammaincinv
-
-        gate = 2 * gammaincinv(values.shape[1] / 2, options.gate_probability)  # chi2.ppf
+        gate = chi2_quantile(options.gate_probability, values.shape[1])
     steps = np.round(np.r_[0.0, np.diff(time)], 9)
     first = int(np.argmax(valid))
     mean, cov, rejected = rts(steps, np.ascontiguousarray(values), np.ascontiguousarray(information, dtype=float),
