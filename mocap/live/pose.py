@@ -40,8 +40,7 @@ _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the s
 _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
 _BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
-_BASE_EVERY = 150  # frames between the tests
-_BASE_FRAMES = 900  # ... each of up to `SAMPLE_FRAMES` frames spread over this many last ones (30 s at 30 fps)
+_BASE_EVERY = 150  # frames between the tests, each of up to `SAMPLE_FRAMES` frames spread over all those so far
 
 
 class CameraHistory:
@@ -131,7 +130,8 @@ class WarmFit:
     With `choose_base` (and a fixed base in `options`) the base is held where the calibration
     saw it or fitted per frame as the data say, with `mocap fit`'s test
     (`mocap.reconstruct.base_check.compare_bases`): the first after `_BASE_FIRST` frames, then
-    every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over the last `_BASE_FRAMES`;
+    every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
+    `mocap fit` spreads them over the session: the tests agree more the longer the run);
     each test decides until the next (the base held until the first); with `background` the
     tests run on their own thread and their answer is taken at the first frame after. The values then always
     carry the base's six parameters (zero and unobserved while it is held); a frame with fewer
@@ -150,7 +150,8 @@ class WarmFit:
         self.last: deque[np.ndarray] = deque(maxlen=2)
         self.lengths: deque[np.ndarray] = deque(maxlen=_NOISE_FRAMES)
         self.per_obs: deque[float] = deque(maxlen=_NOISE_FRAMES)
-        self.recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=_BASE_FRAMES)  # (pixels, joints)
+        self.recent: list[tuple[np.ndarray, np.ndarray]] = []  # (pixels, joints) of every `stride`-th frame
+        self.stride = 1
         self.kept = 0
         self.base_tests: list[tuple[int, bool]] = []  # (frames fitted then, the base moves)
         self.base_test_s = 0.0  # the tests' CPU time
@@ -221,7 +222,11 @@ class WarmFit:
         """Keep the frame for the test of the base, take a finished test's answer, and start
         the next test when it is time (with `background`, on its own thread: the rows do not
         wait for it)."""
-        self.recent.append((pixels, joints))
+        if self.kept % self.stride == 0:
+            self.recent.append((pixels, joints))
+            if len(self.recent) > 2 * SAMPLE_FRAMES:  # every other one kept: spread over all the frames so far
+                self.recent = self.recent[::2]
+                self.stride *= 2
         self.kept += 1
         if self.testing is not None and not self.testing.is_alive():
             self.testing.join()
