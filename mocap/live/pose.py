@@ -41,6 +41,7 @@ _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
 _BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
 _BASE_EVERY = 150  # frames between the tests, each of up to `SAMPLE_FRAMES` frames spread over all those so far
+_BASE_MARGIN = 0.05  # a test changes the choice when the criterion's gain is this share past its penalty
 
 
 class CameraHistory:
@@ -132,7 +133,8 @@ class WarmFit:
     (`mocap.reconstruct.base_check.compare_bases`): the first after `_BASE_FIRST` frames, then
     every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
     `mocap fit` spreads them over the session: the tests agree more the longer the run);
-    each test decides until the next (the base held until the first); with `background` the
+    each test decides until the next (the base held until the first), a change needing the
+    criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with `background` the
     tests run on their own thread and their answer is taken at the first frame after. The values then always
     carry the base's six parameters (zero and unobserved while it is held); a frame with fewer
     markers seen than the moving base's parameters is fitted with the base held (its pose and
@@ -155,6 +157,7 @@ class WarmFit:
         self.kept = 0
         self.base_tests: list[tuple[int, bool]] = []  # (frames fitted then, the base moves)
         self.base_test_s = 0.0  # the tests' CPU time
+        self.base_evidence: list[float] = []  # each test's gain in the information criterion over its penalty
         self.background = background
         self.testing: _BaseTest | None = None  # the test running
 
@@ -253,12 +256,17 @@ class WarmFit:
         self.base_test_s += cpu_s
         if check is None:
             return
-        self.base_tests.append((frames, check.moves))
-        if check.moves != self.base_moves:
+        scalars = 2 * check.observations  # the information criterion's gain over its penalty (> 1: it moves)
+        evidence = scalars * 2.0 * np.log(check.fixed_noise_px / check.moving_noise_px) / (6 * check.frames
+                                                                                          * np.log(scalars))
+        moves = evidence > (1.0 - _BASE_MARGIN if self.base_moves else 1.0 + _BASE_MARGIN)
+        self.base_evidence.append(float(evidence))
+        self.base_tests.append((frames, moves))
+        if moves != self.base_moves:
             log.info("after %d frames the base %s (a base pose per frame leaves %.2f px of noise, the fixed base "
-                     "%.2f px, over %d frames)", frames, "moves" if check.moves else "holds still",
+                     "%.2f px, over %d frames)", frames, "moves" if moves else "holds still",
                      check.moving_noise_px, check.fixed_noise_px, check.frames)
-            self.base_moves = check.moves
+            self.base_moves = moves
             self.lengths.clear()  # the residuals and costs of the other model
             self.per_obs.clear()
 
