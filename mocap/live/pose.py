@@ -136,9 +136,9 @@ class WarmFit:
     each test decides until the next (the base held until the first), a change needing the
     criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with `background` the
     tests run on their own thread and their answer is taken at the first frame after. The values then always
-    carry the base's six parameters (zero and unobserved while it is held); a frame with fewer
-    markers seen than the moving base's parameters is fitted with the base held (its pose and
-    the joints would not be told apart)."""
+    carry the base's six parameters (zero and unobserved while it is held). A frame with fewer
+    markers seen than the moving base's parameters is fitted with the base held, chosen or
+    with `options.base_motion` (its pose and the joints would not be told apart)."""
 
     def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None,
                  choose_base: bool = False, background: bool = True):
@@ -146,8 +146,9 @@ class WarmFit:
         self.options = options or FitOptions()
         self.choose_base = choose_base and not self.options.base_motion and machine.n_joints > 0
         self.base_moves = self.options.base_motion
+        both = self.choose_base or (self.base_moves and machine.n_joints > 0)  # a frame may hold the base
         self.fitters = {moves: FrameFitter(machine, self.cameras, replace(self.options, base_motion=moves))
-                        for moves in ((False, True) if self.choose_base else (self.base_moves,))}
+                        for moves in ((False, True) if both else (self.base_moves,))}
         self.n_params = machine.n_joints + 6 * (self.choose_base or self.base_moves)
         self.last: deque[np.ndarray] = deque(maxlen=2)
         self.lengths: deque[np.ndarray] = deque(maxlen=_NOISE_FRAMES)
@@ -184,7 +185,7 @@ class WarmFit:
         n_joints, n_params, moves = self.machine.n_joints, self.n_params, self.base_moves
         seen = np.isfinite(pixels[..., 0])
         n_obs = int(seen.sum())
-        if moves and self.choose_base and n_obs < self.fitters[True].n_params:
+        if moves and len(self.fitters) == 2 and n_obs < self.fitters[True].n_params:
             moves = False  # too few markers to tell the base's pose from the joints: the base held for this frame
         fitter = self.fitters[moves]
         if 2 * n_obs < fitter.n_params:
