@@ -23,7 +23,10 @@ run (its frames in that time never arrive, as from a camera unplugged and plugge
 `--files`: instead, the whole videos read as fast as they are tracked (no frame dropped; not
 a latency measurement) and the rows' tip RMSE beside that of the same fits through the smoother
 whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
-chain's; with the worst second of the unraised rows.
+chain's; with the worst second of the live rows; the tip SDs' coverage (the rows within 1, 2,
+3 SDs of the truth, and the RMS of error / SD), live and unraised; the fit's and the
+smoother's time per row; and the base's choice (`--base`: chosen from the data as `mocap live`
+chooses it, the default; or its pose per frame, or fixed).
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
