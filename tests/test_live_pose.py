@@ -81,7 +81,8 @@ def test_the_rows_sds_cover_fits_overconfident_and_correlated():
     poses = [smoother.push(t, FrameFit(v, np.eye(n) / sd**2, True, 0.5, 40)) for t, v in zip(time, truth + errors)]
     poses = poses[1:] + smoother.flush()
     late = slice(240, None)  # the process noise estimated, the scales settled
-    ratio = (np.array([p.joints[0] for p in poses]) - truth[:, 0])[late] / np.array([p.joints_sd[0] for p in poses])[late]
+    error = np.array([p.joints[0] for p in poses]) - truth[:, 0]
+    ratio = error[late] / np.array([p.joints_sd[0] for p in poses])[late]
     assert 0.67 < np.sqrt(np.mean(ratio**2)) < 1.6
     scale = smoother.variance_factor * (1 + 2 * max(smoother.correlation, 0.0))
     assert np.sqrt(np.mean(ratio**2) * scale) > 3  # the smoothed covariance without the scales

@@ -124,8 +124,9 @@ class _BaseTest(threading.Thread):
 
 class WarmFit:
     """The machine fitted frame after frame, each from the frame before's parameters moved on
-    at their last velocity (with `options.base_motion` the base's pose too); the first frame, and one that ends far worse than is typical, from
-    the whole fit's grid and restarts (`fit_joints`). The pixel noise behind the information
+    at their last velocity (with the base moving, the base's pose too); the first frame, and
+    one that ends far worse than is typical, from the whole fit's grid and restarts
+    (`fit_joints`). The pixel noise behind the information
     is estimated from the last frames' residuals (or `options.noise_px`).
 
     With `choose_base` (and a fixed base in `options`) the base is held where the calibration
@@ -134,11 +135,12 @@ class WarmFit:
     every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
     `mocap fit` spreads them over the session: the tests agree more the longer the run);
     each test decides until the next (the base held until the first), a change needing the
-    criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with `background` the
-    tests run on their own thread and their answer is taken at the first frame after. The values then always
-    carry the base's six parameters (zero and unobserved while it is held). A frame with fewer
-    markers seen than the moving base's parameters is fitted with the base held, chosen or
-    with `options.base_motion` (its pose and the joints would not be told apart)."""
+    criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with
+    `background` the tests run on their own thread and their answer is taken at the first
+    frame after. The values then always carry the base's six parameters (zero and unobserved
+    while it is held). A frame with fewer markers seen than the moving base's parameters is
+    fitted with the base held, chosen or with `options.base_motion` (its pose and the joints
+    would not be told apart)."""
 
     def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None,
                  choose_base: bool = False, background: bool = True):
@@ -385,8 +387,8 @@ class FixedLagSmoother:
         n_joints = self.machine.n_joints
         if not self.base_motion:
             return information
-        joints, cross, base = information[:n_joints, :n_joints], information[:n_joints, n_joints:], information[n_joints:, n_joints:]
-        return joints - cross @ np.linalg.pinv(base) @ cross.T
+        joints, cross = information[:n_joints, :n_joints], information[:n_joints, n_joints:]
+        return joints - cross @ np.linalg.pinv(information[n_joints:, n_joints:]) @ cross.T
 
     def _arrays(self, frames: int):
         """The last `frames` frames' time (W,), values (W, P), information (W, P, P), valid (W,),
@@ -429,7 +431,8 @@ class FixedLagSmoother:
         values = np.zeros(n_params)
         values[:columns] = result.values[at]
         covariance = np.zeros((n_params, n_params))
-        covariance[:columns, :columns] = result.covariance[at] * self.variance_factor * (1 + 2 * max(self.correlation, 0.0))
+        scale = self.variance_factor * (1 + 2 * max(self.correlation, 0.0))  # the fits' scatter, their correlation
+        covariance[:columns, :columns] = result.covariance[at] * scale
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
         joints = values[:n_joints]
