@@ -23,13 +23,16 @@ run (its frames in that time never arrive, as from a camera unplugged and plugge
 `--files`: instead, the whole videos read as fast as they are tracked (no frame dropped; not
 a latency measurement) and the rows' tip RMSE beside that of the same fits through the smoother
 whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
-chain's; with the worst second of the unraised rows.
+chain's; with the worst second of the live rows; the tip SDs' coverage (the rows within 1, 2,
+3 SDs of the truth, and the RMS of error / SD), live and unraised; the fit's and the
+smoother's time per row; and the base's choice (`--base`: chosen from the data as `mocap live`
+chooses it, the default; or its pose per frame, or fixed).
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
 
     python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
-        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--fixed-base] [--as-fast] [--files]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--base choose|moving|fixed] [--as-fast] [--files]
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ from mocap.reconstruct.stage import run_fit
 from mocap.tracking.stage import TrackRequest, run_track
 
 MACHINE = "hitachi_ex3500"
+BASES = {"choose": "chosen from the data", "moving": "pose per frame", "fixed": "fixed"}
 
 
 GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
@@ -148,8 +152,9 @@ def recording():
         live_module.FixedLagSmoother = FixedLagSmoother
 
 
-def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> np.ndarray:
-    """(R, 3) the bucket tips of the rows a smoother with `pace_steps` gives from the same inputs."""
+def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3) the bucket tips of the rows a smoother with `pace_steps` gives from the same
+    inputs, and (R,) their SDs."""
     machine = load_machine(MACHINE)
     smoother = FixedLagSmoother(machine, lag, base_motion=base_motion, pace_steps=pace_steps)
     poses = []
@@ -161,7 +166,7 @@ def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> 
         else:
             poses += smoother.flush()
     tip = machine.point_names.index("bucket_tip")
-    return np.array([p.points[tip] for p in poses]).reshape(-1, 3)
+    return np.array([p.points[tip] for p in poses]).reshape(-1, 3), np.array([p.points_sd[tip] for p in poses])
 
 
 class Memory(threading.Thread):
@@ -201,14 +206,15 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
     return total / (time.perf_counter() - started)
 
 
-def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base_motion: bool,
+def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base: str,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
-    """The run's report, its CPU seconds (all threads) and its memory samples."""
+    """The run's report, its CPU seconds (all threads) and its memory samples. `base`: choose
+    (live's default: from the data), moving (`--base-motion`) or fixed (`--fixed-base`)."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
                           follow_clocks=follow_clocks,
-                          fit_options=FitOptions(base_motion=base_motion))
+                          fit_options=FitOptions(base_motion=base == "moving"), choose_base=base == "choose")
     memory = Memory()
     memory.start()
     cpu = time.process_time()
@@ -220,11 +226,26 @@ def live_run(session: Path, names: list[str], duration: float | None, lag: int, 
     return report, time.process_time() - cpu, memory
 
 
-def read_tips(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The rows' frames (R,) and bucket tips (R, 3)."""
+def read_tips(path: Path, sd: bool = False):
+    """The rows' frames (R,) and bucket tips (R, 3) (and with `sd` their SDs (R,))."""
     rows = np.genfromtxt(path, delimiter=",", names=True, dtype=None, encoding="utf-8")
     frames = np.atleast_1d(rows["frame"]).astype(int)
-    return frames, np.stack([np.atleast_1d(rows[f"bucket_tip_{a}"]).astype(float) for a in "xyz"], 1)
+    tips = np.stack([np.atleast_1d(rows[f"bucket_tip_{a}"]).astype(float) for a in "xyz"], 1)
+    return (frames, tips, np.atleast_1d(rows["bucket_tip_sd"]).astype(float)) if sd else (frames, tips)
+
+
+def coverage(frames: np.ndarray, tips: np.ndarray, sds: np.ndarray, truth) -> tuple[float, float, float, float]:
+    """The shares of the rows whose tip is within 1, 2, 3 of its SDs of the truth, and the RMS
+    of error / SD (1 when the SDs are honest: the SD is the RMS of the 3-D error's length)."""
+    ratio = np.linalg.norm(tips - truth.point("bucket_tip")[frames], axis=1) / sds
+    ratio = ratio[np.isfinite(ratio)]
+    if not len(ratio):
+        return (np.nan,) * 4
+    return (*(float(np.mean(ratio <= k)) for k in (1, 2, 3)), float(np.sqrt(np.mean(ratio**2))))
+
+
+def coverage_text(shares) -> str:
+    return f"{' '.join(f'{100 * x:.0f}' for x in shares[:3]):>10} {shares[3]:>6.2f}"
 
 
 def offline(session: Path, names: list[str], work: Path):
@@ -306,9 +327,9 @@ def main() -> None:
     parser.add_argument("--lag", type=int, default=1)
     parser.add_argument("--fault", choices=("none", "disconnect"), default="none",
                         help=f"disconnect: the last camera delivers nothing for {GAP_S:g} s from a third of the run")
-    parser.add_argument("--fixed-base", action="store_true",
-                        help="fit live with the base fixed (default: its pose per frame, --base-motion: the "
-                        "synthetic machine bounces, and the offline fit finds that it does)")
+    parser.add_argument("--base", choices=("choose", "moving", "fixed"), default="choose",
+                        help="live's base: chosen from the data as mocap fit chooses it (default, as mocap live), "
+                        "its pose per frame (--base-motion) or fixed (--fixed-base)")
     parser.add_argument("--follow-clocks", action="store_true",
                         help="follow the clocks in the real-time runs: each other camera's newest offset against its "
                         "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
@@ -330,7 +351,7 @@ def main() -> None:
             files_table(args, root, cameras)
             return
         print(f"{args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
-              f"{'fixed base' if args.fixed_base else 'base pose per frame'}"
+              f"base {BASES[args.base]}"
               + (f", the last camera silent for {GAP_S:g} s from {args.duration / 3:.0f} s" if args.fault != "none"
                  else "") + f"; load average {os.getloadavg()[0]:.2f} at the start")
         header = (f"{'size':>9} {'seed':>4} {'cams':>4} {'rows/s':>6} {'dropped':>8} {'p50 ms':>6} {'p99 ms':>6} "
@@ -373,12 +394,13 @@ def sessions(args, root: Path, cameras: list[int]):
 
 def files_table(args, root: Path, cameras: list[int]) -> None:
     """`--files`: per session and count of cameras, the whole videos read as fast as tracked."""
-    base_motion = not args.fixed_base
-    print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), "
-          f"{'fixed base' if args.fixed_base else 'base pose per frame'}; tip RMSE (m) over the rows: live, the same "
-          "fits through the smoother whose process noise is never raised, and the offline chain over the same frames")
+    print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), base "
+          f"{BASES[args.base]}; tip RMSE (m) over the rows: live, the same fits through the smoother whose process "
+          "noise is never raised, and the offline chain over the same frames; the tip SDs' coverage")
     print(f"{'session':>28} {'cams':>4} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} {'live/off':>8} "
-          f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7}", flush=True)
+          f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7} {'live 1/2/3 SD %':>15} "
+          f"{'e/SD':>6} {'unraised':>10} {'e/SD':>6} {'fit ms':>6} {'smooth ms':>9} {'cpu ms/row':>10} {'base':>12}",
+          flush=True)
     ratios = []
     for size, seed, session, calibration, truth in sessions(args, root, cameras):
         for n in cameras:
@@ -386,26 +408,39 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
             work = root / f"files_{session.name}_{n}"
             work.mkdir(exist_ok=True)
             with recording() as calls:
-                live_run(session, names, None, args.lag, work / "poses.csv", base_motion, realtime=False)
-            frames, tips = read_tips(work / "poses.csv")
-            unraised = replay(calls, args.lag, base_motion, pace_steps=0)
+                report, cpu, _ = live_run(session, names, None, args.lag, work / "poses.csv", args.base,
+                                          realtime=False)
+            frames, tips, sds = read_tips(work / "poses.csv", sd=True)
+            unraised, unraised_sds = replay(calls, args.lag, args.base != "fixed", pace_steps=0)
             keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
-            frames, tips, unraised = frames[keep], tips[keep], unraised[keep]
+            frames, tips, sds, unraised, unraised_sds = (x[keep] for x in (frames, tips, sds, unraised, unraised_sds))
             motion = offline(session, names, work)
             live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
                                offline_rmse(motion, frames, truth))
-            # the second of rows where the unraised smoother is worst
-            error = np.linalg.norm(unraised - truth.point("bucket_tip")[frames], axis=1) ** 2
-            start = int(np.argmax(np.convolve(error, np.ones(30), "valid"))) if len(frames) >= 30 else 0
+            # the second of rows where live is worst
+            error = np.linalg.norm(tips - truth.point("bucket_tip")[frames], axis=1) ** 2
+            start = int(np.argmax(np.convolve(np.nan_to_num(error), np.ones(30), "valid"))) if len(frames) >= 30 else 0
             worst = frames[start:start + 30]
+            stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
+            tests = report.base_tests
+            base = ("-" if not tests else ("moving" if tests[-1][1] else "fixed")
+                    + f" {sum(a[1] != b[1] for a, b in zip(((0, False),) + tests[:-1], tests))}/{len(tests)}")
             print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
                   f"{live / off:>8.2f} {flat / off:>12.2f} "
                   f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
                   f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
-                  f"{offline_rmse(motion, worst, truth):>7.4f}"
-                  f"  (frames {worst[0]}-{worst[-1]})", flush=True)
+                  f"{offline_rmse(motion, worst, truth):>7.4f} "
+                  f"{coverage_text(coverage(frames, tips, sds, truth)):>22} "
+                  f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
+                  f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {base:>12}"
+                  f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
             ratios.append((live / off, flat / off))
     ratios = np.array(ratios)
+    print("live 1/2/3 SD %: the rows whose tip is within 1, 2, 3 of its SDs of the truth (the SD is the RMS of the "
+          "3-D error's length: honest SDs give e/SD, the RMS of error / SD, near 1, and within 1/2/3 SD between a "
+          "1-D Gaussian's 68/95/99.7 % and an isotropic 3-D one's 61/99/100 %); fit ms: the median fit of a frame; "
+          "smooth ms: the median from the fit to the row written (the smoother, files read as fast as tracked); "
+          "base: the last test's choice, the changes / the tests")
     print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, "
           f"worst {ratios[:, 0].max():.2f}"
           f"; never raised: median {np.median(ratios[:, 1]):.2f}, worst {ratios[:, 1].max():.2f}")
@@ -419,7 +454,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     gap = names[-1] if args.fault == "disconnect" else None
     with silent(gap, args.duration / 3), recording() as calls:
         report, cpu, memory = live_run(session, names, args.duration, args.lag, work / "poses.csv",
-                                       not args.fixed_base, follow_clocks=args.follow_clocks and n > 1)
+                                       args.base, follow_clocks=args.follow_clocks and n > 1)
     frames, tips = read_tips(work / "poses.csv")
     fps = calibration.fps()[:n]
     offsets = calibration.time_offsets[:n]
@@ -431,7 +466,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     p50, p99 = np.percentile(report.latency_ms, [50, 99]) if len(report.latency_ms) else (np.nan, np.nan)
     stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
     live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
-    unraised = replay(calls, args.lag, not args.fixed_base, pace_steps=0)
+    unraised, _ = replay(calls, args.lag, args.base != "fixed", pace_steps=0)
     width, height = calibration.cameras[0].size
     line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
             f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max() if len(report.latency_ms) else np.nan:>6.0f} "
@@ -439,7 +474,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
             + f" {1000 * cpu / max(report.rows, 1):>10.1f} {f'{memory.at(0.1):.0f}/{memory.at(1.0):.0f}':>9} "
             f"{decode:>10.0f} {fps.sum():>8.1f} {live:>13.4f} {off:>7.4f} {live / off:>5.2f}")
     if args.as_fast:
-        fast, _, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", not args.fixed_base,
+        fast, _, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", args.base,
                               realtime=False, view=str(work / "fast.rrd"))
         view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd")
         fast_frames, fast_tips = read_tips(work / "fast.csv")

@@ -168,9 +168,12 @@ def test_streaming_tracker_labels_as_mocap_track_and_the_recorded_session(short_
 def check_view(path: Path, poses, machine) -> None:
     """The recording `--view` wrote, read back: per row, each link moved to where the model's
     forward kinematics puts it at the row's joints, the bucket tip and the joint plots equal
-    to the row's values, the trail a segment from each row's tip to the next."""
+    to the row's values (the base where the row's base columns put it), the trail a segment
+    from each row's tip to the next."""
     import pyarrow as pa
     from rerun.chunk import RrdReader
+
+    from mocap.io.motion_csv import world_from_base_of
 
     chunks: dict[str, list] = {}
     for chunk in RrdReader(path).stream().collect().stream():
@@ -187,7 +190,9 @@ def check_view(path: Path, poses, machine) -> None:
     frame = np.array(poses.column("frame").to_pylist())
     joints = np.stack([poses.column(name).to_numpy() for name in machine.joint_names], axis=1)
     scale, _ = scene.joint_display_units(machine)
-    world_from_link = machine.link_poses(joints / scale)
+    names = [n for n in poses.column_names if n.startswith("base_")]  # the base's pose, held or fitted per frame
+    base = world_from_base_of({n: poses.column(n).to_numpy() for n in names}, len(frame)) if names else None
+    world_from_link = machine.link_poses(joints / scale, base)
     for i, name in enumerate(machine.link_names):
         logged = series(f"/world/machine/{name}", "Transform3D:translation")
         assert sorted(logged) == frame.tolist()

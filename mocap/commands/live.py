@@ -50,9 +50,14 @@ def add_parser(sub) -> None:
     p.add_argument("--lag", type=int, default=1, metavar="FRAMES",
                    help="the smoother's fixed lag in reference frames, part of the latency (default 1; 0: "
                    "the filter alone)")
-    p.add_argument("--base-motion", action="store_true",
-                   help="also fit the base's pose per frame (a machine that bounces or walks, cameras moved since "
-                   "the calibration): columns base_x ... as in the motion CSV; 6 more parameters a frame")
+    base = p.add_mutually_exclusive_group()
+    base.add_argument("--base-motion", action="store_true",
+                      help="fit the base's pose every frame (a machine that bounces or walks, cameras moved since "
+                      "the calibration); default: per frame while the frames show it moving, tested as mocap fit "
+                      "tests it every 5 s; columns base_x ... as in the motion CSV")
+    base.add_argument("--fixed-base", action="store_true",
+                      help="hold the base where the calibration saw it, even when the frames show it moving (no "
+                      "base columns)")
     p.add_argument("--feed", metavar="tcp://127.0.0.1:PORT",
                    help="also send each row as a JSON line to the programs connected to this loopback port")
     p.add_argument("--follow-clocks", action="store_true",
@@ -95,6 +100,7 @@ def run(args) -> int:
         args.machine, Path(args.calibration), sources, Path(args.out), realtime=args.realtime,
         duration=args.duration, lag=args.lag, feed=parse_feed(args.feed) if args.feed else None,
         record=Path(args.record) if args.record else None, fit_options=FitOptions(base_motion=args.base_motion),
+        choose_base=not args.fixed_base,
         view=view, follow_clocks=args.follow_clocks,
     )
     stop = threading.Event()

@@ -10,8 +10,10 @@ base's rotation vector and translation), W frames in the smoother's window.
 from __future__ import annotations
 
 import logging
+import threading
 from collections import deque
 from dataclasses import dataclass, replace
+from time import thread_time
 
 import numpy as np
 
@@ -19,6 +21,7 @@ from mocap.core.camera import Camera
 from mocap.core.geometry import matrix_to_rotvec
 from mocap.core.machine import Machine
 from mocap.io.motion_csv import base_columns
+from mocap.reconstruct.base_check import SAMPLE_FRAMES, compare_bases
 from mocap.reconstruct.kinfit import FitOptions, FrameFitter, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.smooth import SmoothOptions, chi2_quantile, fit_sds, smooth
@@ -36,6 +39,9 @@ _PACE_FRAMES = 6  # the newest frames whose fits judge whether the process noise
 _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the smoothed values: the noise is raised
 _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
+_BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
+_BASE_EVERY = 150  # frames between the tests, each of up to `SAMPLE_FRAMES` frames spread over all those so far
+_BASE_MARGIN = 0.05  # a test changes the choice when the criterion's gain is this share past its penalty
 
 
 class CameraHistory:
@@ -87,28 +93,80 @@ class CameraHistory:
 @dataclass(frozen=True)
 class FrameFit:
     """One frame's fit: values (P,), information (P, P) (the normal matrix over the pixel
-    noise²), valid, rms_px, observations."""
+    noise²), valid, rms_px, observations; `base_moves` when the base's pose was fitted (a
+    fit with a fixed base, its values' base part zero and unobserved, when it was not)."""
 
     values: np.ndarray
     information: np.ndarray
     valid: bool
     rms_px: float
     observations: int
+    base_moves: bool = False
+
+
+class _BaseTest(threading.Thread):
+    """`compare_bases` on a sample of frames; `check` (frames fitted when it began, its answer
+    or None, its CPU seconds) once run."""
+
+    def __init__(self, machine, cameras, pixels, start, options, frames: int):
+        super().__init__(name="base test", daemon=True)
+        self.args, self.frames, self.check = (machine, cameras, pixels, start, options), frames, None
+
+    def run(self) -> None:
+        began = thread_time()
+        try:
+            answer = compare_bases(*self.args)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # the sample's fits failed: no answer this time
+            log.warning("the test of whether the base moves failed after %d frames: %s", self.frames, exc)
+            answer = None
+        self.check = (self.frames, answer, thread_time() - began)
 
 
 class WarmFit:
     """The machine fitted frame after frame, each from the frame before's parameters moved on
-    at their last velocity (with `options.base_motion` the base's pose too); the first frame, and one that ends far worse than is typical, from
-    the whole fit's grid and restarts (`fit_joints`). The pixel noise behind the information
-    is estimated from the last frames' residuals (or `options.noise_px`)."""
+    at their last velocity (with the base moving, the base's pose too); the first frame, and
+    one that ends far worse than is typical, from the whole fit's grid and restarts
+    (`fit_joints`). The pixel noise behind the information
+    is estimated from the last frames' residuals (or `options.noise_px`).
 
-    def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None):
+    With `choose_base` (and a fixed base in `options`) the base is held where the calibration
+    saw it or fitted per frame as the data say, with `mocap fit`'s test
+    (`mocap.reconstruct.base_check.compare_bases`): the first after `_BASE_FIRST` frames, then
+    every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
+    `mocap fit` spreads them over the session: the tests agree more the longer the run);
+    each test decides until the next (the base held until the first), a change needing the
+    criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with
+    `background` the tests run on their own thread and their answer is taken at the first
+    frame after. The values then always carry the base's six parameters (zero and unobserved
+    while it is held). A frame with fewer markers seen than the moving base's parameters is
+    fitted with the base held, chosen or with `options.base_motion` (its pose and the joints
+    would not be told apart)."""
+
+    def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None,
+                 choose_base: bool = False, background: bool = True):
         self.machine, self.cameras = machine, list(cameras)
         self.options = options or FitOptions()
-        self.fitter = FrameFitter(machine, self.cameras, self.options)
+        self.choose_base = choose_base and not self.options.base_motion and machine.n_joints > 0
+        self.base_moves = self.options.base_motion
+        both = self.choose_base or (self.base_moves and machine.n_joints > 0)  # a frame may hold the base
+        self.fitters = {moves: FrameFitter(machine, self.cameras, replace(self.options, base_motion=moves))
+                        for moves in ((False, True) if both else (self.base_moves,))}
+        self.n_params = machine.n_joints + 6 * (self.choose_base or self.base_moves)
         self.last: deque[np.ndarray] = deque(maxlen=2)
         self.lengths: deque[np.ndarray] = deque(maxlen=_NOISE_FRAMES)
         self.per_obs: deque[float] = deque(maxlen=_NOISE_FRAMES)
+        self.recent: list[tuple[np.ndarray, np.ndarray]] = []  # (pixels, joints) of every `stride`-th frame
+        self.stride = 1
+        self.kept = 0
+        self.base_tests: list[tuple[int, bool]] = []  # (frames fitted then, the base moves)
+        self.base_test_s = 0.0  # the tests' CPU time
+        self.base_evidence: list[float] = []  # each test's gain in the information criterion over its penalty
+        self.background = background
+        self.testing: _BaseTest | None = None  # the test running
+
+    @property
+    def fitter(self) -> FrameFitter:
+        return self.fitters[self.base_moves]
 
     @property
     def warm(self) -> bool:
@@ -126,42 +184,100 @@ class WarmFit:
     def __call__(self, pixels: np.ndarray, keep: bool = True) -> FrameFit:
         """pixels (C, M, 2), NaN where not seen. `keep` False: a provisional fit (a camera's
         pixels extrapolated) that neither starts the next frame nor counts in the noise."""
-        n_joints, n_params = self.machine.n_joints, self.fitter.n_params
+        n_joints, n_params, moves = self.machine.n_joints, self.n_params, self.base_moves
         seen = np.isfinite(pixels[..., 0])
         n_obs = int(seen.sum())
-        if 2 * n_obs < n_params:
+        if moves and len(self.fitters) == 2 and n_obs < self.fitters[True].n_params:
+            moves = False  # too few markers to tell the base's pose from the joints: the base held for this frame
+        fitter = self.fitters[moves]
+        if 2 * n_obs < fitter.n_params:
             if keep:
                 self.last.clear()
-            return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs)
+            return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs, moves)
         frame = pixels[:, None]
         if not self.last:
-            state = self._from_grid(frame)
+            state = self._from_grid(frame, moves)
         else:
             start = self.last[-1] if len(self.last) < 2 else 2 * self.last[-1] - self.last[-2]
-            state = self.fitter.fit(frame, start[None, :n_joints], start[None, n_joints:])
+            state = fitter.fit(frame, start[None, :n_joints], start[None, n_joints:] if moves else None)
             per_obs = state.cost[0] / n_obs
             if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
-                again = self._from_grid(frame)
+                again = self._from_grid(frame, moves)
                 if again.cost[0] < state.cost[0]:
                     state = again
         residual = state.residual[0].reshape(-1, 2)[seen.reshape(-1)]
         length = np.hypot(residual[:, 0], residual[:, 1])
         weight = state.weight[0].reshape(-1, 2)[seen.reshape(-1), 0]
-        values = state.joints[0].copy()
+        values = np.zeros(n_params)
+        values[:n_joints] = state.joints[0]
         if state.rotation is not None:
-            values = np.r_[values, matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]]
+            values[n_joints:] = np.r_[matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]]
+        information = np.zeros((n_params, n_params))
+        fitted = state.hessian[0].shape[0]
+        information[:fitted, :fitted] = state.hessian[0] / self.noise_px**2
         if keep:
             self.lengths.append(length)
             self.per_obs.append(float(state.cost[0] / n_obs))
             self.last.append(values)
+            if self.choose_base:
+                self._test_base(pixels, values[:n_joints])
         rms = float(np.sqrt(np.sum(weight * length**2) / max(np.sum(weight), 1e-12)))
-        return FrameFit(values, state.hessian[0] / self.noise_px**2, True, rms, n_obs)
+        return FrameFit(values, information, True, rms, n_obs, moves)
 
-    def _from_grid(self, frame: np.ndarray):
+    def _test_base(self, pixels: np.ndarray, joints: np.ndarray) -> None:
+        """Keep the frame for the test of the base, take a finished test's answer, and start
+        the next test when it is time (with `background`, on its own thread: the rows do not
+        wait for it)."""
+        if self.kept % self.stride == 0:
+            self.recent.append((pixels, joints))
+            if len(self.recent) > 2 * SAMPLE_FRAMES:  # every other one kept: spread over all the frames so far
+                self.recent = self.recent[::2]
+                self.stride *= 2
+        self.kept += 1
+        if self.testing is not None and not self.testing.is_alive():
+            self.testing.join()
+            self._take(self.testing.check)
+            self.testing = None
+        if self.kept < _BASE_FIRST or (self.kept - _BASE_FIRST) % _BASE_EVERY or self.testing is not None:
+            return
+        pick = np.unique(np.linspace(0, len(self.recent) - 1, min(SAMPLE_FRAMES, len(self.recent))).round().astype(int))
+        test = _BaseTest(self.machine, self.cameras, np.stack([self.recent[k][0] for k in pick], axis=1),
+                         np.stack([self.recent[k][1] for k in pick]), replace(self.options, base_motion=False),
+                         self.kept)
+        if self.background:
+            self.testing = test
+            test.start()
+        else:
+            test.run()
+            self._take(test.check)
+
+    def _take(self, check) -> None:
+        """A test's answer (None: no answer): the base moves or is held from now on."""
+        if check is None:
+            return
+        frames, check, cpu_s = check
+        self.base_test_s += cpu_s
+        if check is None:
+            return
+        scalars = 2 * check.observations  # the information criterion's gain over its penalty (> 1: it moves)
+        evidence = scalars * 2.0 * np.log(check.fixed_noise_px / check.moving_noise_px) / (6 * check.frames
+                                                                                          * np.log(scalars))
+        moves = evidence > (1.0 - _BASE_MARGIN if self.base_moves else 1.0 + _BASE_MARGIN)
+        self.base_evidence.append(float(evidence))
+        self.base_tests.append((frames, moves))
+        if moves != self.base_moves:
+            log.info("after %d frames the base %s (a base pose per frame leaves %.2f px of noise, the fixed base "
+                     "%.2f px, over %d frames)", frames, "moves" if moves else "holds still",
+                     check.moving_noise_px, check.fixed_noise_px, check.frames)
+            self.base_moves = moves
+            self.lengths.clear()  # the residuals and costs of the other model
+            self.per_obs.clear()
+
+    def _from_grid(self, frame: np.ndarray, moves: bool):
         """The frame (C, 1, M, 2) fitted as `mocap fit` fits a frame without a start."""
-        fit = fit_joints(self.machine, self.cameras, frame, options=self.options)
+        fit = fit_joints(self.machine, self.cameras, frame, options=replace(self.options, base_motion=moves))
         base = None if fit.base is None else np.nan_to_num(fit.base)
-        return self.fitter.fit(frame, np.nan_to_num(fit.joints), base)
+        return self.fitters[moves].fit(frame, np.nan_to_num(fit.joints), base)
 
 
 @dataclass(frozen=True)
@@ -196,8 +312,20 @@ class FixedLagSmoother:
     held against the quantile `_PACE_PROBABILITY`; beyond it the process noise is raised
     `_PACE_FACTOR` times and the window smoothed again, up to `pace_steps` times: the smallest
     process noise the newest fits do not contradict. Fits that no raise tried explains (a few
-    failed fits, not a faster motion) leave the estimate as it is. `pace` is the factor of the
-    last row given."""
+    failed fits, not a faster motion) leave it as it is. `pace` is the factor of the
+    last row given.
+
+    The usual chi-square over its degrees of freedom (at least 1: `variance_factor`) is how
+    much larger the fits' scatter is than their information says (pixel errors that are not
+    independent: a rolling shutter, a marker's blur); the rows' covariances are multiplied by
+    it, as `mocap fit` scales its SDs by the residuals.
+
+    With `base_motion` the values carry the base's six parameters after the joints; a fit
+    whose base was held (`FrameFit.base_moves` False) has them unobserved. A row whose own fit
+    held the base is smoothed over the joints alone (each fit's information on them with its
+    base unknown: the moving base's fits count as they are, no more) and its base is the
+    calibration's; one whose fit moved it, over all the parameters (the base unobserved in
+    the fits that held it). The base's process noise is estimated from the fits that moved it."""
 
     def __init__(self, machine: Machine, lag: int, window: int = 60, options: SmoothOptions | None = None,
                  base_motion: bool = False, pace_steps: int = _PACE_STEPS):
@@ -208,7 +336,9 @@ class FixedLagSmoother:
         self.time: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)
         self.values: deque[np.ndarray] = deque(maxlen=_PROCESS_NOISE_FRAMES)
         self.information: deque[np.ndarray] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.joint_information: deque[np.ndarray] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the base unknown
         self.valid: deque[bool] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.moving: deque[bool] = deque(maxlen=_PROCESS_NOISE_FRAMES)
         self.base_motion = base_motion
         self.wrap = np.r_[machine.wraps, np.zeros(6 * base_motion, bool)]
         self.process_noise = np.full(len(self.wrap), _FIRST_PROCESS_NOISE)
@@ -217,13 +347,19 @@ class FixedLagSmoother:
         self.pace = np.ones(len(self.wrap))
         self.pace_steps = pace_steps
         self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square / dof
+        self.scatter: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the same over its expectation
+        self.variance_factor = 1.0
+        self.correlations: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)
+        self.correlation = 0.0
 
     def push(self, time: float, fit: FrameFit) -> Pose | None:
         """Add a frame; the pose of the frame `lag` back once there is one."""
         self.time.append(time)
         self.values.append(fit.values)
         self.information.append(fit.information)
+        self.joint_information.append(self._joint_information(fit.information))
         self.valid.append(fit.valid)
+        self.moving.append(bool(fit.base_moves) and self.base_motion)
         self.count += 1
         self.pending += 1
         if self.count % _PROCESS_NOISE_EVERY == 0 and self.count >= self.window:
@@ -237,6 +373,8 @@ class FixedLagSmoother:
         """Replace the newest frame's fit (a provisional one, by the frame's own once all its
         cameras are in); its pose, not given yet, follows from this one."""
         self.values[-1], self.information[-1], self.valid[-1] = fit.values, fit.information, fit.valid
+        self.joint_information[-1] = self._joint_information(fit.information)
+        self.moving[-1] = bool(fit.base_moves) and self.base_motion
 
     def flush(self) -> list[Pose]:
         """The poses not yet given (the last `lag` frames), from the frames there are."""
@@ -244,63 +382,124 @@ class FixedLagSmoother:
         self.pending = 0
         return out
 
+    def _joint_information(self, information: np.ndarray) -> np.ndarray:
+        """(J, J) the joints' information with the base's parameters unknown (its Schur complement)."""
+        n_joints = self.machine.n_joints
+        if not self.base_motion:
+            return information
+        joints, cross = information[:n_joints, :n_joints], information[:n_joints, n_joints:]
+        return joints - cross @ np.linalg.pinv(information[n_joints:, n_joints:]) @ cross.T
+
     def _arrays(self, frames: int):
-        """The last `frames` frames' time (W,), values (W, P), information (W, P, P), valid (W,)."""
+        """The last `frames` frames' time (W,), values (W, P), information (W, P, P), valid (W,),
+        moving (W,), joints' information (W, J, J)."""
         first = max(len(self.time) - frames, 0)
         return tuple(np.array([x[k] for k in range(first, len(x))])
-                     for x in (self.time, self.values, self.information, self.valid))
+                     for x in (self.time, self.values, self.information, self.valid, self.moving,
+                               self.joint_information))
 
     def _estimate_process_noise(self) -> None:
-        time, values, information, valid = self._arrays(_PROCESS_NOISE_FRAMES)
+        time, values, information, valid, moving, joints_information = self._arrays(_PROCESS_NOISE_FRAMES)
         if valid.sum() < 3:
             return
-        result = smooth(time, values, information, valid, self.wrap, replace(self.options, process_noise=None))
-        self.process_noise = np.maximum(result.process_noise, 1e-6)
+        estimate = replace(self.options, process_noise=None)
+        if not self.base_motion or moving[valid].all():
+            result = smooth(time, values, information, valid, self.wrap, estimate)
+            self.process_noise = np.maximum(result.process_noise, 1e-6)
+            return
+        n_joints = self.machine.n_joints
+        joints = smooth(time, values[:, :n_joints], joints_information, valid, self.wrap[:n_joints], estimate)
+        self.process_noise[:n_joints] = np.maximum(joints.process_noise, 1e-6)
+        moved = valid & moving
+        if moved.sum() >= self.window:
+            result = smooth(time[moved], values[moved], information[moved], valid[moved], self.wrap, estimate)
+            self.process_noise[n_joints:] = np.maximum(result.process_noise[n_joints:], 1e-6)
 
     def _pose(self, at: int) -> Pose:
-        time, values, information, valid = self._arrays(self.window)
+        time, values, information, valid, moving, joints_information = self._arrays(self.window)
         at -= len(self.time) - len(time)
         machine, n_joints, n_params = self.machine, self.machine.n_joints, len(self.wrap)
         if not valid[: at + 1 + self.lag].any():
             nan = np.full(n_params, np.nan)
             return _pose(machine, nan, np.full((n_params, n_params), np.nan), True, self.base_motion)
-        result, self.pace = self._smooth_at_pace(time, values, information, valid)
-        values = result.values[at].copy()
+        columns = n_params if moving[at] or not self.base_motion else n_joints
+        if columns < n_params:  # the base held: the joints alone
+            values, information = values[:, :n_joints], joints_information
+        result, pace = self._smooth_at_pace(time, values, information, valid, self.wrap[:columns],
+                                            self.process_noise[:columns])
+        self.pace = np.r_[pace, np.ones(n_params - columns)]
+        values = np.zeros(n_params)
+        values[:columns] = result.values[at]
+        covariance = np.zeros((n_params, n_params))
+        scale = self.variance_factor * (1 + 2 * max(self.correlation, 0.0))  # the fits' scatter, their correlation
+        covariance[:columns, :columns] = result.covariance[at] * scale
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
         joints = values[:n_joints]
         wrapped = limits[:, 0] + np.mod(joints - limits[:, 0], np.where(machine.wraps, span, 1.0))
         values[:n_joints] = np.where(machine.wraps, wrapped, joints)
-        return _pose(machine, values, result.covariance[at], bool(result.filled[at]), self.base_motion)
+        return _pose(machine, values, covariance, bool(result.filled[at]), self.base_motion)
 
-    def _smooth_at_pace(self, time, values, information, valid):
+    def _smooth_at_pace(self, time, values, information, valid, wrap, process_noise):
         """The window smoothed with the smallest multiple of the process noise that its newest
         fits do not contradict, raised for the parameters those fits observe (none explains
-        them: the estimate itself). The result and the multiples (P,)."""
+        them: the estimate itself). The result and the multiples (P,). Updates
+        `variance_factor`."""
         newest = slice(max(len(time) - _PACE_FRAMES, 0), None)
-        base = np.ones(len(self.wrap))
-        first = smooth(time, values, information, valid, self.wrap,
-                       replace(self.options, process_noise=self.process_noise))
+        base = np.ones(len(wrap))
+        first = smooth(time, values, information, valid, wrap, replace(self.options, process_noise=process_noise))
         kept = valid[newest] & ~first.rejected[newest]
         typical = _typical_sd(information, valid & np.isfinite(values).all(1))
         statistic, dof, observed = _disagreement(values[newest], information[newest], kept, first.values[newest],
-                                                 self.wrap, typical, self.options.unobserved_factor)
+                                                 wrap, typical, self.options.unobserved_factor)
         if not dof:
             return first, base
         self.disagreement.append(statistic / dof)
         usual = max(float(np.median(self.disagreement)) * dof / chi2_quantile(0.5, dof), 1.0)
+        self._scale_variance(statistic, values[newest], information[newest], kept, first.covariance[newest], dof)
+        self._correlation(values, information, valid & ~first.rejected, first.values, wrap)
         limit = usual * chi2_quantile(_PACE_PROBABILITY, dof)
         if statistic <= limit or not observed.any() or not self.pace_steps:
             return first, base
         for step in range(1, self.pace_steps + 1):
             factor = np.where(observed, _PACE_FACTOR**step, 1.0)
-            result = smooth(time, values, information, valid, self.wrap,
-                            replace(self.options, process_noise=factor * self.process_noise))
+            result = smooth(time, values, information, valid, wrap,
+                            replace(self.options, process_noise=factor * process_noise))
             statistic, _, _ = _disagreement(values[newest], information[newest], kept, result.values[newest],
-                                            self.wrap, typical, self.options.unobserved_factor)
+                                            wrap, typical, self.options.unobserved_factor)
             if statistic <= limit:
                 return result, factor
         return first, base
+
+
+    def _scale_variance(self, statistic: float, measured: np.ndarray, information: np.ndarray, kept: np.ndarray,
+                        covariance: np.ndarray, dof: int) -> None:
+        """`variance_factor`: the newest fits' chi-square about the smoothed values over what the
+        model expects of it (a fit's deviation from the smoothed value has the fit's covariance
+        less the smoothed one: its expectation is P - tr(information x smoothed covariance)),
+        its median over the last rows, at least 1."""
+        kept = kept & np.isfinite(measured).all(1) & np.isfinite(covariance).all((1, 2))
+        expected = float(np.sum(kept) * measured.shape[1] - np.einsum("kij,kji->", information[kept], covariance[kept]))
+        if expected <= 0.1 * dof:
+            return
+        self.scatter.append(statistic / expected)
+        self.variance_factor = max(float(np.median(self.scatter)) * dof / chi2_quantile(0.5, dof), 1.0)
+
+
+    def _correlation(self, measured, information, valid, smoothed, wrap) -> None:
+        """`correlation`: the window's fits' deviations from the smoothed values, frame to next
+        frame, weighed by the fits' information: its median over the last rows."""
+        ok = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
+        deviation = np.where(ok[:, None], measured - smoothed, 0.0)
+        deviation[:, wrap] = np.mod(deviation[:, wrap] + np.pi, 2 * np.pi) - np.pi
+        pairs = ok[1:] & ok[:-1]
+        if pairs.sum() < 10:
+            return
+        weighed = np.einsum("kij,kj->ki", information, deviation)
+        cross = np.einsum("ki,ki->k", weighed[:-1], deviation[1:])[pairs].sum()
+        norm = np.einsum("ki,ki->k", weighed, deviation)
+        self.correlations.append(float(cross / np.sqrt(norm[:-1][pairs].sum() * norm[1:][pairs].sum())))
+        self.correlation = float(np.median(self.correlations))
 
 
 def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,

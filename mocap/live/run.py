@@ -61,7 +61,9 @@ class LiveRequest:
     """What `mocap live` was asked: paths as given; `lag` the smoother's lag in reference
     frames; `duration` seconds of the run (None: until the sources end or Ctrl-C); `feed`
     (host, port) or None; `record` a session folder to write, or None; `view` where the rows
-    are shown as they come (`mocap.live.view.check_target`), or None."""
+    are shown as they come (`mocap.live.view.check_target`), or None; `choose_base` with a
+    fixed base in `fit_options`: the base fitted per frame while the data say it moves
+    (`WarmFit`), else held."""
 
     machine: str
     calibration: Path
@@ -76,6 +78,7 @@ class LiveRequest:
     record: Path | None = None
     view: str | None = None
     follow_clocks: bool = False
+    choose_base: bool = True
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -139,6 +142,9 @@ class LiveReport:
     stages_ms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     reference: FrameAccount | None = None  # what became of the reference camera's frames
     rows_of_others: int = 0  # rows of other cameras' frames (while they drove the rows)
+    # the tests of whether the base moves: (frames fitted then, it moves); their CPU time (ms) each
+    base_tests: tuple[tuple[int, bool], ...] = ()
+    base_test_ms: float = float("nan")
 
     def summary(self, out) -> str:
         """The run's one summary line."""
@@ -158,6 +164,7 @@ class LiveReport:
                                 "CPU)" if self.skipped else "") + "".join(
                     f"; {name} clock offset {now:+.4f} s at its frame {at:.0f} (calibrated {then:+.4f} s)"
                     for name, now, at, then in self.clocks)
+                + _base_text(self.base_tests)
                 + (f"; {self.view_dropped} rows not shown in the viewer (it fell behind)" if self.view_dropped else "")
                 + ("; interrupted" if self.interrupted else ""))
 
@@ -284,7 +291,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
         feed = Feed(*request.feed) if request.feed is not None else None
         if feed is not None and announce is not None:
             announce(f"feed on {feed.url}")
-        writer = PoseWriter(machine, request.out, request.fit_options.base_motion)
+        writer = PoseWriter(machine, request.out, _base_columns(request, machine))
         chosen = Calibration(tuple(cameras), tuple(calibration.extras[i] for i in order), calibration.metadata)
         view = _view(request.view, machine, chosen)
         follower = None
@@ -326,7 +333,23 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                                                  for k, c in enumerate(cameras) if k > 0),
         clock_update_ms=1000.0 * follower.cpu_s / follower.updates if follower is not None and follower.updates
         else float("nan"), stages_ms=np.array(loop.stages).reshape(-1, 4), reference=reference,
-        rows_of_others=sum(c - s for c, s in zip(loop.clocked[1:], loop.skipped_by[1:])))
+        rows_of_others=sum(c - s for c, s in zip(loop.clocked[1:], loop.skipped_by[1:])),
+        base_tests=tuple(loop.fit.base_tests),
+        base_test_ms=1000.0 * loop.fit.base_test_s / len(loop.fit.base_tests) if loop.fit.base_tests else float("nan"))
+
+
+def _base_columns(request: LiveRequest, machine: Machine) -> bool:
+    """Whether the rows carry the base's pose: fitted per frame, or chosen from the data."""
+    return request.fit_options.base_motion or (request.choose_base and machine.n_joints > 0)
+
+
+def _base_text(tests) -> str:
+    """"; the base fitted per frame (3 tests, its choice changed 1x)" or ''."""
+    if not tests:
+        return ""
+    changes = sum(a[1] != b[1] for a, b in zip(((0, False),) + tuple(tests[:-1]), tests))
+    return (f"; the base {'fitted per frame' if tests[-1][1] else 'held where the calibration saw it'} "
+            f"({len(tests)} tests of its motion, the choice changed {changes}x)")
 
 
 def _view(target: str | None, machine: Machine, calibration: Calibration):
@@ -350,8 +373,8 @@ class _Loop:
         self.view_s = 0.0
         self.follower = follower
         self.history = [CameraHistory(f) for f in fps]
-        self.fit = WarmFit(machine, cameras, request.fit_options)
-        self.smoother = FixedLagSmoother(machine, request.lag, base_motion=request.fit_options.base_motion)
+        self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base)
+        self.smoother = FixedLagSmoother(machine, request.lag, base_motion=_base_columns(request, machine))
         # clock frames waiting: (frame, time, arrived, labels in, the camera whose frame it is)
         self.pending: list[tuple[int, float, float, float, int]] = []
         self.waiting: list[tuple[int, float, float, list[str], object, tuple]] = []  # fitted, awaiting the smoother

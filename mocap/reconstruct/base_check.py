@@ -44,14 +44,22 @@ def check_base_motion(machine: Machine, cameras: list[Camera], pixels: np.ndarra
     if options.base_motion or len(usable) < 2 or machine.n_joints == 0:
         return None
     frames = usable[np.unique(np.linspace(0, len(usable) - 1, min(sample, len(usable))).round().astype(int))]
+    return compare_bases(machine, cameras, pixels[:, frames], fit.joints[frames], options)
+
+
+def compare_bases(machine: Machine, cameras: list[Camera], pixels: np.ndarray, start: np.ndarray,
+                  options: FitOptions) -> BaseCheck | None:
+    """The frames pixels (C, F, M, 2) fitted with a fixed and with a moving base from the
+    joints `start` (F, J), compared by the information criterion; None when a base pose per
+    frame would leave no redundancy."""
     plain = replace(options, tolerance=Tolerance(), base_motion=False, noise_px=None, repair_passes=0)
-    start = fit.joints[frames]
-    fixed = fit_joints(machine, cameras, pixels[:, frames], start, plain)
-    moving = fit_joints(machine, cameras, pixels[:, frames], start, replace(plain, base_motion=True))
+    fixed = fit_joints(machine, cameras, pixels, start, plain)
+    moving = fit_joints(machine, cameras, pixels, start, replace(plain, base_motion=True))
     scalars = 2 * int(fixed.n_observations.sum())
-    extra = 6 * len(frames)
-    if scalars <= (machine.n_joints + 6) * len(frames):
+    frames = pixels.shape[1]
+    extra = 6 * frames
+    if scalars <= (machine.n_joints + 6) * frames:
         return None  # a base pose per frame would leave no redundancy
     # BIC with each model's Gaussian log-likelihood at its own noise: n log σ² + k log n
     gain = scalars * 2.0 * np.log(fixed.noise_px / moving.noise_px)
-    return BaseCheck(len(frames), fixed.noise_px, moving.noise_px, scalars // 2, bool(gain > extra * np.log(scalars)))
+    return BaseCheck(frames, fixed.noise_px, moving.noise_px, scalars // 2, bool(gain > extra * np.log(scalars)))
