@@ -1,15 +1,19 @@
 """Columnar reading and writing of the tables (tracks, points, motion) through pyarrow.
 
 A CSV file is first read by pyarrow with strict types; any file it cannot read that way
-(quotes it disagrees on, padded fields, a bad number, ...) returns None and the caller
-reads it with the csv module, whose checks name the line. A ``.parquet`` path is read and
-written as Parquet with the same columns.
+(quotes it disagrees on, padded fields, a bad number, ...) is read with the csv module,
+whose checks name the line. A ``.parquet`` path is read and written as Parquet with the
+same columns. `read_table` does both for a table of a given `Layout`, in one call.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +24,7 @@ import pyarrow.parquet as pq
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import opening
+from mocap.io.text import opening, read_text
 
 MAX_BYTES = 2**31  # as mocap.io.text: a larger file is left to the checked reader
 
@@ -40,12 +44,23 @@ def read_csv_strict(path: Path, types: dict[str, pa.DataType], counts: tuple[str
     straight away when the file holds no text that pyarrow reads as an integer but the
     checked reader refuses (hexadecimal ``0x1f``, a negative zero ``-0``), else as names,
     to be checked by `whole_numbers`."""
+    data = _bytes(path)
+    return None if data is None else _read_strict(data, types, counts, default)
+
+
+def _bytes(path: Path) -> bytes | None:
+    """The file's bytes, None when it cannot be read (the checked reader then says why)."""
     try:
         if not path.is_file() or path.stat().st_size > MAX_BYTES:
             return None
-        data = path.read_bytes()
+        return path.read_bytes()
     except OSError:
         return None
+
+
+def _read_strict(data: bytes, types: dict[str, pa.DataType], counts: tuple[str, ...] = (),
+                 default: pa.DataType | None = None) -> pa.Table | None:
+    """`read_csv_strict` of the file's bytes."""
     if data.startswith(b"\xef\xbb\xbf"):
         data = data[3:]
     if b"\0" in data or b'"' in data:
@@ -267,3 +282,185 @@ def parse_floats(text: np.ndarray, key: str, lines: np.ndarray, path, unit: str 
                 raise InputError(f"{key} {str(value)[:40]!r} is not a number", path=path,
                                  where=f"{unit} {lines[k]}") from None
         raise
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The columns of a table file: `required` and `optional` names (header order is
+    free); `names` the text columns of few distinct names, each with its longest length;
+    `counts` the whole-number columns, each with its largest value; the others are
+    floats (an empty field is NaN; a `required` float is never empty), those of a
+    `vectors` entry given side by side under its name."""
+
+    required: tuple[str, ...]
+    optional: tuple[str, ...] = ()
+    names: dict[str, int] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    vectors: dict[str, tuple[str, ...]] = field(default_factory=dict)  # required floats read side by side: (R, K)
+
+    @property
+    def expected(self) -> str:
+        """The columns as the messages state them: ``a,b,c[,d,e]``."""
+        return ",".join(self.required) + (f"[,{','.join(self.optional)}]" if self.optional else "")
+
+    def floats(self, present) -> list[str]:
+        """The float columns among `present`, each vector's columns first."""
+        inside = [h for columns in self.vectors.values() for h in columns]
+        return inside + [h for h in self.required + self.optional
+                         if h in present and h not in self.names and h not in self.counts and h not in inside]
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table file read once, R rows. `names` {column: (distinct names (K,), each row's
+    code (R,))} and `values` {float column: (R,) NaN where empty} in both ways of reading;
+    read the fast way, `counts` {column: (R,) int64} and `text` None; read the checked way
+    (a field pyarrow reads otherwise than the checks, or a value the checks refuse),
+    `counts` None and `text` {count or float column: (R,) its stripped text}.
+    A vector of the layout is in `values` under its name, (R, K), its columns not apart.
+    `rows` (R,) numbers each row for messages, as its `unit` (a CSV's line, a Parquet
+    file's row)."""
+
+    columns: tuple[str, ...]  # the layout's columns the file has, in the layout's order
+    numbering: np.ndarray | Callable[[], np.ndarray]  # `rows`, or how to count them when first asked
+    unit: str
+    names: dict[str, tuple[tuple[str, ...], np.ndarray]]
+    values: dict[str, np.ndarray]
+    counts: dict[str, np.ndarray] | None = None
+    text: dict[str, np.ndarray] | None = None
+
+    @cached_property
+    def rows(self) -> np.ndarray:
+        return self.numbering if isinstance(self.numbering, np.ndarray) else self.numbering()
+
+    def __len__(self) -> int:
+        for column in (*(codes for _, codes in self.names.values()), *self.values.values()):
+            return len(column)
+        return len(self.rows)
+
+
+def read_table(path: str | Path, layout: Layout, hint: str) -> Table:
+    """The table of a CSV file, or of a Parquet file for a ``.parquet`` path, read the
+    fast way (pyarrow, strict types, whole-column checks) when every value passes, else
+    the checked way; a file that is not such a table is an InputError naming its line or
+    row (`hint`: what the user should check)."""
+    path = Path(path)
+    if is_parquet(path):
+        table = read_parquet(path, hint, names=tuple(layout.names))
+        missing = [h for h in layout.required if h not in table.column_names]
+        if missing:
+            raise InputError(f"lacks the columns {', '.join(missing)}; expected columns {layout.expected}", path=path)
+        rows = np.arange(1, table.num_rows + 1)
+        typed = _typed(table, layout, rows, "row")
+        return typed if typed is not None else _parquet_text(table, layout, rows, path)
+    types = {h: NAMES for h in layout.names} | {h: NAMES for h in layout.counts}
+    types |= {h: pa.float64() for h in layout.floats(layout.required + layout.optional)}
+    table, lines = _strict_csv(path, types, tuple(layout.counts))
+    typed = None if table is None else _typed(table, layout, lines, "line")
+    return typed if typed is not None else _checked_csv(path, layout, hint)
+
+
+def _strict_csv(path: Path, types, counts) -> tuple[pa.Table | None, Callable[[], np.ndarray] | None]:
+    """`read_csv_strict`'s table and how to number its rows by their lines (counted when
+    a message needs them), or (None, None)."""
+    data = _bytes(path)
+    table = None if data is None else _read_strict(data, types, counts)
+    if table is None or (b"\r" in data and data.count(b"\r") != data.count(b"\r\n")):
+        return None, None  # a line end other than "\n" and "\r\n": the csv module counts the lines
+    return table, lambda: _line_numbers(data)
+
+
+def _line_numbers(data: bytes) -> np.ndarray:
+    """(R,) the line number of each row pyarrow reads from `data` (it skips empty lines;
+    the lines end in ``\\n`` or ``\\r\\n``)."""
+    byte = np.frombuffer(data, np.uint8)
+    ends = np.flatnonzero(byte == ord("\n"))
+    starts, stops = np.r_[0, ends + 1], np.r_[ends, len(data)]
+    stops = stops - ((stops > starts) & (byte[np.maximum(stops - 1, 0)] == ord("\r")))  # "\r\n": the \r ends it
+    return np.flatnonzero(stops > starts)[1:] + 1  # the header on line 1
+
+
+def _typed(table: pa.Table, layout: Layout, rows, unit: str) -> Table | None:
+    """The Table of a typed pyarrow table whose every value passes the whole-column checks
+    (names plain, counts whole, floats finite or empty, required floats not empty), else
+    None (it is then read the checked way, which names the first bad row)."""
+    if any(h not in table.column_names for h in layout.required):
+        return None
+    names = {h: plain_strings(table[h], longest) for h, longest in layout.names.items() if h in table.column_names}
+    counts = {h: whole_numbers(table[h], largest) for h, largest in layout.counts.items() if h in table.column_names}
+    if any(v is None for v in (*names.values(), *counts.values())):
+        return None
+    values = {name: float_columns([table[h] for h in columns]) for name, columns in layout.vectors.items()}
+    inside = {h for columns in layout.vectors.values() for h in columns}
+    values |= {h: floats(table[h]) for h in layout.floats(table.column_names) if h not in inside}
+    if any(v is None for v in values.values()):
+        return None
+    for name, v in values.items():
+        nulls = sum(table[h].null_count for h in layout.vectors.get(name, (name,)))
+        if nulls and (name in layout.required or name in layout.vectors):
+            return None  # a required float empty
+        if nulls:
+            finite = np.count_nonzero(np.isfinite(v)) == v.size - nulls
+        else:  # a NaN or an infinity shows in the least or the greatest
+            finite = not v.size or bool(np.isfinite(v.min()) and np.isfinite(v.max()))
+        if not finite:
+            return None  # infinite, or a NaN written out rather than an empty field
+    return Table(tuple(h for h in layout.required + layout.optional if h in table.column_names), rows, unit,
+                 names, values, counts)
+
+
+def _checked_csv(path: Path, layout: Layout, hint: str) -> Table:
+    """The Table of a CSV file read with the csv module: the header, the width of every
+    row and every float checked, the first fault named by its line; blank rows skipped."""
+    reader = csv.reader(io.StringIO(read_text(path, hint)))
+    try:
+        header = next(reader, None)
+        if header is None:
+            raise InputError(f"empty file; expected a header {','.join(layout.required)}", path=path)
+        header = [h.strip() for h in header]
+        rows, lines = [], []
+        for row in reader:
+            if row and any(v.strip() for v in row):
+                rows.append(row)
+                lines.append(reader.line_num)
+    except csv.Error as exc:
+        raise InputError(f"not a readable CSV ({exc})", path=path, where=f"line {reader.line_num}") from None
+    missing = [h for h in layout.required if h not in header]
+    if missing:
+        raise InputError(f"header lacks {', '.join(missing)}; expected columns {layout.expected}", path=path,
+                         where="line 1")
+    lines = np.asarray(lines, dtype=int)
+    widths = np.fromiter((len(r) for r in rows), dtype=int, count=len(rows))
+    bad = np.flatnonzero(widths != len(header))
+    if len(bad):
+        raise InputError(f"{widths[bad[0]]} fields, the header has {len(header)}", path=path,
+                         where=f"line {lines[bad[0]]}")
+    cells = np.array(rows, dtype=str).reshape(len(rows), len(header))
+    columns = [h for h in layout.required + layout.optional if h in header]
+    text = {h: np.char.strip(cells[:, header.index(h)]) for h in columns}
+    return _from_text(text, layout, lines, "line", path)
+
+
+def _parquet_text(table: pa.Table, layout: Layout, rows: np.ndarray, path: Path) -> Table:
+    """The Table of a Parquet table that fails the whole-column checks, from the text of
+    its values (an empty field for null), to be checked value by value."""
+    columns = [h for h in layout.required + layout.optional if h in table.column_names]
+    text = {h: np.char.strip(np.array(["" if v is None else str(v) for v in table[h].to_pylist()], dtype=str)
+                             .reshape(-1)) for h in columns}
+    return _from_text(text, layout, rows, "row", path)
+
+
+def _from_text(text: dict[str, np.ndarray], layout: Layout, rows: np.ndarray, unit: str, path: Path) -> Table:
+    """A Table of text columns: names coded, floats parsed (the first that is not a number
+    named by its row)."""
+    names = {}
+    for h in layout.names:
+        if h in text:
+            encoded = pa.array(text[h], pa.string()).dictionary_encode()
+            names[h] = tuple(encoded.dictionary.to_pylist()), encoded.indices.to_numpy(zero_copy_only=False)
+    values = {h: parse_floats(np.where(np.char.str_len(text[h]) == 0, "nan", text[h]), h, rows, path, unit)
+              for h in layout.floats(text)}
+    for name, columns in layout.vectors.items():
+        values[name] = np.column_stack([values.pop(h) for h in columns])
+    return Table(tuple(text), rows, unit, names, values, None,
+                 {h: v for h, v in text.items() if h not in layout.names})
