@@ -32,13 +32,17 @@ LAYOUT = columnar.Layout(REQUIRED, OPTIONAL, names={"camera": MAX_NAME, "marker"
 def load_tracks(paths) -> Tracks:
     """Read one or several tracks files (one per camera, or all cameras in one): CSV, or
     Parquet with the same columns for a ``.parquet`` path. Each file is read once
-    (`columnar.read_table`) and its columns checked in one pass (`_tracks`); then one row
+    and its columns checked in one pass (`_load_one`); then one row
     per marker and frame, and no stray frame, over them all."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [Path(p) for p in paths]
-    tables = [columnar.read_table(path, LAYOUT, "check the tracks path") for path in paths]
-    tracks = concatenate([_tracks(table, path) for table, path in zip(tables, paths)])
+    tables, parts = [], []
+    for path in paths:
+        table, part = _load_one(path)
+        tables.append(table)
+        parts.append(part)
+    tracks = concatenate(parts)
     starts = np.cumsum([0] + [len(table) for table in tables])
 
     def place(k: int) -> str:  # row k by its line (and its file, with several files)
@@ -66,11 +70,11 @@ def load_tracks(paths) -> Tracks:
     return tracks
 
 
-def _tracks(table: columnar.Table, path: Path) -> Tracks:
-    """One file's columns checked in one pass -> Tracks; the first bad row is named (by
-    its line of a CSV, its row of a Parquet file). A table read the fast way has passed the
-    checks of its frames and numbers already (its `text` is None)."""
-    text = table.text
+def _load_one(path: Path) -> tuple[columnar.Table, Tracks]:
+    """One file's table, read once, and its tracks, its columns checked in one pass; the
+    first bad row is named (by its line of a CSV, its row of a Parquet file)."""
+    table = columnar.load_table(path, LAYOUT, "check the tracks path")  # counts and numbers checked
+    text = table.text  # None: read the fast way, every value passed the checks of a text field
 
     def fail(mask: np.ndarray, message) -> None:
         bad = np.flatnonzero(mask)
@@ -85,36 +89,22 @@ def _tracks(table: columnar.Table, path: Path) -> Tracks:
         if bad[0].any() or bad[1].any():
             fail(bad[0][camera] | bad[1][marker], lambda k: message)
 
-    if text is None:
-        frame = table.counts["frame"]
-    else:
-        frames = text["frame"]
-        fail(np.char.startswith(frames, "-") & ascii_digits(np.char.lstrip(frames, "-")),
-             lambda k: f"frame {frames[k]} is negative; frames count from 0")
-        fail(~ascii_digits(frames), lambda k: f"frame {str(frames[k])[:40]!r} is not an integer")
-        fail(np.char.str_len(np.char.lstrip(frames, "0")) > 9,
-             lambda k: f"frame {frames[k]} is beyond {MAX_FRAME:,}; a typo?")
-        frame = frames.astype(np.int64)
-        fail(frame > MAX_FRAME, lambda k: f"frame {frame[k]:,} is beyond {MAX_FRAME:,}; a typo?")
-
     xy = table.values["xy"]
     values = {key: table.values[key] if key in table.values else np.full(len(table), np.nan) for key in ("time", "score")}
-    for key in [k for k in ("x", "y", "time", "score") if k in (text or ())]:
+    for key, number in (("x", xy[:, 0]), ("y", xy[:, 1]), ("time", values["time"]), ("score", values["score"])):
+        if text is None or key not in text:
+            continue
         empty = np.char.str_len(text[key]) == 0
         if key in ("x", "y"):
             fail(empty, lambda k: f"{key} is empty; a marker not seen has no row")
-        fail(~empty & ~np.isfinite(xy[:, "xy".index(key)] if key in ("x", "y") else values[key]),
+        fail(~empty & ~np.isfinite(number),
              lambda k: f"{'x and y must be finite numbers' if key in 'xy' else key + ' must be a finite number'}, "
                        f"got {key} {str(text[key][k])!r}")
     if len(xy) and not (-MAX_PIXEL <= xy.min() and xy.max() <= MAX_PIXEL):
         fail(np.any(np.abs(xy) > MAX_PIXEL, axis=1), lambda k: f"pixel ({xy[k, 0]:g}, {xy[k, 1]:g}) is far outside any image")
-    return Tracks(Coded(cameras, camera), frame, Coded(markers, marker), xy, values["time"], values["score"])
-
-
-def ascii_digits(text: np.ndarray) -> np.ndarray:
-    """(R,) whether each string is made of the digits 0-9 only (no '²', no other scripts' digits)."""
-    ascii = np.char.str_len(np.char.encode(text, "utf-8")) == np.char.str_len(text)
-    return np.char.isdigit(text) & ascii
+    tracks = Tracks(Coded(cameras, camera), table.counts["frame"], Coded(markers, marker), xy, values["time"],
+                    values["score"])
+    return table, tracks
 
 
 def tracks_columns(tracks: Tracks) -> dict[str, np.ndarray]:
