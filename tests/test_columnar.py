@@ -127,6 +127,14 @@ def test_duplicates_across_a_parquet_and_a_csv_name_both_rows(tmp_path):
         load_tracks([tmp_path / "a.parquet", tmp_path / "b.csv"])
 
 
+def test_a_repeat_inside_one_of_several_files_is_named_by_that_file_alone(tmp_path):
+    tracks = random_tracks(np.random.default_rng(3))
+    save_tracks(tracks, tmp_path / "a.csv")
+    save_tracks(tracks.select(np.r_[0, np.arange(len(tracks))]), tmp_path / "b.csv")  # every row of a, its first twice
+    with pytest.raises(InputError, match=r"^.*b.csv: marker .* \(line 2 and line 3\); keep one row"):
+        load_tracks([tmp_path / "a.csv", tmp_path / "b.csv"])
+
+
 def test_points_parquet_round_trip_and_check(tmp_path):
     rng = np.random.default_rng(3)
     n = 40

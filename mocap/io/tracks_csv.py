@@ -31,9 +31,9 @@ LAYOUT = columnar.Layout(REQUIRED, OPTIONAL, names={"camera": MAX_NAME, "marker"
 
 def load_tracks(paths) -> Tracks:
     """Read one or several tracks files (one per camera, or all cameras in one): CSV, or
-    Parquet with the same columns for a ``.parquet`` path. Each file is read once
-    and its columns checked in one pass (`_load_one`); then one row
-    per marker and frame, and no stray frame, over them all."""
+    Parquet with the same columns for a ``.parquet`` path. Each file is read once and its
+    columns checked in one pass (`_load_one`); then one row per marker and frame, and no
+    stray frame, in each file and over them all."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [Path(p) for p in paths]
@@ -43,30 +43,34 @@ def load_tracks(paths) -> Tracks:
         tables.append(table)
         parts.append(part)
     tracks = concatenate(parts)
-    starts = np.cumsum([0] + [len(table) for table in tables])
+    # each file, its rows named by their lines; then, with several, all of them, by file and line
+    scopes = [(part, lambda k, table=table: f"{table.unit} {table.rows[k]}", path)
+              for part, table, path in zip(parts, tables, paths)]
+    if len(paths) > 1:
+        starts = np.cumsum([0] + [len(table) for table in tables])
 
-    def place(k: int) -> str:  # row k by its line (and its file, with several files)
-        i = int(np.searchsorted(starts, k, side="right")) - 1
-        own = f"{tables[i].unit} {tables[i].rows[k - starts[i]]}"
-        return own if len(paths) == 1 else f"{paths[i]} {own}"
+        def file_and_line(k: int) -> str:
+            i = int(np.searchsorted(starts, k, side="right")) - 1
+            return f"{paths[i]} {tables[i].unit} {tables[i].rows[k - starts[i]]}"
 
-    where = ", ".join(map(str, paths))
-    repeat = tracks.first_repeat()
-    if repeat is not None:
-        first, second = repeat
-        raise InputError(
-            f"marker {tracks.marker[first]!r} of camera {tracks.camera[first]!r} appears twice in frame "
-            f"{tracks.frame[first]} ({place(first)} and {place(second)}); keep one row per marker "
-            "and frame", path=where)
-    sparse = tracks.sparse_camera(SPARSE_SPAN)
-    if sparse is not None:
-        name, k, present = sparse
-        frames = tracks.frame[tracks.rows_of_camera(name)]
-        span = int(frames.max() - frames.min()) + 1
-        raise InputError(
-            f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
-            f"{frames.min()} to {frames.max()} ({place(k)}); a stray frame number?",
-            path=where)
+        scopes.append((tracks, file_and_line, ", ".join(map(str, paths))))
+    for rows, place, where in scopes:
+        repeat = rows.first_repeat()
+        if repeat is not None:
+            first, second = repeat
+            raise InputError(
+                f"marker {rows.marker[first]!r} of camera {rows.camera[first]!r} appears twice in frame "
+                f"{rows.frame[first]} ({place(first)} and {place(second)}); keep one row per marker "
+                "and frame", path=where)
+        sparse = rows.sparse_camera(SPARSE_SPAN)
+        if sparse is not None:
+            name, k, present = sparse
+            frames = rows.frame[rows.rows_of_camera(name)]
+            span = int(frames.max() - frames.min()) + 1
+            raise InputError(
+                f"camera {name!r} has rows in only {present:,} of the {span:,} frames from "
+                f"{frames.min()} to {frames.max()} ({place(k)}); a stray frame number?",
+                path=where)
     return tracks
 
 
