@@ -56,7 +56,7 @@ def test_columnar_reading_equals_the_checked_reader(tmp_path, monkeypatch, seed)
 
 def test_rows_are_named_by_their_line_past_blank_lines(tmp_path):
     """The fast read skips blank lines as the checked one does: a message names the row's
-    own line (CRLF line ends too)."""
+    own line (CRLF line ends too; lone CRs too, read the checked way)."""
     tracks = random_tracks(np.random.default_rng(1))
     save_tracks(tracks, tmp_path / "t.csv")
     lines = (tmp_path / "t.csv").read_text().splitlines()
@@ -65,6 +65,9 @@ def test_rows_are_named_by_their_line_past_blank_lines(tmp_path):
         (tmp_path / "b.csv").write_bytes(end.join(lines[:3] + ["", ""] + lines[3:] + [""]).encode())
         with pytest.raises(InputError, match=r"b.csv: line 9: pixel \(2e\+06, "):
             load_tracks(tmp_path / "b.csv")
+    (tmp_path / "c.csv").write_bytes("\r".join(lines).encode())  # lines that end in a lone CR: the checked reader's
+    with pytest.raises(InputError, match=r"c.csv: line 7: pixel \(2e\+06, "):
+        load_tracks(tmp_path / "c.csv")
 
 
 def test_one_file_per_camera_reads_as_one_file_of_them_all(tmp_path):

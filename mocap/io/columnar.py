@@ -92,9 +92,7 @@ def _strict_csv(path: Path, types, counts) -> tuple[pa.Table | None, Callable[[]
     a message needs them), or (None, None)."""
     data = _bytes(path)
     table = None if data is None else _read_strict(data, types, counts)
-    if table is None or (b"\r" in data and data.count(b"\r") != data.count(b"\r\n")):
-        return None, None  # a line end other than "\n" and "\r\n": the csv module counts the lines
-    return table, lambda: _line_numbers(data)
+    return (None, None) if table is None else (table, lambda: _line_numbers(data))
 
 
 def _bytes(path: Path) -> bytes | None:
@@ -118,7 +116,7 @@ def _read_strict(data: bytes, types: dict[str, pa.DataType], counts: tuple[str, 
     first = (data if end < 0 else data[:end]).rstrip(b"\r")
     try:
         header = next(csv.reader([first.decode("utf-8")]), [])
-    except UnicodeDecodeError:
+    except (UnicodeDecodeError, csv.Error):  # not UTF-8, or lines that end in a lone "\r"
         return None
     if not header or len(set(header)) != len(header) or any(h != h.strip() or not h for h in header):
         return None
@@ -151,12 +149,14 @@ def _integer_lookalikes(data: bytes, start: int) -> bool:
 
 
 def _line_numbers(data: bytes) -> np.ndarray:
-    """(R,) the line number of each row pyarrow reads from `data` (it skips empty lines;
-    the lines end in ``\\n`` or ``\\r\\n``)."""
+    """(R,) the line number of each row pyarrow reads from `data`: its lines end in
+    ``\\n``, ``\\r\\n`` or ``\\r``, and it skips the empty ones."""
     byte = np.frombuffer(data, np.uint8)
-    ends = np.flatnonzero(byte == ord("\n"))
-    starts, stops = np.r_[0, ends + 1], np.r_[ends, len(data)]
-    stops = stops - ((stops > starts) & (byte[np.maximum(stops - 1, 0)] == ord("\r")))  # "\r\n": the \r ends it
+    newline, cr = byte == ord("\n"), byte == ord("\r")
+    crlf = cr & np.r_[newline[1:], False]
+    ends = np.flatnonzero(newline | (cr & ~crlf))
+    starts, stops = np.r_[0, ends + 1], np.r_[ends, len(byte)]
+    stops = stops - np.r_[crlf[np.maximum(ends - 1, 0)] & (ends > 0), False]  # "\r\n" ends a line at its "\r"
     return np.flatnonzero(stops > starts)[1:] + 1  # the header on line 1
 
 
