@@ -87,14 +87,16 @@ def _load_one(path: Path) -> tuple[columnar.Table, Tracks]:
             raise InputError(message(k), path=path, where=f"{table.unit} {table.rows[k]}")
 
     (cameras, camera), (markers, marker) = table.names["camera"], table.names["marker"]
+    long = f"a camera or marker name longer than {MAX_NAME} characters"
     for refused, message in ((lambda n: len(n) == 0, "camera and marker must not be empty"),
-                             (lambda n: len(n) > MAX_NAME, f"a camera or marker name longer than {MAX_NAME} characters")):
+                             (lambda n: len(n) > MAX_NAME, long)):
         bad = [np.array([refused(n) for n in names] + [False]) for names in (cameras, markers)]  # per distinct name
         if bad[0].any() or bad[1].any():
             fail(bad[0][camera] | bad[1][marker], lambda k: message)
 
     xy = table.values["xy"]
-    values = {key: table.values[key] if key in table.values else np.full(len(table), np.nan) for key in ("time", "score")}
+    values = {key: table.values[key] if key in table.values else np.full(len(table), np.nan)
+              for key in ("time", "score")}
     for key, number in (("x", xy[:, 0]), ("y", xy[:, 1]), ("time", values["time"]), ("score", values["score"])):
         if text is None or key not in text:
             continue
@@ -105,7 +107,8 @@ def _load_one(path: Path) -> tuple[columnar.Table, Tracks]:
              lambda k: f"{'x and y must be finite numbers' if key in 'xy' else key + ' must be a finite number'}, "
                        f"got {key} {str(text[key][k])!r}")
     if len(xy) and not (-MAX_PIXEL <= xy.min() and xy.max() <= MAX_PIXEL):
-        fail(np.any(np.abs(xy) > MAX_PIXEL, axis=1), lambda k: f"pixel ({xy[k, 0]:g}, {xy[k, 1]:g}) is far outside any image")
+        fail(np.any(np.abs(xy) > MAX_PIXEL, axis=1),
+             lambda k: f"pixel ({xy[k, 0]:g}, {xy[k, 1]:g}) is far outside any image")
     tracks = Tracks(Coded(cameras, camera), table.counts["frame"], Coded(markers, marker), xy, values["time"],
                     values["score"])
     return table, tracks
