@@ -83,8 +83,7 @@ def _typed(table: pa.Table, layout: Layout, rows, unit: str) -> Table | None:
             finite = not v.size or bool(np.isfinite(v.min()) and np.isfinite(v.max()))
         if not finite:
             return None  # infinite, or a NaN written out rather than an empty field
-    return Table(tuple(h for h in layout.required + layout.optional if h in table.column_names), rows, unit,
-                 names, values, counts)
+    return Table(rows, unit, names, values, counts)
 
 
 def _strict_csv(path: Path, types, counts) -> tuple[pa.Table | None, Callable[[], np.ndarray] | None]:
@@ -231,7 +230,7 @@ def _from_text(text: dict[str, np.ndarray], layout: Layout, rows: np.ndarray, un
               for h in layout.floats(text)}
     for name, columns in layout.vectors.items():
         values[name] = np.column_stack([values.pop(h) for h in columns])
-    return Table(tuple(text), rows, unit, names, values, counts,
+    return Table(rows, unit, names, values, counts,
                  {h: v for h, v in text.items() if h not in layout.names and h not in layout.counts})
 
 
@@ -472,7 +471,6 @@ class Table:
     `rows` (R,) numbers each row for messages, as its `unit` (a CSV's line, a Parquet
     file's row)."""
 
-    columns: tuple[str, ...]  # the layout's columns the file has, in the layout's order
     numbering: np.ndarray | Callable[[], np.ndarray]  # `rows`, or how to count them when first asked
     unit: str
     names: dict[str, tuple[tuple[str, ...], np.ndarray]]
