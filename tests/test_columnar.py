@@ -12,8 +12,8 @@ from mocap.errors import InputError
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion, save_motion
 from mocap.io.points_csv import load_points, save_points
-from mocap.io.text import read_text
-from mocap.io.tracks_csv import _parse, _validate, load_tracks, save_tracks
+from mocap.io import columnar
+from mocap.io.tracks_csv import load_tracks, save_tracks
 
 FIELDS = ("camera", "frame", "marker", "xy", "time", "score")
 
@@ -40,14 +40,34 @@ def assert_same(a: Tracks, b: Tracks, atol=0.0) -> None:
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_columnar_reading_equals_the_checked_reader(tmp_path, seed):
+def test_columnar_reading_equals_the_checked_reader(tmp_path, monkeypatch, seed):
     rng = np.random.default_rng(seed)
     tracks = random_tracks(rng, with_time=seed % 2 == 0)
     path = tmp_path / "tracks.csv"
     save_tracks(tracks, path)
-    header, columns, lines = _parse(read_text(path, ""), path)
-    assert_same(load_tracks(path), _validate(header, columns, lines, path))
-    assert_same(load_tracks(path), tracks, atol=5e-5)  # 4 decimals written
+    save_tracks(tracks, tmp_path / "tracks.parquet")
+    fast, fast_parquet = load_tracks(path), load_tracks(tmp_path / "tracks.parquet")
+    assert_same(fast, tracks, atol=5e-5)  # 4 decimals written
+    with monkeypatch.context() as m:  # every value read as text and checked one by one
+        m.setattr(columnar, "_typed", lambda *args: None)
+        assert_same(fast, load_tracks(path))
+        assert_same(fast_parquet, load_tracks(tmp_path / "tracks.parquet"))
+
+
+def test_rows_are_named_by_their_line_past_blank_lines(tmp_path):
+    """The fast read skips blank lines as the checked one does: a message names the row's
+    own line (CRLF line ends too; lone CRs too, read the checked way)."""
+    tracks = random_tracks(np.random.default_rng(1))
+    save_tracks(tracks, tmp_path / "t.csv")
+    lines = (tmp_path / "t.csv").read_text().splitlines()
+    lines[6] = lines[6].replace(lines[6].split(",")[3], "2e6", 1)  # the 6th row's x far outside any image
+    for end in ("\n", "\r\n"):
+        (tmp_path / "b.csv").write_bytes(end.join(lines[:3] + ["", ""] + lines[3:] + [""]).encode())
+        with pytest.raises(InputError, match=r"b.csv: line 9: pixel \(2e\+06, "):
+            load_tracks(tmp_path / "b.csv")
+    (tmp_path / "c.csv").write_bytes("\r".join(lines).encode())  # lines that end in a lone CR: the checked reader's
+    with pytest.raises(InputError, match=r"c.csv: line 7: pixel \(2e\+06, "):
+        load_tracks(tmp_path / "c.csv")
 
 
 def test_one_file_per_camera_reads_as_one_file_of_them_all(tmp_path):
@@ -108,6 +128,14 @@ def test_duplicates_across_a_parquet_and_a_csv_name_both_rows(tmp_path):
     save_tracks(tracks.select(np.arange(len(tracks)) == 4), tmp_path / "b.csv")
     with pytest.raises(InputError, match=r"a.parquet row 5 and .*b.csv line 2"):
         load_tracks([tmp_path / "a.parquet", tmp_path / "b.csv"])
+
+
+def test_a_repeat_inside_one_of_several_files_is_named_by_that_file_alone(tmp_path):
+    tracks = random_tracks(np.random.default_rng(3))
+    save_tracks(tracks, tmp_path / "a.csv")
+    save_tracks(tracks.select(np.r_[0, np.arange(len(tracks))]), tmp_path / "b.csv")  # every row of a, its first twice
+    with pytest.raises(InputError, match=r"^.*b.csv: marker .* \(line 2 and line 3\); keep one row"):
+        load_tracks([tmp_path / "a.csv", tmp_path / "b.csv"])
 
 
 def test_points_parquet_round_trip_and_check(tmp_path):

@@ -13,14 +13,14 @@ from mocap.calibration.dlt import dlt_camera
 from mocap.calibration.lens_choice import calibrate_choosing_lens
 from mocap.calibration.problem import Observations
 from mocap.calibration.solve import CalibrationOptions, calibrate, template_camera
-from mocap.core.tracks import Tracks
+from mocap.core.tracks import Tracks, check_in_images
 from mocap.errors import InputError
 from mocap.io.cameras_toml import save_calibration
 from mocap.io.guess_toml import load_guess
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine
 from mocap.io.points_csv import load_points, save_points
-from mocap.io.tracks_csv import check_in_images, load_tracks
+from mocap.io.tracks_csv import load_tracks
 
 
 @dataclass(frozen=True)

@@ -11,11 +11,11 @@ from mocap.clocks.align import SMOOTH_S, SyncResult, joint_curves, pose_curves, 
 from mocap.clocks.pixels import CameraPixels, refine_offsets
 from mocap.core.calibration import Calibration
 from mocap.core.machine import Machine
-from mocap.core.tracks import Tracks
+from mocap.core.tracks import Tracks, check_in_images
 from mocap.errors import InputError, Report
 from mocap.io.cameras_toml import MAX_FPS, MAX_TIME_OFFSET_S, load_calibration, save_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import check_in_images, load_tracks
+from mocap.io.tracks_csv import load_tracks
 
 
 def run_sync(machine_path, calibration_path, tracks_paths, out, fps_values: list[str], max_offset: float) -> str:

@@ -9,6 +9,8 @@ from functools import cached_property
 import numpy as np
 import pyarrow as pa
 
+from mocap.errors import InputError
+
 
 class Tracks:
     """Observations in long form, R rows: camera (R,) str, frame (R,) int, marker (R,) str,
@@ -123,6 +125,50 @@ class Tracks:
         frame = self.frame[self.rows_of_camera(name)]
         return (int(frame.min()), int(frame.max())) if len(frame) else None
 
+    def first_repeat(self) -> tuple[int, int] | None:
+        """The first two rows (in order) of one (camera, marker, frame), or None."""
+        if len(self) < 2:
+            return None
+        camera_id, marker_id = self.camera_codes.codes, self.marker_codes.codes
+        key_id = camera_id.astype(np.int64) * (marker_id.max() + 1) + marker_id
+        low = int(self.frame.min())
+        span = int(self.frame.max()) - low + 1
+        pair = key_id * span + (self.frame - low)
+        if int(key_id.max() + 1) * span <= 8 * len(self):  # a dense count finds a repeat without sorting
+            if np.bincount(pair).max() < 2:
+                return None
+        order = np.argsort(pair, kind="stable")
+        repeat = np.flatnonzero(pair[order][1:] == pair[order][:-1])
+        if not len(repeat):
+            return None
+        first, second = sorted((order[repeat[0]], order[repeat[0] + 1]))
+        return int(first), int(second)
+
+    def sparse_camera(self, longest: int) -> tuple[str, int, int] | None:
+        """A camera whose frames run over a span longer than `longest` frames and more than
+        ten times the frames it has rows in (the stages allocate by the span): its name,
+        the row of its last frame and the count of its frames, or None."""
+        if not len(self) or int(self.frame.max() - self.frame.min()) + 1 <= longest:
+            return None  # no camera's frames span more
+        camera_id = self.camera_codes.codes
+        for code in range(int(camera_id.max()) + 1):  # the codes number the cameras from 0
+            mine = np.flatnonzero(camera_id == code)
+            if not len(mine):
+                continue
+            frames = self.frame[mine]
+            span = int(frames.max() - frames.min()) + 1
+            if span <= longest:
+                continue
+            if len(frames) * 10 < span:  # fewer rows than a tenth: fewer frames too
+                present = len(np.unique(frames))
+            else:
+                seen = np.zeros(span, bool)
+                seen[frames - frames.min()] = True
+                present = int(np.count_nonzero(seen))
+            if present * 10 < span:
+                return self.camera_codes.names[code], int(mine[np.argmax(frames)]), present
+        return None
+
     def dense(self, cameras, markers, frames) -> np.ndarray:
         """Pixels as (C, F, M, 2), NaN where not seen; rows of other cameras, markers or
         frames are ignored."""
@@ -204,3 +250,31 @@ def concatenate(parts: list[Tracks]) -> Tracks:
 
     frame, xy, time, score = (np.concatenate([getattr(p, f) for p in parts]) for f in ("frame", "xy", "time", "score"))
     return Tracks(names("camera"), frame, names("marker"), xy, time, score)
+
+
+IMAGE_MARGIN = 0.25  # share of the image's width / height a pixel may lie beyond its edge
+
+
+def check_in_images(tracks: Tracks, sizes: dict, where, what: str = "calibration") -> None:
+    """Every row's pixel within its camera's image (`sizes` {camera: (width, height)}), with a
+    margin of a quarter of the image; the first row outside is named."""
+    if not sizes or not len(tracks):
+        return
+    size = np.array(list(sizes.values()), dtype=float)  # (C, 2)
+    if np.all(tracks.xy.min(0) >= (-IMAGE_MARGIN * size).max(0)) and np.all(
+            tracks.xy.max(0) <= ((1 + IMAGE_MARGIN) * size).min(0)):
+        return  # every row inside every camera's image: nothing to look for camera by camera
+    for name, (width, height) in sizes.items():
+        mine = np.flatnonzero(tracks.rows_of_camera(name))
+        if not len(mine):
+            continue
+        xy = tracks.xy[mine]
+        low = -IMAGE_MARGIN * np.array([width, height])
+        high = (1 + IMAGE_MARGIN) * np.array([width, height])
+        outside = np.flatnonzero(np.any((xy < low) | (xy > high), axis=1))
+        if len(outside):
+            k = mine[outside[0]]
+            raise InputError(
+                f"camera {name!r}, frame {tracks.frame[k]}, marker {tracks.marker[k]!r}: pixel "
+                f"({tracks.xy[k, 0]:g}, {tracks.xy[k, 1]:g}) lies outside the {width}x{height} image of "
+                f"the {what}; check the pixels or the image size", path=where)

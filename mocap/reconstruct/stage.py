@@ -13,14 +13,14 @@ import numpy as np
 from mocap.core.calibration import Calibration
 from mocap.core.machine import Machine, Tolerance
 from mocap.core.points import Points
-from mocap.core.tracks import Tracks
+from mocap.core.tracks import Tracks, check_in_images
 from mocap.errors import InputError, Report
 from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import save_points
-from mocap.io.tracks_csv import SPARSE_SPAN, check_in_images, load_tracks
+from mocap.io.tracks_csv import SPARSE_SPAN, load_tracks
 from mocap.progress import progress
 from mocap.reconstruct.outliers import noise_from_fits
 from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock

@@ -11,11 +11,11 @@ import numpy as np
 
 from mocap.core.calibration import Calibration
 from mocap.core.machine import Machine
-from mocap.core.tracks import Tracks
+from mocap.core.tracks import Tracks, check_in_images
 from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
-from mocap.io.tracks_csv import check_in_images, load_tracks, save_tracks
+from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.io.video import Video
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
