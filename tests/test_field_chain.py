@@ -49,7 +49,7 @@ def test_refine_then_fit_run_on_a_field_scene_within_the_estimated_tolerance(tmp
     save_calibration(Calibration(calibration.cameras, tuple({**e, "fps": 30.0} for e in calibration.extras),
                                  calibration.metadata), tmp_path / "cameras.toml")
     capsys.readouterr()
-    assert main(["refine", machine, str(tmp_path / "cameras.toml"), tracks, "--frames", "40",
+    assert main(["refine", machine, str(tmp_path / "cameras.toml"), tracks, "--frames", "20",
                  "--out", str(tmp_path / "refined.toml")]) == 0
     assert "estimated_tolerance" in load_calibration(tmp_path / "refined.toml").metadata
     assert main(["fit", machine, str(tmp_path / "refined.toml"), tracks, "--out", str(tmp_path / "motion.csv")]) == 0
