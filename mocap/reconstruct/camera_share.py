@@ -61,7 +61,10 @@ class CameraCovariance:
         names, matrix = tuple(str(n) for n in table["parameters"]), np.asarray(table["matrix"], dtype=float)
         if matrix.shape != (len(names), len(names)) or not np.all(np.isfinite(matrix)):
             raise ValueError(f"{len(names)} parameters need a {len(names)} x {len(names)} matrix of finite numbers")
-        if np.any(np.diag(matrix) < 0) or not np.allclose(matrix, matrix.T, rtol=1e-6, atol=0):
+        diagonal = np.diag(matrix)
+        # symmetric to a millionth of each pair's scale: an entry near zero is allowed its rounding
+        scale = np.sqrt(np.outer(np.abs(diagonal), np.abs(diagonal))) + 1e-12 * np.abs(matrix).max(initial=0.0)
+        if np.any(diagonal < 0) or np.any(np.abs(matrix - matrix.T) > 1e-6 * scale):
             raise ValueError("a covariance is symmetric with a non-negative diagonal")
         return cls(names, matrix)
 

@@ -455,8 +455,9 @@ class _Problem(KinematicModel):
         apart), takes the carried one: a mirror solution that a machine moving smoothly cannot
         have reached and left. The frame it comes back to must lead back to the carried path
         (fitted from its solution, the stretch's last frame comes to the carried one: a path
-        carried from a lone wrong frame comes back only by a jump of its own). Forward, then
-        backward in time; the shortest stretch first; a stretch whose frame before was mended
+        carried from a lone wrong frame comes back only by a jump of its own). A stretch
+        carried to the session's first or last frame has no frame to come back to
+        (`_edge_detours`). Forward, then backward in time; the shortest stretch first; a stretch whose frame before was mended
         is not one."""
         n_frames = pixels.shape[1]
         if n_frames < 3 or state.rotation is not None or self.machine.n_joints == 0:
@@ -472,10 +473,12 @@ class _Problem(KinematicModel):
                       & (carried.cost < state.cost[jumped] + tie))
             starts = jumped[opened]
             path = [carried.take(np.nonzero(opened)[0])]  # path[k]: every detour's k-th frame carried on
-            alive, found = np.ones(len(starts), bool), []
+            alive, found, edge = np.ones(len(starts), bool), [], []
             for k in range(1, DETOUR_FRAMES + 1):
                 frames = starts + k * step
-                alive &= (frames >= 0) & (frames < n_frames)
+                inside = (frames >= 0) & (frames < n_frames)
+                edge += [(k, d) for d in np.nonzero(alive & ~inside)[0]]  # carried to the session's end
+                alive &= inside
                 if not alive.any():
                     break
                 index = np.nonzero(alive)[0]
@@ -492,6 +495,7 @@ class _Problem(KinematicModel):
                 ends, last = starts[d] + k * step, FrameState.concatenate([path[k - 1].take([d]) for k, d in found])
                 led = self.levenberg_marquardt(by_frame[ends - step], state.take(ends))
                 found = [f for f, near in zip(found, ~self._far(led.joints, last.joints, last.hessian, noise)) if near]
+            found = sorted(found + self._edge_detours(state, starts, edge, step, noise))
             changed = np.zeros(n_frames, bool)
             for k, d in found:  # shortest first
                 if changed[starts[d] - step]:
@@ -503,6 +507,21 @@ class _Problem(KinematicModel):
         if mended:
             log.info("%d frame(s) on a solution the frames around them do not have, which their pixels cannot "
                      "tell from the continuous one, take the continuous one", mended)
+
+    def _edge_detours(self, state: FrameState, starts: np.ndarray, edge: list, step: int,
+                      noise: float) -> list:
+        """The stretches (k, d) of `mend_detours` that the carried path explains up to the
+        session's first or last frame, where there is no frame to come back to: mended
+        where the frames before the stretch outnumber it and the two frames before it agree
+        (the carried path comes from a continuous stretch, not from a lone wrong frame)."""
+        n_frames, kept = len(state.joints), []
+        for k, d in edge:
+            before, earlier = starts[d] - step, starts[d] - 2 * step
+            outnumbered = (before + 1 if step == 1 else n_frames - before) > k
+            if outnumbered and 0 <= earlier < n_frames and not self._far(
+                    state.joints[[earlier]], state.joints[[before]], state.hessian[[before]], noise)[0]:
+                kept.append((k, d))
+        return kept
 
     def _far(self, joints: np.ndarray, own: np.ndarray, hessian: np.ndarray, noise: float) -> np.ndarray:
         """(N,) joints (N, J) further than `FAR_SDS` from the solutions `own` (N, J) by their

@@ -11,11 +11,15 @@ With a stated tolerance (the fit options' or the model's) the markers' offsets f
 measured positions are estimated over the session (mocap.reconstruct.offsets) and their
 uncertainty, common to all frames, is added to every frame's after smoothing; so is the
 calibration's (its covariance of the cameras, and of the markers' offsets where refine
-estimated them: mocap.reconstruct.camera_share), an error common to all frames too.
+estimated them: mocap.reconstruct.camera_share), an error common to all frames too. With
+none stated (nor an exact model stated, a tolerance of 0), markers that the exact model's
+fit leaves off in every frame (`mocap.reconstruct.offsets.markers_off`, three or more) have
+their offsets estimated within the paper's tape tolerance, ±5 %, with a warning.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -28,16 +32,18 @@ from mocap.reconstruct.base_check import BaseCheck, check_base_motion
 from mocap.reconstruct.camera_share import CameraCovariance, camera_share
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
-from mocap.reconstruct.offsets import MarkerOffsets, fit_with_offsets
+from mocap.reconstruct.offsets import ASSUMED_TOLERANCE, SHOWN_MARKERS, MarkerOffsets, fit_with_offsets, markers_off
 from mocap.reconstruct.smooth import Smoothed, SmoothOptions, smooth
 from mocap.reconstruct.uncertainty import point_quantities
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class MotionResult:
     """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None;
-    offsets: the markers' estimated offsets (MarkerOffsets) with a stated tolerance, else
-    None (the fit is then of the model with its markers moved by them); base_check: with
+    offsets: the markers' estimated offsets (MarkerOffsets) with a stated tolerance (or
+    with none stated, where the exact model's fit leaves markers off), else None (the fit is then of the model with its markers moved by them); base_check: with
     `choose_base`, the check of a fixed base against a moving one (BaseCheck), else None."""
 
     motion: Motion
@@ -132,9 +138,20 @@ def reconstruct_motion(
 
 def _fit(machine: Machine, cameras: list[Camera], pixels: np.ndarray, options: FitOptions,
          initial: np.ndarray | None):
-    """The per-frame fit, with the markers' offsets estimated when a tolerance is stated:
+    """The per-frame fit, with the markers' offsets estimated when a tolerance is stated
+    or, with none stated, the exact model's fit leaves markers off (`markers_off`):
     (JointFit, MarkerOffsets or None, what the offsets add to each frame's covariance)."""
     if options.tolerance_of(machine):
         result = fit_with_offsets(machine, cameras, pixels, initial=initial, options=options)
         return result.fit, result.offsets, result.shared
-    return fit_joints(machine, cameras, pixels, initial=initial, options=options), None, 0.0
+    fit = fit_joints(machine, cameras, pixels, initial=initial, options=options)
+    off = markers_off(fit) if options.tolerance is None else np.zeros(0, bool)  # an exact model stated stays exact
+    if off.sum() < SHOWN_MARKERS:
+        return fit, None, 0.0
+    log.warning("%d markers (%s) sit off their measured positions in every frame, beyond the pixel noise, and no "
+                "tolerance is stated: their offsets are estimated within the paper's %g %% (state --tolerance, or "
+                "`tolerance` in the model file)", off.sum(), ", ".join(np.asarray(machine.marker_names)[off][:5]),
+                100 * ASSUMED_TOLERANCE.fraction)
+    result = fit_with_offsets(machine, cameras, pixels, initial=initial,
+                              options=replace(options, tolerance=ASSUMED_TOLERANCE))
+    return result.fit, result.offsets, result.shared

@@ -378,6 +378,8 @@ def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_o
     from mocap.reconstruct.motion import reconstruct_motion
 
     fit_options = FitOptions() if fit_options is None else fit_options
+    if fit_options.tolerance is None and not machine.tolerance:
+        fit_options = replace(fit_options, tolerance=estimated_tolerance(calibration))
     markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     if machine.n_joints == 0 and not fit_options.base_motion:
@@ -408,6 +410,17 @@ def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_o
         fit_options = replace(fit_options, base_motion=True)
     ambiguity = _ambiguity(fitted_machine, list(calibration.cameras), clock.pixels, fit, fit_options)
     return Fitted(result.motion, fitted_machine, result, ambiguity, clock.dropped)
+
+
+def estimated_tolerance(calibration: Calibration) -> Tolerance | None:
+    """The markers' tolerance that calibrate estimated from its residuals where none was
+    stated (``estimated_tolerance`` in the calibration's metadata, kept by refine), or None:
+    refine and fit use it where neither the command nor the model file states one."""
+    fraction = calibration.metadata.get("estimated_tolerance")
+    if fraction is None:
+        return None
+    log.info("the markers' tolerance: %.1f %%, estimated by the calibration (none stated)", 100 * float(fraction))
+    return Tolerance(float(fraction))
 
 
 def covariance_of(calibration: Calibration, path=None):
@@ -524,6 +537,8 @@ def refine_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, o
     from mocap.reconstruct.refine import RefineOptions, refine
 
     options = RefineOptions() if options is None else options
+    if options.tolerance is None and not machine.tolerance:
+        options = replace(options, tolerance=estimated_tolerance(calibration))
     markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
     cameras = list(calibration.cameras)
     if known_intrinsics is not None:  # known intrinsics: used and kept
