@@ -154,7 +154,7 @@ def find_candidates(
     keep = (radius >= 0.8 * options.min_radius) & (radius <= options.max_radius)
     keep &= area >= 0.4 * width * height  # compact, not a line or a frame
     keep &= np.maximum(width, height) <= options.max_elongation * np.minimum(width, height) + 2
-    if not np.any(keep):
+    if not keep.any():
         return np.zeros((0, 2)), np.zeros((0, 2, 2))
     # second moments of the kept regions, all at once
     index = np.zeros(count, dtype=int)
@@ -216,7 +216,7 @@ def accept(detections: Detections, ring: np.ndarray, options: DetectOptions) -> 
     ok &= ring[:, 0] <= options.max_ring_spread
     ok &= (np.sqrt(a * b) >= options.min_radius) & (a <= options.max_radius)
     ok &= a <= options.max_elongation * b
-    return ok & np.all(np.isfinite(detections.xy), axis=1)
+    return ok & np.isfinite(detections.xy).all(axis=1)
 
 
 def detect_disks(
@@ -297,7 +297,7 @@ def unique(detections: Detections) -> Detections:
     xy, radius = detections.xy[order], detections.radius[order]
     dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
     close = dist < 0.5 * np.minimum(radius[:, None], radius[None])
-    keep = ~np.any(np.triu(close, 1), axis=0)
+    keep = ~np.triu(close, 1).any(axis=0)
     return detections.select(order[keep])
 
 

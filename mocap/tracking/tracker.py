@@ -187,7 +187,7 @@ class Tracker:
         # joints the held markers show may also be picked up by the final assignment
         known = model.known_markers(held)
         returning = visible & ~recent
-        if np.any(returning):
+        if returning.any():
             joints, known, moved_uv = self._regain(found, observed, joints, held, held_index, returning, reach, expected,
                                                    known)
             fitted_uv = fitted_uv if moved_uv is None else moved_uv
@@ -203,7 +203,7 @@ class Tracker:
         # where the fitted model puts one, within the tight gate, labels it
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
-        if np.any(again):
+        if again.any():
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
@@ -219,7 +219,7 @@ class Tracker:
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, allowed=sized)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
-        if np.any(prior_hidden):
+        if prior_hidden.any():
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
                                                face_on)
         final = np.full(uv.shape, np.nan)
@@ -263,7 +263,7 @@ class Tracker:
         """Whether a full-frame search could help: a joint has not been seen by any labelled
         marker for `lost_frames` frames (its link may have come back far from where it was
         left, or out of the model's view)."""
-        return bool(np.any(self.state.unseen >= self.options.lost_frames))
+        return bool((self.state.unseen >= self.options.lost_frames).any())
 
     def restart(self, start: FrameResult, gray: np.ndarray | None = None) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss). The joints
@@ -278,8 +278,8 @@ class Tracker:
         anchor = state.joints if state.anchor is None else state.anchor
         candidates = np.where(shown, start.joints, np.array([anchor, state.joints, start.joints]))
         joints = candidates[0]
-        unshown = np.any(model.machine.marker_moves[~shown], axis=0)  # (M,) the markers they move
-        if gray is not None and np.any(unshown):
+        unshown = model.machine.marker_moves[~shown].any(axis=0)  # (M,) the markers they move
+        if gray is not None and unshown.any():
             view = model.view(candidates)
             radius = view.scale * state.disk_m if np.isfinite(state.disk_m) else np.full(view.scale.shape, np.median(
                 start.detections.radius) if len(start.detections) else 3.0)
@@ -366,7 +366,7 @@ class Tracker:
         taken[held_index] = True
         free = np.where(taken[:, None], np.inf, found.xy)
         near = np.linalg.norm(self.state.uv[returning, None] - free[None], axis=-1) <= 2.0 * reach[returning, None]
-        if not np.any(near):  # no free detection anywhere near a returning marker
+        if not near.any():  # no free detection anywhere near a returning marker
             return joints, known, None
         moved_uv = None
         back_uv = model.pixels(joints[None])[0]
@@ -411,7 +411,7 @@ class Tracker:
         state.swept += 1
         due = (state.unseen >= _SWEEP_EVERY) & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY,
                                                                           _SWEEP_EVERY))
-        if not np.any(due) or not np.isfinite(state.disk_m):
+        if not due.any() or not np.isfinite(state.disk_m):
             return predicted
         state.swept[due] = 0
         moves = machine.marker_moves & (machine.tags < 0)  # (J, M), disks only
@@ -422,7 +422,7 @@ class Tracker:
         # the arm would find its markers on the arm's); a swept joint moves none of them
         held = state.uv[state.missed == 0] + state.shift
         for j in np.flatnonzero(due):
-            own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
+            own = moves[j] & ~np.delete(moves & unseen[:, None], j, axis=0).any(axis=0)
             if np.sum(own) < _SWEEP_MARKERS:
                 continue
             low, high = machine.joint_limits[j]
@@ -431,7 +431,7 @@ class Tracker:
             coarse = np.tile(predicted, (64, 1))
             coarse[:, j] = np.linspace(low, high, 64)
             moved = np.linalg.norm(np.diff(model.pixels(coarse)[:, own], axis=0), axis=-1)
-            if not np.any(np.isfinite(moved)):
+            if not np.isfinite(moved).any():
                 continue  # its markers behind the camera all along
             speed = np.nanmax(moved) / (coarse[1, j] - coarse[0, j])
             if speed <= 0:
@@ -525,11 +525,11 @@ class Tracker:
         # 4th frame, as `_search` looks around them
         missed = self.state.missed[markers]
         missing &= (missed <= 3) | (missed % 4 == 0)
-        if np.any(missing):
+        if missing.any():
             found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect,
                                                                   first.of(missing))]))
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
-        if np.any(missing):
+        if missing.any():
             found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
         return found
 
@@ -551,12 +551,12 @@ class Tracker:
         found = accepted(first.detections, first.ring, detect)
         close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
         missing = ~_near_any(uv[seeds], found.xy, close)
-        if np.any(missing):
+        if missing.any():
             again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect, first.of(missing))
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
         followed = missing & (missed[seeds] <= 2)
-        if np.any(followed):  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
+        if followed.any():  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
             again = refine_and_accept(gray, uv[seeds[followed]], circles[followed], detect)
             found = unique(concatenate([found, again]))
             missing[followed] = ~_near_any(uv[seeds[followed]], again.xy, close[followed])
@@ -599,7 +599,7 @@ def disks_in_view(model: CameraModel, view: View, occlusion: bool = True) -> np.
         return view.visible[0] & disks
     uv = view.uv[0]
     w, h = model.camera.size
-    inside = np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+    inside = np.isfinite(uv).all(axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
     return inside & (uv[:, 1] <= h - 1) & disks
 
 
@@ -618,7 +618,7 @@ def _box_contrast(integral: np.ndarray, uv: np.ndarray, radius: np.ndarray) -> n
         total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
         return total, (x1 - x0) * (y1 - y0)
 
-    finite = np.all(np.isfinite(uv), axis=-1)
+    finite = np.isfinite(uv).all(axis=-1)
     uv = np.where(finite[..., None], uv, -1e6)
     inner, inner_area = box(np.maximum(0.7 * radius, 0.5))
     outer, outer_area = box(2.2 * radius)
@@ -663,14 +663,14 @@ def assign(
     sooner: the gate is not widened).
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
-    if len(detected) == 0 or not np.any(visible):
+    if len(detected) == 0 or not visible.any():
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost) & (True if allowed is None else allowed)
     if detected_radius is not None and expected_radius is not None:
         allowed &= _same_size(detected_radius[None], expected_radius[:, None], size_ratio, size_px)
-    rows = np.nonzero(np.any(allowed, axis=1))[0]
-    cols = np.nonzero(np.any(allowed, axis=0))[0]
+    rows = np.nonzero(allowed.any(axis=1))[0]
+    cols = np.nonzero(allowed.any(axis=0))[0]
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if penalty is not None:
@@ -700,4 +700,4 @@ def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndar
     """(K,) whether each of `points` (K, 2) has one of `xy` (N, 2) within its `radius` (K,)."""
     if len(xy) == 0:
         return np.zeros(len(points), dtype=bool)
-    return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
+    return (np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None]).any(axis=1)
