@@ -11,7 +11,7 @@ import numpy as np
 
 from mocap.core.machine import Machine
 from mocap.core.tracks import Tracks, concatenate
-from mocap.tracking.detect import TagFinder, detect_disks
+from mocap.tracking.detect import TagFinder, detect_disks, length
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
 from mocap.tracking.normals import NormalEvidence, NormalLearner
@@ -283,7 +283,7 @@ def _learn(learner: NormalLearner, model: CameraModel, result: FrameResult) -> N
     disks = machine.tags[result.markers] < 0
     # a disk the fit leaves off its place (partly covered: its outline cut, its ellipse not the
     # disk's) is no evidence of its normal
-    residual = np.linalg.norm(result.detections.xy - model.pixels(result.joints[None])[0, result.markers], axis=-1)
+    residual = length(result.detections.xy - model.pixels(result.joints[None])[0, result.markers])
     if disks.any():
         disks &= residual <= max(_LEARN_RESIDUAL * float(np.median(residual[disks])), _LEARN_RESIDUAL_PX)
     markers = result.markers[disks]
@@ -320,7 +320,7 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray,
     if taken is not None and len(found):
         found = found.select(~_near_any(found.xy, taken, 0.5 * np.maximum(found.radius, 2.0)))
     if len(found):
-        near = np.linalg.norm(at[:, None] - found.xy[None], axis=-1) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
+        near = length(at[:, None] - found.xy[None]) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
         ratio = found.axes[None, :, 0] / radius[:, None]
         sized = ((ratio > 0.75) & (ratio < 1.33)) | (np.abs(found.axes[None, :, 0] - radius[:, None]) <= 1.0)
         spot[markers] = (near & sized).any(axis=1)

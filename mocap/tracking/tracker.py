@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mocap.tracking.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
-                          refine_and_accept, refine_converged, refine_sourced, unique)
+                          length, refine_and_accept, refine_converged, refine_sourced, unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -152,7 +152,7 @@ class Tracker:
         recent = state.missed <= 2
         visible = state.visible = self._visible(view)
         expected = self._expected_radius(view.scale[0])
-        motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
+        motion = np.nan_to_num(length(uv - state.uv))
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
@@ -173,7 +173,7 @@ class Tracker:
         state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
         found = replace(seen, xy=seen.xy - state.shift)
         observed[markers] = found.xy[index]
-        residual = np.linalg.norm(observed[markers] - fitted_uv[markers], axis=-1)
+        residual = length(observed[markers] - fitted_uv[markers])
         keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
@@ -191,7 +191,7 @@ class Tracker:
             joints, known, moved_uv = self._regain(found, observed, joints, held, held_index, returning, reach, expected,
                                                    known)
             fitted_uv = fitted_uv if moved_uv is None else moved_uv
-        residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
+        residual = length(fitted_uv[held] - found.xy[held_index])
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         # the fitted joints put the markers nearer their disks than the prediction did (a
@@ -251,7 +251,7 @@ class Tracker:
             offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
             # the shift is a small share of a disk's radius; a larger one comes from joints not yet
             # fitted well (just after the machine was found again) and is not applied
-            plausible = np.linalg.norm(offset, axis=1) <= 0.2 * labelled.radius
+            plausible = length(offset) <= 0.2 * labelled.radius
             labelled = replace(labelled, xy=labelled.xy + offset * plausible[:, None])
         return FrameResult(markers, labelled, joints, True, rms)
 
@@ -330,8 +330,8 @@ class Tracker:
                                   found.axes[:, 0], face_on)
         if len(more) == 0:
             return markers, index
-        mine = np.linalg.norm(fitted_uv[more] - found.xy[more_index], axis=1)
-        theirs = np.linalg.norm(fitted_uv[shown][:, None] - found.xy[more_index][None], axis=-1).min(axis=0, initial=np.inf)
+        mine = length(fitted_uv[more] - found.xy[more_index])
+        theirs = length(fitted_uv[shown][:, None] - found.xy[more_index][None]).min(axis=0, initial=np.inf)
         wins = mine < 0.5 * theirs
         keep = ~np.isin(index, more_index[wins])
         return np.r_[markers[keep], more[wins]], np.r_[index[keep], more_index[wins]]
@@ -365,7 +365,7 @@ class Tracker:
         taken = np.zeros(len(found), dtype=bool)
         taken[held_index] = True
         free = np.where(taken[:, None], np.inf, found.xy)
-        near = np.linalg.norm(self.state.uv[returning, None] - free[None], axis=-1) <= 2.0 * reach[returning, None]
+        near = length(self.state.uv[returning, None] - free[None]) <= 2.0 * reach[returning, None]
         if not near.any():  # no free detection anywhere near a returning marker
             return joints, known, None
         moved_uv = None
@@ -374,7 +374,7 @@ class Tracker:
             gate = np.maximum(g * reach, options.tight_px)
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
             # a marker alone on its link fits any blob along its arc: only the one blob in reach
-            alone = np.sum(np.linalg.norm(back_uv[back, None] - free[None], axis=-1) <= gate[back, None], axis=1) == 1
+            alone = np.sum(length(back_uv[back, None] - free[None]) <= gate[back, None], axis=1) == 1
             # ... and only if it alone shows at most one joint: with two, its two coordinates
             # fix them with nothing to spare, and it fits any blob at all
             alone &= np.sum(model.machine.marker_moves[:, back] & ~model.observed_joints(held)[:, None], axis=0) <= 1
@@ -430,7 +430,7 @@ class Tracker:
                 low, high = predicted[j] - np.pi, predicted[j] + np.pi
             coarse = np.tile(predicted, (64, 1))
             coarse[:, j] = np.linspace(low, high, 64)
-            moved = np.linalg.norm(np.diff(model.pixels(coarse)[:, own], axis=0), axis=-1)
+            moved = length(np.diff(model.pixels(coarse)[:, own], axis=0))
             if not np.isfinite(moved).any():
                 continue  # its markers behind the camera all along
             speed = np.nanmax(moved) / (coarse[1, j] - coarse[0, j])
@@ -505,7 +505,7 @@ class Tracker:
         if len(loose) == 0:
             return strict
         again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
-        stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
+        stays = length(again.xy - loose.xy) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
 
     def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
@@ -579,7 +579,7 @@ class Tracker:
                                      (x0, y0)) for k in (3.0, 1.5)]
             xy, shape = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
             size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
-            near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
+            near = (length(xy - uv[m]) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
             shapes.append(shape[near])
         if not xys:
@@ -700,4 +700,4 @@ def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndar
     """(K,) whether each of `points` (K, 2) has one of `xy` (N, 2) within its `radius` (K,)."""
     if len(xy) == 0:
         return np.zeros(len(points), dtype=bool)
-    return (np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None]).any(axis=1)
+    return (length(points[:, None] - xy[None]) < radius[:, None]).any(axis=1)
