@@ -14,6 +14,13 @@ as visible when all of its painted square is in view (the true tracks' score is 
 
     python benchmarks/bench_tracking.py [--size 1920x1080] [--cameras 3] [--cycles 1] [--seed 7]
 
+`--processes` also times, per camera, `mocap track` of the video against a process that only
+reads it with OpenCV, both as whole processes run in turn (wall and CPU seconds, the CPU of
+all of a process's threads: the tracker decodes on a thread of its own beside the tracking),
+and prints the load average: on a shared machine the wall clock says how busy it is.
+
+    python benchmarks/bench_tracking.py --session DIR --cameras 1 --repeat 3 --processes
+
 With `--looks N`: N sessions, each in its own random look (`mocap.synthetic.looks`:
 machine paint, light, marker paint, haze, defocus, compression, noise, size, lens, shake,
 rolling shutter: the truth then each marker where it is when its own row is read),
@@ -62,6 +69,8 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -112,6 +121,44 @@ def grey_floor(video: Video) -> float:
     for _ in video.frames(prefetch=4):
         pass
     return time.perf_counter() - start
+
+
+_DECODE_ONLY = """import sys, cv2
+capture = cv2.VideoCapture(sys.argv[1])
+while capture.read()[0]:
+    pass
+"""
+
+
+def _child_run(command: list[str]) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system, all of its threads) of one child process."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def whole_processes(root: Path, machine: str, camera: str, repeat: int, out: Path) -> dict[str, float]:
+    """`mocap track` of one camera's video against a process that only reads the same video
+    with OpenCV (`cv2.VideoCapture`, colour, its default threads), both whole processes (the
+    interpreter's start and the imports included), run in turn `repeat` times: the least wall
+    and CPU seconds of each and the medians of the pairs' ratios."""
+    video = root / "videos" / f"{camera}.mp4"
+    track = [sys.executable, "-m", "mocap.cli", "track", str(video), "--machine", machine, "--calibration",
+             str(root / "truth" / "cameras.toml"), "--camera", camera, "--out", str(out)]
+    decode = [sys.executable, "-c", _DECODE_ONLY, str(video)]
+    _child_run(decode)  # warm: the file in the page cache, the compiled kernels loaded once
+    _child_run(track)
+    tracks, decodes = [], []
+    for _ in range(repeat):
+        tracks.append(_child_run(track))
+        decodes.append(_child_run(decode))
+    t, d = np.array(tracks), np.array(decodes)
+    return {"track wall": t[:, 0].min(), "track cpu": t[:, 1].min(), "decode wall": d[:, 0].min(),
+            "decode cpu": d[:, 1].min(), "wall ratio": float(np.median(t[:, 0] / d[:, 0])),
+            "cpu ratio": float(np.median(t[:, 1] / d[:, 1]))}
 
 
 def score(truth, tracks):
@@ -409,6 +456,8 @@ def main() -> int:
     parser.add_argument("--machine", default="hitachi_ex3500")
     parser.add_argument("--session", help="use this rendered session folder instead of rendering one")
     parser.add_argument("--repeat", type=int, default=2, help="timed runs per camera (the least counts)")
+    parser.add_argument("--processes", action="store_true",
+                        help="also time `mocap track` and an OpenCV decode of each video as whole processes")
     parser.add_argument("--looks", type=int, default=0, help="track over this many random looks instead")
     parser.add_argument("--frames", type=int, default=120, help="with --looks: frames per camera")
     parser.add_argument("--hide", type=int, default=30, help="with --looks: frames the picture is covered")
@@ -472,6 +521,18 @@ def main() -> int:
             frames = np.arange(tracks.frame.max() + 1)
             pixels = tracks.dense([camera.name], machine.marker_names, frames)[0]
             curves.append(joint_curves(machine, camera, frames, pixels, truth_cal.joints(machine)))
+        if args.processes:
+            load = os.getloadavg()[0]
+            print(f"\nwhole processes, `mocap track` against OpenCV reading the same video, {args.repeat} runs each "
+                  f"in turn (least seconds; ratios the medians of the pairs'); load average {load:.1f} on "
+                  f"{os.cpu_count()} cores before")
+            print(f"{'camera':>7} {'decode wall':>11} {'track wall':>10} {'wall ratio':>10} {'decode cpu':>10} "
+                  f"{'track cpu':>9} {'cpu ratio':>9}")
+            for camera in truth_cal.cameras:
+                r = whole_processes(root, args.machine, camera.name, args.repeat, Path(tmp) / f"{camera.name}.csv")
+                print(f"{camera.name:>7} {r['decode wall']:>11.2f} {r['track wall']:>10.2f} {r['wall ratio']:>10.2f} "
+                      f"{r['decode cpu']:>10.2f} {r['track cpu']:>9.2f} {r['cpu ratio']:>9.2f}")
+            print(f"load average {os.getloadavg()[0]:.1f} after (the wall ratios hold on a quiet machine only)\n")
         errors = np.concatenate(all_errors)
         print(f"all cameras: centre error median {np.median(errors):.3f} px, 95th percentile {np.percentile(errors, 95):.3f} px")
         fps = truth_cal.fps()

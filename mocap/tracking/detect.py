@@ -106,8 +106,7 @@ class Detections:
         concatenation, the refinement's output): without `__post_init__`'s checks, which cost
         more than the selection itself in a frame's many small ones."""
         new = object.__new__(cls)
-        for name, value in zip(_FIELDS, (xy, axes, angle, contrast, fill, score)):
-            object.__setattr__(new, name, value)
+        new.__dict__.update(xy=xy, axes=axes, angle=angle, contrast=contrast, fill=fill, score=score)
         return new
 
     @classmethod
@@ -154,7 +153,7 @@ def find_candidates(
     keep = (radius >= 0.8 * options.min_radius) & (radius <= options.max_radius)
     keep &= area >= 0.4 * width * height  # compact, not a line or a frame
     keep &= np.maximum(width, height) <= options.max_elongation * np.minimum(width, height) + 2
-    if not np.any(keep):
+    if not keep.any():
         return np.zeros((0, 2)), np.zeros((0, 2, 2))
     # second moments of the kept regions, all at once
     index = np.zeros(count, dtype=int)
@@ -216,7 +215,7 @@ def accept(detections: Detections, ring: np.ndarray, options: DetectOptions) -> 
     ok &= ring[:, 0] <= options.max_ring_spread
     ok &= (np.sqrt(a * b) >= options.min_radius) & (a <= options.max_radius)
     ok &= a <= options.max_elongation * b
-    return ok & np.all(np.isfinite(detections.xy), axis=1)
+    return ok & np.isfinite(detections.xy).all(axis=1)
 
 
 def detect_disks(
@@ -289,15 +288,21 @@ def accepted(found: Detections, ring: np.ndarray, options: DetectOptions) -> Det
     return unique(found.select(accept(found, ring, options)))
 
 
+def length(d: np.ndarray) -> np.ndarray:
+    """(...) the Euclidean lengths of `d` (..., 2) along its last axis: `np.linalg.norm`'s sum,
+    without its dispatch (a frame makes dozens of these small ones)."""
+    return np.sqrt(np.add.reduce(d * d, axis=-1))
+
+
 def unique(detections: Detections) -> Detections:
     """Drop detections within half a radius of a better-scored one."""
     if len(detections) < 2:
         return detections
     order = np.argsort(-detections.score)
     xy, radius = detections.xy[order], detections.radius[order]
-    dist = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    dist = length(xy[:, None] - xy[None])
     close = dist < 0.5 * np.minimum(radius[:, None], radius[None])
-    keep = ~np.any(np.triu(close, 1), axis=0)
+    keep = ~np.triu(close, 1).any(axis=0)
     return detections.select(order[keep])
 
 

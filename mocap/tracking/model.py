@@ -65,7 +65,7 @@ class CameraModel:
     def with_normals(self, normals: np.ndarray) -> CameraModel:
         """The same model with the markers' normals (M, 3) in their link frames replaced
         where finite (e.g. learned, `mocap.tracking.normals`); the rest as they were."""
-        normals = np.where(np.all(np.isfinite(normals), axis=1)[:, None], normals, self.normals)
+        normals = np.where(np.isfinite(normals).all(axis=1)[:, None], normals, self.normals)
         machine = replace(self.machine, marker_normals=normals)
         return CameraModel(machine, self.camera, self.boxes, self.solid)
 
@@ -108,7 +108,7 @@ class CameraModel:
         uv, seen, scale = marker_view(joints, chain, links, positions, rotation, translation, matrix, distortion,
                                       np.ascontiguousarray(self.boxes, dtype=float), np.ascontiguousarray(self.normals),
                                       float(width), float(height), self.solid, MIN_FACING_COS, self._box_hides)
-        if self.solid and self.machine.link_solids and np.any(seen):  # the stated cylinders and meshes hide too
+        if self.solid and self.machine.link_solids and seen.any():  # the stated cylinders and meshes hide too
             machine = self.machine
             poses = np.ascontiguousarray(machine.link_poses(joints), dtype=float)
             world = np.ascontiguousarray(machine.markers(joints))
@@ -150,12 +150,12 @@ class CameraModel:
 
     def observed_joints(self, markers: np.ndarray) -> np.ndarray:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
-        return np.any(self.machine.marker_moves[:, np.asarray(markers, dtype=int)], axis=1)
+        return self.machine.marker_moves[:, np.asarray(markers, dtype=int)].any(axis=1)
 
     def known_markers(self, held: np.ndarray) -> np.ndarray:
         """(M,) bool: the markers whose every moving joint some `held` marker (indices) shows."""
         seen = self.observed_joints(held)
-        return ~np.any(self.machine.marker_moves & ~seen[:, None], axis=0)
+        return ~(self.machine.marker_moves & ~seen[:, None]).any(axis=0)
 
     def supported(self, new: np.ndarray, held: np.ndarray) -> np.ndarray:
         """(K,) bool over marker indices `new`: the new markers that depend on joints no
@@ -166,8 +166,8 @@ class CameraModel:
         new = np.asarray(new, dtype=int)
         known = self.observed_joints(held)
         unknown = self.machine.marker_moves[:, new] & ~known[:, None]  # (J, K)
-        needs = np.any(unknown, axis=0)
-        n_unknown = int(np.any(unknown[:, needs], axis=1).sum())
+        needs = unknown.any(axis=0)
+        n_unknown = int(unknown[:, needs].any(axis=1).sum())
         return ~needs | (2 * int(needs.sum()) >= n_unknown + 2)
 
     def fit(

@@ -11,7 +11,7 @@ import numpy as np
 
 from mocap.core.machine import Machine
 from mocap.core.tracks import Tracks, concatenate
-from mocap.tracking.detect import TagFinder, detect_disks
+from mocap.tracking.detect import TagFinder, detect_disks, length
 from mocap.tracking.labels import labels_from_pixels, propose_labels, starts_around
 from mocap.tracking.model import CameraModel
 from mocap.tracking.normals import NormalEvidence, NormalLearner
@@ -70,7 +70,7 @@ def label_first_frame(
     search from joint values `start` (J,)."""
     found = detect_disks(gray, options.detect)
     tags = tag_pixels(model.machine, gray, finder)
-    if tags is not None and np.any(np.isfinite(tags[:, 0])):
+    if tags is not None and np.isfinite(tags[:, 0]).any():
         labelled = tags if labelled is None else np.where(np.isfinite(tags), tags, labelled)
     if labelled is not None:
         return labels_from_pixels(model, found, labelled, start)
@@ -82,7 +82,7 @@ def tag_pixels(machine: Machine, gray: np.ndarray, finder: TagFinder | None = No
     the markers not found and those that are disks); None if the machine carries no tags.
     `finder` the video's `TagFinder` (None: a new one, every pass)."""
     tags = machine.tags
-    if not np.any(tags >= 0):
+    if not (tags >= 0).any():
         return None
     found = (finder or TagFinder(machine.tag_dictionary))(gray)
     pixels = np.full((len(tags), 2), np.nan)
@@ -142,10 +142,10 @@ def track_frames(
     names = model.machine.marker_names
     camera = model.camera.name
     rows: list[Tracks] = []
-    if not np.any(model.machine.tags < 0):  # every marker a tag: they name themselves
+    if not (model.machine.tags < 0).any():  # every marker a tag: they name themselves
         return track_tags(model.machine, frames, camera, fps, on_frame, keep)
     tracker = None
-    finder = TagFinder(model.machine.tag_dictionary) if np.any(model.machine.tags >= 0) else None
+    finder = TagFinder(model.machine.tag_dictionary) if (model.machine.tags >= 0).any() else None
     n_frames = n_fitted = restarts = searched = 0
     in_view = np.zeros(len(names), dtype=int)  # frames the fitted model showed each disk marker
     placed = np.zeros(len(names), dtype=int)  # and of those, frames it was labelled
@@ -156,7 +156,7 @@ def track_frames(
     let_go = 0  # rows handed to `on_frame` and not kept
     blank_disks = 0  # while lost: disks the last failed full-frame search had (or fewest since)
     learner = NormalLearner(len(names))
-    stated = (np.all(np.isfinite(model.machine.marker_normals), axis=1) if model.machine.marker_normals is not None
+    stated = (np.isfinite(model.machine.marker_normals).all(axis=1) if model.machine.marker_normals is not None
               else np.zeros(len(names), dtype=bool))
     for index, gray in frames:
         n_frames += 1
@@ -234,7 +234,7 @@ def track_frames(
                 hidden_placed[result.markers] += hidden[result.markers]
         known = len(rows)
         disks = model.machine.tags[result.markers] < 0  # a proposal may name a tag's square as a disk
-        if np.any(disks):
+        if disks.any():
             rows.append(frame_rows(camera, index, fps, names, _select(result, disks)))
         if tags is not None:
             rows.append(tag_rows(camera, index, fps, names, tags))
@@ -271,7 +271,7 @@ def _learned_model(model: CameraModel, stated: np.ndarray, evidence: NormalEvide
     use = learned.learned & learned.resolved & (learned.spread_deg <= _LEARNED_SPREAD_DEG) & ~stated
     turn = np.einsum("mi,mi->m", np.nan_to_num(learned.normals), model.normals)
     use &= turn < np.cos(np.radians(1.0))  # no new model for a change too small to matter
-    if not np.any(use):
+    if not use.any():
         return model
     return model.with_normals(np.where(use[:, None], learned.normals, np.nan))
 
@@ -283,8 +283,8 @@ def _learn(learner: NormalLearner, model: CameraModel, result: FrameResult) -> N
     disks = machine.tags[result.markers] < 0
     # a disk the fit leaves off its place (partly covered: its outline cut, its ellipse not the
     # disk's) is no evidence of its normal
-    residual = np.linalg.norm(result.detections.xy - model.pixels(result.joints[None])[0, result.markers], axis=-1)
-    if np.any(disks):
+    residual = length(result.detections.xy - model.pixels(result.joints[None])[0, result.markers])
+    if disks.any():
         disks &= residual <= max(_LEARN_RESIDUAL * float(np.median(residual[disks])), _LEARN_RESIDUAL_PX)
     markers = result.markers[disks]
     if not len(markers):
@@ -310,7 +310,7 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray,
     view = model.view(joints[None])
     hidden = disks_in_view(model, view, occlusion=False) & ~disks_in_view(model, view, options.occlusion)
     spot = np.zeros_like(hidden)
-    if not np.any(hidden) or not np.isfinite(tracker.state.disk_m):
+    if not hidden.any() or not np.isfinite(tracker.state.disk_m):
         return hidden, spot
     markers = np.flatnonzero(hidden)
     face_on = np.maximum(np.nan_to_num(tracker._face_on_radius(joints)), 1.0)
@@ -320,10 +320,10 @@ def _dark_spots(tracker: Tracker, gray: np.ndarray, joints: np.ndarray,
     if taken is not None and len(found):
         found = found.select(~_near_any(found.xy, taken, 0.5 * np.maximum(found.radius, 2.0)))
     if len(found):
-        near = np.linalg.norm(at[:, None] - found.xy[None], axis=-1) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
+        near = length(at[:, None] - found.xy[None]) <= np.maximum(options.tight_px, 0.5 * radius)[:, None]
         ratio = found.axes[None, :, 0] / radius[:, None]
         sized = ((ratio > 0.75) & (ratio < 1.33)) | (np.abs(found.axes[None, :, 0] - radius[:, None]) <= 1.0)
-        spot[markers] = np.any(near & sized, axis=1)
+        spot[markers] = (near & sized).any(axis=1)
     return hidden, spot
 
 

@@ -19,7 +19,6 @@ from mocap.io.tracks_csv import load_tracks, save_tracks
 from mocap.io.video import Video
 from mocap.progress import progress
 from mocap.tracking.model import CameraModel
-from mocap.tracking.preview import write_preview
 from mocap.tracking.run import (TooFewMarkersError, TrackSummary, frame_rows, label_first_frame, track_frames,
                                 track_tags)
 from mocap.tracking.tracker import TrackOptions
@@ -188,6 +187,8 @@ def _finish(request: TrackRequest, video: Video, camera: str, tracks: Tracks, su
     if request.out is not None:
         save_tracks(tracks, request.out)
     if request.preview is not None:
+        from mocap.tracking.preview import write_preview  # its video encoder only when asked for
+
         write_preview(video, tracks, request.preview, request.start, request.stop)
     first = tracks.select(tracks.frame == tracks.frame.min())
     return TrackReport(camera, summary, first, video.broken_at, tracks)

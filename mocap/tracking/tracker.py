@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mocap.tracking.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
-                          refine_and_accept, refine_converged, refine_sourced, unique)
+                          length, refine_and_accept, refine_converged, refine_sourced, unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -152,7 +152,7 @@ class Tracker:
         recent = state.missed <= 2
         visible = state.visible = self._visible(view)
         expected = self._expected_radius(view.scale[0])
-        motion = np.nan_to_num(np.linalg.norm(uv - state.uv, axis=-1))
+        motion = np.nan_to_num(length(uv - state.uv))
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
         if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
@@ -173,7 +173,7 @@ class Tracker:
         state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
         found = replace(seen, xy=seen.xy - state.shift)
         observed[markers] = found.xy[index]
-        residual = np.linalg.norm(observed[markers] - fitted_uv[markers], axis=-1)
+        residual = length(observed[markers] - fitted_uv[markers])
         keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
@@ -187,11 +187,11 @@ class Tracker:
         # joints the held markers show may also be picked up by the final assignment
         known = model.known_markers(held)
         returning = visible & ~recent
-        if np.any(returning):
+        if returning.any():
             joints, known, moved_uv = self._regain(found, observed, joints, held, held_index, returning, reach, expected,
                                                    known)
             fitted_uv = fitted_uv if moved_uv is None else moved_uv
-        residual = np.linalg.norm(fitted_uv[held] - found.xy[held_index], axis=-1)
+        residual = length(fitted_uv[held] - found.xy[held_index])
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
         # the fitted joints put the markers nearer their disks than the prediction did (a
@@ -203,7 +203,7 @@ class Tracker:
         # where the fitted model puts one, within the tight gate, labels it
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
-        if np.any(again):
+        if again.any():
             extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
@@ -219,7 +219,7 @@ class Tracker:
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, allowed=sized)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
-        if np.any(prior_hidden):
+        if prior_hidden.any():
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
                                                face_on)
         final = np.full(uv.shape, np.nan)
@@ -251,7 +251,7 @@ class Tracker:
             offset = np.nan_to_num(model.centre_offsets(joints[None], state.disk_m)[0, markers])
             # the shift is a small share of a disk's radius; a larger one comes from joints not yet
             # fitted well (just after the machine was found again) and is not applied
-            plausible = np.linalg.norm(offset, axis=1) <= 0.2 * labelled.radius
+            plausible = length(offset) <= 0.2 * labelled.radius
             labelled = replace(labelled, xy=labelled.xy + offset * plausible[:, None])
         return FrameResult(markers, labelled, joints, True, rms)
 
@@ -263,7 +263,7 @@ class Tracker:
         """Whether a full-frame search could help: a joint has not been seen by any labelled
         marker for `lost_frames` frames (its link may have come back far from where it was
         left, or out of the model's view)."""
-        return bool(np.any(self.state.unseen >= self.options.lost_frames))
+        return bool((self.state.unseen >= self.options.lost_frames).any())
 
     def restart(self, start: FrameResult, gray: np.ndarray | None = None) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss). The joints
@@ -278,8 +278,8 @@ class Tracker:
         anchor = state.joints if state.anchor is None else state.anchor
         candidates = np.where(shown, start.joints, np.array([anchor, state.joints, start.joints]))
         joints = candidates[0]
-        unshown = np.any(model.machine.marker_moves[~shown], axis=0)  # (M,) the markers they move
-        if gray is not None and np.any(unshown):
+        unshown = model.machine.marker_moves[~shown].any(axis=0)  # (M,) the markers they move
+        if gray is not None and unshown.any():
             view = model.view(candidates)
             radius = view.scale * state.disk_m if np.isfinite(state.disk_m) else np.full(view.scale.shape, np.median(
                 start.detections.radius) if len(start.detections) else 3.0)
@@ -330,8 +330,8 @@ class Tracker:
                                   found.axes[:, 0], face_on)
         if len(more) == 0:
             return markers, index
-        mine = np.linalg.norm(fitted_uv[more] - found.xy[more_index], axis=1)
-        theirs = np.linalg.norm(fitted_uv[shown][:, None] - found.xy[more_index][None], axis=-1).min(axis=0, initial=np.inf)
+        mine = length(fitted_uv[more] - found.xy[more_index])
+        theirs = length(fitted_uv[shown][:, None] - found.xy[more_index][None]).min(axis=0, initial=np.inf)
         wins = mine < 0.5 * theirs
         keep = ~np.isin(index, more_index[wins])
         return np.r_[markers[keep], more[wins]], np.r_[index[keep], more_index[wins]]
@@ -365,8 +365,8 @@ class Tracker:
         taken = np.zeros(len(found), dtype=bool)
         taken[held_index] = True
         free = np.where(taken[:, None], np.inf, found.xy)
-        near = np.linalg.norm(self.state.uv[returning, None] - free[None], axis=-1) <= 2.0 * reach[returning, None]
-        if not np.any(near):  # no free detection anywhere near a returning marker
+        near = length(self.state.uv[returning, None] - free[None]) <= 2.0 * reach[returning, None]
+        if not near.any():  # no free detection anywhere near a returning marker
             return joints, known, None
         moved_uv = None
         back_uv = model.pixels(joints[None])[0]
@@ -374,7 +374,7 @@ class Tracker:
             gate = np.maximum(g * reach, options.tight_px)
             back, back_index = assign(back_uv, free, gate, returning, found.radius, expected)
             # a marker alone on its link fits any blob along its arc: only the one blob in reach
-            alone = np.sum(np.linalg.norm(back_uv[back, None] - free[None], axis=-1) <= gate[back, None], axis=1) == 1
+            alone = np.sum(length(back_uv[back, None] - free[None]) <= gate[back, None], axis=1) == 1
             # ... and only if it alone shows at most one joint: with two, its two coordinates
             # fix them with nothing to spare, and it fits any blob at all
             alone &= np.sum(model.machine.marker_moves[:, back] & ~model.observed_joints(held)[:, None], axis=0) <= 1
@@ -411,7 +411,7 @@ class Tracker:
         state.swept += 1
         due = (state.unseen >= _SWEEP_EVERY) & (state.swept >= np.where(state.unseen > _SWEEP_SLOW, 4 * _SWEEP_EVERY,
                                                                           _SWEEP_EVERY))
-        if not np.any(due) or not np.isfinite(state.disk_m):
+        if not due.any() or not np.isfinite(state.disk_m):
             return predicted
         state.swept[due] = 0
         moves = machine.marker_moves & (machine.tags < 0)  # (J, M), disks only
@@ -422,7 +422,7 @@ class Tracker:
         # the arm would find its markers on the arm's); a swept joint moves none of them
         held = state.uv[state.missed == 0] + state.shift
         for j in np.flatnonzero(due):
-            own = moves[j] & ~np.any(np.delete(moves & unseen[:, None], j, axis=0), axis=0)
+            own = moves[j] & ~np.delete(moves & unseen[:, None], j, axis=0).any(axis=0)
             if np.sum(own) < _SWEEP_MARKERS:
                 continue
             low, high = machine.joint_limits[j]
@@ -430,8 +430,8 @@ class Tracker:
                 low, high = predicted[j] - np.pi, predicted[j] + np.pi
             coarse = np.tile(predicted, (64, 1))
             coarse[:, j] = np.linspace(low, high, 64)
-            moved = np.linalg.norm(np.diff(model.pixels(coarse)[:, own], axis=0), axis=-1)
-            if not np.any(np.isfinite(moved)):
+            moved = length(np.diff(model.pixels(coarse)[:, own], axis=0))
+            if not np.isfinite(moved).any():
                 continue  # its markers behind the camera all along
             speed = np.nanmax(moved) / (coarse[1, j] - coarse[0, j])
             if speed <= 0:
@@ -505,7 +505,7 @@ class Tracker:
         if len(loose) == 0:
             return strict
         again, _ = refine(gray, loose.xy, 0.5 * loose.shape)
-        stays = np.linalg.norm(again.xy - loose.xy, axis=1) <= 0.1 * np.maximum(loose.radius, 1.0)
+        stays = length(again.xy - loose.xy) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
 
     def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
@@ -525,11 +525,11 @@ class Tracker:
         # 4th frame, as `_search` looks around them
         missed = self.state.missed[markers]
         missing &= (missed <= 3) | (missed % 4 == 0)
-        if np.any(missing):
+        if missing.any():
             found = unique(concatenate([found, self._refine_again(gray, uv[markers[missing]], shapes[missing], detect,
                                                                   first.of(missing))]))
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
-        if np.any(missing):
+        if missing.any():
             found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
         return found
 
@@ -551,12 +551,12 @@ class Tracker:
         found = accepted(first.detections, first.ring, detect)
         close = 0.5 * np.maximum(expected[seeds], 2.0) + options.tight_px
         missing = ~_near_any(uv[seeds], found.xy, close)
-        if np.any(missing):
+        if missing.any():
             again = self._refine_again(gray, uv[seeds[missing]], shapes[missing], detect, first.of(missing))
             found = unique(concatenate([found, again]))
             missing[missing] = ~_near_any(uv[seeds[missing]], again.xy, close[missing])
         followed = missing & (missed[seeds] <= 2)
-        if np.any(followed):  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
+        if followed.any():  # the last ellipse a blurred, noisy one (a small disk smeared): a circle
             again = refine_and_accept(gray, uv[seeds[followed]], circles[followed], detect)
             found = unique(concatenate([found, again]))
             missing[followed] = ~_near_any(uv[seeds[followed]], again.xy, close[followed])
@@ -579,7 +579,7 @@ class Tracker:
                                      (x0, y0)) for k in (3.0, 1.5)]
             xy, shape = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
             size = np.sqrt(np.abs(np.linalg.det(shape))) ** 0.5 if len(xy) else np.zeros(0)
-            near = (np.linalg.norm(xy - uv[m], axis=1) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
+            near = (length(xy - uv[m]) <= gate[m] + r) & (size > 0.4 * r) & (size < 2.5 * r)
             xys.append(xy[near])
             shapes.append(shape[near])
         if not xys:
@@ -599,7 +599,7 @@ def disks_in_view(model: CameraModel, view: View, occlusion: bool = True) -> np.
         return view.visible[0] & disks
     uv = view.uv[0]
     w, h = model.camera.size
-    inside = np.all(np.isfinite(uv), axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
+    inside = np.isfinite(uv).all(axis=-1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0)
     return inside & (uv[:, 1] <= h - 1) & disks
 
 
@@ -618,7 +618,7 @@ def _box_contrast(integral: np.ndarray, uv: np.ndarray, radius: np.ndarray) -> n
         total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
         return total, (x1 - x0) * (y1 - y0)
 
-    finite = np.all(np.isfinite(uv), axis=-1)
+    finite = np.isfinite(uv).all(axis=-1)
     uv = np.where(finite[..., None], uv, -1e6)
     inner, inner_area = box(np.maximum(0.7 * radius, 0.5))
     outer, outer_area = box(2.2 * radius)
@@ -663,14 +663,14 @@ def assign(
     sooner: the gate is not widened).
     Returns marker indices (K,) and detection indices (K,) of the gated pairs.
     """
-    if len(detected) == 0 or not np.any(visible):
+    if len(detected) == 0 or not visible.any():
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     cost = np.sum((predicted[:, None] - detected[None]) ** 2, axis=-1)
     allowed = visible[:, None] & (cost <= gate[:, None] ** 2) & np.isfinite(cost) & (True if allowed is None else allowed)
     if detected_radius is not None and expected_radius is not None:
         allowed &= _same_size(detected_radius[None], expected_radius[:, None], size_ratio, size_px)
-    rows = np.nonzero(np.any(allowed, axis=1))[0]
-    cols = np.nonzero(np.any(allowed, axis=0))[0]
+    rows = np.nonzero(allowed.any(axis=1))[0]
+    cols = np.nonzero(allowed.any(axis=0))[0]
     if len(rows) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if penalty is not None:
@@ -700,4 +700,4 @@ def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndar
     """(K,) whether each of `points` (K, 2) has one of `xy` (N, 2) within its `radius` (K,)."""
     if len(xy) == 0:
         return np.zeros(len(points), dtype=bool)
-    return np.any(np.linalg.norm(points[:, None] - xy[None], axis=-1) < radius[:, None], axis=1)
+    return (length(points[:, None] - xy[None]) < radius[:, None]).any(axis=1)
