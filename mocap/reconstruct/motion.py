@@ -43,7 +43,8 @@ log = logging.getLogger(__name__)
 class MotionResult:
     """motion: the Motion to write; fit: the per-frame JointFit; smoothed: Smoothed or None;
     offsets: the markers' estimated offsets (MarkerOffsets) with a stated tolerance (or
-    with none stated, where the exact model's fit leaves markers off), else None (the fit is then of the model with its markers moved by them); base_check: with
+    with none stated, where the exact model's fit leaves markers off), else None (the fit
+    is then of the model with its markers moved by them); base_check: with
     `choose_base`, the check of a fixed base against a moving one (BaseCheck), else None."""
 
     motion: Motion
