@@ -55,6 +55,8 @@ _CHUNK = 2048  # frames whose Jacobians are held at once
 SHOWN_CHI2 = 13.8  # a marker's median residual over the frames this far (chi-square, 2 dof) is off: 1e-3 by chance
 SHOWN_MARKERS = 3  # markers that must be off before the model is (a wild track or two is not)
 SHOWN_FRAMES = 5  # frames a camera must see a marker in before its median residual counts
+SHOWN_PX = 0.1  # ... and beyond this: a steadier bias is the tracker's own (a disk's centroid under
+# perspective, a few hundredths of a pixel), which long, quiet tracks make significant, not the tape's
 ASSUMED_TOLERANCE = Tolerance(0.05)  # the paper's tape measure, where the residuals show one and nothing states it
 
 
@@ -62,15 +64,17 @@ def markers_off(fit: JointFit) -> np.ndarray:
     """(M,) the markers that an exact model's fit (over many frames) leaves off in some
     camera: the median of their residuals over the explained frames further from zero than
     the pixel noise explains (its variance pi/2 sigma^2 / n per axis, a chi-square beyond
-    `SHOWN_CHI2`), over at least `SHOWN_FRAMES` frames. A marker the tape put off sits off
-    in every frame; pixel noise averages out, and wild pixels do not move a median."""
+    `SHOWN_CHI2`) and than `SHOWN_PX`, over at least `SHOWN_FRAMES` frames. A marker the tape
+    put off sits off in every frame; pixel noise averages out, and wild pixels do not move a
+    median."""
     residuals = np.where((fit.valid & fit.explained)[None, :, None, None], fit.residuals, np.nan)
     n = np.isfinite(residuals[..., 0]).sum(1)  # (C, M)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a marker a camera never sees: its median NaN
         median = np.nanmedian(residuals, axis=1)
     chi2 = n * np.nansum(median**2, -1) / (np.pi / 2 * max(fit.noise_px, 1e-6) ** 2)
-    return ((n >= SHOWN_FRAMES) & (chi2 > SHOWN_CHI2)).any(0)
+    material = np.hypot(*np.moveaxis(median, -1, 0)) > SHOWN_PX
+    return ((n >= SHOWN_FRAMES) & (chi2 > SHOWN_CHI2) & material).any(0)
 
 
 def tape_sd(tolerance: Tolerance, positions: np.ndarray) -> np.ndarray:
