@@ -111,6 +111,7 @@ def read_fleet(out: Path) -> dict[str, dict]:
 
 
 @pytest.mark.long
+@pytest.mark.processes
 def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     top, roots = fleet
     assert find_sessions([top, roots[0]]) == sorted(r.resolve() for r in roots)
@@ -275,6 +276,7 @@ def chain_with_a_killed_worker(root: Path) -> list[Stage]:
 
 
 @pytest.mark.long
+@pytest.mark.processes
 def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path, capsys):
     """A worker killed mid-task costs only that task's re-run (Dask's own): its session's
     results equal those of a session that ran untouched; the broken session is listed with
