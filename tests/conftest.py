@@ -68,8 +68,12 @@ def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
 def pytest_collection_modifyitems(items):
     """The tests marked `long` (tens of seconds each) first: with xdist's work stealing they
     start at once, and the short ones fill both cores around them, so that no long test is
-    left to run alone at the end."""
-    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+    left to run alone at the end. Among them those marked `processes` (their Dask workers run
+    the compiled kernels) come last: on a fresh checkout numba's cache is empty, and a test
+    run first in this process (the demo's chain) compiles the kernels once and caches them,
+    where each worker process would compile them all again."""
+    items.sort(key=lambda item: (item.get_closest_marker("long") is None,
+                                 item.get_closest_marker("processes") is not None))
 
 
 def pytest_terminal_summary(terminalreporter):

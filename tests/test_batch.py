@@ -86,10 +86,11 @@ def chain(root: Path, max_gap=2.0) -> list[Stage]:
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    """Three copies of one truth-only session, on two machines and two days; the third has
-    lost its truth calibration, so its first stage fails."""
+    """Three copies of one truth-only session (one dig cycle at 5 fps: what the batch does
+    with a session does not depend on its length), on two machines and two days; the third
+    has lost its truth calibration, so its first stage fails."""
     base = tmp_path_factory.mktemp("base") / "s"
-    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--fps", "10", "--no-video", "--out", str(base)]) == 0
+    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--fps", "5", "--no-video", "--out", str(base)]) == 0
     top = tmp_path_factory.mktemp("fleet")
     roots = [top / "site_a" / "s1", top / "site_a" / "s2", top / "site_b" / "deep" / "s3"]
     metadata = [{"machine_id": "EX3500 #1", "date": datetime.date(2026, 11, 30)},
@@ -110,6 +111,7 @@ def read_fleet(out: Path) -> dict[str, dict]:
 
 
 @pytest.mark.long
+@pytest.mark.processes
 def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     top, roots = fleet
     assert find_sessions([top, roots[0]]) == sorted(r.resolve() for r in roots)
@@ -274,6 +276,7 @@ def chain_with_a_killed_worker(root: Path) -> list[Stage]:
 
 
 @pytest.mark.long
+@pytest.mark.processes
 def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path, capsys):
     """A worker killed mid-task costs only that task's re-run (Dask's own): its session's
     results equal those of a session that ran untouched; the broken session is listed with

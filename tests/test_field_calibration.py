@@ -58,19 +58,6 @@ def test_the_offsets_prior_is_the_tape_measures():
     assert np.all(error < 4 * _bound(scene)), f"camera centres {error / _bound(scene)} x the bound"
 
 
-def test_good_observations_a_wild_pixel_made_look_wild_are_taken_back():
-    """Scene 1000001: the robust fit, drawn by a 99 px wild pixel, left three good pixels
-    beyond the rule as well; the fit without them predicts them within it, so they are kept
-    and only the wild pixel is named."""
-    scene, templates, options = _field_scene(1000001)
-    result = calibrate(scene.model, scene.observations(), templates, options)
-    wild = scene.outlier[scene.tracks.frame == 0]
-    assert wild.sum() == 1
-    np.testing.assert_array_equal([r.outlier for r in result.residuals], wild)
-    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
-    assert np.median(error / _bound(scene)) < 2.0
-
-
 def test_a_camera_its_markers_do_not_fix_is_refused():
     """One camera, five base markers, each ±5 %: the bound itself is 1.7 times the camera's
     distance. The fit slid kilometres away; it is refused with one line instead."""
@@ -142,30 +129,19 @@ def test_a_wild_pixel_among_a_cameras_base_markers_is_named():
     assert initial.wild_point(points, clean, template) is None
 
 
-def test_a_scene_whose_wild_pixel_bent_a_cameras_placement_is_calibrated():
-    """Scene 1000013 (two cameras): a wild pixel among the far camera's five base markers
-    placed it at 12 px RMS, and no fit from there converged (refused). The start found
-    again without it ends where the fit started from the truth ends."""
-    scene, templates, options = _field_scene(1000013)
-    result = calibrate(scene.model, scene.observations(), templates, options)
-    error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
-    assert np.all(error < 4 * _bound(scene)), f"camera centres {error / _bound(scene)} x the bound"
-    assert result.sigma_px < 1.0
-
-
-@pytest.mark.long
-@pytest.mark.parametrize("seed", [1000143, 1000187])
-def test_a_wild_pixel_the_residuals_far_above_the_noise_betray_is_named(seed):
-    """Four cameras each: a wild pixel let through (taken back with a good one whose gain
-    hid its cost, or judged against a noise that its own pull on its neighbours had raised)
-    left residuals of 1.5-1.8 px where the pixels have 0.8 and the cameras 1.6-2.2 times
-    their bound. The answer the data contradict is not kept: every wild pixel is named,
-    and the residuals fall to the noise."""
-    scene, templates, options = _field_scene(seed)
+def test_every_wild_pixel_is_named_and_only_it():
+    """Scene 1000015 (three cameras, one wild pixel among 0.8 px of noise): the wild pixel is
+    named and no good one with it, the residuals fall to the noise and the cameras lie near
+    their bound. The scenes on which this once failed, seconds each, are held to the same
+    bounds by benchmarks/bench_field_regressions.py: a wild pixel let through with a good one
+    whose gain hid its cost, or judged against a noise its own pull had raised (four cameras,
+    1.5-1.8 px of residuals); good pixels a 99 px wild one made look wild; a far camera's
+    start bent by one."""
+    scene, templates, options = _field_scene(1000015)
     result = calibrate(scene.model, scene.observations(), templates, options)
     wild = scene.outlier[scene.tracks.frame == 0]
-    named = np.array([r.outlier for r in result.residuals])
-    assert np.all(named[wild]) and named.sum() <= wild.sum() + 1
+    assert wild.sum() == 1
+    np.testing.assert_array_equal([r.outlier for r in result.residuals], wild)
     assert result.sigma_px < 1.1
     error = np.array([np.linalg.norm(a.center - b.center) for a, b in zip(result.cameras, scene.cameras)])
     assert np.median(error / _bound(scene)) < 1.2
