@@ -26,6 +26,7 @@ from mocap.core.geometry import Rigid
 from mocap.core.machine import REVOLUTE, Machine
 
 FOCAL_GRID = np.geomspace(0.2, 12.0, 28)  # focal lengths tried, in image widths
+UNPLACED_PX = 1e9  # the RMS the focal search gives a focal length at which PnP places no camera
 BEAM = 4
 GRID_STEP_DEG = 3.0
 MAX_PENDING = 1024  # combinations of unfixed joints' values tried with the next joint
@@ -81,7 +82,7 @@ def place_camera(
         k = int(np.argmin(errors))
         low, high = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
         search = minimize_scalar(
-            lambda log_f: rms_at(np.exp(log_f)),
+            lambda log_f: min(rms_at(np.exp(log_f)), UNPLACED_PX),  # finite: the search's parabola steps stay defined
             bounds=(np.log(low), np.log(high)),
             method="bounded",
             options={"xatol": 1e-4},
