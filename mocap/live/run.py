@@ -79,6 +79,7 @@ class LiveRequest:
     view: str | None = None
     follow_clocks: bool = False
     choose_base: bool = True
+    base_window: int | None = None
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -373,7 +374,8 @@ class _Loop:
         self.view_s = 0.0
         self.follower = follower
         self.history = [CameraHistory(f) for f in fps]
-        self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base)
+        self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base,
+                           base_window=request.base_window)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=_base_columns(request, machine))
         # clock frames waiting: (frame, time, arrived, labels in, the camera whose frame it is)
         self.pending: list[tuple[int, float, float, float, int]] = []
