@@ -25,16 +25,17 @@ a latency measurement) and the rows' tip RMSE beside that of the same fits throu
 whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
 chain's; with the worst second of the live rows; the tip SDs' coverage (the rows within 1, 2,
 3 SDs of the truth, and the RMS of error / SD), live and unraised; the fit's and the
-smoother's time per row; and the base's choice (`--base`: chosen from the data as `mocap live`
-chooses it, the default, on a sample spread over the whole run so far; `recent`: the same test
-on the last frames alone; or its pose per frame, or fixed; comma-separated, each run on the
-same sessions one after the other, with the offline chain run once).
+smoother's time per row; and the base's choice (`--base`: `recent`, chosen from the data on
+the last frames as `mocap live` chooses it, the default; `choose`, the same test on a sample
+spread over the whole run so far; or its pose per frame, or fixed; comma-separated, each run
+on the same sessions one after the other, with the offline chain run once).
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
 
     python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
-        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--base choose,recent,moving,fixed] [--as-fast] [--files]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--base recent,choose,moving,fixed]
+        [--as-fast] [--files]
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ from mocap.reconstruct.stage import run_fit
 from mocap.tracking.stage import TrackRequest, run_track
 
 MACHINE = "hitachi_ex3500"
-BASES = {"choose": "chosen from the data over the whole run", "recent": f"chosen from the last {BASE_WINDOW} frames",
+BASES = {"recent": f"chosen from the last {BASE_WINDOW} frames", "choose": "chosen from the data over the whole run",
          "moving": "pose per frame", "fixed": "fixed"}
 
 
@@ -211,15 +212,16 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
 
 def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base: str,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
-    """The run's report, its CPU seconds (all threads) and its memory samples. `base`: choose
-    (from the data, a sample over the whole run), recent (from the data, the last frames),
-    moving (`--base-motion`) or fixed (`--fixed-base`)."""
+    """The run's report, its CPU seconds (all threads) and its memory samples. `base`: recent
+    (from the data, the last frames: live's default), choose (from the data, a sample over the
+    whole run), moving (`--base-motion`) or fixed (`--fixed-base`)."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
                           follow_clocks=follow_clocks,
-                          fit_options=FitOptions(base_motion=base == "moving"), choose_base=base in ("choose", "recent"),
-                          base_window=BASE_WINDOW if base == "recent" else None)
+                          fit_options=FitOptions(base_motion=base == "moving"),
+                          choose_base=base in ("choose", "recent"),
+                          base_window=None if base == "choose" else BASE_WINDOW)
     memory = Memory()
     memory.start()
     cpu = time.process_time()
@@ -332,10 +334,10 @@ def main() -> None:
     parser.add_argument("--lag", type=int, default=1)
     parser.add_argument("--fault", choices=("none", "disconnect"), default="none",
                         help=f"disconnect: the last camera delivers nothing for {GAP_S:g} s from a third of the run")
-    parser.add_argument("--base", default="choose",
-                        help="live's base, comma-separated to run several: chosen from the data as mocap fit chooses "
-                        "it, on a sample over the whole run (choose, the default) or on the last frames (recent), "
-                        "its pose per frame (moving, --base-motion) or fixed (fixed, --fixed-base)")
+    parser.add_argument("--base", default="recent",
+                        help="live's base, comma-separated to run several: chosen from the data by mocap fit's test, "
+                        "on the last frames (recent, the default, as mocap live) or on a sample over the whole run "
+                        "(choose), its pose per frame (moving, --base-motion) or fixed (fixed, --fixed-base)")
     parser.add_argument("--follow-clocks", action="store_true",
                         help="follow the clocks in the real-time runs: each other camera's newest offset against its "
                         "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
@@ -410,7 +412,8 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
     bases = args.base.split(",")
     print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), base "
           f"{' / '.join(f'{b}: {BASES[b]}' for b in bases)}; tip RMSE (m) over the rows: live, the same fits "
-          "through the smoother whose process noise is never raised, and the offline chain over the same frames; the tip SDs' coverage")
+          "through the smoother whose process noise is never raised, and the offline chain over the same frames; "
+          "the tip SDs' coverage")
     print(f"{'session':>28} {'cams':>4} {'base':>6} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} "
           f"{'live/off':>8} "
           f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7} {'live 1/2/3 SD %':>15} "

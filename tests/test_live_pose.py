@@ -42,7 +42,7 @@ def live_rows(root, choose_base: bool, base_window: int | None = None):
             motion.point("bucket_tip")[frames])
 
 
-@pytest.mark.parametrize("base_window", [None, BASE_WINDOW])
+@pytest.mark.parametrize("base_window", [BASE_WINDOW, None])
 @pytest.mark.parametrize("bounce", [0.0, 2.0])
 def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, bounce, base_window):
     """A still base is held at every test; a bouncing one is fitted per frame from the test

@@ -40,9 +40,9 @@ _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the s
 _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
 _BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
-_BASE_EVERY = 150  # frames between the tests, each of up to `SAMPLE_FRAMES` frames spread over all those so far
+_BASE_EVERY = 150  # without a window: frames between the tests, each of up to `SAMPLE_FRAMES` spread over all so far
 _BASE_MARGIN = 0.05  # a test changes the choice when the criterion's gain is this share past its penalty
-BASE_WINDOW = 90  # with a recent window: the last frames each test fits (3 s at 30 fps) ...
+BASE_WINDOW = 90  # the last frames each test fits (3 s at 30 fps) ...
 _WINDOW_EVERY = 30  # ... and the frames between its tests
 
 
@@ -134,8 +134,10 @@ class WarmFit:
     With `choose_base` (and a fixed base in `options`) the base is held where the calibration
     saw it or fitted per frame as the data say, with `mocap fit`'s test
     (`mocap.reconstruct.base_check.compare_bases`): the first after `_BASE_FIRST` frames, then
-    every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
-    `mocap fit` spreads them over the session: the tests agree more the longer the run);
+    every `_WINDOW_EVERY`, on the last `base_window` frames (the base fitted per frame while
+    the recent frames show it moving, as while the bucket digs, and held while they do not);
+    with `base_window` None, every `_BASE_EVERY` on up to `SAMPLE_FRAMES` frames spread over
+    all the frames so far (as `mocap fit` spreads them over the session);
     each test decides until the next (the base held until the first), a change needing the
     criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with
     `background` the tests run on their own thread and their answer is taken at the first
@@ -145,7 +147,8 @@ class WarmFit:
     would not be told apart)."""
 
     def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None,
-                 choose_base: bool = False, background: bool = True, base_window: int | None = None):
+                 choose_base: bool = False, background: bool = True,
+                 base_window: int | None = BASE_WINDOW):
         self.machine, self.cameras = machine, list(cameras)
         self.window = base_window
         self.options = options or FitOptions()
