@@ -25,14 +25,17 @@ a latency measurement) and the rows' tip RMSE beside that of the same fits throu
 whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
 chain's; with the worst second of the live rows; the tip SDs' coverage (the rows within 1, 2,
 3 SDs of the truth, and the RMS of error / SD), live and unraised; the fit's and the
-smoother's time per row; and the base's choice (`--base`: chosen from the data as `mocap live`
-chooses it, the default; or its pose per frame, or fixed).
+smoother's time per row; and the base's choice (`--base`: `recent`, chosen from the data on
+the last frames as `mocap live` chooses it, the default; `choose`, the same test on a sample
+spread over the whole run so far; or its pose per frame, or fixed; comma-separated, each run
+on the same sessions one after the other, with the offline chain run once).
 `--as-fast`: also the same live chain reading the files as fast as they are tracked (no
 frame dropped) against the offline chain on its rows, and `--view`'s cost (the process's CPU
 per row logging those rows to an .rrd file, and the main thread's time per row in the run).
 
     python benchmarks/bench_live.py [--sizes 960x540,1920x1080] [--cameras 1,2,3,4] [--duration 20]
-        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--base choose|moving|fixed] [--as-fast] [--files]
+        [--seeds 7] [--look random] [--lag 1] [--fault disconnect] [--base recent,choose,moving,fixed]
+        [--as-fast] [--files]
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.video import Video
 from mocap.live import run as live_module
-from mocap.live.pose import FixedLagSmoother
+from mocap.live.pose import BASE_WINDOW, FixedLagSmoother
 from mocap.live.run import LiveRequest, run_live
 from mocap.live.sources import SourceReader, parse_source
 from mocap.reconstruct.kinfit import FitOptions
@@ -63,7 +66,8 @@ from mocap.reconstruct.stage import run_fit
 from mocap.tracking.stage import TrackRequest, run_track
 
 MACHINE = "hitachi_ex3500"
-BASES = {"choose": "chosen from the data", "moving": "pose per frame", "fixed": "fixed"}
+BASES = {"recent": f"chosen from the last {BASE_WINDOW} frames", "choose": "chosen from the data over the whole run",
+         "moving": "pose per frame", "fixed": "fixed"}
 
 
 GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
@@ -208,13 +212,16 @@ def decode_rate(videos: list[Path], frames: list[int]) -> float:
 
 def live_run(session: Path, names: list[str], duration: float | None, lag: int, out: Path, base: str,
              realtime: bool = True, view: str | None = None, follow_clocks: bool = False):
-    """The run's report, its CPU seconds (all threads) and its memory samples. `base`: choose
-    (live's default: from the data), moving (`--base-motion`) or fixed (`--fixed-base`)."""
+    """The run's report, its CPU seconds (all threads) and its memory samples. `base`: recent
+    (from the data, the last frames: live's default), choose (from the data, a sample over the
+    whole run), moving (`--base-motion`) or fixed (`--fixed-base`)."""
     request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
                           follow_clocks=follow_clocks,
-                          fit_options=FitOptions(base_motion=base == "moving"), choose_base=base == "choose")
+                          fit_options=FitOptions(base_motion=base == "moving"),
+                          choose_base=base in ("choose", "recent"),
+                          base_window=None if base == "choose" else BASE_WINDOW)
     memory = Memory()
     memory.start()
     cpu = time.process_time()
@@ -327,9 +334,10 @@ def main() -> None:
     parser.add_argument("--lag", type=int, default=1)
     parser.add_argument("--fault", choices=("none", "disconnect"), default="none",
                         help=f"disconnect: the last camera delivers nothing for {GAP_S:g} s from a third of the run")
-    parser.add_argument("--base", choices=("choose", "moving", "fixed"), default="choose",
-                        help="live's base: chosen from the data as mocap fit chooses it (default, as mocap live), "
-                        "its pose per frame (--base-motion) or fixed (--fixed-base)")
+    parser.add_argument("--base", default="recent",
+                        help="live's base, comma-separated to run several: chosen from the data by mocap fit's test, "
+                        "on the last frames (recent, the default, as mocap live) or on a sample over the whole run "
+                        "(choose), its pose per frame (moving, --base-motion) or fixed (fixed, --fixed-base)")
     parser.add_argument("--follow-clocks", action="store_true",
                         help="follow the clocks in the real-time runs: each other camera's newest offset against its "
                         "true one (the synthetic cameras keep their stated rates: the estimate's noise) and the CPU "
@@ -343,6 +351,9 @@ def main() -> None:
     parser.add_argument("--work", help="folder for the sessions and runs (default: a temporary one); a session "
                         "found there complete is used again")
     args = parser.parse_args()
+    bases = args.base.split(",")
+    if not set(bases) <= set(BASES):
+        parser.error(f"--base: {args.base!r}; give some of {', '.join(BASES)}, comma-separated")
     logging.basicConfig(level=logging.WARNING)
     cameras = counts(args.cameras)
     with tempfile.TemporaryDirectory() as tmp:
@@ -351,7 +362,7 @@ def main() -> None:
             files_table(args, root, cameras)
             return
         print(f"{args.duration:g} s of video played in real time, smoother lag {args.lag} frame(s), "
-              f"base {BASES[args.base]}"
+              f"base {' / '.join(BASES[b] for b in bases)}"
               + (f", the last camera silent for {GAP_S:g} s from {args.duration / 3:.0f} s" if args.fault != "none"
                  else "") + f"; load average {os.getloadavg()[0]:.2f} at the start")
         header = (f"{'size':>9} {'seed':>4} {'cams':>4} {'rows/s':>6} {'dropped':>8} {'p50 ms':>6} {'p99 ms':>6} "
@@ -365,7 +376,11 @@ def main() -> None:
             print(f"{session.name}: " + ", ".join(f"{c} {f:.5g} fps" for c, f in zip(calibration.names,
                                                                                   calibration.fps())), flush=True)
             for n in cameras:
-                ratios.append(bench_row(args, root, session, calibration, truth, size, seed, n))
+                for base in bases:
+                    if len(bases) > 1:
+                        print(f"  base {BASES[base]}:", flush=True)
+                    ratios.append(bench_row(argparse.Namespace(**{**vars(args), "base": base}), root, session,
+                                            calibration, truth, size, seed, n))
         loads = os.getloadavg()
         ratios = np.array(ratios)
         print("rows/s: rows written per second of the run (the reference camera delivers 30; each session's cameras' "
@@ -394,56 +409,63 @@ def sessions(args, root: Path, cameras: list[int]):
 
 def files_table(args, root: Path, cameras: list[int]) -> None:
     """`--files`: per session and count of cameras, the whole videos read as fast as tracked."""
+    bases = args.base.split(",")
     print(f"the whole videos read as fast as they are tracked, smoother lag {args.lag} frame(s), base "
-          f"{BASES[args.base]}; tip RMSE (m) over the rows: live, the same fits through the smoother whose process "
-          "noise is never raised, and the offline chain over the same frames; the tip SDs' coverage")
-    print(f"{'session':>28} {'cams':>4} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} {'live/off':>8} "
+          f"{' / '.join(f'{b}: {BASES[b]}' for b in bases)}; tip RMSE (m) over the rows: live, the same fits "
+          "through the smoother whose process noise is never raised, and the offline chain over the same frames; "
+          "the tip SDs' coverage")
+    print(f"{'session':>28} {'cams':>4} {'base':>6} {'rows':>5} {'live':>7} {'unraised':>8} {'offline':>7} "
+          f"{'live/off':>8} "
           f"{'unraised/off':>12} {'worst 1 s live':>14} {'unraised':>8} {'offline':>7} {'live 1/2/3 SD %':>15} "
-          f"{'e/SD':>6} {'unraised':>10} {'e/SD':>6} {'fit ms':>6} {'smooth ms':>9} {'cpu ms/row':>10} {'base':>12}",
+          f"{'e/SD':>6} {'unraised':>10} {'e/SD':>6} {'fit ms':>6} {'smooth ms':>9} {'cpu ms/row':>10} {'choice':>12}",
           flush=True)
-    ratios = []
+    ratios = {base: [] for base in bases}
     for size, seed, session, calibration, truth in sessions(args, root, cameras):
         for n in cameras:
             names = list(calibration.names[:n])
             work = root / f"files_{session.name}_{n}"
             work.mkdir(exist_ok=True)
-            with recording() as calls:
-                report, cpu, _ = live_run(session, names, None, args.lag, work / "poses.csv", args.base,
-                                          realtime=False)
-            frames, tips, sds = read_tips(work / "poses.csv", sd=True)
-            unraised, unraised_sds = replay(calls, args.lag, args.base != "fixed", pace_steps=0)
-            keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
-            frames, tips, sds, unraised, unraised_sds = (x[keep] for x in (frames, tips, sds, unraised, unraised_sds))
-            motion = offline(session, names, work)
-            live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
-                               offline_rmse(motion, frames, truth))
-            # the second of rows where live is worst
-            error = np.linalg.norm(tips - truth.point("bucket_tip")[frames], axis=1) ** 2
-            start = int(np.argmax(np.convolve(np.nan_to_num(error), np.ones(30), "valid"))) if len(frames) >= 30 else 0
-            worst = frames[start:start + 30]
-            stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
-            tests = report.base_tests
-            base = ("-" if not tests else ("moving" if tests[-1][1] else "fixed")
-                    + f" {sum(a[1] != b[1] for a, b in zip(((0, False),) + tests[:-1], tests))}/{len(tests)}")
-            print(f"{session.name:>28} {n:>4} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
-                  f"{live / off:>8.2f} {flat / off:>12.2f} "
-                  f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
-                  f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
-                  f"{offline_rmse(motion, worst, truth):>7.4f} "
-                  f"{coverage_text(coverage(frames, tips, sds, truth)):>22} "
-                  f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
-                  f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {base:>12}"
-                  f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
-            ratios.append((live / off, flat / off))
-    ratios = np.array(ratios)
+            motion = offline(session, names, work)  # once for every base
+            for base in bases:
+                with recording() as calls:
+                    report, cpu, _ = live_run(session, names, None, args.lag, work / "poses.csv", base,
+                                              realtime=False)
+                frames, tips, sds = read_tips(work / "poses.csv", sd=True)
+                unraised, unraised_sds = replay(calls, args.lag, base != "fixed", pace_steps=0)
+                keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
+                frames, tips, sds, unraised, unraised_sds = (x[keep] for x in (frames, tips, sds, unraised,
+                                                                               unraised_sds))
+                live, flat, off = (tip_rmse(frames, tips, truth), tip_rmse(frames, unraised, truth),
+                                   offline_rmse(motion, frames, truth))
+                # the second of rows where live is worst
+                error = np.linalg.norm(tips - truth.point("bucket_tip")[frames], axis=1) ** 2
+                start = (int(np.argmax(np.convolve(np.nan_to_num(error), np.ones(30), "valid")))
+                         if len(frames) >= 30 else 0)
+                worst = frames[start:start + 30]
+                stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
+                tests = report.base_tests
+                choice = ("-" if not tests else ("moving" if tests[-1][1] else "fixed")
+                        + f" {sum(a[1] != b[1] for a, b in zip(((0, False),) + tests[:-1], tests))}/{len(tests)}")
+                print(f"{session.name:>28} {n:>4} {base:>6} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
+                      f"{live / off:>8.2f} {flat / off:>12.2f} "
+                      f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
+                      f"{tip_rmse(worst, unraised[start:start + 30], truth):>8.4f} "
+                      f"{offline_rmse(motion, worst, truth):>7.4f} "
+                      f"{coverage_text(coverage(frames, tips, sds, truth)):>22} "
+                      f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
+                      f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {choice:>12}"
+                      f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
+                ratios[base].append((live / off, flat / off))
     print("live 1/2/3 SD %: the rows whose tip is within 1, 2, 3 of its SDs of the truth (the SD is the RMS of the "
           "3-D error's length: honest SDs give e/SD, the RMS of error / SD, near 1, and within 1/2/3 SD between a "
           "1-D Gaussian's 68/95/99.7 % and an isotropic 3-D one's 61/99/100 %); fit ms: the median fit of a frame; "
           "smooth ms: the median from the fit to the row written (the smoother, files read as fast as tracked); "
-          "base: the last test's choice, the changes / the tests")
-    print(f"live / offline over {len(ratios)} runs: median {np.median(ratios[:, 0]):.2f}, "
-          f"worst {ratios[:, 0].max():.2f}"
-          f"; never raised: median {np.median(ratios[:, 1]):.2f}, worst {ratios[:, 1].max():.2f}")
+          "choice: the last test's choice, the changes / the tests")
+    for base in bases:
+        shares = np.array(ratios[base])
+        print(f"base {base}: live / offline over {len(shares)} runs: median {np.median(shares[:, 0]):.2f}, "
+              f"worst {shares[:, 0].max():.2f}"
+              f"; never raised: median {np.median(shares[:, 1]):.2f}, worst {shares[:, 1].max():.2f}")
 
 
 def bench_row(args, root: Path, session: Path, calibration, truth, size: str, seed: int, n: int) -> float:

@@ -12,14 +12,14 @@ from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import load_tracks
-from mocap.live.pose import FixedLagSmoother, FrameFit, WarmFit
+from mocap.live.pose import BASE_WINDOW, FixedLagSmoother, FrameFit, WarmFit
 from mocap.reconstruct.stage import check_inputs, on_reference_clock
 
 NOISE = 0.5  # px
-FRAMES = 300  # 10 s: the tests of the base after 60 and 210 frames
+FRAMES = 300  # 10 s: the tests of the base after 60 and 210 frames (on a recent window: every 30 from 60 to 300)
 
 
-def live_rows(root, choose_base: bool):
+def live_rows(root, choose_base: bool, base_window: int | None = None):
     """The session's first FRAMES reference frames (its true tracks with NOISE px added)
     through the live fit and smoother: the fitter, the rows' tips (F, 3), their SDs (F,)
     and the truth's tips (F, 3)."""
@@ -30,7 +30,8 @@ def live_rows(root, choose_base: bool):
     tracks = Tracks.from_rows(truth.camera, truth.frame, truth.marker, truth.xy + rng.normal(0, NOISE, truth.xy.shape),
                               truth.time)
     clock = on_reference_clock(calibration, tracks, check_inputs(calibration, tracks, machine))
-    fit = WarmFit(machine, list(calibration.cameras), choose_base=choose_base, background=False)
+    fit = WarmFit(machine, list(calibration.cameras), choose_base=choose_base, background=False,
+                  base_window=base_window)
     smoother = FixedLagSmoother(machine, 1, base_motion=choose_base)
     poses = [smoother.push(t, fit(clock.pixels[:, k])) for k, t in enumerate(clock.time[:FRAMES])]
     poses = poses[1:] + smoother.flush()
@@ -41,8 +42,9 @@ def live_rows(root, choose_base: bool):
             motion.point("bucket_tip")[frames])
 
 
+@pytest.mark.parametrize("base_window", [BASE_WINDOW, None])
 @pytest.mark.parametrize("bounce", [0.0, 2.0])
-def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, bounce):
+def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, bounce, base_window):
     """A still base is held at every test; a bouncing one is fitted per frame from the test
     that finds it moving (the choice `mocap fit` makes on these sessions, tests/test_smooth.py;
     the first 2 s, their half-second still start, may not show it yet), and its rows then
@@ -50,9 +52,9 @@ def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, boun
     root = tmp_path / "s"
     assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--seed", "7", "--bounce", str(bounce),
                      "--out", str(root), "--no-video"]) == 0
-    fit, tips, sds, truth = live_rows(root, choose_base=True)
+    fit, tips, sds, truth = live_rows(root, choose_base=True, base_window=base_window)
     answers = [moves for _, moves in fit.base_tests]
-    assert len(answers) == 2 and answers[-1] == bool(bounce) and (bounce or not any(answers))
+    assert len(answers) == (9 if base_window else 2) and answers[-1] == bool(bounce) and (bounce or not any(answers))
     since = [frames for frames, moves in fit.base_tests if moves == bool(bounce)][0] + 30
     error = np.linalg.norm(tips - truth, axis=1)
     after = slice(max(since, 90), None)  # the answer taken, the smoother's process noise estimated

@@ -40,8 +40,10 @@ _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the s
 _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
 _BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
-_BASE_EVERY = 150  # frames between the tests, each of up to `SAMPLE_FRAMES` frames spread over all those so far
+_BASE_EVERY = 150  # without a window: frames between the tests, each of up to `SAMPLE_FRAMES` spread over all so far
 _BASE_MARGIN = 0.05  # a test changes the choice when the criterion's gain is this share past its penalty
+BASE_WINDOW = 90  # the last frames each test fits (3 s at 30 fps) ...
+_WINDOW_EVERY = 30  # ... and the frames between its tests
 
 
 class CameraHistory:
@@ -132,8 +134,10 @@ class WarmFit:
     With `choose_base` (and a fixed base in `options`) the base is held where the calibration
     saw it or fitted per frame as the data say, with `mocap fit`'s test
     (`mocap.reconstruct.base_check.compare_bases`): the first after `_BASE_FIRST` frames, then
-    every `_BASE_EVERY`, on up to `SAMPLE_FRAMES` frames spread over all the frames so far (as
-    `mocap fit` spreads them over the session: the tests agree more the longer the run);
+    every `_WINDOW_EVERY`, on the last `base_window` frames (the base fitted per frame while
+    the recent frames show it moving, as while the bucket digs, and held while they do not);
+    with `base_window` None, every `_BASE_EVERY` on up to `SAMPLE_FRAMES` frames spread over
+    all the frames so far (as `mocap fit` spreads them over the session);
     each test decides until the next (the base held until the first), a change needing the
     criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with
     `background` the tests run on their own thread and their answer is taken at the first
@@ -143,8 +147,10 @@ class WarmFit:
     would not be told apart)."""
 
     def __init__(self, machine: Machine, cameras: list[Camera], options: FitOptions | None = None,
-                 choose_base: bool = False, background: bool = True):
+                 choose_base: bool = False, background: bool = True,
+                 base_window: int | None = BASE_WINDOW):
         self.machine, self.cameras = machine, list(cameras)
+        self.window = base_window
         self.options = options or FitOptions()
         self.choose_base = choose_base and not self.options.base_motion and machine.n_joints > 0
         self.base_moves = self.options.base_motion
@@ -228,7 +234,10 @@ class WarmFit:
         """Keep the frame for the test of the base, take a finished test's answer, and start
         the next test when it is time (with `background`, on its own thread: the rows do not
         wait for it)."""
-        if self.kept % self.stride == 0:
+        if self.window:
+            self.recent.append((pixels, joints))
+            del self.recent[:-self.window]
+        elif self.kept % self.stride == 0:
             self.recent.append((pixels, joints))
             if len(self.recent) > 2 * SAMPLE_FRAMES:  # every other one kept: spread over all the frames so far
                 self.recent = self.recent[::2]
@@ -238,7 +247,8 @@ class WarmFit:
             self.testing.join()
             self._take(self.testing.check)
             self.testing = None
-        if self.kept < _BASE_FIRST or (self.kept - _BASE_FIRST) % _BASE_EVERY or self.testing is not None:
+        every = _WINDOW_EVERY if self.window else _BASE_EVERY
+        if self.kept < _BASE_FIRST or (self.kept - _BASE_FIRST) % every or self.testing is not None:
             return
         pick = np.unique(np.linspace(0, len(self.recent) - 1, min(SAMPLE_FRAMES, len(self.recent))).round().astype(int))
         test = _BaseTest(self.machine, self.cameras, np.stack([self.recent[k][0] for k in pick], axis=1),

@@ -40,7 +40,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
 from mocap.live.feed import Feed
-from mocap.live.pose import CameraHistory, FixedLagSmoother, WarmFit
+from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, WarmFit
 from mocap.live.rows import PoseWriter, row
 from mocap.live.sources import FILE, SourceReader, SourceSpec
 from mocap.reconstruct.kinfit import FitOptions
@@ -63,7 +63,8 @@ class LiveRequest:
     (host, port) or None; `record` a session folder to write, or None; `view` where the rows
     are shown as they come (`mocap.live.view.check_target`), or None; `choose_base` with a
     fixed base in `fit_options`: the base fitted per frame while the data say it moves
-    (`WarmFit`), else held."""
+    (`WarmFit`; the test on the last `base_window` frames, None: on frames spread over the
+    whole run), else held."""
 
     machine: str
     calibration: Path
@@ -79,6 +80,7 @@ class LiveRequest:
     view: str | None = None
     follow_clocks: bool = False
     choose_base: bool = True
+    base_window: int | None = BASE_WINDOW
     track_options: TrackOptions = field(default_factory=TrackOptions)
     fit_options: FitOptions = field(default_factory=FitOptions)
 
@@ -373,7 +375,8 @@ class _Loop:
         self.view_s = 0.0
         self.follower = follower
         self.history = [CameraHistory(f) for f in fps]
-        self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base)
+        self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base,
+                           base_window=request.base_window)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=_base_columns(request, machine))
         # clock frames waiting: (frame, time, arrived, labels in, the camera whose frame it is)
         self.pending: list[tuple[int, float, float, float, int]] = []
