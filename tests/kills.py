@@ -80,3 +80,21 @@ def make_small_session(root: Path) -> Path:
                      "--fps", "5", "--clean", "--out", str(root)]) == 0
     digitise_first_frame(Session.open(root), np.random.default_rng(1))
     return root
+
+
+def timed_warm(run) -> tuple[float, bool]:
+    """Run `run()` (a command in this process): its seconds, and whether it compiled a kernel
+    of the project on the way (numba's on-disk cache empty, as on a fresh checkout). The
+    kills' moments are shares of a run that compiles nothing: a run that compiled is a warm-up
+    only, and the caller times another."""
+    import time
+
+    from numba.core import event
+
+    with event.install_recorder("numba:compile") as recorder:
+        start = time.perf_counter()
+        run()
+        took = time.perf_counter() - start
+    compiled = any(getattr(getattr(data.data["dispatcher"], "py_func", None), "__module__", "").startswith("mocap")
+                   for _, data in recorder.buffer)
+    return took, compiled

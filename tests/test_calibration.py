@@ -63,14 +63,15 @@ def test_cube_pair_with_5_percent_model_error_fits_closely(cube_pair):
         assert rms_true <= 2 * model_error_px
 
 
-def test_cube_pair_converges_from_500_reasonable_guesses(cube_pair):
-    """Angles off by up to 30 deg, position by 30 %, focal length by a factor of 2."""
+def test_cube_pair_converges_from_reasonable_guesses(cube_pair):
+    """Angles off by up to 30 deg, position by 30 %, focal length by a factor of 2: 50 seeded
+    starts (benchmarks/bench_calibration.py --only starts holds 500 of them to the same bound)."""
     camera, obs = cube_scene(cube_pair, 3, noise_px=0.3)
     reference = calibrate(cube_pair, obs, templates([camera])).cameras[0].to_paper()
     truth = camera.to_paper()
     rng = np.random.default_rng(5)
     worst = 0.0
-    for _ in range(500):
+    for _ in range(50):
         guess = PaperCamera(
             truth.azimuth + np.radians(rng.uniform(-30, 30)),
             truth.elevation + np.radians(rng.uniform(-30, 30)),

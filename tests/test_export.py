@@ -246,7 +246,8 @@ def test_colmap_export_reprojects_like_our_cameras(tmp_path):
     assert {model.cameras[i].model.name for i in model.cameras} == {"FULL_OPENCV", "OPENCV", "PINHOLE"}
     _, tracks, markers = load_inputs(tmp_path / "calibration" / "cameras.toml",
                                      [tmp_path / "tracks" / f"{c}.csv" for c in cameras])
-    clock = on_reference_clock(calibration, tracks, load_machine("bobcat_225").marker_names)
+    marker_names = load_machine("bobcat_225").marker_names
+    clock = on_reference_clock(calibration, tracks, marker_names)
     n_checked = 0
     for point in model.points3D.values():
         for element in point.track.elements:
@@ -258,7 +259,7 @@ def test_colmap_export_reprojects_like_our_cameras(tmp_path):
             stored = image.points2D[element.point2D_idx].xy - 0.5
             c = list(cameras).index(camera_name)
             k = np.searchsorted(clock.frame, int(frame))
-            marker = load_machine("bobcat_225").marker_names.index(
+            marker = marker_names.index(
                 points.marker[(points.frame == int(frame)) & np.all(np.abs(points.xyz - point.xyz) < 1e-9, axis=1)][0])
             np.testing.assert_allclose(stored, clock.pixels[c, k, marker], atol=1e-9)  # the track is the tracks' pixel
             if c == 0:  # the reference camera's own frames: the track is the projection, to the
