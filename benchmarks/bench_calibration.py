@@ -688,10 +688,8 @@ def bench_aniposelib(machine) -> dict | None:
 def bench_starts(cube, sizes: Sizes) -> dict:
     """Part 6: the cube pair from `sizes.starts` seeded reasonable guesses; the worst distance
     of the fitted camera centre from the no-guess solution's."""
-    from mocap.core.camera import PaperCamera
-
     sys.path.insert(0, str(HERE.parent / "tests"))
-    from conftest import scene
+    from conftest import reasonable_guess, scene
 
     cameras, _, obs, _ = scene(cube, 1, 3, noise_px=0.3, distance=(2.5, 4.0))
     camera = cameras[0]
@@ -700,13 +698,7 @@ def bench_starts(cube, sizes: Sizes) -> dict:
     rng = np.random.default_rng(5)
     worst = 0.0
     for _ in range(sizes.starts):
-        guess = PaperCamera(
-            truth.azimuth + np.radians(rng.uniform(-30, 30)),
-            truth.elevation + np.radians(rng.uniform(-30, 30)),
-            truth.tilt + np.radians(rng.uniform(-30, 30)),
-            truth.position * rng.uniform(0.7, 1.3, 3),
-            truth.focal * 2.0 ** rng.uniform(-1, 1),
-        )
+        guess = reasonable_guess(truth, rng)
         result = calibrate(cube, obs, templates_of([camera]), guess=Guess({camera.name: guess}))
         worst = max(worst, float(np.linalg.norm(result.cameras[0].to_paper().position - reference.position)))
     return {"starts": sizes.starts, "worst_m": worst}

@@ -52,6 +52,20 @@ def scene(machine, n_cameras, seed, noise_px=0.5, distance=(2.5, 4.0), outliers=
     return cameras, q, obs, tracks
 
 
+def reasonable_guess(truth, rng):
+    """A start for the paper's test of reasonable guesses: the true PaperCamera `truth` with its
+    angles off by up to 30 deg, its position by 30 % and its focal length by a factor of 2."""
+    from mocap.core.camera import PaperCamera
+
+    return PaperCamera(
+        truth.azimuth + np.radians(rng.uniform(-30, 30)),
+        truth.elevation + np.radians(rng.uniform(-30, 30)),
+        truth.tilt + np.radians(rng.uniform(-30, 30)),
+        truth.position * rng.uniform(0.7, 1.3, 3),
+        truth.focal * 2.0 ** rng.uniform(-1, 1),
+    )
+
+
 def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
     """An OpenCV FileStorage (YAML or XML by the suffix) of one camera's intrinsics, as
     OpenCV's calibration samples write it: a file the project did not make."""

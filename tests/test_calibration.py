@@ -2,12 +2,12 @@
 
 import numpy as np
 import pytest
-from conftest import scene
+from conftest import reasonable_guess, scene
 
 from mocap.calibration import CalibrationOptions, Guess, Observations, calibrate, template_camera
 from mocap.calibration.dlt import decompose_projection, dlt_camera
 from mocap.calibration.problem import Layout, Problem
-from mocap.core.camera import Camera, PaperCamera
+from mocap.core.camera import Camera
 from mocap.core.geometry import rotation_angle_between
 from mocap.errors import ConvergenceError, DegenerateError
 from mocap.io.machine_toml import machine_from_dict, machine_to_dict
@@ -72,13 +72,7 @@ def test_cube_pair_converges_from_reasonable_guesses(cube_pair):
     rng = np.random.default_rng(5)
     worst = 0.0
     for _ in range(50):
-        guess = PaperCamera(
-            truth.azimuth + np.radians(rng.uniform(-30, 30)),
-            truth.elevation + np.radians(rng.uniform(-30, 30)),
-            truth.tilt + np.radians(rng.uniform(-30, 30)),
-            truth.position * rng.uniform(0.7, 1.3, 3),
-            truth.focal * 2.0 ** rng.uniform(-1, 1),
-        )
+        guess = reasonable_guess(truth, rng)
         result = calibrate(cube_pair, obs, templates([camera]), guess=Guess({camera.name: guess}))
         paper = result.cameras[0].to_paper()
         worst = max(worst, np.linalg.norm(paper.position - reference.position))
