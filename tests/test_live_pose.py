@@ -12,7 +12,7 @@ from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import load_tracks
-from mocap.live.pose import BASE_WINDOW, FixedLagSmoother, FrameFit, WarmFit
+from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, FrameFit, WarmFit
 from mocap.reconstruct.stage import check_inputs, on_reference_clock
 
 NOISE = 0.5  # px
@@ -88,3 +88,18 @@ def test_the_rows_sds_cover_fits_overconfident_and_correlated():
     assert 0.67 < np.sqrt(np.mean(ratio**2)) < 1.6
     scale = smoother.variance_factor * (1 + 2 * max(smoother.correlation, 0.0))
     assert np.sqrt(np.mean(ratio**2) * scale) > 3  # the smoothed covariance without the scales
+
+
+def test_a_camera_far_ahead_of_the_rows_keeps_the_frames_they_have_not_reached():
+    """Files read as fast as they are tracked: a camera's tracker may run 1,000 frames ahead of
+    the rows. With no depth its history still gives the pixels of a time the rows reach late
+    (interpolated between its frames either side); a history of 256 frames has lost them."""
+    fps, markers = 30.0, 4
+    unbounded, bounded = CameraHistory(fps, depth=None), CameraHistory(fps)
+    for k in range(1000):
+        pixels = np.tile([[float(k), 2.0 * k]], (markers, 1))
+        unbounded.add(k / fps, pixels)
+        bounded.add(k / fps, pixels)
+    at = 100.5 / fps
+    np.testing.assert_allclose(unbounded.pixels_at(at), np.tile([[100.5, 201.0]], (markers, 1)))
+    assert bounded.pixels_at(at) is None

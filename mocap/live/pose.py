@@ -47,9 +47,11 @@ _WINDOW_EVERY = 30  # ... and the frames between its tests
 
 
 class CameraHistory:
-    """A camera's last labelled frames: (time on the reference clock, pixels (M, 2))."""
+    """A camera's last labelled frames: (time on the reference clock, pixels (M, 2)), at most
+    `depth` (None: every frame not yet forgotten, for files read as fast as they are tracked,
+    where a camera's tracker may run any way ahead of the rows)."""
 
-    def __init__(self, fps: float, depth: int = 256):
+    def __init__(self, fps: float, depth: int | None = 256):
         self.fps = fps
         self.frames: deque[tuple[float, np.ndarray]] = deque(maxlen=depth)
 

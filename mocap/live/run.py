@@ -374,7 +374,9 @@ class _Loop:
         self.workers, self.writer, self.feed, self.stop, self.view = workers, writer, feed, stop, view
         self.view_s = 0.0
         self.follower = follower
-        self.history = [CameraHistory(f) for f in fps]
+        self.patient = not request.realtime and all(w.reader.spec.kind == FILE for w in workers)
+        # files read as fast as they are tracked: a camera may run any way ahead of the rows, its frames kept
+        self.history = [CameraHistory(f, depth=None if self.patient else 256) for f in fps]
         self.fit = WarmFit(machine, cameras, request.fit_options, choose_base=request.choose_base,
                            base_window=request.base_window)
         self.smoother = FixedLagSmoother(machine, request.lag, base_motion=_base_columns(request, machine))
