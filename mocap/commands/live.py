@@ -53,8 +53,8 @@ def add_parser(sub) -> None:
     base = p.add_mutually_exclusive_group()
     base.add_argument("--base-motion", action="store_true",
                       help="fit the base's pose every frame (a machine that bounces or walks, cameras moved since "
-                      "the calibration); default: per frame while the frames show it moving, tested as mocap fit "
-                      "tests it every 5 s; columns base_x ... as in the motion CSV")
+                      "the calibration); default: per frame while the last 3 s show it moving, tested as mocap fit "
+                      "tests it, every second; columns base_x ... as in the motion CSV")
     base.add_argument("--fixed-base", action="store_true",
                       help="hold the base where the calibration saw it, even when the frames show it moving (no "
                       "base columns)")

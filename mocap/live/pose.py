@@ -271,9 +271,7 @@ class WarmFit:
         self.base_test_s += cpu_s
         if check is None:
             return
-        scalars = 2 * check.observations  # the information criterion's gain over its penalty (> 1: it moves)
-        evidence = scalars * 2.0 * np.log(check.fixed_noise_px / check.moving_noise_px) / (6 * check.frames
-                                                                                          * np.log(scalars))
+        evidence = check.evidence  # the information criterion's gain over its penalty (> 1: it moves)
         moves = evidence > (1.0 - _BASE_MARGIN if self.base_moves else 1.0 + _BASE_MARGIN)
         self.base_evidence.append(float(evidence))
         self.base_tests.append((frames, moves))

@@ -32,7 +32,19 @@ class BaseCheck:
     fixed_noise_px: float
     moving_noise_px: float
     observations: int
-    moves: bool
+
+    @property
+    def evidence(self) -> float:
+        """The information criterion's gain for a moving base over its penalty (BIC with each
+        model's Gaussian log-likelihood at its own noise, n log sigma^2 + k log n): above 1
+        the moving base is preferred."""
+        scalars = 2 * self.observations
+        gain = scalars * 2.0 * np.log(self.fixed_noise_px / self.moving_noise_px)
+        return float(gain / (6 * self.frames * np.log(scalars)))
+
+    @property
+    def moves(self) -> bool:
+        return self.evidence > 1.0
 
 
 def check_base_motion(machine: Machine, cameras: list[Camera], pixels: np.ndarray, fit: JointFit,
@@ -55,11 +67,8 @@ def compare_bases(machine: Machine, cameras: list[Camera], pixels: np.ndarray, s
     plain = replace(options, tolerance=Tolerance(), base_motion=False, noise_px=None, repair_passes=0)
     fixed = fit_joints(machine, cameras, pixels, start, plain)
     moving = fit_joints(machine, cameras, pixels, start, replace(plain, base_motion=True))
-    scalars = 2 * int(fixed.n_observations.sum())
+    observations = int(fixed.n_observations.sum())
     frames = pixels.shape[1]
-    extra = 6 * frames
-    if scalars <= (machine.n_joints + 6) * frames:
+    if 2 * observations <= (machine.n_joints + 6) * frames:
         return None  # a base pose per frame would leave no redundancy
-    # BIC with each model's Gaussian log-likelihood at its own noise: n log σ² + k log n
-    gain = scalars * 2.0 * np.log(fixed.noise_px / moving.noise_px)
-    return BaseCheck(frames, fixed.noise_px, moving.noise_px, scalars // 2, bool(gain > extra * np.log(scalars)))
+    return BaseCheck(frames, fixed.noise_px, moving.noise_px, observations)
