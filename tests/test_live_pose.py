@@ -13,7 +13,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import load_tracks
 from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, FrameFit, WarmFit
-from mocap.reconstruct.stage import check_inputs, on_reference_clock
+from mocap.reconstruct.stage import on_reference_clock
 
 NOISE = 0.5  # px
 FRAMES = 300  # 10 s: the tests of the base after 60 and 210 frames (on a recent window: every 30 from 60 to 300)
@@ -29,7 +29,7 @@ def live_rows(root, choose_base: bool, base_window: int | None = None):
     rng = np.random.default_rng(1)
     tracks = Tracks.from_rows(truth.camera, truth.frame, truth.marker, truth.xy + rng.normal(0, NOISE, truth.xy.shape),
                               truth.time)
-    clock = on_reference_clock(calibration, tracks, check_inputs(calibration, tracks, machine))
+    clock = on_reference_clock(calibration, tracks, tracks.checked_against(calibration, machine))
     fit = WarmFit(machine, list(calibration.cameras), choose_base=choose_base, background=False,
                   base_window=base_window)
     smoother = FixedLagSmoother(machine, 1, base_motion=choose_base)

@@ -5,11 +5,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
 
 from mocap.errors import InputError
+
+if TYPE_CHECKING:
+    from mocap.core.calibration import Calibration
+    from mocap.core.machine import Machine
 
 
 class Tracks:
@@ -58,6 +63,33 @@ class Tracks:
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    def checked_against(self, calibration: Calibration, machine: Machine | None = None, calibration_path=None,
+                        where=None) -> tuple[str, ...]:
+        """The marker names the tracks are resampled to (the model's, else the tracks'); raises
+        InputError for tracks that are empty, cameras the calibration lacks, a pixel outside
+        its camera's image, or markers the model lacks. `calibration_path` and `where` (the
+        tracks) name the inputs in messages."""
+        if not len(self):
+            raise InputError("no observations in the tracks file(s)", path=where)
+        unknown = sorted(set(self.cameras) - set(calibration.names))
+        if unknown:
+            raise InputError(
+                f"tracks name camera(s) {unknown} that the calibration lacks (it has "
+                f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
+                path=calibration_path,
+            )
+        check_in_images(self, {c.name: c.size for c in calibration.cameras}, where)
+        if machine is None:
+            return self.markers
+        strange = sorted(set(self.markers) - set(machine.marker_names))
+        if strange:
+            raise InputError(
+                f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
+                f"model {machine.name!r}; check the model or the tracks' marker names",
+                path=where,
+            )
+        return machine.marker_names
 
     @property
     def cameras(self) -> tuple[str, ...]:

@@ -3,7 +3,8 @@
 A CSV file is first read by pyarrow with strict types; any file it cannot read that way
 (quotes it disagrees on, padded fields, a bad number, ...) is read with the csv module,
 whose checks name the line. A ``.parquet`` path is read and written as Parquet with the
-same columns. `load_table` does both for a table of a given `Layout`, in one call.
+same columns. `parse_table` does both for a table of a given `Layout`, from the file's
+bytes (read once, by `mocap.io.text.read_input`), in one call.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import pyarrow.parquet as pq
 
 from mocap.errors import InputError
 from mocap.io.atomic import atomic_path
-from mocap.io.text import opening, read_text
+from mocap.io.text import read_input
 
 MAX_BYTES = 2**31  # as mocap.io.text: a larger file is left to the checked reader
 
@@ -33,14 +34,15 @@ MAX_BYTES = 2**31  # as mocap.io.text: a larger file is left to the checked read
 NAMES = pa.dictionary(pa.int32(), pa.binary())
 
 
-def load_table(path: str | Path, layout: Layout, hint: str) -> Table:
-    """The table of a CSV file, or of a Parquet file for a ``.parquet`` path, read the
+def parse_table(data: bytes, path: str | Path, layout: Layout, hint: str, parquet: bool) -> Table:
+    """The table of a file's bytes, a Parquet file's (`parquet`) or a CSV file's, read the
     fast way (pyarrow, strict types, whole-column checks) when every value passes, else
     the checked way; a file that is not such a table is an InputError naming its line or
-    row (`hint`: what the user should check)."""
+    row (`path` names it, `hint`: what the user should check). A CSV file's bytes are
+    UTF-8 text (`read_input` checked them)."""
     path = Path(path)
-    if is_parquet(path):
-        table = read_parquet(path, hint, names=tuple(layout.names))
+    if parquet:
+        table = _parquet(data, path, hint, tuple(layout.names))
         missing = [h for h in layout.required if h not in table.column_names]
         if missing:
             raise InputError(f"lacks the columns {', '.join(missing)}; expected columns {layout.expected}", path=path)
@@ -49,13 +51,9 @@ def load_table(path: str | Path, layout: Layout, hint: str) -> Table:
         return typed if typed is not None else _parquet_text(table, layout, rows, path)
     types = {h: NAMES for h in layout.names} | {h: NAMES for h in layout.counts}
     types |= {h: pa.float64() for h in layout.floats(layout.required + layout.optional)}
-    table, lines = _strict_csv(path, types, tuple(layout.counts))
-    typed = None if table is None else _typed(table, layout, lines, "line")
-    return typed if typed is not None else _checked_csv(path, layout, hint)
-
-
-def is_parquet(path: str | Path) -> bool:
-    return Path(path).suffix.lower() == ".parquet"
+    table = _read_strict(data, types, tuple(layout.counts))
+    typed = None if table is None else _typed(table, layout, lambda: _line_numbers(data), "line")
+    return typed if typed is not None else _checked_csv(data, path, layout)
 
 
 def _typed(table: pa.Table, layout: Layout, rows, unit: str) -> Table | None:
@@ -84,14 +82,6 @@ def _typed(table: pa.Table, layout: Layout, rows, unit: str) -> Table | None:
         if not finite:
             return None  # infinite, or a NaN written out rather than an empty field
     return Table(rows, unit, names, values, counts)
-
-
-def _strict_csv(path: Path, types, counts) -> tuple[pa.Table | None, Callable[[], np.ndarray] | None]:
-    """`read_csv_strict`'s table and how to number its rows by their lines (counted when
-    a message needs them), or (None, None)."""
-    data = _bytes(path)
-    table = None if data is None else _read_strict(data, types, counts)
-    return (None, None) if table is None else (table, lambda: _line_numbers(data))
 
 
 def _bytes(path: Path) -> bytes | None:
@@ -159,10 +149,11 @@ def _line_numbers(data: bytes) -> np.ndarray:
     return np.flatnonzero(stops > starts)[1:] + 1  # the header on line 1
 
 
-def _checked_csv(path: Path, layout: Layout, hint: str) -> Table:
-    """The Table of a CSV file read with the csv module: the header, the width of every
-    row and every float checked, the first fault named by its line; blank rows skipped."""
-    reader = csv.reader(io.StringIO(read_text(path, hint)))
+def _checked_csv(data: bytes, path: Path, layout: Layout) -> Table:
+    """The Table of a CSV file's bytes (UTF-8) read with the csv module: the header, the width
+    of every row and every float checked, the first fault named by its line; blank rows
+    skipped; lines end in ``\\n``, ``\\r\\n`` or ``\\r``."""
+    reader = csv.reader(io.StringIO(data.decode("utf-8-sig"), newline=None))
     try:
         header = next(reader, None)
         if header is None:
@@ -237,9 +228,12 @@ def _from_text(text: dict[str, np.ndarray], layout: Layout, rows: np.ndarray, un
 def read_parquet(path: Path, hint: str, names: tuple[str, ...] = ()) -> pa.Table:
     """The Parquet file's table, the columns `names` (where present) as dictionaries (read
     once per name, not per row); an unreadable file is an InputError."""
+    return _parquet(read_input(path, hint, text=False), path, hint, names)
+
+
+def _parquet(data: bytes, path: Path, hint: str, names: tuple[str, ...]) -> pa.Table:
     try:
-        with opening(path, hint):
-            return pq.read_table(path, read_dictionary=list(names) or None)
+        return pq.read_table(pa.BufferReader(data), read_dictionary=list(names) or None)
     except (pa.ArrowException, OSError) as exc:
         raise InputError(f"not a readable Parquet file ({str(exc).splitlines()[0][:200]}); {hint}",
                          path=path) from None

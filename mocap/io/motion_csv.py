@@ -22,8 +22,7 @@ from mocap.core.machine import REVOLUTE, Machine
 from mocap.core.motion import Motion
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.columnar import is_parquet
-from mocap.io.text import csv_rows, read_text
+from mocap.io.text import csv_rows, is_parquet, read_text
 
 
 BASE_POSITION = ("base_x", "base_y", "base_z")  # m

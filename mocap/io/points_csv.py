@@ -14,8 +14,8 @@ import numpy as np
 from mocap.core.points import Points
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.columnar import ascii_digits, is_parquet
-from mocap.io.text import csv_rows, read_text
+from mocap.io.columnar import ascii_digits
+from mocap.io.text import csv_rows, is_parquet, read_text
 
 COLUMNS = ("frame", "marker", "x", "y", "z", "error_px", "views")
 SD_COLUMNS = ("x_sd", "y_sd", "z_sd")

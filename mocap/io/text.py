@@ -1,4 +1,5 @@
-"""Reading a text or TOML input file, with the one-line errors every reader gives."""
+"""Reading an input file (text, TOML, or a Parquet file's bytes), with the one-line errors
+every reader gives."""
 
 from __future__ import annotations
 
@@ -27,19 +28,45 @@ def opening(path: Path, hint: str):
         raise InputError(f"not readable (permission denied); {hint}", path=path) from None
 
 
-def read_text(path: str | Path, hint: str) -> str:
-    """The file's text (UTF-8, a byte-order mark dropped); `hint` tells the user what to do
-    when it is missing ("check the tracks path" …)."""
+def is_parquet(path: str | Path) -> bool:
+    """Whether a table file is Parquet (its suffix), not CSV text."""
+    return Path(path).suffix.lower() == ".parquet"
+
+
+def read_input(path: str | Path, hint: str, text: bool = True) -> bytes:
+    """The file's bytes, read once; with `text`, checked to be UTF-8 text without NUL bytes
+    and at most `MAX_TEXT_BYTES`. `hint` tells the user what to do when it is missing,
+    unreadable or not text ("check the tracks path" …)."""
     path = Path(path)
+    data = _read(path, hint, MAX_TEXT_BYTES if text else None)
+    if text:
+        _decoded(data, path, hint)
+    return data
+
+
+def read_text(path: str | Path, hint: str) -> str:
+    """The file's text (UTF-8, a byte-order mark dropped, line ends as ``\\n``); `hint` tells
+    the user what to do when it is missing ("check the tracks path" …)."""
+    path = Path(path)
+    text = _decoded(_read(path, hint, MAX_TEXT_BYTES), path, hint)
+    return text.replace("\r\n", "\n").replace("\r", "\n")  # as a file opened as text reads
+
+
+def _read(path: Path, hint: str, largest: int | None) -> bytes:
     try:
         with opening(path, hint):
-            if path.is_file() and path.stat().st_size > MAX_TEXT_BYTES:
+            if largest is not None and path.is_file() and path.stat().st_size > largest:
                 raise InputError(f"{path.stat().st_size} bytes is too large for a text input; {hint}", path=path)
-            text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"not a UTF-8 text file (byte {exc.start}); {hint}", path=path) from None
+            return path.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read it ({exc.strerror or exc}); {hint}", path=path) from None
+
+
+def _decoded(data: bytes, path: Path, hint: str) -> str:
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a UTF-8 text file (byte {exc.start}); {hint}", path=path) from None
     if "\0" in text:
         line = text.count("\n", 0, text.index("\0")) + 1
         raise InputError(f"a NUL byte: not a text file; {hint}", path=path, where=f"line {line}")

@@ -13,7 +13,7 @@ import numpy as np
 from mocap.core.tracks import Coded, Tracks, concatenate
 from mocap.errors import InputError
 from mocap.io import columnar
-from mocap.io.columnar import is_parquet
+from mocap.io.text import is_parquet, read_input
 
 REQUIRED = ("camera", "frame", "marker", "x", "y")
 OPTIONAL = ("time", "score")
@@ -77,7 +77,9 @@ def load_tracks(paths) -> Tracks:
 def _load_one(path: Path) -> tuple[columnar.Table, Tracks]:
     """One file's table, read once, and its tracks, its columns checked in one pass; the
     first bad row is named (by its line of a CSV, its row of a Parquet file)."""
-    table = columnar.load_table(path, LAYOUT, "check the tracks path")  # counts and numbers checked
+    parquet, hint = is_parquet(path), "check the tracks path"
+    data = read_input(path, hint, text=not parquet)
+    table = columnar.parse_table(data, path, LAYOUT, hint, parquet)  # counts and numbers checked
     text = table.text  # None: read the fast way, every value passed the checks of a text field
 
     def fail(mask: np.ndarray, message) -> None:

@@ -19,8 +19,8 @@ import numpy as np
 
 from mocap.core.machine import REVOLUTE, Machine
 from mocap.io import columnar
-from mocap.io.columnar import is_parquet
 from mocap.io.motion_csv import base_columns
+from mocap.io.text import is_parquet
 from mocap.live.pose import Pose
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from mocap.core.calibration import Calibration
 from mocap.core.machine import Machine, Tolerance
 from mocap.core.points import Points
-from mocap.core.tracks import Tracks, check_in_images
+from mocap.core.tracks import Tracks
 from mocap.errors import InputError, Report
 from mocap.io.cameras_toml import load_calibration, save_calibration
 from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
@@ -46,34 +46,8 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
     markers that do not match."""
     calibration = load_calibration(calibration_path)
     tracks = load_tracks(tracks_paths)
-    markers = check_inputs(calibration, tracks, machine, calibration_path, ", ".join(map(str, tracks_paths)))
+    markers = tracks.checked_against(calibration, machine, calibration_path, ", ".join(map(str, tracks_paths)))
     return calibration, tracks, markers
-
-
-def check_inputs(calibration: Calibration, tracks: Tracks, machine: Machine | None = None,
-                 calibration_path=None, tracks_where=None) -> tuple[str, ...]:
-    """The marker names the tracks are resampled to (the model's, else the tracks'); raises
-    InputError for cameras or markers that do not match. The paths name the inputs in messages."""
-    if not len(tracks):
-        raise InputError("no observations in the tracks file(s)", path=tracks_where)
-    unknown = sorted(set(tracks.cameras) - set(calibration.names))
-    if unknown:
-        raise InputError(
-            f"tracks name camera(s) {unknown} that the calibration lacks (it has "
-            f"{list(calibration.names)}); calibrate them or rename the tracks' camera column",
-            path=calibration_path,
-        )
-    check_in_images(tracks, {c.name: c.size for c in calibration.cameras}, tracks_where)
-    if machine is None:
-        return tracks.markers
-    strange = sorted(set(tracks.markers) - set(machine.marker_names))
-    if strange:
-        raise InputError(
-            f"marker(s) {strange[:5]}{' …' if len(strange) > 5 else ''} are not in the machine "
-            f"model {machine.name!r}; check the model or the tracks' marker names",
-            path=tracks_where,
-        )
-    return machine.marker_names
 
 
 def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
@@ -162,7 +136,7 @@ def triangulate(calibration: Calibration, tracks: Tracks, options: TriangulateOp
     noise the tracks show by themselves. `max_noise_px`, when given, is the user's own
     limit on the pixel noise the views imply, in place of those checks."""
     if markers is None:
-        markers = check_inputs(calibration, tracks, None, calibration_path)
+        markers = tracks.checked_against(calibration, None, calibration_path)
     if options.min_views > len(calibration.cameras):
         raise InputError(f"--min-views {options.min_views}: the calibration has only {len(calibration.cameras)} "
                          "cameras", path=calibration_path)
@@ -380,7 +354,7 @@ def fit_motion(machine: Machine, calibration: Calibration, tracks: Tracks, fit_o
     fit_options = FitOptions() if fit_options is None else fit_options
     if fit_options.tolerance is None and not machine.tolerance:
         fit_options = replace(fit_options, tolerance=estimated_tolerance(calibration))
-    markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
+    markers = tracks.checked_against(calibration, machine, calibration_path, tracks_where)
     clock = on_reference_clock(calibration, tracks, markers, calibration_path)
     if machine.n_joints == 0 and not fit_options.base_motion:
         log.info("%s is rigid (no joints): fitting its pose per frame", machine.name)
@@ -519,7 +493,7 @@ def run_refine(machine_path, calibration_path, tracks_paths, out_calibration, ou
                options: RefineOptions, intrinsics_path=None) -> str:
     machine = load_machine(machine_path)
     calibration, tracks = load_calibration(calibration_path), load_tracks(tracks_paths)
-    check_inputs(calibration, tracks, machine, calibration_path, ", ".join(map(str, tracks_paths)))
+    tracks.checked_against(calibration, machine, calibration_path, ", ".join(map(str, tracks_paths)))
     known = load_intrinsics(intrinsics_path) if intrinsics_path is not None else None
     refined = refine_cameras(machine, calibration, tracks, options, known, intrinsics_path, calibration_path,
                              ", ".join(map(str, tracks_paths)))
@@ -539,7 +513,7 @@ def refine_cameras(machine: Machine, calibration: Calibration, tracks: Tracks, o
     options = RefineOptions() if options is None else options
     if options.tolerance is None and not machine.tolerance:
         options = replace(options, tolerance=estimated_tolerance(calibration))
-    markers = check_inputs(calibration, tracks, machine, calibration_path, tracks_where)
+    markers = tracks.checked_against(calibration, machine, calibration_path, tracks_where)
     cameras = list(calibration.cameras)
     if known_intrinsics is not None:  # known intrinsics: used and kept
         cameras = with_known_intrinsics(cameras, known_intrinsics, intrinsics_path)
