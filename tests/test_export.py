@@ -231,7 +231,8 @@ def make_triangulated_session(root, rng):
 
 def test_colmap_export_reprojects_like_our_cameras(tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
-    from mocap.reconstruct.stage import load_inputs, on_reference_clock
+    from mocap.reconstruct.stage import load_inputs
+    from mocap.reconstruct.timing import on_reference_clock
 
     calibration = make_triangulated_session(tmp_path, np.random.default_rng(11))
     out = tmp_path / "colmap"

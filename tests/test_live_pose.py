@@ -13,7 +13,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import load_tracks
 from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, FrameFit, WarmFit
-from mocap.reconstruct.stage import on_reference_clock
+from mocap.reconstruct.timing import on_reference_clock
 
 NOISE = 0.5  # px
 FRAMES = 300  # 10 s: the tests of the base after 60 and 210 frames (on a recent window: every 30 from 60 to 300)

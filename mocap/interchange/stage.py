@@ -84,7 +84,9 @@ def export_colmap(root: str | Path, out: str | Path, calibration_path: str | Pat
     from mocap.io.atomic import atomic_dir
     from mocap.io.colmap import write_model
     from mocap.io.points_csv import load_points
-    from mocap.reconstruct.stage import load_inputs, on_reference_clock
+    from mocap.io.cameras_toml import load_calibration
+    from mocap.io.tracks_csv import load_tracks
+    from mocap.reconstruct.timing import on_reference_clock
 
     _check_model_folder(out)
     session = _session(root)
@@ -95,7 +97,9 @@ def export_colmap(root: str | Path, out: str | Path, calibration_path: str | Pat
         raise InputError("no triangulated points: run the session (or `mocap triangulate`) first",
                          path=session.points_path)
     tracks_paths = [session.tracks_path(name) for name in session.camera_names]
-    calibration, tracks, markers = load_inputs(calibration_path, tracks_paths, session.machine())
+    calibration, tracks = load_calibration(calibration_path), load_tracks(tracks_paths)
+    markers = tracks.checked_against(calibration, session.machine(), calibration_path,
+                                     ", ".join(map(str, tracks_paths)))
     clock = on_reference_clock(calibration, tracks, markers)
     points = load_points(session.points_path)
     scene = reconstruction(calibration.names, markers, clock.frame, clock.pixels, points)

@@ -20,10 +20,10 @@ from mocap.io.intrinsics import load_intrinsics, with_known_intrinsics
 from mocap.io.machine_toml import load_machine, save_machine
 from mocap.io.motion_csv import save_motion
 from mocap.io.points_csv import save_points
-from mocap.io.tracks_csv import SPARSE_SPAN, load_tracks
+from mocap.io.tracks_csv import load_tracks
 from mocap.progress import progress
 from mocap.reconstruct.outliers import noise_from_fits
-from mocap.reconstruct.timing import Resampled, tracks_on_reference_clock
+from mocap.reconstruct.timing import on_reference_clock
 from mocap.reconstruct.triangulate import TRACK_FRAMES, TriangulateOptions, triangulate_tracks
 
 if TYPE_CHECKING:  # the fit and the refinement are imported by the stages that use them
@@ -48,34 +48,6 @@ def load_inputs(calibration_path, tracks_paths, machine: Machine | None = None):
     tracks = load_tracks(tracks_paths)
     markers = tracks.checked_against(calibration, machine, calibration_path, ", ".join(map(str, tracks_paths)))
     return calibration, tracks, markers
-
-
-def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
-    offsets = calibration.time_offsets
-    missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
-    if missing_fps and np.any(offsets != 0):
-        log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
-    _check_clock_span(calibration, tracks, path)
-    return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
-
-
-def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
-    """The cameras' recordings placed on the reference clock by their time offsets must not
-    spread over far more reference frames than they hold (the resampling allocates by the
-    span): time offsets hours apart on seconds of tracks are refused."""
-    fps, offsets = calibration.fps(), calibration.time_offsets - calibration.time_offsets[0]
-    starts, ends, held = [], [], 0
-    for name, rate, offset in zip(calibration.names, fps, offsets):
-        frames = tracks.frame[tracks.rows_of_camera(name)]
-        if len(frames):
-            starts.append(frames.min() / rate + offset)
-            ends.append(frames.max() / rate + offset)
-            held += int(frames.max() - frames.min()) + 1
-    span = (max(ends) - max(min(starts), 0.0)) * fps[0] if starts else 0.0
-    if span > SPARSE_SPAN and span > 10 * held:
-        raise InputError(
-            f"the cameras' tracks, placed on the reference clock by their time offsets, spread over "
-            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps", path=path)
 
 
 MAX_NOISE_PX = 5.0  # tracks that lie further than this from any consistent answer: refused

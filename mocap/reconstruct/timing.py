@@ -11,11 +11,17 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mocap.core.tracks import Tracks
+from mocap.errors import InputError
+from mocap.io.tracks_csv import SPARSE_SPAN
 from mocap.reconstruct.outliers import track_outliers
+
+if TYPE_CHECKING:
+    from mocap.core.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -122,3 +128,33 @@ def tracks_on_reference_clock(
     if dropped:
         log.info("%d pixel(s) dropped: their own tracks contradict them", dropped)
     return replace(resample(pixels, np.array(first_frames), fps, offsets), dropped=dropped)
+
+
+def on_reference_clock(calibration: Calibration, tracks: Tracks, markers, path=None) -> Resampled:
+    """The tracks of `markers` on the calibration's reference clock (its cameras' fps and time
+    offsets); `path` names the calibration in messages."""
+    offsets = calibration.time_offsets
+    missing_fps = [n for n, e in zip(calibration.names, calibration.extras) if "fps" not in e]
+    if missing_fps and np.any(offsets != 0):
+        log.warning("camera(s) %s have no fps in the calibration; assuming 30", missing_fps)
+    _check_clock_span(calibration, tracks, path)
+    return tracks_on_reference_clock(tracks, calibration.names, markers, calibration.fps(), offsets)
+
+
+def _check_clock_span(calibration: Calibration, tracks: Tracks, path) -> None:
+    """The cameras' recordings placed on the reference clock by their time offsets must not
+    spread over far more reference frames than they hold (the resampling allocates by the
+    span): time offsets hours apart on seconds of tracks are refused."""
+    fps, offsets = calibration.fps(), calibration.time_offsets - calibration.time_offsets[0]
+    starts, ends, held = [], [], 0
+    for name, rate, offset in zip(calibration.names, fps, offsets):
+        frames = tracks.frame[tracks.rows_of_camera(name)]
+        if len(frames):
+            starts.append(frames.min() / rate + offset)
+            ends.append(frames.max() / rate + offset)
+            held += int(frames.max() - frames.min()) + 1
+    span = (max(ends) - max(min(starts), 0.0)) * fps[0] if starts else 0.0
+    if span > SPARSE_SPAN and span > 10 * held:
+        raise InputError(
+            f"the cameras' tracks, placed on the reference clock by their time offsets, spread over "
+            f"{span:,.0f} frames but cover {held:,}: check each camera's time_offset and fps", path=path)
