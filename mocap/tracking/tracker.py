@@ -210,7 +210,7 @@ class Tracker:
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if again.any():
-            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected, agree)
+            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected, agree, visible)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
                 seen = concatenate([seen, extra])
@@ -338,11 +338,13 @@ class Tracker:
         half as far from it as any shown marker (which then gives it up: a marker wrongly shown
         on a hidden one's disk). `face_on` (M,) px: the disks' radii face on at the fitted joints
         (`_face_on_radius`). `agreeing` (M, N) bool: the pairs a disk where the fit puts the
-        marker vouches for (`_agreeing`), taken at any contrast and size."""
+        marker vouches for (`_agreeing`), taken at any size (but the contrast is kept: where the
+        boxes hide a marker, a solid may hide it too and show something dark at its place)."""
         clear = found.contrast >= self.options.detect.min_contrast
-        allowed = clear[None] & _same_size(found.axes[None, :, 0], face_on[:, None])
+        allowed = _same_size(found.axes[None, :, 0], face_on[:, None])
         if agreeing is not None:
             allowed |= agreeing
+        allowed &= clear[None]
         more, more_index = assign(fitted_uv, found.xy, tight, hidden, allowed=allowed)
         if len(more) == 0:
             return markers, index
@@ -535,7 +537,7 @@ class Tracker:
         return concatenate([strict, loose.select(stays)])
 
     def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray,
-                       agree: float = 0.0) -> Detections:
+                       agree: float = 0.0, shown: np.ndarray | None = None) -> Detections:
         """Disks refined from the fitted pixels `uv` (M, 2) (image) of `markers` (K,): from
         the last ellipse of a marker followed until now, else a circle of the expected
         radius; for those not found so, as `_refine_again` does, then from the ellipse's
@@ -544,7 +546,9 @@ class Tracker:
         missed, a disk that any of these refinements put within `agree` px of the fitted pixel,
         with the contrast, fill and elongation of a disk, whatever its ring (a sliver of an
         oblique disk on its foreshortened square: the ring around its blurred ellipse reaches
-        the paint beside the square), `_agreeing` then takes it."""
+        the paint beside the square), `_agreeing` then takes it; only for the markers the
+        model's boxes show (`shown` (M,) bool, where given): where they hide one, a solid may
+        hide it too, and the ring is what tells its disk from the solid's edge."""
         options = self.options
         detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         circles = expected[markers, None, None] ** 2 * np.eye(2)
@@ -563,6 +567,9 @@ class Tracker:
         if missing.any():
             found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        missing &= (missed <= 3) | (missed % 4 == 0)
+        if shown is not None:
+            missing &= shown[markers]
         if missing.any() and agree > 0:
             ringless = replace(detect, max_ring_spread=np.inf)
             small = refine_converged(gray, uv[markers[missing]], 0.25 * shapes[missing])
