@@ -40,6 +40,8 @@ _SWEEP_MARKERS = 2  # markers a swept step must show
 _SWEEP_CONTRAST = 0.25  # share of `DetectOptions.min_contrast` a marker's box contrast must reach
 _SWEEP_CHECKED = 4  # the best steps whose markers are refined
 _NEVER = 1000  # frames since a joint was last swept, for one never swept
+_SLIVER_PX = 2.0  # px: an ellipse whose minor semi-axis reads under this is at blur's and the pixel grid's floor
+# (a disk turned nearly edge on: its true width unknown, its faint ends lost, its ring past its square)
 
 
 @dataclass(frozen=True)
@@ -368,11 +370,15 @@ class Tracker:
         """(M, N) bool: the pairs of markers and detections (model pixels) whose centre lies
         within `agree` px of where the fitted model puts the marker (`fitted_uv` (M, 2)), and
         whose major semi-axis is no larger than the disk can be at its depth (`face_on` (M,),
-        `_same_size`'s bound above it)."""
+        `_same_size`'s bound above it), and whose minor semi-axis is at the blur's floor
+        (`_SLIVER_PX`): only such a sliver's major semi-axis reads short."""
         near = length(fitted_uv[:, None] - found.xy[None]) <= agree
         with np.errstate(invalid="ignore"):
             small = ~(found.axes[None, :, 0] > face_on[:, None]) | _same_size(found.axes[None, :, 0], face_on[:, None])
-        return near & small
+        # a wider ellipse reads its major semi-axis whole: its size test stands (a dark spot of
+        # a solid that hides the marker, at the marker's place, is no thinner than the blur)
+        thin = found.axes[None, :, 1] <= _SLIVER_PX
+        return near & small & thin
 
     def _update_disk(self, scale: np.ndarray, markers: np.ndarray, radius: np.ndarray) -> None:
         """Refresh the disks' radius in metres from labelled radii (px), by the median."""
@@ -544,7 +550,8 @@ class Tracker:
         semi-axes times 1/sqrt(2) (a small disk a pixel from the start converges from
         that window where neither the full one nor the half one took it); for those still
         missed, a disk that any of these refinements put within `agree` px of the fitted pixel,
-        with the contrast, fill and elongation of a disk, whatever its ring (a sliver of an
+        with the contrast, fill and elongation of a disk and a minor semi-axis at the blur's
+        floor (`_SLIVER_PX`), whatever its ring (a sliver of an
         oblique disk on its foreshortened square: the ring around its blurred ellipse reaches
         the paint beside the square), `_agreeing` then takes it; only for the markers the
         model's boxes show (`shown` (M,) bool, where given): where they hide one, a solid may
@@ -574,7 +581,8 @@ class Tracker:
             ringless = replace(detect, max_ring_spread=np.inf)
             small = refine_converged(gray, uv[markers[missing]], 0.25 * shapes[missing])
             candidates = concatenate([accepted(*first.of(missing), ringless), accepted(*small, ringless)])
-            candidates = candidates.select(_near_any(candidates.xy, uv[markers[missing]], np.full(len(candidates), agree)))
+            candidates = candidates.select(_near_any(candidates.xy, uv[markers[missing]], np.full(len(candidates), agree))
+                                           & (candidates.axes[:, 1] <= _SLIVER_PX))
             if len(candidates):
                 found = unique(concatenate([found, candidates]))
         return found
