@@ -87,6 +87,8 @@ class TrackOptions:
             raise ValueError("gate_px, tight_px and outlier_px must be positive")
         if self.min_markers < 1 or self.lost_frames < 1:
             raise ValueError("min_markers and lost_frames must be >= 1")
+        if not (self.agree_rms >= 0 and self.agree_px >= 0):
+            raise ValueError("agree_rms and agree_px must be >= 0")
 
 
 @dataclass(frozen=True)
