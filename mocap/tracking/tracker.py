@@ -40,6 +40,8 @@ _SWEEP_MARKERS = 2  # markers a swept step must show
 _SWEEP_CONTRAST = 0.25  # share of `DetectOptions.min_contrast` a marker's box contrast must reach
 _SWEEP_CHECKED = 4  # the best steps whose markers are refined
 _NEVER = 1000  # frames since a joint was last swept, for one never swept
+_SLIVER_PX = 2.0  # px: an ellipse whose minor semi-axis reads under this is at blur's and the pixel grid's floor
+# (a disk turned nearly edge on: its true width unknown, its faint ends lost, its ring past its square)
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,10 @@ class TrackOptions:
     near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
     needs (a full-frame search holds to `detect`); near_ring_spread: the factor on
     `detect.max_ring_spread` a disk refined from a small window there may reach, if it
-    stays put (`Tracker._refine_again`); occlusion:
+    stays put (`Tracker._refine_again`); agree_rms, agree_px: a disk whose centre lies within
+    `agree_rms` times the fit's inlier residual RMS (at least `agree_px`) of where the fitted
+    model puts a marker is that marker whatever its size and ring say (`Tracker._agreeing`);
+    occlusion:
     predict markers hidden by the machine's links (boxes); perspective: move each labelled
     centre from its image ellipse's centre to the image of the disk's centre, by the
     fitted model (`CameraModel.centre_offsets`).
@@ -71,6 +76,8 @@ class TrackOptions:
     lost_frames: int = 15
     near_contrast: float = 0.5
     near_ring_spread: float = 1.25
+    agree_rms: float = 3.0
+    agree_px: float = 0.5
     occlusion: bool = True
     perspective: bool = True
     detect: DetectOptions = field(default_factory=DetectOptions)
@@ -80,6 +87,8 @@ class TrackOptions:
             raise ValueError("gate_px, tight_px and outlier_px must be positive")
         if self.min_markers < 1 or self.lost_frames < 1:
             raise ValueError("min_markers and lost_frames must be >= 1")
+        if not (self.agree_rms >= 0 and self.agree_px >= 0):
+            raise ValueError("agree_rms and agree_px must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -194,6 +203,7 @@ class Tracker:
         residual = length(fitted_uv[held] - found.xy[held_index])
         inlier_rms = float(np.sqrt(np.mean(residual**2)))
         tight = np.full(len(uv), max(options.tight_px, 3.0 * inlier_rms))
+        agree = max(options.agree_rms * inlier_rms, options.agree_px)
         # the fitted joints put the markers nearer their disks than the prediction did (a
         # swing speeding up leaves it 1-2 px off, farther than a small or oblique disk's
         # refinement converges from): those the model now knows and no disk was found near
@@ -204,7 +214,7 @@ class Tracker:
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if again.any():
-            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected)
+            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected, agree, visible)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
                 seen = concatenate([seen, extra])
@@ -212,16 +222,22 @@ class Tracker:
         # a marker not followed lately: the size its guessed normal gives may be far off (a
         # plate turned from the box's face); its ellipse's major semi-axis is the disk's radius
         # at its depth however it is turned
+        # ... and a disk where the fit puts a marker, within the fit's own noise, is that marker
+        # whatever its size: the fit of the other markers vouches for it (an oblique disk's
+        # image a sliver under two pixels wide loses its faint ends to blur and the pixel grid,
+        # and its major semi-axis reads well under the face-on radius); only a disk larger than
+        # the marker's can be at its depth is refused
         followed = state.missed <= 2
         face_on = self._face_on_radius(joints)
+        agreeing = self._agreeing(fitted_uv, found, agree, face_on)
         sized = np.where(followed[:, None], _same_size(found.radius[None], expected[:, None]),
-                         _same_size(found.axes[None, :, 0], face_on[:, None]))
+                         _same_size(found.axes[None, :, 0], face_on[:, None])) | agreeing
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, allowed=sized)
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
         if prior_hidden.any():
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
-                                               face_on)
+                                               face_on, agreeing)
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -316,7 +332,8 @@ class Tracker:
         return np.where(use_model, modelled, state.radius)
 
     def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
-                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray,
+                     agreeing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The assignment (`markers`, `index`) of the markers the model shows, with the markers
         it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
         its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
@@ -324,10 +341,15 @@ class Tracker:
         the shown markers (`shown` (M,) bool): a disk goes to a hidden one only if it lies under
         half as far from it as any shown marker (which then gives it up: a marker wrongly shown
         on a hidden one's disk). `face_on` (M,) px: the disks' radii face on at the fitted joints
-        (`_face_on_radius`)."""
+        (`_face_on_radius`). `agreeing` (M, N) bool: the pairs a disk where the fit puts the
+        marker vouches for (`_agreeing`), taken at any size (but the contrast is kept: where the
+        boxes hide a marker, a solid may hide it too and show something dark at its place)."""
         clear = found.contrast >= self.options.detect.min_contrast
-        more, more_index = assign(fitted_uv, np.where(clear[:, None], found.xy, np.inf), tight, hidden,
-                                  found.axes[:, 0], face_on)
+        allowed = _same_size(found.axes[None, :, 0], face_on[:, None])
+        if agreeing is not None:
+            allowed |= agreeing
+        allowed &= clear[None]
+        more, more_index = assign(fitted_uv, found.xy, tight, hidden, allowed=allowed)
         if len(more) == 0:
             return markers, index
         mine = length(fitted_uv[more] - found.xy[more_index])
@@ -345,6 +367,20 @@ class Tracker:
         focal = 0.5 * (camera.matrix[0, 0] + camera.matrix[1, 1])
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(depth > 0, focal * self.state.disk_m / depth, np.nan)
+
+    def _agreeing(self, fitted_uv: np.ndarray, found: Detections, agree: float, face_on: np.ndarray) -> np.ndarray:
+        """(M, N) bool: the pairs of markers and detections (model pixels) whose centre lies
+        within `agree` px of where the fitted model puts the marker (`fitted_uv` (M, 2)), and
+        whose major semi-axis is no larger than the disk can be at its depth (`face_on` (M,),
+        `_same_size`'s bound above it), and whose minor semi-axis is at the blur's floor
+        (`_SLIVER_PX`): only such a sliver's major semi-axis reads short."""
+        near = length(fitted_uv[:, None] - found.xy[None]) <= agree
+        with np.errstate(invalid="ignore"):
+            small = ~(found.axes[None, :, 0] > face_on[:, None]) | _same_size(found.axes[None, :, 0], face_on[:, None])
+        # a wider ellipse reads its major semi-axis whole: its size test stands (a dark spot of
+        # a solid that hides the marker, at the marker's place, is no thinner than the blur)
+        thin = found.axes[None, :, 1] <= _SLIVER_PX
+        return near & small & thin
 
     def _update_disk(self, scale: np.ndarray, markers: np.ndarray, radius: np.ndarray) -> None:
         """Refresh the disks' radius in metres from labelled radii (px), by the median."""
@@ -508,12 +544,20 @@ class Tracker:
         stays = length(again.xy - loose.xy) <= 0.1 * np.maximum(loose.radius, 1.0)
         return concatenate([strict, loose.select(stays)])
 
-    def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray) -> Detections:
+    def _search_fitted(self, gray: np.ndarray, uv: np.ndarray, markers: np.ndarray, expected: np.ndarray,
+                       agree: float = 0.0, shown: np.ndarray | None = None) -> Detections:
         """Disks refined from the fitted pixels `uv` (M, 2) (image) of `markers` (K,): from
         the last ellipse of a marker followed until now, else a circle of the expected
         radius; for those not found so, as `_refine_again` does, then from the ellipse's
         semi-axes times 1/sqrt(2) (a small disk a pixel from the start converges from
-        that window where neither the full one nor the half one took it)."""
+        that window where neither the full one nor the half one took it); for those still
+        missed, a disk that any of these refinements put within `agree` px of the fitted pixel,
+        with the contrast, fill and elongation of a disk and a minor semi-axis at the blur's
+        floor (`_SLIVER_PX`), whatever its ring (a sliver of an
+        oblique disk on its foreshortened square: the ring around its blurred ellipse reaches
+        the paint beside the square), `_agreeing` then takes it; only for the markers the
+        model's boxes show (`shown` (M,) bool, where given): where they hide one, a solid may
+        hide it too, and the ring is what tells its disk from the solid's edge."""
         options = self.options
         detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
         circles = expected[markers, None, None] ** 2 * np.eye(2)
@@ -531,6 +575,18 @@ class Tracker:
             missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
         if missing.any():
             found = unique(concatenate([found, refine_and_accept(gray, uv[markers[missing]], 0.5 * shapes[missing], detect)]))
+            missing = ~_near_any(uv[markers], found.xy, 0.5 * np.maximum(expected[markers], 2.0))
+        missing &= (missed <= 3) | (missed % 4 == 0)
+        if shown is not None:
+            missing &= shown[markers]
+        if missing.any() and agree > 0:
+            ringless = replace(detect, max_ring_spread=np.inf)
+            small = refine_converged(gray, uv[markers[missing]], 0.25 * shapes[missing])
+            candidates = concatenate([accepted(*first.of(missing), ringless), accepted(*small, ringless)])
+            candidates = candidates.select(_near_any(candidates.xy, uv[markers[missing]], np.full(len(candidates), agree))
+                                           & (candidates.axes[:, 1] <= _SLIVER_PX))
+            if len(candidates):
+                found = unique(concatenate([found, candidates]))
         return found
 
     def _search(self, gray: np.ndarray, uv: np.ndarray, gate: np.ndarray, visible: np.ndarray,
