@@ -80,23 +80,14 @@ def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
 
 
 def pytest_collection_modifyitems(items):
-    """The tests marked `long` (tens of seconds each) first, the demo's chain the first of
-    them: on a fresh checkout numba's cache is empty, and the chain compiles nearly every
-    kernel once and caches it. Among them those marked `processes` (their Dask workers run the
-    compiled kernels) come last: each worker process would otherwise compile them all again.
-    The bad-input corpus (test_bad_input.py, a third of a minute of refused command lines that
-    run no kernel) comes last of all: xdist's work stealing hands each of the two workers one
-    half of this order to begin with, so one worker starts on the long tests and the other on
-    the corpus, and by the time the second worker takes up tests that run kernels (stolen from
-    the end of the first's queue) the first has compiled and cached them, where both would
-    compile the same kernels at the same time. With work stealing the long tests still all
-    start early and the short ones fill both workers around them."""
-    def order(item):
-        long = item.get_closest_marker("long") is not None
-        corpus = item.nodeid.startswith("tests/test_bad_input.py::test_bad_input[")
-        return (corpus, not long, item.get_closest_marker("processes") is not None,
-                item.nodeid.split("::")[0] != "tests/test_demo.py")
-    items.sort(key=order)
+    """The tests marked `long` (tens of seconds each) first: with xdist's work stealing they
+    start at once, and the short ones fill both cores around them, so that no long test is
+    left to run alone at the end. Among them those marked `processes` (their Dask workers run
+    the compiled kernels) come last: on a fresh checkout numba's cache is empty, and a test
+    run first in this process (the demo's chain) compiles the kernels once and caches them,
+    where each worker process would compile them all again."""
+    items.sort(key=lambda item: (item.get_closest_marker("long") is None,
+                                 item.get_closest_marker("processes") is not None))
 
 
 def pytest_terminal_summary(terminalreporter):
