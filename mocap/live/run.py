@@ -354,7 +354,7 @@ def _base_text(tests) -> str:
     """"; the base fitted per frame (3 tests, its choice changed 1x)" or ''."""
     if not tests:
         return ""
-    changes = sum(a[1] != b[1] for a, b in zip(((0, False),) + tuple(tests[:-1]), tests))
+    changes = sum(a[1] != b[1] for a, b in zip(((0, True),) + tuple(tests[:-1]), tests))  # fitted per frame until the first
     return (f"; the base {'fitted per frame' if tests[-1][1] else 'held where the calibration saw it'} "
             f"({len(tests)} tests of its motion, the choice changed {changes}x)")
 
