@@ -21,7 +21,8 @@ then `mocap fit`, over the whole videos) over the same frames.
 `--fault disconnect`: the last of the N cameras delivers nothing for 5 s from a third of the
 run (its frames in that time never arrive, as from a camera unplugged and plugged back).
 `--files`: instead, the whole videos read as fast as they are tracked (no frame dropped; not
-a latency measurement) and the rows' tip RMSE beside that of the same fits through the smoother
+a latency measurement; with `--fault disconnect` the last camera's frames of those 5 s on the
+reference clock never come, and the offline chain like for like is beside it) and the rows' tip RMSE beside that of the same fits through the smoother
 whose process noise is never raised (the peer: the estimate over 30 s alone) and the offline
 chain's; with the worst second of the live rows; the tip SDs' coverage (the rows within 1, 2,
 3 SDs of the truth, and the RMS of error / SD), live and unraised; the fit's and the
@@ -101,24 +102,30 @@ def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "de
 
 
 class _Silent(SourceReader):
-    """A source whose camera `gap[0]` delivers nothing from `gap[1]` to `gap[2]` s after the start."""
+    """A source whose camera `gap[0]` delivers nothing from `gap[1]` to `gap[2]` s after the
+    start (with `gap[3]`, files read as fast as tracked: its frames of those times on the
+    reference clock)."""
 
-    gap: tuple[str, float, float] | None = None
+    gap: tuple[str, float, float, bool] | None = None
 
     def _deliver(self, frame) -> None:
         gap = _Silent.gap
-        if gap is not None and self.spec.camera == gap[0] and gap[1] <= frame.arrived - self.clock_start < gap[2]:
-            return
+        if gap is not None and self.spec.camera == gap[0]:
+            at = frame.time if gap[3] else frame.arrived - self.clock_start
+            if gap[1] <= at < gap[2]:
+                return
         super()._deliver(frame)
 
 
 @contextmanager
-def silent(camera: str | None, start: float):
-    """While in it, `run_live`'s camera `camera` delivers nothing for `GAP_S` from `start` s."""
+def silent(camera: str | None, start: float, by_time: bool = False):
+    """While in it, `run_live`'s camera `camera` delivers nothing for `GAP_S` from `start` s
+    (`by_time`: its frames of those times on the reference clock, for files read as fast as
+    tracked)."""
     if camera is None:
         yield
         return
-    _Silent.gap = (camera, start, start + GAP_S)
+    _Silent.gap = (camera, start, start + GAP_S, by_time)
     live_module.SourceReader = _Silent
     try:
         yield
@@ -426,8 +433,9 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
             work = root / f"files_{session.name}_{n}"
             work.mkdir(exist_ok=True)
             motion = offline(session, names, work)  # once for every base
+            gap = names[-1] if args.fault == "disconnect" and n > 1 else None
             for base in bases:
-                with recording() as calls:
+                with silent(gap, args.duration / 3, by_time=True), recording() as calls:
                     report, cpu, _ = live_run(session, names, None, args.lag, work / "poses.csv", base,
                                               realtime=False)
                 frames, tips, sds = read_tips(work / "poses.csv", sd=True)
@@ -445,7 +453,7 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                 stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
                 tests = report.base_tests
                 choice = ("-" if not tests else ("moving" if tests[-1][1] else "fixed")
-                        + f" {sum(a[1] != b[1] for a, b in zip(((0, False),) + tests[:-1], tests))}/{len(tests)}")
+                        + f" {sum(a[1] != b[1] for a, b in zip(((0, base != 'fixed'),) + tests[:-1], tests))}/{len(tests)}")
                 print(f"{session.name:>28} {n:>4} {base:>6} {len(frames):>5} {live:>7.4f} {flat:>8.4f} {off:>7.4f} "
                       f"{live / off:>8.2f} {flat / off:>12.2f} "
                       f"{tip_rmse(worst, tips[start:start + 30], truth):>14.4f} "
@@ -455,6 +463,18 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                       f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
                       f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {choice:>12}"
                       f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
+                if gap is not None:
+                    rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None,
+                                         encoding="utf-8")
+                    without = np.array([gap not in str(c).split(";") for c in np.atleast_1d(rows["cameras"])])
+                    without = without[:len(keep)][keep]
+                    alike, removed = offline_without(session, names, work, gap, frames[without], calibration)
+                    like = offline_rmse(alike, frames, truth)
+                    print(f"{'':>34}{without.sum()} rows without {gap}: tip RMSE "
+                          f"{tip_rmse(frames[without], tips[without], truth):.4f} live, "
+                          f"{offline_rmse(alike, frames[without], truth):.4f} offline without its {removed} frames "
+                          f"there; all rows {like:.4f} offline like for like: live / offline {live / like:.2f}",
+                          flush=True)
                 ratios[base].append((live / off, flat / off))
     print("live 1/2/3 SD %: the rows whose tip is within 1, 2, 3 of its SDs of the truth (the SD is the RMS of the "
           "3-D error's length: honest SDs give e/SD, the RMS of error / SD, near 1, and within 1/2/3 SD between a "

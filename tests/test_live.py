@@ -240,13 +240,16 @@ def test_a_camera_back_after_a_gap_is_labelled_afresh(short_session):
     labelled: queue.Queue = queue.Queue()
     worker = CameraWorker(0, Reader(), CameraModel(machine, session.cameras[0].camera, solid=True),
                           machine.clip_to_limits(session.calibration.joints(machine)), 30.0, TrackOptions(), labelled,
-                          threading.Event(), resume=lambda: session.motion.joints[gap[0] - 1])
+                          threading.Event(), resume=lambda t: session.motion.joints[gap[0] - 1])
     worker.run()
     truth = session.tracks.select(session.tracks.camera == "cam1")
     true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
-    after = []
+    after, notices = [], []
     while not labelled.empty():
         _, t, _, pixels, _ = labelled.get()
+        if pixels is None:  # the gap told to the rows: nothing before this time
+            notices.append(t)
+            continue
         frame = int(round(t * 30))
         seen = [m for m, name in enumerate(machine.marker_names) if np.isfinite(pixels[m, 0])]
         error = [np.linalg.norm(pixels[m] - true_xy.get((frame, machine.marker_names[m]), np.inf)) for m in seen]
@@ -254,6 +257,58 @@ def test_a_camera_back_after_a_gap_is_labelled_afresh(short_session):
         if frame >= gap[1]:
             after.append(len(seen))
     assert worker.resumed == 1 and len(after) == 105 - gap[1] and min(after[:3]) >= 13, after
+    assert notices == [pytest.approx((gap[1] - 0.5) / 30)]
+
+
+def test_files_read_as_fast_as_tracked_resume_a_camera_after_its_gap_from_the_rows_there(short_session, tmp_path,
+                                                                                          monkeypatch):
+    """Files read as fast as they are tracked, cam2's frames 6-39 missing (1.1 s): its tracker
+    runs ahead of the rows, so the rows' newest joints when its frame 40 comes are of before
+    the gap; it starts afresh from the rows' joints at that frame's time (the rows pass the gap
+    first), within 0.05 rad of the truth there, where the joints of before the gap are off by
+    more than 0.1, and its rows after the gap follow the truth."""
+    from mocap.live import run as live_run
+    from mocap.live.run import CameraWorker, LiveRequest, run_live
+    from mocap.live.sources import SourceReader, parse_source
+
+    root, session = short_session
+    gap = (6, 40)
+
+    class Gapped(SourceReader):
+        def _deliver(self, frame):
+            if not (self.spec.camera == "cam2" and gap[0] <= frame.index < gap[1]):
+                super()._deliver(frame)
+
+    resumed = []
+
+    class Worker(CameraWorker):
+        @property
+        def resume(self):
+            return self._resume
+
+        @resume.setter
+        def resume(self, given):
+            def kept(*args):
+                joints = given(*args)
+                resumed.append((self._held.time, joints))
+                return joints
+
+            self._resume = kept
+
+    monkeypatch.setattr(live_run, "SourceReader", Gapped)
+    monkeypatch.setattr(live_run, "CameraWorker", Worker)
+    out = tmp_path / "poses.csv"
+    request = LiveRequest("hitachi_ex3500", root / "cameras.toml",
+                          tuple(parse_source(f"{c}={root / f'{c}.mp4'}") for c in ("cam1", "cam2")), out)
+    run_live(request)
+    assert len(resumed) == 1
+    t, joints = resumed[0]
+    truth = session.motion.joints
+    at, before = int(round(t * 30)), int(round((session.calibration.time_offsets[1] + gap[0] / 29.97) * 30))
+    moved = np.abs(truth[at] - truth[before]).max()
+    assert moved > 0.1 and joints is not None and np.abs(joints - truth[at]).max() < 0.05, (moved, joints, truth[at])
+    rows = [r for r in read_rows(out) if "cam2" in r["cameras"].split(";") and int(r["frame"]) > at]
+    assert len(rows) >= 3 and np.all(tip_error(rows, session) < 0.05), tip_error(rows, session)
 
 
 def test_ctrl_c_ends_cleanly_with_every_row_written(short_session, tmp_path):

@@ -140,8 +140,11 @@ class WarmFit:
     the recent frames show it moving, as while the bucket digs, and held while they do not);
     with `base_window` None, every `_BASE_EVERY` on up to `SAMPLE_FRAMES` frames spread over
     all the frames so far (as `mocap fit` spreads them over the session);
-    each test decides until the next (the base held until the first), a change needing the
-    criterion's gain `_BASE_MARGIN` past its penalty (tests near the line do not flap); with
+    each test decides until the next; until the first the base is fitted per frame (a base
+    that moves is followed from the first frame; one that holds still costs the first frames
+    only the base's noise), and the first test decides on the criterion alone (the start was
+    no answer of the data); a change after needs the criterion's gain `_BASE_MARGIN` past its
+    penalty (tests near the line do not flap); with
     `background` the tests run on their own thread and their answer is taken at the first
     frame after. The values then always carry the base's six parameters (zero and unobserved
     while it is held). A frame with fewer markers seen than the moving base's parameters is
@@ -155,7 +158,7 @@ class WarmFit:
         self.window = base_window
         self.options = options or FitOptions()
         self.choose_base = choose_base and not self.options.base_motion and machine.n_joints > 0
-        self.base_moves = self.options.base_motion
+        self.base_moves = self.options.base_motion or self.choose_base  # chosen: fitted per frame until a test holds it
         both = self.choose_base or (self.base_moves and machine.n_joints > 0)  # a frame may hold the base
         self.fitters = {moves: FrameFitter(machine, self.cameras, replace(self.options, base_motion=moves))
                         for moves in ((False, True) if both else (self.base_moves,))}
@@ -272,7 +275,8 @@ class WarmFit:
         if check is None:
             return
         evidence = check.evidence  # the information criterion's gain over its penalty (> 1: it moves)
-        moves = evidence > (1.0 - _BASE_MARGIN if self.base_moves else 1.0 + _BASE_MARGIN)
+        margin = _BASE_MARGIN if self.base_tests else 0.0  # the first test: no answer before it to hold to
+        moves = evidence > (1.0 - margin if self.base_moves else 1.0 + margin)
         self.base_evidence.append(float(evidence))
         self.base_tests.append((frames, moves))
         if moves != self.base_moves:

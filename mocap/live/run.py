@@ -54,6 +54,7 @@ STALL_S = 1.0  # a clock camera silent this long hands the rows' clock to the ne
 BEHIND_S = 0.5  # a clock frame this long waiting for the fit (the process is starved of CPU) is skipped
 FIRST_FRAME_S = 2.0  # the time a camera's first frame may take to be labelled (a search of the whole frame)
 RESUME_S = 1.0  # a camera's frame this long after its last one (it was unplugged, its stream failed) is labelled afresh
+_RESUME_WAIT_S = 30.0  # files read as fast as tracked: the longest a camera back after a gap waits for the rows to reach it
 
 
 @dataclass(frozen=True)
@@ -176,9 +177,12 @@ class CameraWorker(threading.Thread):
     its source; each frame's labels go to `labelled` as (camera index, time, arrived,
     pixels (M, 2)). A first frame that cannot be labelled is skipped and the next one tried.
     A frame more than `RESUME_S` after the one before (the camera was unplugged, its stream
-    failed) is labelled afresh as a first frame, from the joints `resume()` gives (the rows'
-    newest fit, None: `start`): the tracker's state of before the gap would follow the machine
-    from where it was (a marker taken for another while it catches up)."""
+    failed) is labelled afresh as a first frame, from the joints `resume(its time)` gives (the
+    rows' fit nearest before it, None: `start`): the tracker's state of before the gap would
+    follow the machine from where it was (a marker taken for another while it catches up). The
+    gap is first told to the rows (a notice with no pixels, just before that frame's time):
+    files read as fast as they are tracked wait for every camera's frames, and the rows could
+    not pass the gap to reach that frame's time."""
 
     def __init__(self, k: int, reader: SourceReader, model: CameraModel, start: np.ndarray, fps: float,
                  options: TrackOptions, labelled: queue.Queue, stop: threading.Event, keep: bool = True,
@@ -211,8 +215,8 @@ class CameraWorker(threading.Thread):
                     self.unlabelled += len(self._meta)
                     self._meta.clear()
                     log.info("camera %s: %s; trying the next frame", self.reader.spec.camera, exc)
-                if self._held is not None:  # a gap: the tracking starts afresh from the rows' newest joints
-                    now = self.resume()
+                if self._held is not None:  # a gap: the tracking starts afresh from the rows' joints there
+                    now = self.resume(self._held.time)
                     start = self.start_joints if now is None else now
         except Exception as exc:  # one line; the traceback at debug level
             log.error("camera %s: tracking failed (%s: %s); the others carry on", self.reader.spec.camera,
@@ -239,6 +243,7 @@ class CameraWorker(threading.Thread):
                          frame.time - self._last)
                 self._held = frame
                 self.resumed += 1
+                self.labelled.put((self.k, frame.time - 0.5 / self.fps, frame.arrived, None, None))  # nothing before
                 return
             first = False
             self._last = frame.time
@@ -302,8 +307,8 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
 
             follower = ClockFollower(machine, cameras, fps, offsets, stop)
         loop = _Loop(request, machine, cameras, fps, workers, writer, feed, stop, view, follower)
-        for worker in workers:  # after a gap a camera's labelling starts afresh from the rows' newest joints
-            worker.resume = lambda: loop.joints_now
+        for worker in workers:  # after a gap a camera's labelling starts afresh from the rows' joints there
+            worker.resume = lambda t, k=worker.k: loop.joints_at(k, t)
         with ExitStack() as videos:
             _recorders(request, readers, cameras, fps, videos)
             for thread in [*readers, *workers, *([follower] if follower is not None else [])]:
@@ -349,7 +354,7 @@ def _base_text(tests) -> str:
     """"; the base fitted per frame (3 tests, its choice changed 1x)" or ''."""
     if not tests:
         return ""
-    changes = sum(a[1] != b[1] for a, b in zip(((0, False),) + tuple(tests[:-1]), tests))
+    changes = sum(a[1] != b[1] for a, b in zip(((0, True),) + tuple(tests[:-1]), tests))  # fitted per frame until the first
     return (f"; the base {'fitted per frame' if tests[-1][1] else 'held where the calibration saw it'} "
             f"({len(tests)} tests of its motion, the choice changed {changes}x)")
 
@@ -391,6 +396,7 @@ class _Loop:
         # skipped (too far behind), and those that came while another camera drove the rows
         self.received, self.clocked, self.skipped_by, self.displaced = ([0] * n_cameras for _ in range(4))
         self.joints_now: np.ndarray | None = None  # the newest fit's joints (a camera back after a gap starts there)
+        self.time_now = -np.inf  # ... and its time on the reference clock
         self.latency: list[float] = []
         self.stages: list[tuple[float, float, float, float]] = []
         self.interrupted = False
@@ -419,6 +425,10 @@ class _Loop:
                     break
                 self._emit()
                 continue
+            if pixels is None:  # a camera's notice of a gap: nothing from it until after `time_ref`
+                self.history[k].add(time_ref, np.full((len(self.machine.marker_names), 2), np.nan))
+                self._emit()
+                continue
             if self.follower is not None:  # the frame placed with its camera's newest offset
                 index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
                 self.follower.add(k, index, pixels)
@@ -437,12 +447,26 @@ class _Loop:
         for pose_and_meta in self._drain():
             self._write(*pose_and_meta)
 
+    def joints_at(self, k: int, t: float) -> np.ndarray | None:
+        """The joints for camera `k`'s frame at `t` after a gap: the newest fit's (live, the
+        rows are at now); with files read as fast as they are tracked, once the rows have
+        reached the last reference frame before `t` (a camera's tracker may run far ahead of
+        the rows), or after `_RESUME_WAIT_S`."""
+        if self.patient and k != self._clock():
+            waited = time.perf_counter()
+            reach = t - 0.5 / self.fps[k] - 1.0 / self.fps[0] - 1e-6  # the notice's time, a reference frame back
+            while (self.time_now < reach and not self.stop.is_set()
+                   and time.perf_counter() - waited < _RESUME_WAIT_S):
+                time.sleep(0.005)
+        return self.joints_now
+
     def _clock(self) -> int:
-        """The camera whose frames make the rows: the first not finished and, unless files are
-        read as fast as they are tracked, that delivered within `STALL_S`."""
+        """The camera whose frames make the rows: the first not finished (its tracker ended and
+        its labels all taken in) and, unless files are read as fast as they are tracked, that
+        delivered within `STALL_S`."""
         now = time.perf_counter()
         for k, worker in enumerate(self.workers):
-            if worker.finished.is_set():
+            if worker.finished.is_set() and self.received[k] >= worker.out:
                 continue
             if self.patient or now - self.seen[k] < STALL_S:
                 return k
@@ -483,6 +507,7 @@ class _Loop:
         fitted = self.fit(pixels)
         if fitted.valid and self.machine.n_joints:
             self.joints_now = self.machine.clip_to_limits(fitted.values[: self.machine.n_joints])
+        self.time_now = t
         for history in self.history:
             history.forget(t)
         self.last_frame = frame
