@@ -407,7 +407,10 @@ def test_a_drifting_clock_is_followed(short_session, tmp_path, capsys):
     """cam2 delivers 28.5 frames a second where its calibration states 29.97 (5 % off, so that
     its offset moves by 2 frames in 2.6 s): with --follow-clocks its offset, re-estimated
     from the motion, follows the truth at the frame it was estimated around within a frame,
-    where the calibrated one is several frames off by then."""
+    where the calibrated one is several frames off by then. The files are read as fast as
+    they are tracked (the video's content drifts, whatever the pace), and the last estimate
+    is the streams' last window's, so the frame it is made around does not hang on the
+    machine's load."""
     from dataclasses import replace
 
     root, session = short_session
@@ -419,7 +422,7 @@ def test_a_drifting_clock_is_followed(short_session, tmp_path, capsys):
         for _, image in renderer.frames(np.arange(75)):  # to 3.5 s on the reference clock, as cam1
             write(image)
     argv = ["live", "hitachi_ex3500", str(root / "cameras.toml"), "--source", f"cam1={root / 'cam1.mp4'}",
-            "--source", f"cam2={tmp_path / 'cam2.mp4'}", "--realtime", "--duration", "3.5", "--follow-clocks",
+            "--source", f"cam2={tmp_path / 'cam2.mp4'}", "--follow-clocks",
             "--out", str(tmp_path / "poses.csv")]
     assert cli.main(argv) == 0
     summary = capsys.readouterr().out

@@ -67,13 +67,24 @@ class ClockFollower(threading.Thread):
 
     def run(self) -> None:
         while not self.stop.wait(self.every_s):
-            try:
-                began = time.thread_time()
-                self.update()
-                self.cpu_s += time.thread_time() - began
-                self.updates += 1
-            except Exception:
-                log.exception("clock following failed; the offsets stay as they are")
+            self._timed_update()
+
+    def finish(self) -> None:
+        """After the run: the thread ended, one last estimate over the streams' last window, so
+        that the newest offsets are the end's however fast the frames came (a file read as
+        fast as it is tracked may end before the first wake-up)."""
+        self.join(timeout=5.0)
+        if not self.is_alive():
+            self._timed_update()
+
+    def _timed_update(self) -> None:
+        try:
+            began = time.thread_time()
+            self.update()
+            self.cpu_s += time.thread_time() - began
+            self.updates += 1
+        except Exception:
+            log.exception("clock following failed; the offsets stay as they are")
 
     def update(self) -> None:
         """One estimate per other camera from the frames in the window."""

@@ -324,6 +324,8 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
                     feed.close()
                 if view is not None:
                     view.close()
+        if follower is not None:
+            follower.finish()
         if request.record is not None:
             _record(request, machine, calibration, order, cameras, fps, workers)
     counts = tuple(CameraCounts(c.name, r.read, w.out, r.dropped, r.reconnects, w.resumed)
