@@ -8,6 +8,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from mocap.calibration import doubts, identify
+from mocap.calibration.bias import bias_corrected
 from mocap.calibration.context import (
     CalibrationResult,
     FitContext,
@@ -80,6 +81,8 @@ def fit(context: FitContext, x0: np.ndarray, robust_start: bool = True) -> Calib
                                                                             options).any():
         problem, final, inlier = without_outliers(context, problem, final, x0, bounds, _least_squares)
         problem, final, inlier = readmit(context, problem, final, inlier, free, bounds, _least_squares)
+    if marker_sd is not None:  # a far camera's distance, skewed by the perspective's fall with it: its bias removed
+        final.x = bias_corrected(problem, final.x, free, problem.prior_px)
     rms = pixel_rms(final.fun, problem)
     if rms > max_rms(options, templates):
         raise ConvergenceError(
