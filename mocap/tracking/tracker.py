@@ -333,7 +333,7 @@ class Tracker:
 
     def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
                      shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray,
-                     agreeing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     agreeing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The assignment (`markers`, `index`) of the markers the model shows, with the markers
         it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
         its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
@@ -345,10 +345,7 @@ class Tracker:
         marker vouches for (`_agreeing`), taken at any size (but the contrast is kept: where the
         boxes hide a marker, a solid may hide it too and show something dark at its place)."""
         clear = found.contrast >= self.options.detect.min_contrast
-        allowed = _same_size(found.axes[None, :, 0], face_on[:, None])
-        if agreeing is not None:
-            allowed |= agreeing
-        allowed &= clear[None]
+        allowed = (_same_size(found.axes[None, :, 0], face_on[:, None]) | agreeing) & clear[None]
         more, more_index = assign(fitted_uv, found.xy, tight, hidden, allowed=allowed)
         if len(more) == 0:
             return markers, index
