@@ -79,6 +79,42 @@ def write_opencv_intrinsics(path, size, matrix, distortion) -> None:
     storage.release()
 
 
+def _kernels_cached() -> bool:
+    """Whether every module of the project with a cached kernel has a numba cache index at
+    least as new as its source (numba's own test of a stale cache is the source's stamp)."""
+    from pathlib import Path
+
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return False
+    for source in (Path(__file__).parent.parent / "mocap").rglob("*.py"):
+        if "cache=True" not in source.read_text():
+            continue
+        indexes = list((source.parent / "__pycache__").glob(f"{source.stem}.*.nbi"))
+        if not indexes or max(p.stat().st_mtime for p in indexes) < source.stat().st_mtime:
+            return False
+    return True
+
+
+def pytest_configure(config):
+    """On a fresh checkout, before the whole suite (the README's command: no test named), the
+    project's kernels are compiled into numba's cache by two processes at once
+    (tests/warm_kernels.py), so that the workers and the commands the tests start load them
+    rather than each compiling them all."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if hasattr(config, "workerinput") or config.args_source != pytest.Config.ArgsSource.TESTPATHS:
+        return
+    if config.getoption("collectonly") or _kernels_cached():
+        return
+    script = Path(__file__).with_name("warm_kernels.py")
+    warmers = [subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL) for part in ("tracking", "reconstruct")]
+    for warmer in warmers:
+        warmer.wait()
+
+
 def pytest_collection_modifyitems(items):
     """The tests marked `long` (tens of seconds each) first: with xdist's work stealing they
     start at once, and the short ones fill both cores around them, so that no long test is
