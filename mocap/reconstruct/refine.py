@@ -33,6 +33,7 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.linalg
 from scipy.sparse import coo_matrix
 
 from mocap.core.camera import DISTORTION_MODELS, Camera, project_cam
@@ -219,7 +220,6 @@ def camera_covariance(problem: "_Bundle", x: np.ndarray, scale_px: float, noise_
                              else jac.T @ (jac * weight[:, None]))
     if not np.all(np.isfinite(information)):
         return None
-    covariance = np.linalg.pinv(information, hermitian=True)
     position = np.cumsum(free) - 1  # index among the free parameters
     cameras = problem.unpack(x)[0]
     named = [named_parameters(c) for c in cameras]
@@ -240,10 +240,28 @@ def camera_covariance(problem: "_Bundle", x: np.ndarray, scale_px: float, noise_
                               [np.zeros((len(offsets), len(columns))), np.eye(len(offsets))]])
         columns = columns + [i for i in offsets if free[i]]
         names += [f"{m}.d{a}" for m in problem.machine.marker_names for a in "xyz"]
-    block = covariance[np.ix_(position[columns], position[columns])]
+    block = _inverse_block(information, position[columns])
     full = transform @ block @ transform.T
     keep = np.nonzero(np.diag(full) > 0)[0]
     return CameraCovariance(tuple(names[i] for i in keep), full[np.ix_(keep, keep)])
+
+
+def _inverse_block(information: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """The rows and columns `index` of the inverse of the symmetric `information` (n, n):
+    solved for those columns alone from its Cholesky factor (scaled to a unit diagonal),
+    about a tenth of the time of the whole pseudo-inverse over the session's per-frame
+    joints; the pseudo-inverse where the factor fails (a direction the data leave free)."""
+    scale = 1.0 / np.sqrt(np.maximum(np.diag(information), 1e-300))
+    try:
+        factor = scipy.linalg.cho_factor(information * np.outer(scale, scale), check_finite=False)
+        unit = np.zeros((len(information), len(index)))
+        unit[index, np.arange(len(index))] = 1.0
+        block = scipy.linalg.cho_solve(factor, unit * scale[:, None], check_finite=False)[index] * scale[index, None]
+        if np.all(np.isfinite(block)) and np.all(np.diag(block) > 0):
+            return 0.5 * (block + block.T)
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.pinv(information, hermitian=True)[np.ix_(index, index)]
 
 
 def image_velocity(pixels: np.ndarray) -> np.ndarray:
