@@ -9,8 +9,10 @@ the command ends: an error's or an interruption's one line is not preceded by th
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import os
 import sys
 
 from mocap.commands import COMMANDS
@@ -44,6 +46,22 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+BLAS_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _one_blas_thread():
+    """A command's linear algebra on one BLAS thread, unless the user's environment says how
+    many: its matrices are small (a bundle of a few hundred parameters), it decodes and tracks
+    on threads of its own, and on a busy machine a BLAS that spins a thread per core makes a
+    5 ms Cholesky take a third of a second."""
+    if any(os.environ.get(name) for name in BLAS_THREAD_VARIABLES):
+        return contextlib.nullcontext()
+    import scipy.linalg  # noqa: F401  (loads scipy's own BLAS, so that the limit reaches it too)
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((arg for arg in argv if not arg.startswith("-")), None)
@@ -62,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     # the log as it happens with --verbose, or for a command that runs until stopped (hold_log False)
     held = _HeldWarnings(hold=not args.verbose and getattr(args, "hold_log", True))
     try:
-        code = int(args.run(args) or 0)
+        with _one_blas_thread():
+            code = int(args.run(args) or 0)
     except InputError as exc:
         held.discard()
         print(one_line(f"mocap {args.command}: error: {exc}"), file=sys.stderr)
