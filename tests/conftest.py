@@ -112,7 +112,10 @@ def pytest_configure(config):
     warmers = [subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL) for part in ("tracking", "reconstruct")]
     for warmer in warmers:
-        warmer.wait()
+        try:
+            warmer.wait(timeout=600)
+        except subprocess.TimeoutExpired:  # a warm-up that hangs only costs its time, never the suite
+            warmer.kill()
 
 
 def pytest_collection_modifyitems(items):
