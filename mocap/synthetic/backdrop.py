@@ -72,25 +72,12 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
     # then bisect the crossing
     enter, leave = _slabs(origin, rays, along, across, pile, reach)
     leave = np.minimum(leave, t_hit)
+    crossing = leave > enter  # only the rays through the pile's box are marched
+    hit, t_pile = _march_pile(origin, rays[crossing], enter[crossing], leave[crossing], along, across, pile)
     hit_pile = np.zeros(t_hit.shape, dtype=bool)
-    t_pile = np.full(t_hit.shape, far)
-    prev = enter.copy()
-    for s in np.linspace(0.0, 1.0, 160):
-        t = enter + (leave - enter) * s
-        p = origin + rays * t[..., None]
-        above = p[..., 2] > pile_height(p @ along, p @ across, pile)
-        new = ~above & ~hit_pile & (leave > enter)
-        t_pile[new] = t[new]
-        hit_pile |= new
-        prev = np.where(hit_pile, prev, t)
-    lo, hi = prev, t_pile
-    for _ in range(8):
-        mid = 0.5 * (lo + hi)
-        p = origin + rays * mid[..., None]
-        above = p[..., 2] > pile_height(p @ along, p @ across, pile)
-        lo, hi = np.where(above, mid, lo), np.where(above, hi, mid)
-    t_pile = hi
-    t_final = np.where(hit_pile, t_pile, t_hit)
+    hit_pile[crossing] = hit
+    t_final = t_hit.copy()
+    t_final[crossing] = np.where(hit, t_pile, t_hit[crossing])
     point = origin + rays * t_final[..., None]
     texture = value_noise(rng)
 
@@ -120,6 +107,29 @@ def render_backdrop(camera: Camera, pile: Pile, truck: Truck, reach: float, sun:
         # from a child stream: the camera's other draws stay as they are without the clutter
         _draw_behind(image, camera, reach, sun, rng.spawn(1)[0], people, trucks, other_machine)
     return image
+
+
+def _march_pile(origin, rays, enter, leave, along, across, pile: Pile) -> tuple[np.ndarray, np.ndarray]:
+    """Whether rays (N, 3) from `origin`, between `enter` and `leave` (N,), meet the pile's
+    height field, and where first (N,): 160 steps, then the crossing bisected."""
+    hit = np.zeros(len(rays), dtype=bool)
+    t_pile = leave.copy()
+    prev = enter.copy()
+    for s in np.linspace(0.0, 1.0, 160):
+        t = enter + (leave - enter) * s
+        p = origin + rays * t[..., None]
+        above = p[..., 2] > pile_height(p @ along, p @ across, pile)
+        new = ~above & ~hit
+        t_pile[new] = t[new]
+        hit |= new
+        prev = np.where(hit, prev, t)
+    lo, hi = prev, t_pile
+    for _ in range(8):
+        mid = 0.5 * (lo + hi)
+        p = origin + rays * mid[..., None]
+        above = p[..., 2] > pile_height(p @ along, p @ across, pile)
+        lo, hi = np.where(above, mid, lo), np.where(above, hi, mid)
+    return hit, hi
 
 
 def _slabs(origin, rays, along, across, pile: Pile, reach: float):
