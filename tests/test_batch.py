@@ -296,7 +296,7 @@ def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, threads_
         for made in ("batch", "results", "tracks", "analysis"):
             shutil.rmtree(root / made, ignore_errors=True)
         (root / "calibration" / "cameras.toml").unlink(missing_ok=True)
-    report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain_with_a_killed_worker)
+    report, failed = run_batch([top], BatchOptions(workers=1, out=tmp_path), chain_for=chain_with_a_killed_worker)
     assert failed == 1, report
     assert (roots[1] / "batch" / "killed-cam1").exists()  # the worker was killed once
     rows = {name.split("/")[-1]: row for name, row in read_fleet(tmp_path).items()}

@@ -338,15 +338,36 @@ def _whole_or_passed_through(files: dict, whole: dict, calibrated: str) -> None:
         assert digest == whole.get(name) or (name == "calibration/cameras.toml" and digest == calibrated), name
 
 
-RUN_KILLS = np.random.default_rng(341).uniform(0.15, 0.9, 3)  # fractions of an uninterrupted run's time
+# where the kills fall: a seeded random moment after the killed run has written one stage's output, within a
+# share of an uninterrupted run's time: in tracking (after calibrate), in sync (which rewrites the calibration in
+# place) or the stages after it, and in the analysis or the report (before COMPLETE)
+RUN_KILLS = [(name, share) for name, share in zip(
+    ("calibration/cameras.toml", "tracks/cam2.csv", "results/motion.csv"),
+    np.random.default_rng(341).uniform(0.0, [0.2, 0.15, 0.06]))]
+
+
+def written(path: Path):
+    """Whether `path` has been written since this call: by the run started after it (the
+    files the runs killed before it left are older)."""
+    import time
+
+    start = time.time_ns()
+
+    def holds() -> bool:
+        try:
+            return path.stat().st_mtime_ns >= start
+        except FileNotFoundError:
+            return False
+    return holds
 
 
 @pytest.mark.long
 def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, whole_run, tmp_path):
-    """SIGKILL of `mocap run` at seeded random moments, each run taking up the folder the last
-    one left (its lock a dead process's: taken over): the inputs stay byte-identical, every
-    file is whole, results/COMPLETE only once all are, and the same command run again leaves
-    the folder of an uninterrupted run, byte for byte."""
+    """SIGKILL of `mocap run` at seeded random moments (one in tracking, one in sync or after,
+    one in the analysis or the report), each run taking up the folder the last one left (its
+    lock a dead process's: taken over): the inputs stay byte-identical, every file is whole,
+    results/COMPLETE only once all are, and the same command run again leaves the folder of
+    an uninterrupted run, byte for byte."""
     import shutil
 
     whole, took, calibrated = whole_run
@@ -361,7 +382,8 @@ def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run
         _whole_or_passed_through(files, whole, calibrated)
         assert ("results/COMPLETE" in files) == (files == whole)
 
-    kill_at(argv, tmp_path, RUN_KILLS * took, check, fork=True)  # forks of this process: no start (imports) on top
+    for name, share in RUN_KILLS:  # forks of this process: no start (imports) on top
+        kill_at(argv, tmp_path, [share * took], check, after=written(killed / name), fork=True)
     assert cli.main(argv) == 0
     assert visible(killed) == whole
     assert not list(killed.rglob(".*"))  # no temporary or lock of the killed runs left
