@@ -423,7 +423,12 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
     kill_at(argv, tmp_path, [kills[1] * took], check, after=manifest.exists)
     recorded = set(tomllib.loads(manifest.read_text())["stages"])
     assert recorded
-    assert cli.main(argv) == 0
+    # run again on a scheduler of this process's, whose worker finds the kernels loaded (the killed runs
+    # started local clusters of worker processes)
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert cli.main(["batch", str(fleet), "--scheduler", cluster.scheduler_address, "--out", str(out)]) == 0
     row = read_fleet(out)["s"]
     assert row["status"] == "ok" and int(row["stages_skipped"]) == len(recorded), (row, recorded)
     results = {k: v for k, v in visible(root).items() if not k.startswith("batch/")}
