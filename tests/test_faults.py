@@ -5,6 +5,7 @@ a full disk."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
