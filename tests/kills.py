@@ -23,13 +23,75 @@ def visible(root) -> dict[str, str]:
     return {k: v for k, v in snapshot(root).items() if not any(part.startswith(".") for part in k.split("/"))}
 
 
-def run_killed(argv: list[str], cwd, delay: float, after=None) -> int | None:
+class Forked:
+    """`mocap argv` in a fork of this process, in a process group of its own, its output
+    discarded: the command as `python -m mocap.cli` runs it (`cli.main`), without the start
+    of a new interpreter (its imports, the compiled kernels loaded from numba's cache) when
+    this process has run the command before. Only for commands that start no thread pool of
+    this process's (not `batch`: its Dask client). Polled and waited for as a `Popen`."""
+
+    def __init__(self, argv: list[str], cwd) -> None:
+        from tqdm import tqdm
+
+        tqdm.monitor_interval = 0  # no thread of this process may hold tqdm's lock at the fork
+        if tqdm.monitor is not None:
+            tqdm.monitor.exit()
+            tqdm.monitor = None
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # the child: never returns into the test
+            code = 1
+            try:
+                os.setpgid(0, 0)
+                os.chdir(cwd)
+                null = os.open(os.devnull, os.O_RDWR)
+                for fd in (0, 1, 2):
+                    os.dup2(null, fd)
+                sys.stdout = sys.stderr = open(os.devnull, "w")
+                from mocap import cli
+
+                code = cli.main(list(map(str, argv)))
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else 1
+            except BaseException:
+                code = 1
+            finally:
+                os._exit(code or 0)
+        try:
+            os.setpgid(pid, pid)  # (the child does it too: whichever comes first)
+        except OSError:
+            pass  # it has done it, or ended
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            done, status = os.waitpid(self.pid, os.WNOHANG)
+            if done:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise subprocess.TimeoutExpired(f"mocap (pid {self.pid})", timeout)
+            time.sleep(0.002)
+        return self.returncode
+
+
+def run_killed(argv: list[str], cwd, delay: float, after=None, fork: bool = False) -> int | None:
     """Run `mocap argv` in a child process and SIGKILL it, and every process it started (a
     batch's Dask workers), after `delay` s, counted from when `after()` first holds if given
-    (None: it ended first, its exit status else)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    (None: it ended first, its exit status else). `fork`: the child a fork of this process
+    (`Forked`), else a new interpreter."""
+    if fork:
+        child = Forked(argv, cwd)
+    else:
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     while after is not None and child.poll() is None and not after():
         time.sleep(0.002)
     try:
@@ -51,7 +113,7 @@ def group_alive(group: int) -> bool:
     return True
 
 
-def kill_at(argv: list[str], cwd, delays, check, after=None) -> list[int | None]:
+def kill_at(argv: list[str], cwd, delays, check, after=None, fork: bool = False) -> list[int | None]:
     """Run `mocap argv` killed after each of `delays` s in turn (from when `after()` holds if
     given), each run taking up what the last one left; `check()` after each. A run that ends
     before its moment (a machine faster than timed) must end with 0, and is run again with half
@@ -59,7 +121,7 @@ def kill_at(argv: list[str], cwd, delays, check, after=None) -> list[int | None]
     codes = []
     for delay in delays:
         for _ in range(3):
-            codes.append(run_killed(argv, cwd, delay, after))
+            codes.append(run_killed(argv, cwd, delay, after, fork))
             assert codes[-1] in (None, 0), codes
             check()
             if codes[-1] is None:

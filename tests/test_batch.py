@@ -105,18 +105,28 @@ def fleet(tmp_path_factory):
     return top, roots
 
 
+@pytest.fixture(scope="module")
+def threads_cluster():
+    """The address of a Dask cluster of two single-threaded workers inside this process: its
+    stages run on the modules and compiled kernels loaded here, with no worker process to
+    start (a local cluster of processes, the default, is the test of a killed worker's)."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        yield cluster.scheduler_address
+
+
 def read_fleet(out: Path) -> dict[str, dict]:
     with open(out / "fleet.csv", newline="") as fh:
         return {row["session"]: row for row in csv.DictReader(fh)}
 
 
 @pytest.mark.long
-@pytest.mark.processes
-def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
+def test_batch_runs_skips_reruns_and_reports(fleet, threads_cluster, tmp_path):
     top, roots = fleet
     assert find_sessions([top, roots[0]]) == sorted(r.resolve() for r in roots)
 
-    report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain)
+    report, failed = run_batch([top], BatchOptions(scheduler=threads_cluster, out=tmp_path), chain_for=chain)
     assert failed == 1, report
     rows = read_fleet(tmp_path)
     assert list(rows) == ["site_a/s1", "site_a/s2", "site_b/deep/s3"]  # below the sessions' common folder
@@ -149,33 +159,30 @@ def test_batch_runs_skips_reruns_and_reports(fleet, tmp_path):
     assert "| EX3500 #1 | 1/2 ok |" in report_md and "| 2026-11-30 | 2/2 ok |" in report_md
     assert "- site_b/deep/s3: prepare: " in report_md
 
-    # a re-run with nothing changed does no work, here through a running scheduler
+    # a re-run with nothing changed does no work
     outputs = [roots[0] / p for p in ("calibration/cameras.toml", "tracks/cam2.csv", "results/motion.csv")]
     before = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs}
-    from distributed import Client, LocalCluster
+    options = BatchOptions(scheduler=threads_cluster, out=tmp_path)
+    _, failed = run_batch([top], options, chain_for=chain)
+    assert failed == 1
+    rows = read_fleet(tmp_path)
+    assert rows["site_a/s1"]["stages_run"] == rows["site_a/s2"]["stages_run"] == "0"
+    assert rows["site_a/s1"]["stages_skipped"] == str(len(chain(roots[0])))
+    assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs} == before
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
-        _, failed = run_batch([top], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path), chain_for=chain)
-        assert failed == 1
-        rows = read_fleet(tmp_path)
-        assert rows["site_a/s1"]["stages_run"] == rows["site_a/s2"]["stages_run"] == "0"
-        assert rows["site_a/s1"]["stages_skipped"] == str(len(chain(roots[0])))
-        assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in outputs} == before
+    # a lost camera output: that camera's stage runs again on the calibration it read before
+    # (sync rewrote it in place: put back from the store), then sync, whose output the restore
+    # undid; the later stages see the same content and are skipped
+    (roots[0] / "tracks" / "cam2.csv").unlink()
+    _, _ = run_batch([roots[0]], options, chain_for=chain)
+    row = read_fleet(tmp_path)["s1"]
+    assert (row["status"], row["stages_run"]) == ("ok", "2"), row
+    assert {p: p.read_bytes() for p in outputs} == {p: b for p, (_, b) in before.items()}
 
-        # a lost camera output: that camera's stage runs again on the calibration it read before
-        # (sync rewrote it in place: put back from the store), then sync, whose output the restore
-        # undid; the later stages see the same content and are skipped
-        (roots[0] / "tracks" / "cam2.csv").unlink()
-        _, _ = run_batch([roots[0]], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path), chain_for=chain)
-        row = read_fleet(tmp_path)["s1"]
-        assert (row["status"], row["stages_run"]) == ("ok", "2"), row
-        assert {p: p.read_bytes() for p in outputs} == {p: b for p, (_, b) in before.items()}
-
-        # changed arguments (the default made explicit) re-run fit only: its output is the same, so the analysis is skipped
-        run_batch([roots[0]], BatchOptions(scheduler=cluster.scheduler_address, out=tmp_path),
-                  chain_for=partial(chain, max_gap=2))
-        row = read_fleet(tmp_path)["s1"]
-        assert row["stages_run"] == "1", row
+    # changed arguments (the default made explicit) re-run fit only: its output is the same, so the analysis is skipped
+    run_batch([roots[0]], options, chain_for=partial(chain, max_gap=2))
+    row = read_fleet(tmp_path)["s1"]
+    assert row["stages_run"] == "1", row
 
 
 def test_split_tasks_gives_each_camera_its_own_task(fleet):
@@ -277,7 +284,7 @@ def chain_with_a_killed_worker(root: Path) -> list[Stage]:
 
 @pytest.mark.long
 @pytest.mark.processes
-def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path, capsys):
+def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, threads_cluster, tmp_path, capsys):
     """A worker killed mid-task costs only that task's re-run (Dask's own): its session's
     results equal those of a session that ran untouched; the broken session is listed with
     its one-line reason, the exit status says partial (3); the re-run after the fix does only
@@ -289,7 +296,7 @@ def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path
         for made in ("batch", "results", "tracks", "analysis"):
             shutil.rmtree(root / made, ignore_errors=True)
         (root / "calibration" / "cameras.toml").unlink(missing_ok=True)
-    report, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain_with_a_killed_worker)
+    report, failed = run_batch([top], BatchOptions(workers=1, out=tmp_path), chain_for=chain_with_a_killed_worker)
     assert failed == 1, report
     assert (roots[1] / "batch" / "killed-cam1").exists()  # the worker was killed once
     rows = {name.split("/")[-1]: row for name, row in read_fleet(tmp_path).items()}
@@ -299,7 +306,9 @@ def test_batch_under_faults_a_killed_worker_and_a_broken_session(fleet, tmp_path
         assert (roots[1] / name).read_bytes() == (roots[0] / name).read_bytes(), name
 
     shutil.copy(roots[0] / "truth" / "cameras.toml", roots[2] / "truth" / "cameras.toml")  # the fix
-    _, failed = run_batch([top], BatchOptions(workers=2, out=tmp_path), chain_for=chain_with_a_killed_worker)
+    # (its worker was killed once: no worker process is needed to see the re-run do only the fixed session)
+    _, failed = run_batch([top], BatchOptions(scheduler=threads_cluster, out=tmp_path),
+                          chain_for=chain_with_a_killed_worker)
     assert failed == 0
     rows = {name.split("/")[-1]: row for name, row in read_fleet(tmp_path).items()}
     assert rows["s1"]["stages_run"] == rows["s2"]["stages_run"] == "0"

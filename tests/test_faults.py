@@ -5,6 +5,7 @@ a full disk."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -214,18 +215,18 @@ def test_track_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
         whole = tmp_path / "whole"
         took, _ = timed_warm(lambda: tracked(whole))
         assert visible(whole) == visible(first)
-    took = max(took, 0.5) + 1.5  # the child's start (imports) comes on top
+    took = max(took, 0.5)  # the children are forks of this process: no start (imports) on top
     killed = tmp_path / "killed"
     killed.mkdir()
     codes = []
     for fraction in KILL_SCHEDULE:
-        codes.append(run_killed(argv(killed), tmp_path, fraction * took))
+        codes.append(run_killed(argv(killed), tmp_path, fraction * took, fork=True))
         assert codes[-1] in (None, 0)
         files = visible(killed)
         assert not files or files == visible(whole)  # absent, or whole: never half written
         assert visible(inputs) == before
         (killed / "t.csv").unlink(missing_ok=True)  # the next kill starts from scratch again
-    codes.append(run_killed(argv(killed), tmp_path, 0.3 * took))  # one more kill, then the re-run
+    codes.append(run_killed(argv(killed), tmp_path, 0.3 * took, fork=True))  # one more kill, then the re-run
     assert None in codes and codes[-1] in (None, 0)  # killed mid-way at least once
     assert cli.main(argv(killed)) == 0
     assert visible(killed) == visible(whole)
@@ -247,8 +248,8 @@ def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     def argv(out):
         return ["synth", "--machine", "bobcat_225", "--cycles", "1", "--cameras", "1", "--scale", "0.05",
                 "--fps", "5", "--out", str(out)]
-    start = time.perf_counter()
-    assert run_killed(argv(tmp_path / "whole"), tmp_path, 600.0) == 0  # timed as the killed ones run
+    start = time.perf_counter()  # here, as the killed ones (forks of this process) run it
+    assert cli.main(argv(tmp_path / "whole")) == 0
     took = time.perf_counter() - start
     whole = visible(tmp_path / "whole")
     assert "COMPLETE" in whole and "videos/cam1.mp4" in whole
@@ -256,7 +257,7 @@ def test_synth_killed_at_random_moments_then_run_again_equals_an_uninterrupted_r
     for fraction in SYNTH_KILLS:
         delay = fraction * took
         for _ in range(4):  # a loaded machine may run it faster than timed: a finished run, again sooner
-            code = run_killed(argv(killed), tmp_path, delay)
+            code = run_killed(argv(killed), tmp_path, delay, fork=True)
             if code is None:
                 break
             assert code == 0 and visible(killed) == whole
@@ -338,15 +339,36 @@ def _whole_or_passed_through(files: dict, whole: dict, calibrated: str) -> None:
         assert digest == whole.get(name) or (name == "calibration/cameras.toml" and digest == calibrated), name
 
 
-RUN_KILLS = np.random.default_rng(341).uniform(0.15, 0.9, 3)  # fractions of an uninterrupted run's time
+# where the kills fall: a seeded random moment after the killed run has written one stage's output, within a
+# share of an uninterrupted run's time: in tracking (after calibrate), in sync (which rewrites the calibration in
+# place) or the stages after it, and in the analysis or the report (before COMPLETE)
+RUN_KILLS = [(name, share) for name, share in zip(
+    ("calibration/cameras.toml", "tracks/cam2.csv", "results/motion.csv"),
+    np.random.default_rng(341).uniform(0.0, [0.2, 0.15, 0.06]))]
+
+
+def written(path: Path):
+    """Whether `path` has been written since this call: by the run started after it (the
+    files the runs killed before it left are older)."""
+    import time
+
+    start = time.time_ns()
+
+    def holds() -> bool:
+        try:
+            return path.stat().st_mtime_ns >= start
+        except FileNotFoundError:
+            return False
+    return holds
 
 
 @pytest.mark.long
 def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run(small_session, whole_run, tmp_path):
-    """SIGKILL of `mocap run` at seeded random moments, each run taking up the folder the last
-    one left (its lock a dead process's: taken over): the inputs stay byte-identical, every
-    file is whole, results/COMPLETE only once all are, and the same command run again leaves
-    the folder of an uninterrupted run, byte for byte."""
+    """SIGKILL of `mocap run` at seeded random moments (one in tracking, one in sync or after,
+    one in the analysis or the report), each run taking up the folder the last one left (its
+    lock a dead process's: taken over): the inputs stay byte-identical, every file is whole,
+    results/COMPLETE only once all are, and the same command run again leaves the folder of
+    an uninterrupted run, byte for byte."""
     import shutil
 
     whole, took, calibrated = whole_run
@@ -361,7 +383,8 @@ def test_run_killed_at_random_moments_then_run_again_equals_an_uninterrupted_run
         _whole_or_passed_through(files, whole, calibrated)
         assert ("results/COMPLETE" in files) == (files == whole)
 
-    kill_at(argv, tmp_path, RUN_KILLS * (took + 1.5), check)  # the child's start (imports) comes on top
+    for name, share in RUN_KILLS:  # forks of this process: no start (imports) on top
+        kill_at(argv, tmp_path, [share * took], check, after=written(killed / name), fork=True)
     assert cli.main(argv) == 0
     assert visible(killed) == whole
     assert not list(killed.rglob(".*"))  # no temporary or lock of the killed runs left
@@ -401,7 +424,12 @@ def test_batch_killed_at_random_moments_then_run_again_equals_a_serial_run(small
     kill_at(argv, tmp_path, [kills[1] * took], check, after=manifest.exists)
     recorded = set(tomllib.loads(manifest.read_text())["stages"])
     assert recorded
-    assert cli.main(argv) == 0
+    # run again on a scheduler of this process's, whose worker finds the kernels loaded (the killed runs
+    # started local clusters of worker processes)
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert cli.main(["batch", str(fleet), "--scheduler", cluster.scheduler_address, "--out", str(out)]) == 0
     row = read_fleet(out)["s"]
     assert row["status"] == "ok" and int(row["stages_skipped"]) == len(recorded), (row, recorded)
     results = {k: v for k, v in visible(root).items() if not k.startswith("batch/")}
@@ -436,7 +464,6 @@ def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterru
     if compiled:  # a fresh checkout: the kills' moments are shares of a run that compiles nothing
         took, _ = timed_warm(lambda: record(tmp_path / "whole"))
         assert visible(tmp_path / "whole") == recorded
-    took += 1.5  # the child's start (imports) comes on top
     killed = tmp_path / "killed"
     shutil.copytree(tmp_path / "first", killed)  # an earlier recording: of cam1 alone
     config = load_session_config(killed / "session.toml")
@@ -455,9 +482,9 @@ def test_live_record_killed_at_random_moments_then_run_again_equals_an_uninterru
 
     def writing():  # the run has begun to write the recording's files (cam2's video the first new one)
         return any("cam2" in p.name for p in (killed / "videos").iterdir())
-    assert run_killed(argv(killed), tmp_path, LIVE_KILLS[0] * 0.005, after=writing) is None  # inside the writing
+    assert run_killed(argv(killed), tmp_path, LIVE_KILLS[0] * 0.005, after=writing, fork=True) is None  # inside the writing
     check()
-    kill_at(argv(killed), tmp_path, LIVE_KILLS[1:] * took, check)
+    kill_at(argv(killed), tmp_path, LIVE_KILLS[1:] * took, check, fork=True)
     assert cli.main(argv(killed)) == 0
     assert visible(killed) == recorded
     assert not list(killed.rglob(".*"))
