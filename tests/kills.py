@@ -81,6 +81,9 @@ class Forked:
         return self.returncode
 
 
+AFTER_AT_MOST = 300.0  # s a killed child may take to reach the moment its kill counts from
+
+
 def run_killed(argv: list[str], cwd, delay: float, after=None, fork: bool = False) -> int | None:
     """Run `mocap argv` in a child process and SIGKILL it, and every process it started (a
     batch's Dask workers), after `delay` s, counted from when `after()` first holds if given
@@ -92,7 +95,13 @@ def run_killed(argv: list[str], cwd, delay: float, after=None, fork: bool = Fals
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         child = subprocess.Popen([sys.executable, "-m", "mocap.cli", *argv], cwd=cwd, env=env,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    waited = time.monotonic() + AFTER_AT_MOST
     while after is not None and child.poll() is None and not after():
+        if time.monotonic() > waited:  # a child stuck before its moment: a failure, never a hung suite
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait()
+            raise AssertionError(f"mocap {' '.join(map(str, argv))}: still running, its moment not reached "
+                                 f"after {AFTER_AT_MOST:g} s")
         time.sleep(0.002)
     try:
         return child.wait(timeout=delay)
