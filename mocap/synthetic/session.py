@@ -187,10 +187,13 @@ def marker_pixels_at(machine: Machine, plan: DigMotion, camera: FieldCamera, at:
     poses = machine.link_poses(plan.joints(times), plan.world_from_base(times))  # (F M, L, 4, 4)
     index = np.tile(np.arange(n_markers), n_frames)
     on_link = poses[np.arange(len(index)), machine.marker_links[index]]  # (F M, 4, 4)
-    world = np.einsum("nij,nj->ni", on_link[:, :3, :3], machine.marker_positions[index]) + on_link[:, :3, 3]
+    # row vectors times transposed rotations, the arithmetic of `visible_markers`: a marker
+    # read at its frame's own time lands on the very pixel a global shutter gives it
+    points = machine.marker_positions[index][:, None]  # (F M, 1, 3)
+    world = points @ np.swapaxes(on_link[:, :3, :3], -1, -2) + on_link[:, None, :3, 3]
     cams = camera.cam_from_world(times)
-    p = np.einsum("nij,nj->ni", cams[:, :3, :3], world) + cams[:, :3, 3]
-    uv = project_cam(p, camera.camera.matrix, camera.camera.distortion)
+    p = world @ np.swapaxes(cams[:, :3, :3], -1, -2) + cams[:, None, :3, 3]
+    uv = project_cam(p[:, 0], camera.camera.matrix, camera.camera.distortion)
     return uv.reshape(n_frames, n_markers, 2)
 
 
