@@ -463,6 +463,9 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                       f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
                       f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {choice:>12}"
                       f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
+                print(f"{'':>34}{report.reference.text()}" + (f" (and {report.rows_of_others} rows of the other "
+                                                               "cameras' frames)" if report.rows_of_others else ""),
+                      flush=True)
                 if gap is not None:
                     rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None,
                                          encoding="utf-8")
