@@ -75,6 +75,7 @@ GAP_S = 5.0  # --fault disconnect: how long the camera delivers nothing
 
 
 HOLD_S = 0.5  # the session's still start (`mocap synth --hold`)
+FIRST_FRAMES = 180  # --files: the rows' SDs' coverage also over the frames up to this one (the scales not yet measured)
 
 
 def cycles_for(duration: float, seed: int) -> int:
@@ -463,6 +464,12 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                       f"{coverage_text(coverage(frames, unraised, unraised_sds, truth)):>17} "
                       f"{stages[2]:>6.2f} {stages[3]:>9.1f} {1000 * cpu / max(report.rows, 1):>10.1f} {choice:>12}"
                       f"  (worst: frames {worst[0]}-{worst[-1]})", flush=True)
+                first = frames <= FIRST_FRAMES
+                print(f"{'':>34}{report.reference.text()}" + (f" (and {report.rows_of_others} rows of the other "
+                                                               "cameras' frames)" if report.rows_of_others else "")
+                      + f"; frames 0-{FIRST_FRAMES}: live 1/2/3 SD % "
+                      f"{coverage_text(coverage(frames[first], tips[first], sds[first], truth)).strip()} (e/SD last)",
+                      flush=True)
                 if gap is not None:
                     rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None,
                                          encoding="utf-8")

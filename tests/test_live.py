@@ -531,3 +531,58 @@ def test_the_smoother_follows_a_swing_that_speeds_up(pace_steps, trails):
         assert late.max() > 4 * sd
     else:
         assert late.max() < 4 * sd and np.max(paces[600:]) > 1 and np.max(paces[300:600]) == 1  # raised there only
+
+
+def test_files_read_as_fast_as_tracked_give_every_reference_frame_its_row(short_session, tmp_path):
+    """Files read as fast as they are tracked: the reference camera's frames 0-59 (it ends at
+    2 s) and cam2's 45 (0.9-2.4 s, so it outlasts it), both trackers ended before the rows
+    took their labels in (the rows slower than the tracking), cam2's labels in time order
+    with cam1's, cam1's last one after cam2's of its time. Every reference frame gives its own
+    row, the last one too (it was counted as cam2's clock's and lost with cam2's frame of that
+    time: a row short, or two), then cam2's frames after it make the rows; the tips follow the
+    truth (exact pixels)."""
+    import queue
+    from types import SimpleNamespace
+
+    from mocap.live.run import LiveRequest, PoseWriter, _base_columns, _Loop
+    from mocap.live.sources import FILE
+
+    root, session = short_session
+    machine, calibration = session.machine, session.calibration
+    fps, offsets = calibration.fps(), calibration.time_offsets
+    names = machine.marker_names
+    counts = (60, FRAMES[1])
+    labels = []  # (time on the reference clock, camera, pixels (M, 2))
+    for k, count in enumerate(counts):
+        tracks = session.tracks.select(session.tracks.camera == calibration.names[k])
+        for f in range(count):
+            pixels = np.full((len(names), 2), np.nan)
+            at = tracks.frame == f
+            pixels[[names.index(m) for m in tracks.marker[at]]] = tracks.xy[at]
+            labels.append((f / fps[k] + offsets[k], k, pixels))
+    last = labels[counts[0] - 1]
+    labels.remove(last)
+    labels.sort(key=lambda x: (x[0], x[1]))
+    labels.insert(max(i for i, x in enumerate(labels) if x[0] <= last[0] + 0.5 / fps[0]) + 1, last)
+    labelled = queue.Queue()
+    for t, k, pixels in labels:
+        labelled.put((k, t, 0.0, pixels, 0.0))
+    reader = SimpleNamespace(pace=None, spec=SimpleNamespace(kind=FILE))
+    workers = [SimpleNamespace(k=k, labelled=labelled, finished=threading.Event(), out=count, reader=reader)
+               for k, count in enumerate(counts)]
+    for worker in workers:
+        worker.finished.set()
+    out = tmp_path / "poses.csv"
+    request = LiveRequest("hitachi_ex3500", root / "cameras.toml", (), out)
+    writer = PoseWriter(machine, out, _base_columns(request, machine))
+    loop = _Loop(request, machine, list(calibration.cameras), fps, workers, writer, None, threading.Event())
+    loop.run(time.perf_counter())
+    writer.close()
+    rows = read_rows(out)
+    frames = [int(r["frame"]) for r in rows]
+    assert loop.clocked[0] == counts[0] and loop.displaced[0] == 0 and loop.rows == len(rows)
+    assert frames[: counts[0]] == list(range(counts[0])) and frames == sorted(set(frames))
+    after = round((offsets[1] + (counts[1] - 1) / fps[1]) * fps[0])  # cam2's last frame on the reference clock
+    assert frames[-1] == after and len(rows) >= after  # its frames after cam1's end: rows of their own
+    assert all("cam1" in r["cameras"].split(";") for r in rows[: counts[0]])
+    assert np.percentile(tip_error(rows, session), 90) < 0.03, np.percentile(tip_error(rows, session), [50, 90, 100])

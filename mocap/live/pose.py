@@ -35,6 +35,11 @@ _RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above th
 _PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
 _PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
 _FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
+# the rows' covariance scale until the fits' scatter about the smoothed values is measured (the smallest the five
+# random looks of bench_live measured at their end: 5.0-15.0), and the rows of measurement it counts for: the
+# scale is their geometric mean weighed by the prior's rows and the rows measured (the data overrule it as they come)
+PRIOR_SCALE = 4.0
+_PRIOR_ROWS = 30
 _PACE_FRAMES = 6  # the newest frames whose fits judge whether the process noise suits the motion's pace now
 _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the smoothed values: the noise is raised
 _PACE_FACTOR = 4.0  # ... by this factor at a time
@@ -332,7 +337,12 @@ class FixedLagSmoother:
     The usual chi-square over its degrees of freedom (at least 1: `variance_factor`) is how
     much larger the fits' scatter is than their information says (pixel errors that are not
     independent: a rolling shutter, a marker's blur); the rows' covariances are multiplied by
-    it, as `mocap fit` scales its SDs by the residuals.
+    it, as `mocap fit` scales its SDs by the residuals, and by 1 + 2 rho for the fits'
+    deviations' correlation rho from one frame to the next (`scale`). Both are measured only
+    once the process noise has been estimated (before, the window is smoothed so little that
+    the fits barely deviate from it); until they are, and while few rows have measured them,
+    the scale leans on `prior_scale` (the rows' first seconds were otherwise the fits' own
+    covariance: 43 of seed 1's 44 rows beyond 3 SDs were in its first 170 frames).
 
     With `base_motion` the values carry the base's six parameters after the joints; a fit
     whose base was held (`FrameFit.base_moves` False) has them unobserved. A row whose own fit
@@ -342,7 +352,7 @@ class FixedLagSmoother:
     the fits that held it). The base's process noise is estimated from the fits that moved it."""
 
     def __init__(self, machine: Machine, lag: int, window: int = 60, options: SmoothOptions | None = None,
-                 base_motion: bool = False, pace_steps: int = _PACE_STEPS):
+                 base_motion: bool = False, pace_steps: int = _PACE_STEPS, prior_scale: float = PRIOR_SCALE):
         if lag < 0 or window <= lag:
             raise ValueError(f"need 0 <= lag < window, got lag {lag}, window {window}")
         self.machine, self.lag, self.window = machine, lag, window
@@ -360,11 +370,23 @@ class FixedLagSmoother:
         self.pending = 0  # frames pushed whose pose is not given yet
         self.pace = np.ones(len(self.wrap))
         self.pace_steps = pace_steps
+        self.prior_scale = prior_scale
         self.disagreement: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the newest fits' chi-square / dof
         self.scatter: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)  # the same over its expectation
         self.variance_factor = 1.0
         self.correlations: deque[float] = deque(maxlen=_PROCESS_NOISE_FRAMES)
         self.correlation = 0.0
+        self.estimated = False  # the process noise estimated once
+
+    @property
+    def scale(self) -> float:
+        """The rows' covariance scale: the fits' scatter over their information times
+        1 + 2 rho for their correlation, as measured, and `prior_scale` until it is (the
+        two's geometric mean, the prior counting for `_PRIOR_ROWS` rows of measurement)."""
+        measured = self.variance_factor * (1 + 2 * max(self.correlation, 0.0))
+        rows = min(len(self.scatter), len(self.correlations))
+        share = rows / (rows + _PRIOR_ROWS) if _PRIOR_ROWS else 1.0
+        return float(np.exp(share * np.log(measured) + (1 - share) * np.log(self.prior_scale)))
 
     def push(self, time: float, fit: FrameFit) -> Pose | None:
         """Add a frame; the pose of the frame `lag` back once there is one."""
@@ -417,6 +439,7 @@ class FixedLagSmoother:
         if valid.sum() < 3:
             return
         estimate = replace(self.options, process_noise=None)
+        self.estimated = True
         if not self.base_motion or moving[valid].all():
             result = smooth(time, values, information, valid, self.wrap, estimate)
             self.process_noise = np.maximum(result.process_noise, 1e-6)
@@ -445,7 +468,7 @@ class FixedLagSmoother:
         values = np.zeros(n_params)
         values[:columns] = result.values[at]
         covariance = np.zeros((n_params, n_params))
-        scale = self.variance_factor * (1 + 2 * max(self.correlation, 0.0))  # the fits' scatter, their correlation
+        scale = self.scale  # the fits' scatter, their correlation
         covariance[:columns, :columns] = result.covariance[at] * scale
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
@@ -470,8 +493,9 @@ class FixedLagSmoother:
             return first, base
         self.disagreement.append(statistic / dof)
         usual = max(float(np.median(self.disagreement)) * dof / chi2_quantile(0.5, dof), 1.0)
-        self._scale_variance(statistic, values[newest], information[newest], kept, first.covariance[newest], dof)
-        self._correlation(values, information, valid & ~first.rejected, first.values, wrap)
+        if self.estimated:  # before, the window is smoothed little: the fits' scatter about it shows nothing
+            self._scale_variance(statistic, values[newest], information[newest], kept, first.covariance[newest], dof)
+            self._correlation(values, information, valid & ~first.rejected, first.values, wrap)
         limit = usual * chi2_quantile(_PACE_PROBABILITY, dof)
         if statistic <= limit or not observed.any() or not self.pace_steps:
             return first, base

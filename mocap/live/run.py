@@ -437,9 +437,10 @@ class _Loop:
                 time_ref = index / self.fps[k] + self.follower.offset(k)
             self.history[k].add(time_ref, pixels)
             self.seen[k] = time.perf_counter()
+            clock = self._clock()  # before this frame counts as taken in: a camera's last frame is still its own
             self.received[k] += 1
             frame = int(round(time_ref * self.fps[0]))
-            if k == self._clock() and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
+            if k == clock and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
                 self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
                 self.clocked[k] += 1
             else:
@@ -468,11 +469,16 @@ class _Loop:
         delivered within `STALL_S`."""
         now = time.perf_counter()
         for k, worker in enumerate(self.workers):
-            if worker.finished.is_set() and self.received[k] >= worker.out:
+            if self._ended(k):
                 continue
             if self.patient or now - self.seen[k] < STALL_S:
                 return k
         return 0
+
+    def _ended(self, k: int) -> bool:
+        """Camera `k`'s tracker has ended and its labels are all taken in."""
+        worker = self.workers[k]
+        return worker.finished.is_set() and self.received[k] >= worker.out
 
     def _emit(self, final: bool = False) -> None:
         """Fit the waiting clock frames whose cameras are all in (or waited for long enough)."""
@@ -482,8 +488,7 @@ class _Loop:
             ready = final
             if not ready:
                 late = not self.patient and now > arrived + self.request.wait_frames / self.fps[0]
-                ready = late or all(h.latest >= t or w.finished.is_set()
-                                    for h, w in zip(self.history, self.workers))
+                ready = late or all(h.latest >= t or self._ended(j) for j, h in enumerate(self.history))
             if not ready:
                 break
             self.pending.pop(0)
