@@ -182,6 +182,11 @@ class Tracker:
         state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
         found = replace(seen, xy=seen.xy - state.shift)
         observed[markers] = found.xy[index]
+        # ... the joints again from the prediction: the first fit took part of the shake for a
+        # turn of the links (the base's markers, fixed in the world, moved by the shake), and the
+        # markers of the links it turned would be disowned against it
+        fit = model.fit(observed[None], predicted, iterations=1)
+        joints, fitted_uv = fit.joints[0], fit.uv[0]
         residual = length(observed[markers] - fitted_uv[markers])
         keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
@@ -238,6 +243,11 @@ class Tracker:
         if prior_hidden.any():
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
                                                face_on, agreeing)
+        # two markers' disks cannot lie one inside the other: a detection centred inside a
+        # larger labelled one's ellipse is a part of that disk (a marker on the machine's far
+        # side, projected onto a near marker's disk, took a piece of it)
+        inside = ~_inside_larger(found.select(index))
+        markers, index = markers[inside], index[inside]
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -747,6 +757,18 @@ def _same_size(detected: np.ndarray, expected: np.ndarray, ratio: float = 1.33, 
     with np.errstate(divide="ignore", invalid="ignore"):
         share = detected / np.maximum(expected, 1e-6)
     return ((share > 1.0 / ratio) & (share < ratio)) | (np.abs(detected - expected) <= px)
+
+
+def _inside_larger(detections: Detections) -> np.ndarray:
+    """(N,) bool: the detections whose centre lies inside the ellipse of a larger one (by area)."""
+    if len(detections) < 2:
+        return np.zeros(len(detections), dtype=bool)
+    d = detections.xy[None, :] - detections.xy[:, None]  # [k, j]: from k's centre to j's
+    inverse = np.linalg.inv(detections.shape)  # (N, 2, 2)
+    rho2 = np.einsum("kji,kil,kjl->kj", d, inverse, d)
+    area = detections.axes[:, 0] * detections.axes[:, 1]
+    larger = area[:, None] > area[None, :]  # [k, j]: k larger than j
+    return (larger & (rho2 < 1.0)).any(axis=0)
 
 
 def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
