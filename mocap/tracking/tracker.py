@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mocap.tracking.detect import (DetectOptions, Detections, accepted, concatenate, find_candidates, refine,
-                          length, refine_and_accept, refine_converged, refine_sourced, unique)
+from mocap.tracking.detect import (DetectOptions, Detections, accept, accepted, concatenate, find_candidates,
+                          refine, length, refine_and_accept, refine_converged, refine_sourced, unique)
 from mocap.tracking.model import CameraModel, View
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,9 @@ class TrackOptions:
     with the frames it was missed; min_markers: markers needed to fit the joints;
     lost_frames: frames without a fit before the whole frame is searched again;
     near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
-    needs (a full-frame search holds to `detect`); near_ring_spread: the factor on
+    needs (a full-frame search holds to `detect`), and where the boxes hide a marker not
+    followed lately, the share of the median contrast of the disks of the markers shown
+    (`Tracker._take_hidden`); near_ring_spread: the factor on
     `detect.max_ring_spread` a disk refined from a small window there may reach, if it
     stays put (`Tracker._refine_again`); agree_rms, agree_px: a disk whose centre lies within
     `agree_rms` times the fit's inlier residual RMS (at least `agree_px`) of where the fitted
@@ -182,6 +184,11 @@ class Tracker:
         state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
         found = replace(seen, xy=seen.xy - state.shift)
         observed[markers] = found.xy[index]
+        # ... the joints again from the prediction: the first fit took part of the shake for a
+        # turn of the links (the base's markers, fixed in the world, moved by the shake), and the
+        # markers of the links it turned would be disowned against it
+        fit = model.fit(observed[None], predicted, iterations=1)
+        joints, fitted_uv = fit.joints[0], fit.uv[0]
         residual = length(observed[markers] - fitted_uv[markers])
         keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
         if np.sum(keep) < options.min_markers:
@@ -236,8 +243,19 @@ class Tracker:
         if len(markers) < options.min_markers:
             return self._coast(predicted, uv, visible, seen, expected)
         if prior_hidden.any():
+            # the contrast a hidden marker not followed lately needs, learned from the disks of
+            # the markers shown (the same paint in the same light): a solid's shade or a hose at
+            # a hidden marker's place is a third or less of theirs
+            least = max(options.detect.min_contrast, options.near_contrast * float(np.median(found.contrast[index])))
+            seen = self._converge_faint(gray, seen, found, fitted_uv, tight, prior_hidden, least)
+            found = replace(seen, xy=seen.xy - state.shift)
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
-                                               face_on, agreeing)
+                                               face_on, agreeing, least)
+        # two markers' disks cannot lie one inside the other: a detection centred inside a
+        # larger labelled one's ellipse is a part of that disk (a marker on the machine's far
+        # side, projected onto a near marker's disk, took a piece of it)
+        inside = ~_inside_larger(found.select(index))
+        markers, index = markers[inside], index[inside]
         final = np.full(uv.shape, np.nan)
         final[markers] = found.xy[index]
         if not np.array_equal(np.isfinite(final), np.isfinite(observed)) or not np.allclose(final, observed, equal_nan=True):
@@ -333,9 +351,9 @@ class Tracker:
 
     def _take_hidden(self, fitted_uv: np.ndarray, found: Detections, tight: np.ndarray, hidden: np.ndarray,
                      shown: np.ndarray, markers: np.ndarray, index: np.ndarray, face_on: np.ndarray,
-                     agreeing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                     agreeing: np.ndarray, least: float) -> tuple[np.ndarray, np.ndarray]:
         """The assignment (`markers`, `index`) of the markers the model shows, with the markers
-        it calls `hidden` (M,) added: each takes a disk of the full detection's contrast within
+        it calls `hidden` (M,) added: each takes a disk of contrast `least` or more within
         its `tight` gate of the fitted pixels (M, 2) whose ellipse's major semi-axis is the
         disk's radius at its depth face on (the guessed normal is wrong for it). They rank after
         the shown markers (`shown` (M,) bool): a disk goes to a hidden one only if it lies under
@@ -343,9 +361,15 @@ class Tracker:
         on a hidden one's disk). `face_on` (M,) px: the disks' radii face on at the fitted joints
         (`_face_on_radius`). `agreeing` (M, N) bool: the pairs a disk where the fit puts the
         marker vouches for (`_agreeing`), taken at any size (but the contrast is kept: where the
-        boxes hide a marker, a solid may hide it too and show something dark at its place)."""
-        clear = found.contrast >= self.options.detect.min_contrast
-        allowed = (_same_size(found.axes[None, :, 0], face_on[:, None]) | agreeing) & clear[None]
+        boxes hide a marker, a solid may hide it too and show something dark at its place): the
+        full detection's, and `least` for a marker not followed lately on a disk wider than the
+        blur's floor (`_SLIVER_PX`: a sliver's middle is not as dark as a wide disk's)."""
+        options = self.options
+        followed = self.state.missed <= 2
+        wide = found.axes[:, 1] > _SLIVER_PX
+        clear = (found.contrast >= options.detect.min_contrast)[None] & (
+            followed[:, None] | ~(wide & (found.contrast < least))[None])
+        allowed = (_same_size(found.axes[None, :, 0], face_on[:, None]) | agreeing) & clear
         more, more_index = assign(fitted_uv, found.xy, tight, hidden, allowed=allowed)
         if len(more) == 0:
             return markers, index
@@ -354,6 +378,34 @@ class Tracker:
         wins = mine < 0.5 * theirs
         keep = ~np.isin(index, more_index[wins])
         return np.r_[markers[keep], more[wins]], np.r_[index[keep], more_index[wins]]
+
+    def _converge_faint(self, gray: np.ndarray, seen: Detections, found: Detections, fitted_uv: np.ndarray,
+                        tight: np.ndarray, hidden: np.ndarray, least: float) -> Detections:
+        """`seen` (N, image pixels; `found` the same in the model's) with each detection fainter
+        than `least`, wider than the blur's floor, within the `tight` gate (M,) of the fitted
+        pixel (`fitted_uv` (M, 2)) of a `hidden` (M,) marker not followed lately (`_take_hidden`'s
+        contrast test) refined once more from its own ellipse, where it stays a disk there:
+        a refinement started from a circle a disk is not has not reached the disk's ellipse, and
+        its ring and middle, measured on the ellipse it reached, read a contrast short of the
+        disk's (a third short for a marker the boxes hide, first looked for after a cover); a
+        solid's shade or a hose keeps its low contrast."""
+        hidden = hidden & (self.state.missed > 2)
+        near = length(fitted_uv[hidden][:, None] - found.xy[None]) <= tight[hidden][:, None]
+        rows = np.flatnonzero(near.any(axis=0) & (found.contrast < least) & (found.axes[:, 1] > _SLIVER_PX))
+        if len(rows) == 0:
+            return seen
+        options = self.options
+        detect = replace(options.detect, min_contrast=options.near_contrast * options.detect.min_contrast)
+        old = seen.select(rows)
+        again, ring = refine(gray, old.xy, old.shape)
+        stays = accept(again, ring, detect) & (length(again.xy - old.xy) <= 0.5 * np.maximum(old.radius, 1.0))
+        if not stays.any():
+            return seen
+        rows, again = rows[stays], again.select(stays)
+        fields = {name: getattr(seen, name).copy() for name in ("xy", "axes", "angle", "contrast", "fill", "score")}
+        for name, value in fields.items():
+            value[rows] = getattr(again, name)
+        return Detections(**fields)
 
     def _face_on_radius(self, joints: np.ndarray) -> np.ndarray:
         """(M,) px: each disk's radius at its depth at joint values `joints` (J,), seen face on
@@ -747,6 +799,18 @@ def _same_size(detected: np.ndarray, expected: np.ndarray, ratio: float = 1.33, 
     with np.errstate(divide="ignore", invalid="ignore"):
         share = detected / np.maximum(expected, 1e-6)
     return ((share > 1.0 / ratio) & (share < ratio)) | (np.abs(detected - expected) <= px)
+
+
+def _inside_larger(detections: Detections) -> np.ndarray:
+    """(N,) bool: the detections whose centre lies inside the ellipse of a larger one (by area)."""
+    if len(detections) < 2:
+        return np.zeros(len(detections), dtype=bool)
+    d = detections.xy[None, :] - detections.xy[:, None]  # [k, j]: from k's centre to j's
+    inverse = np.linalg.inv(detections.shape)  # (N, 2, 2)
+    rho2 = np.einsum("kji,kil,kjl->kj", d, inverse, d)
+    area = detections.axes[:, 0] * detections.axes[:, 1]
+    larger = area[:, None] > area[None, :]  # [k, j]: k larger than j
+    return (larger & (rho2 < 1.0)).any(axis=0)
 
 
 def _near_any(points: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
