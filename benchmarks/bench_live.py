@@ -47,12 +47,14 @@ import os
 import tempfile
 import threading
 import time
+import tomllib
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from mocap import cli
+from mocap.errors import InputError
 from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
@@ -78,26 +80,49 @@ HOLD_S = 0.5  # the session's still start (`mocap synth --hold`)
 FIRST_FRAMES = 180  # --files: the rows' SDs' coverage also over the frames up to this one (the scales not yet measured)
 
 
-def cycles_for(duration: float, seed: int) -> int:
+def machine_for(root: Path, name: str, seed: int) -> str:
+    """The machine model of `seed`'s session: a shipped name or a file, or with `random` the
+    seed's random digger (`mocap.synthetic.machines.random_digger`: random proportions, link
+    frames, joint senses and limits), written to a model file under `root`."""
+    if name != "random":
+        return name
+    from mocap.io.machine_toml import save_machine
+    from mocap.synthetic.machines import random_digger
+
+    path = root / f"digger_{seed}.toml"
+    if not path.exists():
+        save_machine(random_digger(np.random.default_rng(seed)), path)
+    return str(path)
+
+
+def session_machine(session: Path) -> str:
+    """The model a session was drawn with: its session.toml's `machine`, a shipped name or
+    a file beside it (`mocap synth` copies a model that is not shipped as machine.toml)."""
+    entry = tomllib.loads((session / "session.toml").read_text(encoding="utf-8"))["machine"]
+    return str(session / entry) if (session / entry).is_file() else entry
+
+
+def cycles_for(duration: float, seed: int, machine_name: str = MACHINE) -> int:
     """The fewest dig cycles whose session (as `mocap synth` plans it for `seed`) outlasts a
     run of `duration` s by a second: the sources then deliver for the whole run (a session
     of 24 cycles lasts 588 s, not the 600 of a 10-minute run)."""
     from mocap.synthetic.motion import plan_session
 
-    machine = load_machine(MACHINE)
+    machine = load_machine(machine_name)
     cycles = 1
     while plan_session(machine, cycles, np.random.default_rng(seed), hold=HOLD_S).duration < duration + 1.0:
         cycles += 1
     return cycles
 
 
-def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default", duration: float = 20.0) -> Path:
-    cycles = cycles_for(duration, seed)
-    name = f"live_{size}_{cameras}_{seed}" + (f"_{look}" if look != "default" else "") + (f"_{cycles}c" if cycles > 1
-                                                                                         else "")
+def make_session(root: Path, size: str, cameras: int, seed: int, look: str = "default", duration: float = 20.0,
+                 machine: str = MACHINE) -> Path:
+    cycles = cycles_for(duration, seed, machine)
+    name = (("live_" if machine == MACHINE else f"live_{Path(machine).stem}_") + f"{size}_{cameras}_{seed}"
+            + (f"_{look}" if look != "default" else "") + (f"_{cycles}c" if cycles > 1 else ""))
     session = root / name
     if not (session / "COMPLETE").exists():
-        assert cli.main(["synth", "--machine", MACHINE, "--cameras", str(cameras), "--cycles", str(cycles), "--seed",
+        assert cli.main(["synth", "--machine", machine, "--cameras", str(cameras), "--cycles", str(cycles), "--seed",
                          str(seed), "--size", size, "--hold", str(HOLD_S), "--look", look, "--out", str(session)]) == 0
     return session
 
@@ -164,10 +189,11 @@ def recording():
         live_module.FixedLagSmoother = FixedLagSmoother
 
 
-def replay(calls: list[tuple], lag: int, base_motion: bool, pace_steps: int) -> tuple[np.ndarray, np.ndarray]:
+def replay(calls: list[tuple], machine_name: str, lag: int, base_motion: bool,
+           pace_steps: int) -> tuple[np.ndarray, np.ndarray]:
     """(R, 3) the bucket tips of the rows a smoother with `pace_steps` gives from the same
     inputs, and (R,) their SDs."""
-    machine = load_machine(MACHINE)
+    machine = load_machine(machine_name)
     smoother = FixedLagSmoother(machine, lag, base_motion=base_motion, pace_steps=pace_steps)
     poses = []
     for call in calls:
@@ -223,7 +249,7 @@ def live_run(session: Path, names: list[str], duration: float | None, lag: int, 
     """The run's report, its CPU seconds (all threads) and its memory samples. `base`: recent
     (from the data, the last frames: live's default), choose (from the data, a sample over the
     whole run), moving (`--base-motion`) or fixed (`--fixed-base`)."""
-    request = LiveRequest(MACHINE, session / "truth" / "cameras.toml",
+    request = LiveRequest(session_machine(session), session / "truth" / "cameras.toml",
                           tuple(parse_source(f"{n}={session / 'videos' / f'{n}.mp4'}") for n in names), out,
                           realtime=realtime, duration=duration, lag=lag, view=view,
                           follow_clocks=follow_clocks,
@@ -270,12 +296,12 @@ def offline(session: Path, names: list[str], work: Path):
         path = session.parent / f"{session.name}_tracks" / f"{name}.csv"  # the same for every count of cameras
         if not path.exists():
             path.parent.mkdir(exist_ok=True)
-            run_track(TrackRequest(session / "videos" / f"{name}.mp4", MACHINE, session / "truth" / "cameras.toml",
+            run_track(TrackRequest(session / "videos" / f"{name}.mp4", session_machine(session), session / "truth" / "cameras.toml",
                                    name, path))
         tracks.append(path)
     out = work / "motion.csv"
-    run_fit(MACHINE, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
-    return load_motion(out, load_machine(MACHINE))
+    run_fit(session_machine(session), session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
+    return load_motion(out, load_machine(session_machine(session)))
 
 
 def offline_rmse(motion, frames: np.ndarray, truth) -> float:
@@ -301,18 +327,18 @@ def offline_without(session: Path, names: list[str], work: Path, camera: str, fr
     path.write_text("\n".join([lines[0]] + [line for line, k in zip(lines[1:], keep) if k]) + "\n")
     tracks = [session.parent / f"{session.name}_tracks" / f"{n}.csv" if n != camera else path for n in names]
     out = work / "motion_without.csv"
-    run_fit(MACHINE, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
-    return load_motion(out, load_machine(MACHINE)), int(len(np.unique(frame[~keep])))
+    run_fit(session_machine(session), session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
+    return load_motion(out, load_machine(session_machine(session))), int(len(np.unique(frame[~keep])))
 
 
-def view_cpu(rows_path: Path, calibration, out: Path) -> float:
+def view_cpu(rows_path: Path, calibration, out: Path, machine_name: str) -> float:
     """The process's CPU (ms) per row logging the rows of `rows_path` through `LiveView` to an
     .rrd file, flushed (Rerun's own thread included)."""
     from mocap.live.pose import Pose
     from mocap.live.view import LiveView, live_blueprint, open_stream
     from mocap.viewer.scene import joint_display_units
 
-    machine = load_machine(MACHINE)
+    machine = load_machine(machine_name)
     rows = np.genfromtxt(rows_path, delimiter=",", names=True, dtype=None, encoding="utf-8")
     scale, _ = joint_display_units(machine)
     joints = np.stack([rows[n].astype(float) for n in machine.joint_names], 1) / scale
@@ -339,6 +365,9 @@ def main() -> None:
     parser.add_argument("--seeds", default="7", help="sessions' seeds, comma-separated (the motion, and the look)")
     parser.add_argument("--look", choices=("default", "random"), default="default",
                         help="random: each seed's random look (mocap synth --look random)")
+    parser.add_argument("--machine", default=MACHINE,
+                        help=f"the machine model: a shipped name or a file (default {MACHINE}), or random: each "
+                        "seed's random digger (random proportions, link frames, joint senses and limits)")
     parser.add_argument("--lag", type=int, default=1)
     parser.add_argument("--fault", choices=("none", "disconnect"), default="none",
                         help=f"disconnect: the last camera delivers nothing for {GAP_S:g} s from a third of the run")
@@ -407,12 +436,12 @@ def main() -> None:
 def sessions(args, root: Path, cameras: list[int]):
     """Each size and seed's session (made, or found complete under `root`): size, seed, its
     folder, the true calibration and the true motion."""
-    machine = load_machine(MACHINE)
     for size in args.sizes.split(","):
         for seed in counts(args.seeds):
-            session = make_session(root, size, max(cameras), seed, args.look, args.duration)
+            machine = machine_for(root, args.machine, seed)
+            session = make_session(root, size, max(cameras), seed, args.look, args.duration, machine)
             yield (size, seed, session, load_calibration(session / "truth" / "cameras.toml"),
-                   load_motion(session / "truth" / "motion.csv", machine))
+                   load_motion(session / "truth" / "motion.csv", load_machine(machine)))
 
 
 def files_table(args, root: Path, cameras: list[int]) -> None:
@@ -433,14 +462,18 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
             names = list(calibration.names[:n])
             work = root / f"files_{session.name}_{n}"
             work.mkdir(exist_ok=True)
-            motion = offline(session, names, work)  # once for every base
+            try:
+                motion = offline(session, names, work)  # once for every base
+            except InputError as exc:  # a random machine's camera may see too few markers to be tracked
+                print(f"{session.name:>28} {n:>4} not compared: the offline chain refuses it: {exc}", flush=True)
+                continue
             gap = names[-1] if args.fault == "disconnect" and n > 1 else None
             for base in bases:
                 with silent(gap, args.duration / 3, by_time=True), recording() as calls:
                     report, cpu, _ = live_run(session, names, None, args.lag, work / "poses.csv", base,
                                               realtime=False)
                 frames, tips, sds = read_tips(work / "poses.csv", sd=True)
-                unraised, unraised_sds = replay(calls, args.lag, base != "fixed", pace_steps=0)
+                unraised, unraised_sds = replay(calls, session_machine(session), args.lag, base != "fixed", pace_steps=0)
                 keep = frames < len(truth.frame)  # the truth's frames (a camera's last frames may outlast the first's)
                 frames, tips, sds, unraised, unraised_sds = (x[keep] for x in (frames, tips, sds, unraised,
                                                                                unraised_sds))
@@ -515,7 +548,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     p50, p99 = np.percentile(report.latency_ms, [50, 99]) if len(report.latency_ms) else (np.nan, np.nan)
     stages = np.median(report.stages_ms, axis=0) if len(report.stages_ms) else np.full(4, np.nan)
     live, off = tip_rmse(frames, tips, truth), offline_rmse(motion, frames, truth)
-    unraised, _ = replay(calls, args.lag, args.base != "fixed", pace_steps=0)
+    unraised, _ = replay(calls, session_machine(session), args.lag, args.base != "fixed", pace_steps=0)
     width, height = calibration.cameras[0].size
     line = (f"{f'{width}x{height}':>9} {seed:>4} {n:>4} {report.rows / args.duration:>6.1f} {f'{dropped}/{read}':>8} "
             f"{p50:>6.0f} {p99:>6.0f} {report.latency_ms.max() if len(report.latency_ms) else np.nan:>6.0f} "
@@ -525,7 +558,7 @@ def bench_row(args, root: Path, session: Path, calibration, truth, size: str, se
     if args.as_fast:
         fast, _, _ = live_run(session, names, args.duration, args.lag, work / "fast.csv", args.base,
                               realtime=False, view=str(work / "fast.rrd"))
-        view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd")
+        view_ms = view_cpu(work / "fast.csv", calibration, work / "view.rrd", session_machine(session))
         fast_frames, fast_tips = read_tips(work / "fast.csv")
         line += (f" {tip_rmse(fast_frames, fast_tips, truth):>7.4f} {offline_rmse(motion, fast_frames, truth):>7.4f} "
                  f"{view_ms:>15.2f} {fast.view_ms:>7.2f}")

@@ -330,9 +330,12 @@ class FixedLagSmoother:
     usual one (its median over the last rows: the fits' information may be overconfident), is
     held against the quantile `_PACE_PROBABILITY`; beyond it the process noise is raised
     `_PACE_FACTOR` times and the window smoothed again, up to `pace_steps` times: the smallest
-    process noise the newest fits do not contradict. Fits that no raise tried explains (a few
-    failed fits, not a faster motion) leave it as it is. `pace` is the factor of the
-    last row given.
+    process noise the newest fits do not contradict. Fits that no raise tried explains leave
+    it as it is where they are a few failed fits; where most of the newest fits contradict
+    it, the motion is faster than any pace the window has shown (a joint that stood still
+    for the whole estimate, then swings: its estimate is near 0, and no multiple of it
+    follows), and the parameters they observe are smoothed as little as before the first
+    estimate. `pace` is the factor of the last row given.
 
     The usual chi-square over its degrees of freedom (at least 1: `variance_factor`) is how
     much larger the fits' scatter is than their information says (pixel errors that are not
@@ -507,7 +510,18 @@ class FixedLagSmoother:
                                             wrap, typical, self.options.unobserved_factor)
             if statistic <= limit:
                 return result, factor
-        return first, base
+        # no raise tried explains them: a few failed fits leave the smoothing as it is, but
+        # fits that contradict it in most of the newest frames are a motion faster than any
+        # pace the window has shown (a joint still for the whole estimate, then swinging: its
+        # estimated noise is near 0 and no multiple of it follows): those parameters are
+        # smoothed as little as before the first estimate
+        each = _frame_disagreement(values[newest], information[newest], kept, first.values[newest], wrap)
+        if np.sum(each > usual * chi2_quantile(_PACE_PROBABILITY, values.shape[1])) < 2:
+            return first, base
+        raised = np.where(observed, np.maximum(process_noise * _PACE_FACTOR**self.pace_steps, _FIRST_PROCESS_NOISE),
+                          process_noise)
+        result = smooth(time, values, information, valid, wrap, replace(self.options, process_noise=raised))
+        return result, raised / process_noise
 
 
     def _scale_variance(self, statistic: float, measured: np.ndarray, information: np.ndarray, kept: np.ndarray,
@@ -553,6 +567,15 @@ def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarr
         return 0.0, 0, np.zeros(measured.shape[1], bool)
     observed = np.all(fit_sds(information[valid]) <= unobserved_factor * typical_sd, axis=0)
     return float(np.einsum("ki,kij,kj->", difference, information[valid], difference)), difference.size, observed
+
+
+def _frame_disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,
+                        wrap: np.ndarray) -> np.ndarray:
+    """(K,) each fit's chi-square (`_disagreement`'s terms per frame; 0 where not `valid`)."""
+    difference = np.where(valid[:, None], measured - smoothed, 0.0)
+    difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    difference = np.nan_to_num(difference)
+    return np.einsum("ki,kij,kj->k", difference, np.nan_to_num(information), difference)
 
 
 def _typical_sd(information: np.ndarray, valid: np.ndarray) -> np.ndarray:
