@@ -85,6 +85,30 @@ def test_singular_information_leaves_one_parameter_to_the_model():
     assert out.filled[80:110].all() and not out.filled[:80].any()
 
 
+# a random digger's frame of two markers (its fit's information on four joints, rank 2): a
+# fixed ridge of 1e-12 was lost in the rounding of these entries and `mocap fit` stopped on
+# a singular matrix
+RANK_TWO = [[491982.9540009241, 194294.22142259034, -62008.74167934935, 62595.10443755668],
+            [194294.22142259034, 827222.1050437938, -373435.92126978625, 97326.76000215138],
+            [-62008.74167934935, -373435.92126978625, 170061.57285024223, -41648.4783411756],
+            [62595.10443755668, 97326.76000215138, -41648.4783411756, 14988.357767726304]]
+
+
+def test_a_frame_that_leaves_two_directions_unobserved_is_filled_not_fatal():
+    """A well-observed run of four parameters with one frame whose information is rank 2
+    at the scale of 1e5: the smoother runs, marks that frame filled, and the frames around it
+    keep their values to the noise."""
+    rng = np.random.default_rng(4)
+    time = np.arange(90) / FPS
+    truth = np.c_[np.sin(time), np.cos(time), 0.5 * time, 0.2 * np.sin(2 * time)]
+    information = np.tile(np.eye(4) / 0.001**2, (90, 1, 1))
+    information[45] = RANK_TWO
+    measured = truth + rng.normal(0, 0.001, truth.shape)
+    out = smooth(time, measured, information, np.ones(90, bool))
+    assert out.filled[45] and not out.filled[:45].any() and not out.filled[46:].any()
+    assert np.abs(out.values - truth).max() < 0.01  # the filled frame from its neighbours
+
+
 def test_guards():
     with pytest.raises(ValueError, match="time must increase"):
         smooth(np.zeros(3), np.zeros((3, 1)), np.ones((3, 1, 1)), np.ones(3, bool))

@@ -153,8 +153,14 @@ def _long_gaps(time: np.ndarray, valid: np.ndarray, max_gap_s: float) -> np.ndar
 
 
 def fit_sds(information: np.ndarray) -> np.ndarray:
-    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it."""
-    covariance = np.linalg.inv(information + 1e-12 * np.eye(information.shape[-1]))
+    """(N, P) each parameter's SD from the fits' information (N, P, P), as `smooth` takes it.
+    A direction a fit leaves unobserved (too few markers in its frame: the information
+    singular) gets an SD about a million times the frame's typical one: the ridge that keeps
+    the inverse finite is relative to the information's own scale (a fixed 1e-12 is lost in
+    the rounding of entries of 1e5 and more, and the inverse failed)."""
+    size = information.shape[-1]
+    ridge = 1e-12 * np.maximum(np.trace(information, axis1=-2, axis2=-1) / size, 1.0)
+    covariance = np.linalg.inv(information + ridge[..., None, None] * np.eye(size))
     return np.sqrt(np.abs(np.diagonal(covariance, axis1=-2, axis2=-1)))
 
 
