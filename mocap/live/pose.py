@@ -44,6 +44,7 @@ _PACE_FRAMES = 6  # the newest frames whose fits judge whether the process noise
 _PACE_PROBABILITY = 0.999  # their fits beyond this chi-square quantile of the smoothed values: the noise is raised
 _PACE_FACTOR = 4.0  # ... by this factor at a time
 _PACE_STEPS = 3  # ... at most this many times (64 times the estimate over the last 30 s)
+_PACE_RUN = 3  # beyond every raise: the newest fits that must all contradict the smoothing for a faster motion
 _BASE_FIRST = 60  # frames fitted before the first test of whether the base moves (2 s at 30 fps)
 _BASE_EVERY = 150  # without a window: frames between the tests, each of up to `SAMPLE_FRAMES` spread over all so far
 _BASE_MARGIN = 0.05  # a test changes the choice when the criterion's gain is this share past its penalty
@@ -331,8 +332,8 @@ class FixedLagSmoother:
     held against the quantile `_PACE_PROBABILITY`; beyond it the process noise is raised
     `_PACE_FACTOR` times and the window smoothed again, up to `pace_steps` times: the smallest
     process noise the newest fits do not contradict. Fits that no raise tried explains leave
-    it as it is where they are a few failed fits; where most of the newest fits contradict
-    it, the motion is faster than any pace the window has shown (a joint that stood still
+    it as it is where they are a failed fit or two; where the newest `_PACE_RUN` fits all
+    contradict it, the motion is faster than any pace the window has shown (a joint that stood still
     for the whole estimate, then swings: its estimate is near 0, and no multiple of it
     follows), and the parameters they observe are smoothed as little as before the first
     estimate. `pace` is the factor of the last row given.
@@ -510,13 +511,15 @@ class FixedLagSmoother:
                                             wrap, typical, self.options.unobserved_factor)
             if statistic <= limit:
                 return result, factor
-        # no raise tried explains them: a few failed fits leave the smoothing as it is, but
-        # fits that contradict it in most of the newest frames are a motion faster than any
-        # pace the window has shown (a joint still for the whole estimate, then swinging: its
-        # estimated noise is near 0 and no multiple of it follows): those parameters are
-        # smoothed as little as before the first estimate
+        # no raise tried explains them: a failed fit or two (a mirror solution in a frame
+        # whose markers hardly tell) leave the smoothing as it is, but the newest fits all
+        # contradicting it, frame after frame, are a motion faster than any pace the window has
+        # shown (a joint still for the whole estimate, then swinging: its estimated noise is
+        # near 0 and no multiple of it follows): those parameters are smoothed as little as
+        # before the first estimate
         each = _frame_disagreement(values[newest], information[newest], kept, first.values[newest], wrap)
-        if np.sum(each > usual * chi2_quantile(_PACE_PROBABILITY, values.shape[1])) < 2:
+        contradicting = (each > usual * chi2_quantile(_PACE_PROBABILITY, values.shape[1]))[kept]
+        if len(contradicting) < _PACE_RUN or not contradicting[-_PACE_RUN:].all():
             return first, base
         raised = np.where(observed, np.maximum(process_noise * _PACE_FACTOR**self.pace_steps, _FIRST_PROCESS_NOISE),
                           process_noise)
