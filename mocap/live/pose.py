@@ -232,6 +232,12 @@ class WarmFit:
         information = np.zeros((n_params, n_params))
         fitted = state.hessian[0].shape[0]
         information[:fitted, :fitted] = state.hessian[0] / self.noise_px**2
+        per_obs = float(state.cost[0] / n_obs)
+        if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
+            # even from the grid no pose explains this frame's pixels as the frames before were
+            # explained (markers mislabelled in it): its residuals say its noise is that much
+            # larger, and its information is that much less (the smoother weighs it as such)
+            information /= per_obs / np.median(self.per_obs)
         if keep:
             self.lengths.append(length)
             self.per_obs.append(float(state.cost[0] / n_obs))
