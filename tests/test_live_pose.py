@@ -42,16 +42,30 @@ def live_rows(root, choose_base: bool, base_window: int | None = None, frames: i
             motion.point("bucket_tip")[rows])
 
 
+@pytest.fixture(scope="module")
+def bouncing(tmp_path_factory):
+    """bounce (m) -> the session of seed 7 with that bounce and the tips of its rows with the
+    base held, each made once for the tests of both base windows."""
+    made = {}
+
+    def session(bounce: float):
+        if bounce not in made:
+            root = tmp_path_factory.mktemp("bounce") / "s"
+            assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--seed", "7", "--bounce",
+                             str(bounce), "--out", str(root), "--no-video"]) == 0
+            made[bounce] = root, live_rows(root, choose_base=False)[1] if bounce else None
+        return made[bounce]
+    return session
+
+
 @pytest.mark.parametrize("base_window", [BASE_WINDOW, None])
 @pytest.mark.parametrize("bounce", [0.0, 2.0])
-def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, bounce, base_window):
+def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(bouncing, bounce, base_window):
     """A still base is held at every test; a bouncing one is fitted per frame from the test
     that finds it moving (the choice `mocap fit` makes on these sessions, tests/test_smooth.py;
     the first 2 s, their half-second still start, may not show it yet), and its rows then
     follow the tip closer than with the base held; the rows' tips lie within 3 of their SDs."""
-    root = tmp_path / "s"
-    assert cli.main(["synth", "--machine", "hitachi_ex3500", "--cycles", "1", "--seed", "7", "--bounce", str(bounce),
-                     "--out", str(root), "--no-video"]) == 0
+    root, held = bouncing(bounce)
     fit, tips, sds, truth = live_rows(root, choose_base=True, base_window=base_window)
     answers = [moves for _, moves in fit.base_tests]
     assert len(answers) == (9 if base_window else 2) and answers[-1] == bool(bounce) and (bounce or not any(answers))
@@ -60,7 +74,6 @@ def test_live_holds_the_base_or_fits_it_per_frame_as_the_data_say(tmp_path, boun
     after = slice(max(since, 90), None)  # the answer taken, the smoother's process noise estimated
     assert np.mean(error[after] <= 3 * sds[after]) > 0.95
     if bounce:
-        _, held, _, _ = live_rows(root, choose_base=False)
         held_error = np.linalg.norm(held - truth, axis=1)
         assert np.sqrt(np.mean(error[after] ** 2)) < 0.7 * np.sqrt(np.mean(held_error[after] ** 2))
 

@@ -185,7 +185,7 @@ def test_videos_hold_the_rendered_frames_in_order(tmp_path, codec):
 def test_cli_renders_a_low_resolution_session(tmp_path):
     out = tmp_path / "s"
     argv = ["synth", "--machine", "bobcat_225", "--cameras", "2", "--cycles", "1", "--seed", "4",
-            "--scale", "0.2", "--codec", "mp4v", "--out", str(out)]
+            "--scale", "0.2", "--fps", "5", "--codec", "mp4v", "--out", str(out)]
     assert main(argv) == 0
     config = load_session_config(out / "session.toml")
     tracks = load_tracks(out / "truth" / "tracks.csv")

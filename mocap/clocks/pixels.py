@@ -17,6 +17,7 @@ Shapes: C cameras, F frames, M markers, J joints.
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,22 @@ from mocap.reconstruct.kinfit import FitOptions, fit_joints
 MAX_FRAMES = 240  # about as many times of the reference's clock fitted (evenly spread)
 VERNIER = 7  # the fitted times step by whole frames and a VERNIER-th of one
 _OPTIONS = FitOptions(base_motion=True)  # the base's bouncing, seen by two cameras, is fitted
+
+
+def _smooth(time: np.ndarray, values: np.ndarray, lam: float) -> np.ndarray:
+    """values (T, K, 2) along `time` (T,) through one smoothing spline of `lam` per column.
+    Every column has the same system matrix: from SciPy 1.16 on one call solves them all
+    (each column's numbers as its own call gives them), before it one call per column."""
+    if _BATCHED:
+        return make_smoothing_spline(time, values, lam=lam)(time)
+    out = np.empty_like(values)
+    for k in range(values.shape[1]):
+        for axis in range(2):
+            out[:, k, axis] = make_smoothing_spline(time, values[:, k, axis], lam=lam)(time)
+    return out
+
+
+_BATCHED = "axis" in inspect.signature(make_smoothing_spline).parameters
 
 
 @dataclass(frozen=True)
@@ -54,13 +71,14 @@ class CameraPixels:
         out = np.array(pixels, dtype=float)
         seen = np.all(np.isfinite(out), axis=-1)  # (F, M)
         time = np.asarray(frames, dtype=float) / fps
+        runs: dict[tuple[int, int], list[int]] = {}  # (start, end) of a seen run: the markers seen over it
         for m in range(out.shape[1]):
             edges = np.flatnonzero(np.diff(np.r_[0, seen[:, m].astype(int), 0]))  # starts and ends of seen runs
             for a, b in zip(edges[::2], edges[1::2]):
                 if b - a >= 8:
-                    for axis in range(2):
-                        out[a:b, m, axis] = make_smoothing_spline(time[a:b], out[a:b, m, axis],
-                                                                  lam=fps * span_s**4)(time[a:b])
+                    runs.setdefault((int(a), int(b)), []).append(m)
+        for (a, b), markers in runs.items():
+            out[a:b, markers] = _smooth(time[a:b], out[a:b, markers], fps * span_s**4)
         return cls(np.asarray(frames), out, float(fps))
 
     def at(self, time: np.ndarray, offset: float, span: float = 0.0) -> np.ndarray:

@@ -262,9 +262,10 @@ class CameraRenderer:
             order = [l for l in order if not (high[l] < rows[0] - 3 or low[l] > rows[1] + 2)]
             v = uv_squares[..., 1]
             seen = seen & (v.max(axis=1) >= rows[0] - 3) & (v.min(axis=1) <= rows[1] + 2)
+        middles = corners[:, BOX_FACES].mean(axis=2)  # (L, 6, 3) the faces' centres
         for l in order:
             for f, quad in enumerate(BOX_FACES):
-                if normals[l, f] @ (centre - corners[l, quad].mean(axis=0)) <= 0:
+                if normals[l, f] @ (centre - middles[l, f]) <= 0:
                     continue
                 pts = uv_corners[l, quad]
                 if not np.all(np.isfinite(pts)) or np.abs(pts).max() > 1e5:
