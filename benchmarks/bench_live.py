@@ -296,12 +296,17 @@ def offline(session: Path, names: list[str], work: Path):
         path = session.parent / f"{session.name}_tracks" / f"{name}.csv"  # the same for every count of cameras
         if not path.exists():
             path.parent.mkdir(exist_ok=True)
-            run_track(TrackRequest(session / "videos" / f"{name}.mp4", session_machine(session), session / "truth" / "cameras.toml",
-                                   name, path))
+            run_track(TrackRequest(session / "videos" / f"{name}.mp4", session_machine(session),
+                                   session / "truth" / "cameras.toml", name, path))
         tracks.append(path)
-    out = work / "motion.csv"
-    run_fit(session_machine(session), session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
-    return load_motion(out, load_machine(session_machine(session)))
+    return fitted(session, tracks, work / "motion.csv")
+
+
+def fitted(session: Path, tracks: list[Path], out: Path):
+    """`mocap fit` of `tracks` with the session's true cameras, written to `out` and read back."""
+    machine = session_machine(session)
+    run_fit(machine, session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
+    return load_motion(out, load_machine(machine))
 
 
 def offline_rmse(motion, frames: np.ndarray, truth) -> float:
@@ -326,9 +331,7 @@ def offline_without(session: Path, names: list[str], work: Path, camera: str, fr
     path = work / f"{camera}_without.csv"
     path.write_text("\n".join([lines[0]] + [line for line, k in zip(lines[1:], keep) if k]) + "\n")
     tracks = [session.parent / f"{session.name}_tracks" / f"{n}.csv" if n != camera else path for n in names]
-    out = work / "motion_without.csv"
-    run_fit(session_machine(session), session / "truth" / "cameras.toml", tracks, out, FitOptions(), SmoothOptions())
-    return load_motion(out, load_machine(session_machine(session))), int(len(np.unique(frame[~keep])))
+    return fitted(session, tracks, work / "motion_without.csv"), int(len(np.unique(frame[~keep])))
 
 
 def view_cpu(rows_path: Path, calibration, out: Path, machine_name: str) -> float:

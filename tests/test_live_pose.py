@@ -195,7 +195,8 @@ def test_a_frame_no_pose_explains_is_weighed_by_its_residuals():
     rng = np.random.default_rng(2)
     joints = np.tile(q, (70, 1))
     joints[:, 0] += np.linspace(0.0, 0.4, 70)
-    pixels = project(cameras, machine.markers(joints)) + rng.normal(0, 0.5, (len(cameras), 70, len(machine.marker_names), 2))
+    pixels = project(cameras, machine.markers(joints))
+    pixels = pixels + rng.normal(0, 0.5, pixels.shape)
     bucket = [k for k, link in enumerate(machine.marker_links) if link == max(machine.marker_links)]
     slipped = pixels.copy()
     slipped[:, 65, bucket] = slipped[:, 65, bucket[::-1]]

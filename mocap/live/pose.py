@@ -212,13 +212,14 @@ class WarmFit:
                 self.last.clear()
             return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs, moves)
         frame = pixels[:, None]
+        usual = float(np.median(self.per_obs)) if self.per_obs else np.inf  # the cost per observation so far
+        beyond = _RESTART_RATIO * usual + self.options.scale_px**2  # ... that no pose explaining the frame reaches
         if not self.last:
             state = self._from_grid(frame, moves)
         else:
             start = self.last[-1] if len(self.last) < 2 else 2 * self.last[-1] - self.last[-2]
             state = fitter.fit(frame, start[None, :n_joints], start[None, n_joints:] if moves else None)
-            per_obs = state.cost[0] / n_obs
-            if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
+            if state.cost[0] / n_obs > beyond:
                 again = self._from_grid(frame, moves)
                 if again.cost[0] < state.cost[0]:
                     state = again
@@ -233,14 +234,14 @@ class WarmFit:
         fitted = state.hessian[0].shape[0]
         information[:fitted, :fitted] = state.hessian[0] / self.noise_px**2
         per_obs = float(state.cost[0] / n_obs)
-        if self.per_obs and per_obs > _RESTART_RATIO * np.median(self.per_obs) + self.options.scale_px**2:
+        if per_obs > beyond:
             # even from the grid no pose explains this frame's pixels as the frames before were
             # explained (markers mislabelled in it): its residuals say its noise is that much
             # larger, and its information is that much less (the smoother weighs it as such)
-            information /= per_obs / np.median(self.per_obs)
+            information /= per_obs / usual
         if keep:
             self.lengths.append(length)
-            self.per_obs.append(float(state.cost[0] / n_obs))
+            self.per_obs.append(per_obs)
             self.last.append(values)
             if self.choose_base:
                 self._test_base(pixels, values[:n_joints])
@@ -551,8 +552,7 @@ class FixedLagSmoother:
         """`correlation`: the window's fits' deviations from the smoothed values, frame to next
         frame, weighed by the fits' information: its median over the last rows."""
         ok = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
-        deviation = np.where(ok[:, None], measured - smoothed, 0.0)
-        deviation[:, wrap] = np.mod(deviation[:, wrap] + np.pi, 2 * np.pi) - np.pi
+        deviation = _wrapped(np.where(ok[:, None], measured - smoothed, 0.0), wrap)
         pairs = ok[1:] & ok[:-1]
         if pairs.sum() < 10:
             return
@@ -563,6 +563,12 @@ class FixedLagSmoother:
         self.correlation = float(np.median(self.correlations))
 
 
+def _wrapped(difference: np.ndarray, wrap: np.ndarray) -> np.ndarray:
+    """`difference` (K, P), its angles (the columns `wrap` (P,)) taken into [-pi, pi), in place."""
+    difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    return difference
+
+
 def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,
                   wrap: np.ndarray, typical_sd: np.ndarray, unobserved_factor: float) -> tuple[float, int, np.ndarray]:
     """The chi-square of the fits measured (K, P) with information (K, P, P) about the
@@ -570,8 +576,7 @@ def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarr
     out; its degrees of freedom; and the parameters (P,) observed in every frame kept (their
     fit's SD within `unobserved_factor` times `typical_sd` (P,), as `smooth` tells)."""
     valid = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
-    difference = measured[valid] - smoothed[valid]
-    difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    difference = _wrapped(measured[valid] - smoothed[valid], wrap)
     if not valid.any():
         return 0.0, 0, np.zeros(measured.shape[1], bool)
     observed = np.all(fit_sds(information[valid]) <= unobserved_factor * typical_sd, axis=0)
@@ -581,9 +586,7 @@ def _disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarr
 def _frame_disagreement(measured: np.ndarray, information: np.ndarray, valid: np.ndarray, smoothed: np.ndarray,
                         wrap: np.ndarray) -> np.ndarray:
     """(K,) each fit's chi-square (`_disagreement`'s terms per frame; 0 where not `valid`)."""
-    difference = np.where(valid[:, None], measured - smoothed, 0.0)
-    difference[:, wrap] = np.mod(difference[:, wrap] + np.pi, 2 * np.pi) - np.pi
-    difference = np.nan_to_num(difference)
+    difference = np.nan_to_num(_wrapped(np.where(valid[:, None], measured - smoothed, 0.0), wrap))
     return np.einsum("ki,kij,kj->k", difference, np.nan_to_num(information), difference)
 
 
