@@ -8,6 +8,13 @@ os.environ.setdefault("RUST_LOG", "off")
 # SVD tens of times slower. One BLAS thread per worker (and per command the tests start).
 for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
+# Bytecode is cached even where the environment asks otherwise (PYTHONDONTWRITEBYTECODE): on a
+# fresh checkout every worker would compile the test modules (with pytest's assert rewriting)
+# and the package's modules, and every command a test starts the package's modules, again.
+if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
+    import sys
+
+    sys.dont_write_bytecode = False
 
 import numpy as np
 import pytest
@@ -99,7 +106,8 @@ def pytest_configure(config):
     """On a fresh checkout, before the whole suite (the README's command: no test named), the
     project's kernels are compiled into numba's cache by two processes at once
     (tests/warm_kernels.py), so that the workers and the commands the tests start load them
-    rather than each compiling them all."""
+    rather than each compiling them all; a third collects the tests once, caching their
+    bytecode for the workers."""
     import subprocess
     import sys
     from pathlib import Path
@@ -111,6 +119,11 @@ def pytest_configure(config):
     script = Path(__file__).with_name("warm_kernels.py")
     warmers = [subprocess.Popen([sys.executable, str(script), part], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL) for part in ("tracking", "reconstruct")]
+    # and the test modules collected once, so that their bytecode (asserts rewritten) is cached
+    # for the workers rather than compiled by each
+    warmers.append(subprocess.Popen([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0",
+                                     "-p", "no:cacheprovider", str(Path(__file__).parent)],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     for warmer in warmers:
         try:
             warmer.wait(timeout=600)

@@ -15,6 +15,7 @@ blocks are left out), between the modules of `mocap`.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mocap"
@@ -98,7 +99,10 @@ def imports(name: str) -> set[str]:
     return found
 
 
-GRAPH = {name: imports(name) for name in MODULES}
+@functools.cache
+def graph() -> dict[str, set[str]]:
+    """Each mocap module's imports (parsed once, when a test first asks: not at collection)."""
+    return {name: imports(name) for name in MODULES}
 
 
 def layer(name: str) -> int:
@@ -109,9 +113,9 @@ def layer(name: str) -> int:
 
 
 def test_only_the_entry_point_imports_the_command_line():
-    importers = sorted(m for m, targets in GRAPH.items() if "mocap.cli" in targets)
+    importers = sorted(m for m, targets in graph().items() if "mocap.cli" in targets)
     assert importers == ["mocap.__main__"]
-    commands = sorted(m for m, targets in GRAPH.items()
+    commands = sorted(m for m, targets in graph().items()
                       if any(t.startswith("mocap.commands") for t in targets) and not m.startswith("mocap.commands"))
     assert commands == ["mocap.cli"]
 
@@ -148,7 +152,7 @@ def cycles_of(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_no_import_cycle():
-    assert cycles_of(GRAPH) == []
+    assert cycles_of(graph()) == []
 
 
 # packages that import each other though no module does in a loop: the calibration's start
@@ -162,13 +166,13 @@ def test_no_import_cycle_between_packages():
         return ".".join(name.split(".")[:2])
 
     packages: dict[str, set[str]] = {}
-    for m, targets in GRAPH.items():
+    for m, targets in graph().items():
         packages.setdefault(package(m), set()).update(package(t) for t in targets if package(t) != package(m))
     assert cycles_of(packages) == KNOWN_PACKAGE_CYCLES
 
 
 def test_no_import_runs_up_the_layers():
-    upward = {(m, t) for m, targets in GRAPH.items() for t in targets if layer(t) > layer(m)}
+    upward = {(m, t) for m, targets in graph().items() for t in targets if layer(t) > layer(m)}
     described = sorted(f"{m} ({NAMES[layer(m)]}) imports {t} ({NAMES[layer(t)]})" for m, t in upward - KNOWN)
     assert described == []
     mended = KNOWN - upward
@@ -177,7 +181,7 @@ def test_no_import_runs_up_the_layers():
 
 def test_stages_do_not_import_each_others_stage_modules():
     """A stage uses another's computing modules at most, never its `stage` (load/save) module."""
-    crossing = {(m, t) for m, targets in GRAPH.items() for t in targets
+    crossing = {(m, t) for m, targets in graph().items() for t in targets
                 if layer(m) == 2 and t.endswith(".stage") and t.split(".")[1] != m.split(".")[1]}
     assert sorted(crossing - KNOWN_CROSSING) == []
     assert not KNOWN_CROSSING - crossing, "mended: take them off KNOWN_CROSSING"
@@ -191,7 +195,7 @@ def test_no_module_sits_loose_at_the_top():
 def test_core_imports_only_core_and_io_only_core_and_io():
     """The core types know no format and no stage; a format knows the core types only."""
     def outside(prefix: str, allowed: tuple[str, ...]) -> list[str]:
-        return sorted(f"{m} imports {t}" for m, targets in GRAPH.items() if m.startswith(prefix)
+        return sorted(f"{m} imports {t}" for m, targets in graph().items() if m.startswith(prefix)
                       for t in targets if not t.startswith(allowed))
 
     assert outside("mocap.core", ("mocap.core", "mocap.errors", "mocap.progress")) == []
@@ -200,7 +204,7 @@ def test_core_imports_only_core_and_io_only_core_and_io():
 
 def test_the_rules_see_the_imports():
     """The reader finds imports at the top, in functions, relative ones, and leaves out TYPE_CHECKING."""
-    assert "mocap.commands" in GRAPH["mocap.cli"] and "mocap.cli" in GRAPH["mocap.__main__"]
-    assert "mocap.orchestration.pipeline" in GRAPH["mocap.orchestration.demo"]  # imported inside run_demo
-    assert "mocap.reconstruct.kinfit" in GRAPH["mocap.reconstruct.stage"]  # inside fit_motion
-    assert "mocap.batch.stage" in GRAPH["mocap.commands.batch"]  # relative to nothing, inside run()
+    assert "mocap.commands" in graph()["mocap.cli"] and "mocap.cli" in graph()["mocap.__main__"]
+    assert "mocap.orchestration.pipeline" in graph()["mocap.orchestration.demo"]  # imported inside run_demo
+    assert "mocap.reconstruct.kinfit" in graph()["mocap.reconstruct.stage"]  # inside fit_motion
+    assert "mocap.batch.stage" in graph()["mocap.commands.batch"]  # relative to nothing, inside run()
