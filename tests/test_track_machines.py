@@ -55,3 +55,39 @@ def test_a_camera_that_sees_too_few_markers_is_told_so():
     with pytest.raises(TooFewMarkersError, match="the camera sees 1 of the model's 11 disk markers, and a fit needs 5"):
         track_frames(CameraModel(machine, field.camera), iter(frames),
                      session.plan.joints(field.times(np.array([0])))[0], None, field.fps)
+
+
+def test_four_markers_that_fix_the_joints_they_show_are_enough_and_two_on_the_arm_are_not():
+    """Seed 5's first camera sees four of the digger's ten disks at the start (a base marker,
+    two on the arm, one on the bucket): their eight coordinates fix the four joints and the
+    image's shift with two to spare, so the camera is tracked (it was refused for want of a
+    fifth marker) and every marker it shows wholly is labelled in 30 frames, none wrong. Two
+    base markers with one on the arm and one on the bucket are not enough: the arm's and
+    bucket's four coordinates fix their four joints with nothing to spare (a wrong pair of
+    blobs fits as well as the right one)."""
+    machine = random_digger(np.random.default_rng(5))
+    session = make_session(machine, "random digger", n_cameras=3, n_cycles=1, seed=5, size=(960, 540))
+    field = session.cameras[0]
+    model = CameraModel(machine, field.camera)
+    index = {name: k for k, name in enumerate(machine.marker_names)}
+    base = [k for k in range(len(index)) if not machine.marker_moves[:, k].any()]
+    arm, bucket = [k for k in range(len(index)) if machine.marker_moves[:, k].sum() == 3][:2], \
+        [k for k in range(len(index)) if machine.marker_moves[:, k].sum() == 4][:1]
+    assert model.determined(np.array(base[:1] + arm + bucket), 5)
+    assert not model.determined(np.array(base[:2] + arm[:1] + bucket), 5)
+    assert model.determined(np.array(base[:3] + arm[:1] + bucket), 5)  # five: the count is enough
+
+    truth = session.tracks.of_camera(field.name)
+    truth = truth.select(truth.frame < 30)
+    first = truth.select((truth.frame == 0) & (truth.score >= 1.0))
+    assert len(first) == 4 and model.determined(np.array([index[m] for m in first.marker]), 5)
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(5))
+    frames = [(f, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)) for f, image in renderer.frames(np.arange(30))]
+    tracks, _ = track_frames(model, iter(frames), session.plan.joints(field.times(np.array([0])))[0], None, field.fps)
+    true_xy = {(int(f), m): xy for f, m, xy in zip(truth.frame, truth.marker, truth.xy)}
+    error = np.array([np.linalg.norm(xy - true_xy.get((int(f), m), np.inf))
+                      for f, m, xy in zip(tracks.frame, tracks.marker, tracks.xy)])
+    assert np.all(error < 1.0)  # no wrong label
+    labelled = set(zip(tracks.frame.tolist(), tracks.marker.tolist()))
+    whole = truth.select(truth.score >= 1.0)
+    assert sum((int(f), m) in labelled for f, m in zip(whole.frame, whole.marker)) >= 0.99 * len(whole)

@@ -66,7 +66,7 @@ def propose_labels(
     min_markers: int = 5,
 ) -> FrameResult | None:
     """Label detections by fitting the model from each of `starts` (S, J), all starts
-    together; None when no start explains at least `min_markers` detections."""
+    together; None when no start explains enough detections (`CameraModel.determined`)."""
     starts = np.array(np.atleast_2d(starts), dtype=float)
     n_markers = len(model.machine.marker_names)
     # from coarse gates down (a start far off), and from the fine ones alone (a start near the
@@ -88,10 +88,10 @@ def propose_labels(
         key = (len(markers), -rms)
         if best_key is None or key > best_key:
             best, best_key = FrameResult(markers, detections.select(index), joints[k], True, rms), key
-    if best is None or len(best.markers) < min_markers:
+    if best is None or not model.determined(best.markers, min_markers):
         return None
     best = _determined(model, _same_size(model, best))
-    return best if len(best.markers) >= min_markers else None
+    return best if model.determined(best.markers, min_markers) else None
 
 
 def _search(model: CameraModel, detections: Detections, starts: np.ndarray, gates: tuple[float, ...]):

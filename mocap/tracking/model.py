@@ -152,6 +152,20 @@ class CameraModel:
         """(J,) bool: the joints that move at least one of `markers` (indices)."""
         return self.machine.marker_moves[:, np.asarray(markers, dtype=int)].any(axis=1)
 
+    def determined(self, markers: np.ndarray, enough: int) -> bool:
+        """Whether the labelled `markers` (indices) are enough for a frame's fit: `enough` of
+        them, or fewer whose coordinates (two each) fix the joints they show with two to spare
+        on the moving links' markers alone and the image's shift (two) too with all of them,
+        so that a wrong label shows in the residuals. The count is the prior of a machine with
+        many markers; one with two a link, filmed where a camera sees four, is fitted from
+        those four if three of them show its four joints."""
+        markers = np.asarray(markers, dtype=int)
+        if len(markers) >= enough:
+            return True
+        moves = self.machine.marker_moves[:, markers]  # (J, K)
+        shown = int(moves.any(axis=1).sum())
+        return 2 * int(moves.any(axis=0).sum()) >= shown + 2 and 2 * len(markers) >= shown + 4
+
     def known_markers(self, held: np.ndarray) -> np.ndarray:
         """(M,) bool: the markers whose every moving joint some `held` marker (indices) shows."""
         seen = self.observed_joints(held)

@@ -165,12 +165,13 @@ def track_frames(
             first = label_first_frame(model, gray, start, labelled, options, finder)
             if first is None:
                 view = model.view(np.asarray(start, dtype=float)[None])
-                shown = int(np.sum(disks_in_view(model, view, options.occlusion)))
-                if shown < options.min_markers:
+                in_view = np.flatnonzero(disks_in_view(model, view, options.occlusion))
+                shown = len(in_view)
+                if not model.determined(in_view, options.min_markers):
                     raise TooFewMarkersError(
                         f"frame {index}: at the starting joint values (the calibration's) the camera sees {shown} of "
                         f"the model's {int(np.sum(model.machine.tags < 0))} disk markers, and a fit needs "
-                        f"{options.min_markers}")
+                        f"{options.min_markers} (or fewer that fix the joints they show with coordinates to spare)")
                 raise ValueError(f"frame {index}: the model explains too few of the detected disks "
                                  f"({shown} of its markers in view)")
             tracker = Tracker(model, first, options)

@@ -52,7 +52,8 @@ class TrackOptions:
     radii; tight_px: least gate of the final assignment against the fitted model;
     outlier_px: least residual at which the fit disowns a detection; regain_px_per_frame,
     regain_max_px: how far the search for a marker not seen for a while reaches, growing
-    with the frames it was missed; min_markers: markers needed to fit the joints;
+    with the frames it was missed; min_markers: markers enough to fit the joints (fewer
+    if they fix the joints they show with coordinates to spare: `CameraModel.determined`);
     lost_frames: frames without a fit before the whole frame is searched again;
     near_contrast: where the model puts a marker, the share of `detect.min_contrast` a disk
     needs (a full-frame search holds to `detect`), and where the boxes hide a marker not
@@ -122,6 +123,7 @@ class TrackState:
     anchor: np.ndarray | None = None  # (J,) the joints of the last frame fitted after a fitted one
     shift: np.ndarray = field(default_factory=lambda: np.zeros(2))  # (2,) px, the image's from the model
     swept: np.ndarray | None = None  # (J,) int, frames since each joint's range was last swept (`Tracker._sweep`)
+    thin: int = 0  # frames since the last fit of `TrackOptions.min_markers` markers or more
 
     def __post_init__(self) -> None:
         if self.swept is None:  # never swept: at once when due
@@ -166,14 +168,14 @@ class Tracker:
         motion = np.nan_to_num(length(uv - state.uv))
         widen = 1.0 + min(state.lost, 10)
         gate = widen * np.maximum(options.gate_px, options.gate_radii * expected) + motion
-        if np.sum(recent & visible) < options.min_markers:  # after a loss: every marker at once
-            recent = np.ones_like(recent)
+        if not model.determined(np.flatnonzero(recent & visible), options.min_markers):
+            recent = np.ones_like(recent)  # after a loss: every marker at once
         reach = np.where(recent, gate, gate + np.minimum(options.regain_px_per_frame * state.missed, options.regain_max_px))
         seen = self._search(gray, uv + state.shift, reach, visible, expected, recent)
         found = replace(seen, xy=seen.xy - state.shift)  # in the model's pixels: the last frame's shake out
         # the markers followed until now fix the joints they observe
         markers, index = assign(uv, found.xy, gate, visible & recent, found.radius, expected)
-        if len(markers) < options.min_markers:
+        if not model.determined(markers, options.min_markers):
             return self._coast(predicted, uv, visible, seen, expected)
         observed = np.full(uv.shape, np.nan)
         observed[markers] = found.xy[index]
@@ -191,7 +193,7 @@ class Tracker:
         joints, fitted_uv = fit.joints[0], fit.uv[0]
         residual = length(observed[markers] - fitted_uv[markers])
         keep = residual <= np.maximum(options.outlier_px, 0.5 * expected[markers])
-        if np.sum(keep) < options.min_markers:
+        if not model.determined(markers[keep], options.min_markers):
             return self._coast(predicted, uv, visible, seen, expected)
         observed[markers[~keep]] = np.nan
         refit = model.fit(observed[None], joints, iterations=1)
@@ -240,7 +242,7 @@ class Tracker:
         sized = np.where(followed[:, None], _same_size(found.radius[None], expected[:, None]),
                          _same_size(found.axes[None, :, 0], face_on[:, None])) | agreeing
         markers, index = assign(fitted_uv, found.xy, tight, visible & known, allowed=sized)
-        if len(markers) < options.min_markers:
+        if not model.determined(markers, options.min_markers):
             return self._coast(predicted, uv, visible, seen, expected)
         if prior_hidden.any():
             # the contrast a hidden marker not followed lately needs, learned from the disks of
@@ -275,6 +277,7 @@ class Tracker:
         if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
             state.anchor = joints
         state.joints, state.lost = joints, 0
+        state.thin = 0 if len(markers) >= options.min_markers else state.thin + 1
         state.uv = fitted_uv
         state.shape[markers] = found.shape[index]
         state.missed += 1
@@ -296,8 +299,11 @@ class Tracker:
     def needs_search(self) -> bool:
         """Whether a full-frame search could help: a joint has not been seen by any labelled
         marker for `lost_frames` frames (its link may have come back far from where it was
-        left, or out of the model's view)."""
-        return bool((self.state.unseen >= self.options.lost_frames).any())
+        left, or out of the model's view), or the fits have had fewer than `min_markers`
+        markers for as long (the few they kept may be all the camera shows, or markers lost
+        on the way that a search finds again)."""
+        return bool((self.state.unseen >= self.options.lost_frames).any()
+                    or self.state.thin >= self.options.lost_frames)
 
     def restart(self, start: FrameResult, gray: np.ndarray | None = None) -> None:
         """Carry on from a fresh labelling of the current frame (after a loss). The joints
@@ -330,7 +336,7 @@ class Tracker:
         state.joints = joints
         state.previous = joints.copy()
         state.uv = self.model.pixels(joints[None])[0]
-        state.lost = 0
+        state.lost = state.thin = 0
         state.swept[:] = _NEVER  # the joints the new labels do not show are swept at once
         state.shift = np.zeros(2)
         state.missed[start.markers] = 0
@@ -563,6 +569,7 @@ class Tracker:
                                 found.radius, expected)
         state.previous, state.joints, state.uv = state.joints, predicted, uv
         state.lost += 1
+        state.thin += 1
         state.missed += 1
         state.missed[markers] = 0
         state.unseen += 1
