@@ -91,3 +91,38 @@ def test_four_markers_that_fix_the_joints_they_show_are_enough_and_two_on_the_ar
     labelled = set(zip(tracks.frame.tolist(), tracks.marker.tolist()))
     whole = truth.select(truth.score >= 1.0)
     assert sum((int(f), m) in labelled for f, m in zip(whole.frame, whole.marker)) >= 0.99 * len(whole)
+
+
+def test_a_fit_refused_after_the_shake_is_measured_leaves_the_last_shake(monkeypatch):
+    """The image's shift from the model (the camera's shake) is measured from a frame's first
+    fit; if the frame's fit is then refused (too few markers kept), the tracker coasts on the
+    last kept shift. A shift measured on labels the fit then refused once stuck (172 px on a
+    random digger's camera), and the coasting tracker lost the base markers it still had for
+    seconds. Here the picture moves 2 px: kept, the shift moves; refused, it stays."""
+    from mocap.tracking.run import label_first_frame
+    from mocap.tracking.tracker import Tracker, TrackOptions
+
+    machine = random_digger(np.random.default_rng(6))
+    session = make_session(machine, "random", n_cameras=1, n_cycles=1, seed=6, size=(960, 540))
+    field = session.cameras[0]
+    renderer = CameraRenderer(session, 0, RenderOptions(), np.random.default_rng(6))
+    grays = [cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) for _, image in renderer.frames(np.arange(2))]
+    moved = cv2.warpAffine(grays[1], np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 0.0]]), (960, 540),
+                           borderMode=cv2.BORDER_REPLICATE)
+    model, options = CameraModel(machine, field.camera), TrackOptions()
+    first = label_first_frame(model, grays[0], session.plan.joints(field.times(np.array([0])))[0], None, options)
+
+    kept = Tracker(model, first, options)
+    assert kept.step(moved).fitted
+    assert np.abs(kept.state.shift).max() > 0.05  # (the joints' fit takes up part of the move)
+
+    refused = Tracker(model, first, options)
+    calls = []
+    determined = CameraModel.determined
+
+    def refuse_the_kept(self, markers, enough):  # the third test of a step: the markers kept after the first fit
+        calls.append(len(markers))
+        return determined(self, markers, enough) and len(calls) != 3
+    monkeypatch.setattr(CameraModel, "determined", refuse_the_kept)
+    assert not refused.step(moved).fitted and len(calls) == 3
+    assert np.array_equal(refused.state.shift, np.zeros(2))

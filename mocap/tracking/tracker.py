@@ -183,8 +183,9 @@ class Tracker:
         joints, fitted_uv = fit.joints[0], fit.uv[0]
         # the camera's shake: what the joints leave, the median over the markers followed,
         # is the image's shift from the model; taken out before the joints are fitted again
-        state.shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
-        found = replace(seen, xy=seen.xy - state.shift)
+        # (the frame's own until its fit is kept: a fit refused leaves the last one's)
+        shift = state.shift + np.median(found.xy[index] - fitted_uv[markers], axis=0)
+        found = replace(seen, xy=seen.xy - shift)
         observed[markers] = found.xy[index]
         # ... the joints again from the prediction: the first fit took part of the shake for a
         # turn of the links (the base's markers, fixed in the world, moved by the shake), and the
@@ -223,11 +224,11 @@ class Tracker:
         prior_hidden = disks_in_view(model, view, occlusion=False) & ~visible & known
         again = (visible | prior_hidden) & known & ~_near_any(fitted_uv, found.xy, tight)
         if again.any():
-            extra = self._search_fitted(gray, fitted_uv + state.shift, np.flatnonzero(again), expected, agree, visible)
+            extra = self._search_fitted(gray, fitted_uv + shift, np.flatnonzero(again), expected, agree, visible)
             extra = extra.select(~_near_any(extra.xy, seen.xy, 0.5 * np.maximum(extra.radius, 1.0)))
             if len(extra):
                 seen = concatenate([seen, extra])
-                found = replace(seen, xy=seen.xy - state.shift)
+                found = replace(seen, xy=seen.xy - shift)
         # a marker not followed lately: the size its guessed normal gives may be far off (a
         # plate turned from the box's face); its ellipse's major semi-axis is the disk's radius
         # at its depth however it is turned
@@ -250,7 +251,7 @@ class Tracker:
             # a hidden marker's place is a third or less of theirs
             least = max(options.detect.min_contrast, options.near_contrast * float(np.median(found.contrast[index])))
             seen = self._converge_faint(gray, seen, found, fitted_uv, tight, prior_hidden, least)
-            found = replace(seen, xy=seen.xy - state.shift)
+            found = replace(seen, xy=seen.xy - shift)
             markers, index = self._take_hidden(fitted_uv, found, tight, prior_hidden, visible & known, markers, index,
                                                face_on, agreeing, least)
         # two markers' disks cannot lie one inside the other: a detection centred inside a
@@ -276,7 +277,7 @@ class Tracker:
         state.unseen = np.where(seen_joints, 0, state.unseen + 1)
         if state.lost == 0:  # a fit right after a loss may have turned links no marker shows yet
             state.anchor = joints
-        state.joints, state.lost = joints, 0
+        state.joints, state.lost, state.shift = joints, 0, shift
         state.thin = 0 if len(markers) >= options.min_markers else state.thin + 1
         state.uv = fitted_uv
         state.shape[markers] = found.shape[index]
