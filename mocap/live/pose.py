@@ -34,6 +34,7 @@ _NOISE_FRAMES = 90  # frames whose residuals give the pixel noise
 _RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above the typical one is fitted from the grid
 _LEAVE_OUT_SHARE = 0.25  # a frame no pose explains: at most this share of its observations left out ...
 _LEAVE_OUT_CANDIDATES = 6  # ... one at a time, each the one of its worst residuals whose leaving out explains the most
+_WORST_RATIO = 5.0  # ... until its worst residual left is within this many times the usual frame's worst
 _PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
 _PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
 _FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
@@ -230,7 +231,7 @@ class WarmFit:
             # no pose explains the frame as the frames before were explained: an observation or a
             # few that are wrong (a marker labelled where another, or nothing of the machine, is)
             # are left out, if that explains the rest; else the frame is weighed as it is, below
-            explained = self._leave_out(fitter, frame, seen, state, beyond)
+            explained = self._leave_out(fitter, frame, seen, state, beyond, start if self.last else None)
             if explained is not None:
                 state, seen = explained
                 n_obs = int(seen.sum())
@@ -315,15 +316,21 @@ class WarmFit:
             self.lengths.clear()  # the residuals and costs of the other model
             self.per_obs.clear()
 
-    def _leave_out(self, fitter: FrameFitter, frame: np.ndarray, seen: np.ndarray, state, beyond: float):
+    def _leave_out(self, fitter: FrameFitter, frame: np.ndarray, seen: np.ndarray, state, beyond: float,
+                   start: np.ndarray | None):
         """The frame (C, 1, M, 2) whose fit `state` ends beyond `beyond` per observation, fitted
         again without its wrong observations: one at a time, of the `_LEAVE_OUT_CANDIDATES` worst
-        residuals the one whose leaving out lowers the cost most (all of them fitted at once, from
-        the fit so far), until the cost per observation left is within `beyond`; at most
+        residuals the one whose leaving out lowers the cost most (all of them fitted at once,
+        from the fit so far and from `start`, the frame's prediction, values (P,)), until the
+        cost per observation left is within `beyond` and the worst residual left within
+        `_WORST_RATIO` times the usual frame's worst (the median over the last frames: a
+        marker labelled far off is not hidden in the average of many); at most
         `_LEAVE_OUT_SHARE` of the observations, and the fit kept overdetermined twice over
         (twice as many coordinates as parameters). The new fit and the observations it used
         (C, M), or None if no such subset explains the frame."""
         n_joints, n_obs = self.machine.n_joints, int(seen.sum())
+        worst = [float(length.max()) for length in self.lengths if len(length)]
+        gate = _WORST_RATIO * float(np.median(worst)) if worst else np.inf
         most = min(int(_LEAVE_OUT_SHARE * n_obs), n_obs - fitter.n_params)
         used = seen.reshape(-1).copy()
         for left in range(1, most + 1):
@@ -334,17 +341,18 @@ class WarmFit:
                                  len(candidates), axis=1)  # (C, K, M, 2)
             camera, marker = np.unravel_index(candidates, seen.shape)
             variants[camera, np.arange(len(candidates)), marker] = np.nan
-            base = None
-            if state.rotation is not None:
-                base = np.tile(np.r_[matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]],
-                               (len(candidates), 1))
-            trial = fitter.fit(variants, np.tile(state.joints[:1], (len(candidates), 1)), base)
+            values = np.r_[state.joints[0], matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]] \
+                if state.rotation is not None else state.joints[0]
+            starts = np.stack([values] if start is None else [start[:len(values)], values])  # ties: the prediction
+            trial = fitter.fit(np.tile(variants, (1, len(starts), 1, 1)), np.repeat(starts[:, :n_joints], len(candidates), 0),
+                               np.repeat(starts[:, n_joints:], len(candidates), 0) if state.rotation is not None else None)
             best = int(np.argmin(trial.cost))
             if not trial.cost[best] < state.cost[0]:
                 return None
             state = trial.take(np.array([best]))
-            used[candidates[best]] = False
-            if state.cost[0] / (n_obs - left) <= beyond:
+            used[candidates[best % len(candidates)]] = False
+            residual = state.residual[0].reshape(-1, 2)[used]
+            if state.cost[0] / (n_obs - left) <= beyond and np.hypot(residual[:, 0], residual[:, 1]).max() <= gate:
                 return state, used.reshape(seen.shape)
         return None
 
