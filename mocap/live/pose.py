@@ -344,8 +344,9 @@ class WarmFit:
             values = np.r_[state.joints[0], matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]] \
                 if state.rotation is not None else state.joints[0]
             starts = np.stack([values] if start is None else [start[:len(values)], values])  # ties: the prediction
-            trial = fitter.fit(np.tile(variants, (1, len(starts), 1, 1)), np.repeat(starts[:, :n_joints], len(candidates), 0),
-                               np.repeat(starts[:, n_joints:], len(candidates), 0) if state.rotation is not None else None)
+            starts = np.repeat(starts, len(candidates), axis=0)  # (S K, P): each start with every candidate
+            trial = fitter.fit(np.tile(variants, (1, len(starts) // len(candidates), 1, 1)), starts[:, :n_joints],
+                               starts[:, n_joints:] if state.rotation is not None else None)
             best = int(np.argmin(trial.cost))
             if not trial.cost[best] < state.cost[0]:
                 return None
