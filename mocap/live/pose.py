@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 _RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median of a 2-D residual's length over its per-axis SD
 _NOISE_FRAMES = 90  # frames whose residuals give the pixel noise
 _RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above the typical one is fitted from the grid
+_LEAVE_OUT_SHARE = 0.25  # a frame no pose explains: at most this share of its observations left out ...
+_LEAVE_OUT_CANDIDATES = 6  # ... one at a time, each the one of its worst residuals whose leaving out explains the most
+_WORST_RATIO = 5.0  # ... until its worst residual left is within this many times the usual frame's worst
 _PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
 _PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
 _FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
@@ -180,6 +183,7 @@ class WarmFit:
         self.base_evidence: list[float] = []  # each test's gain in the information criterion over its penalty
         self.background = background
         self.testing: _BaseTest | None = None  # the test running
+        self.left_out = 0  # frames fitted with observations left out (`_leave_out`)
 
     @property
     def fitter(self) -> FrameFitter:
@@ -223,6 +227,18 @@ class WarmFit:
                 again = self._from_grid(frame, moves)
                 if again.cost[0] < state.cost[0]:
                     state = again
+        if state.cost[0] / n_obs > beyond:
+            # no pose explains the frame as the frames before were explained: an observation or a
+            # few that are wrong (a marker labelled where another, or nothing of the machine, is)
+            # are left out, if that explains the rest; else the frame is weighed as it is, below
+            explained = self._leave_out(fitter, frame, seen, state, beyond, start if self.last else None)
+            if explained is not None:
+                state, seen = explained
+                n_obs = int(seen.sum())
+                if keep:
+                    self.left_out += 1
+                log.debug("%d observation(s) left out of a frame no pose explained with them",
+                          int(np.isfinite(pixels[..., 0]).sum()) - n_obs)
         residual = state.residual[0].reshape(-1, 2)[seen.reshape(-1)]
         length = np.hypot(residual[:, 0], residual[:, 1])
         weight = state.weight[0].reshape(-1, 2)[seen.reshape(-1), 0]
@@ -243,8 +259,8 @@ class WarmFit:
             self.lengths.append(length)
             self.per_obs.append(per_obs)
             self.last.append(values)
-            if self.choose_base:
-                self._test_base(pixels, values[:n_joints])
+            if self.choose_base:  # the test of the base without the observations left out
+                self._test_base(np.where(seen[..., None], pixels, np.nan), values[:n_joints])
         rms = float(np.sqrt(np.sum(weight * length**2) / max(np.sum(weight), 1e-12)))
         return FrameFit(values, information, True, rms, n_obs, moves)
 
@@ -299,6 +315,47 @@ class WarmFit:
             self.base_moves = moves
             self.lengths.clear()  # the residuals and costs of the other model
             self.per_obs.clear()
+
+    def _leave_out(self, fitter: FrameFitter, frame: np.ndarray, seen: np.ndarray, state, beyond: float,
+                   start: np.ndarray | None):
+        """The frame (C, 1, M, 2) whose fit `state` ends beyond `beyond` per observation, fitted
+        again without its wrong observations: one at a time, of the `_LEAVE_OUT_CANDIDATES` worst
+        residuals the one whose leaving out lowers the cost most (all of them fitted at once,
+        from the fit so far and from `start`, the frame's prediction, values (P,)), until the
+        cost per observation left is within `beyond` and the worst residual left within
+        `_WORST_RATIO` times the usual frame's worst (the median over the last frames: a
+        marker labelled far off is not hidden in the average of many); at most
+        `_LEAVE_OUT_SHARE` of the observations, and the fit kept overdetermined twice over
+        (twice as many coordinates as parameters). The new fit and the observations it used
+        (C, M), or None if no such subset explains the frame."""
+        n_joints, n_obs = self.machine.n_joints, int(seen.sum())
+        worst = [float(length.max()) for length in self.lengths if len(length)]
+        gate = _WORST_RATIO * float(np.median(worst)) if worst else np.inf
+        most = min(int(_LEAVE_OUT_SHARE * n_obs), n_obs - fitter.n_params)
+        used = seen.reshape(-1).copy()
+        for left in range(1, most + 1):
+            residual = state.residual[0].reshape(-1, 2)
+            length = np.where(used, np.hypot(residual[:, 0], residual[:, 1]), -np.inf)
+            candidates = np.argsort(-length)[:min(_LEAVE_OUT_CANDIDATES, n_obs - left + 1)]
+            variants = np.repeat(np.where(used.reshape(seen.shape)[:, None, :, None], frame, np.nan),
+                                 len(candidates), axis=1)  # (C, K, M, 2)
+            camera, marker = np.unravel_index(candidates, seen.shape)
+            variants[camera, np.arange(len(candidates)), marker] = np.nan
+            values = np.r_[state.joints[0], matrix_to_rotvec(state.rotation[:1])[0], state.translation[0]] \
+                if state.rotation is not None else state.joints[0]
+            starts = np.stack([values] if start is None else [start[:len(values)], values])  # ties: the prediction
+            starts = np.repeat(starts, len(candidates), axis=0)  # (S K, P): each start with every candidate
+            trial = fitter.fit(np.tile(variants, (1, len(starts) // len(candidates), 1, 1)), starts[:, :n_joints],
+                               starts[:, n_joints:] if state.rotation is not None else None)
+            best = int(np.argmin(trial.cost))
+            if not trial.cost[best] < state.cost[0]:
+                return None
+            state = trial.take(np.array([best]))
+            used[candidates[best % len(candidates)]] = False
+            residual = state.residual[0].reshape(-1, 2)[used]
+            if state.cost[0] / (n_obs - left) <= beyond and np.hypot(residual[:, 0], residual[:, 1]).max() <= gate:
+                return state, used.reshape(seen.shape)
+        return None
 
     def _from_grid(self, frame: np.ndarray, moves: bool):
         """The frame (C, 1, M, 2) fitted as `mocap fit` fits a frame without a start."""
