@@ -155,16 +155,19 @@ class CameraModel:
     def determined(self, markers: np.ndarray, enough: int) -> bool:
         """Whether the labelled `markers` (indices) are enough for a frame's fit: `enough` of
         them, or fewer whose coordinates (two each) fix the joints they show with two to spare
-        on the moving links' markers alone and the image's shift (two) too with all of them,
-        so that a wrong label shows in the residuals. The count is the prior of a machine with
-        many markers; one with two a link, filmed where a camera sees four, is fitted from
-        those four if three of them show its four joints."""
+        on the moving links' markers alone, and those joints and the image's shift (two) with
+        two to spare with all of them, a base marker among them, so that a wrong label shows in
+        the residuals. The count is the prior of a machine with many markers; one with two a
+        link, filmed where a camera sees four, is fitted from a base marker and three that show
+        its four joints. (Four markers on moving links alone once fitted a random digger's
+        camera for seconds each a link along the chain from the right ones.)"""
         markers = np.asarray(markers, dtype=int)
         if len(markers) >= enough:
             return True
         moves = self.machine.marker_moves[:, markers]  # (J, K)
         shown = int(moves.any(axis=1).sum())
-        return 2 * int(moves.any(axis=0).sum()) >= shown + 2 and 2 * len(markers) >= shown + 4
+        moving = int(moves.any(axis=0).sum())
+        return 2 * moving >= shown + 2 and moving < len(markers) and 2 * len(markers) >= shown + 4
 
     def known_markers(self, held: np.ndarray) -> np.ndarray:
         """(M,) bool: the markers whose every moving joint some `held` marker (indices) shows."""
