@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
 from mocap.calibration.problem_kernel import BEHIND_PX, evaluate
@@ -174,23 +173,40 @@ class Problem:
         self.prior_px = prior_px
         self._prior = None if not layout.n_markers else prior_px / np.broadcast_to(
             np.asarray(marker_sd, float).reshape(layout.n_markers, -1), (layout.n_markers, 3)).ravel()
-        # the evaluation's fixed inputs, as the compiled kernel takes them
-        machine = self.machine
-        self._camera = np.ascontiguousarray(observations.camera, dtype=np.int64)
-        self._marker = np.ascontiguousarray(observations.marker, dtype=np.int64)
-        self._xy = np.ascontiguousarray(observations.xy, dtype=float)
-        self._group = self._camera if layout.per_camera else np.zeros(len(observations), dtype=np.int64)
-        self._marker_links = np.asarray(machine.marker_links, dtype=np.int64)
+        # the evaluation's fixed inputs as the compiled kernel takes them: fresh writeable C
+        # arrays of one dtype each, so that one compiled signature serves every problem
+        joints = machine.joints
+        self._camera = np.array(observations.camera, dtype=np.int64)
+        self._marker = np.array(observations.marker, dtype=np.int64)
+        self._xy = np.array(observations.xy, dtype=float).reshape(-1, 2)
+        self._group = self._camera.copy() if layout.per_camera else np.zeros(len(observations), dtype=np.int64)
+        self._parents = np.array([machine.links[i].parent for i in machine.joint_links], dtype=np.int64)
         self._joint_links = np.array(machine.joint_links, dtype=np.int64)
-        self._axes = np.array([joint.axis for joint in machine.joints], dtype=float).reshape(-1, 3)
-        self._revolute = np.array([joint.type == REVOLUTE for joint in machine.joints], dtype=bool)
-        self._moves = np.ascontiguousarray(machine.marker_moves)
+        self._at_zero = np.array([joint.parent_from_zero for joint in joints], dtype=float).reshape(-1, 4, 4)
+        self._revolute = np.array([joint.type == REVOLUTE for joint in joints], dtype=bool)
+        self._axes = np.array([joint.axis for joint in joints], dtype=float).reshape(-1, 3)
+        # motion(q) = I + a(q) A + b(q) B: revolute A = [axis]x, B = [axis]x^2; prismatic A the axis as a translation
+        self._first = np.zeros((len(joints), 4, 4))
+        self._second = np.zeros((len(joints), 4, 4))
+        for j, (x, y, z) in enumerate(self._axes):
+            if self._revolute[j]:
+                skew = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+                self._first[j, :3, :3], self._second[j, :3, :3] = skew, skew @ skew
+            else:
+                self._first[j, :3, 3] = self._axes[j]
+        self._marker_links = np.array(machine.marker_links, dtype=np.int64)
+        self._positions = np.array(machine.marker_positions, dtype=float).reshape(-1, 3)
+        self._moves = np.array(machine.marker_moves, dtype=bool)
         self._camera_start = np.array([layout.camera_slice(c).start for c in range(layout.n_cameras)], dtype=np.int64)
-        self._joint_start = np.array([layout.joint_slice(g).start
-                                      for g in range(layout.n_cameras if layout.per_camera else 1)], dtype=np.int64)
+        self._joint_start = np.array([layout.joint_slice(g).start for g in range(layout.n_cameras if layout.per_camera
+                                                                                  else 1)], dtype=np.int64)
+        self._fitted = np.array([t.name not in layout.fixed_intrinsics for t in templates], dtype=bool)
+        self._matrices = np.array([t.matrix for t in templates], dtype=float).reshape(-1, 3, 3)
+        self._distortions = np.array([t.distortion for t in templates], dtype=float).reshape(-1, 5)
         self._terms = np.array(layout.distortion_terms, dtype=np.int64)
-        self._offset_start = layout.offset_slice.start if layout.n_markers else -1
-        self._prior_rows = np.arange(0 if self._prior is None else len(self._prior))
+        self._offset_start = int(layout.offset_slice.start) if layout.n_markers else -1
+        self._prior_weights = np.zeros(0) if self._prior is None else np.array(self._prior, dtype=float)
+        self._shape = (2 * len(observations) + 3 * layout.n_markers, layout.size)
         self._last = None  # (x, residuals, Jacobian) of the last evaluation
 
     @property
@@ -215,33 +231,12 @@ class Problem:
         asks for the Jacobian at the x whose residuals it has just taken): the last x's kept."""
         if self._last is not None and np.array_equal(self._last[0], x):
             return self._last[1], self._last[2]
-        layout, obs = self.layout, self.obs
         x = np.array(x, dtype=float)
-        n, n_groups = len(obs), layout.n_cameras if layout.per_camera else 1
-        joints = np.stack([x[layout.joint_slice(g)] for g in range(n_groups)])
-        poses = self.machine.link_poses(joints)
-        positions = np.asarray(self.machine.marker_positions, dtype=float)
-        if layout.n_markers:
-            positions = positions + x[layout.offset_slice].reshape(-1, 3)
-        rotations = np.empty((layout.n_cameras, 3, 3))
-        d_rotations = np.empty((layout.n_cameras, 3, 9))
-        translations = np.empty((layout.n_cameras, 3))
-        matrices = np.empty((layout.n_cameras, 3, 3))
-        distortions = np.empty((layout.n_cameras, 5))
-        for c, template in enumerate(self.templates):
-            block = x[self._camera_start[c] : self._camera_start[c] + layout.camera_size]
-            rotations[c], d_rotations[c] = cv2.Rodrigues(block[:3])
-            translations[c] = block[3:6]
-            matrices[c], distortions[c] = layout.intrinsics(block, template)
-        residuals = np.empty((n, 2))
-        jac = np.zeros((2 * n + len(self._prior_rows), layout.size))
-        evaluate(self._camera, self._marker, self._group, self._xy, poses, self._marker_links, positions,
-                 self._joint_links, self._axes, self._revolute, self._moves, rotations, d_rotations,
-                 translations, matrices, distortions, self._camera_start, self._joint_start,
-                 self._terms, layout.fit_principal_point, self._offset_start, residuals, jac)
-        out = residuals.reshape(-1)
-        if self._prior is not None:
-            out = np.r_[out, self._prior * x[layout.offset_slice]]
-            jac[2 * n + self._prior_rows, layout.offset_slice.start + self._prior_rows] = self._prior
-        self._last = (x, out, jac)
-        return out, jac
+        residuals, jac = np.empty(self._shape[0]), np.zeros(self._shape)
+        evaluate(x, self._camera, self._marker, self._group, self._xy, self._parents, self._joint_links,
+                 self._at_zero, self._first, self._second, self._revolute, self._axes, len(self.machine.links),
+                 self._marker_links, self._positions, self._moves, self._camera_start, self._joint_start,
+                 self._fitted, self._matrices, self._distortions, self._terms, bool(self.layout.fit_principal_point),
+                 self._offset_start, self._prior_weights, residuals, jac)
+        self._last = (x, residuals, jac)
+        return residuals, jac
