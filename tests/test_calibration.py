@@ -240,6 +240,24 @@ def test_problem_evaluation_is_the_cameras_pixels_and_the_formula_camera_by_came
     assert np.max(np.abs(problem.jacobian(x)[: 2 * len(obs)] - reference)) <= 1e-12 * np.max(np.abs(reference))
 
 
+def test_the_compiled_rodrigues_is_opencvs():
+    """The rotation and its derivative by the rotation vector as cv2.Rodrigues gives them,
+    at the identity, below and above DBL_EPSILON, near a half turn and at random."""
+    import cv2
+
+    from mocap.calibration.problem_kernel import rodrigues
+
+    rng = np.random.default_rng(3)
+    vectors = [np.zeros(3), np.array([1e-17, 0.0, 0.0]), np.array([3e-16, -1e-16, 2e-16]),
+               np.array([0.0, 0.0, np.pi - 1e-9]), *rng.normal(0.0, 1.5, (20, 3))]
+    for r in vectors:
+        rotation, jacobian = np.empty((3, 3)), np.empty((3, 9))
+        rodrigues(r, rotation, jacobian)
+        expected_rotation, expected_jacobian = cv2.Rodrigues(r)
+        assert np.allclose(rotation, expected_rotation, rtol=0, atol=1e-15)
+        assert np.allclose(jacobian, expected_jacobian, rtol=0, atol=1e-14)
+
+
 # --- guards ----------------------------------------------------------------------------------
 def test_three_markers_are_under_determined(cube_pair):
     camera, obs = cube_scene(cube_pair)
