@@ -5,6 +5,10 @@ world -> camera), translation (m), focal length f = fx = fy (px) and, as options
 principal point (px) and distortion coefficients; then the machine's joint values (rad / m)
 at the calibration frame, shared by all cameras or one set per camera (`per_camera`).
 Residuals are projected minus observed pixels, (2N,) for N observations.
+
+`Problem` evaluates the residuals and their Jacobian together in one compiled pass
+(`problem_kernel.evaluate`) and keeps the last x's: the solver asks for the Jacobian at
+the x whose residuals it has just taken.
 """
 
 from __future__ import annotations
@@ -173,19 +177,19 @@ class Problem:
         self.prior_px = prior_px
         self._prior = None if not layout.n_markers else prior_px / np.broadcast_to(
             np.asarray(marker_sd, float).reshape(layout.n_markers, -1), (layout.n_markers, 3)).ravel()
-        # the evaluation's fixed inputs as the compiled kernel takes them: fresh writeable C
-        # arrays of one dtype each, so that one compiled signature serves every problem
+        # the evaluation's fixed inputs as the compiled kernel takes them
         joints = machine.joints
-        self._camera = np.array(observations.camera, dtype=np.int64)
-        self._marker = np.array(observations.marker, dtype=np.int64)
-        self._xy = np.array(observations.xy, dtype=float).reshape(-1, 2)
+        self._camera = _owned(observations.camera, np.int64)
+        self._marker = _owned(observations.marker, np.int64)
+        self._xy = _owned(observations.xy, float).reshape(-1, 2)
         self._group = self._camera.copy() if layout.per_camera else np.zeros(len(observations), dtype=np.int64)
-        self._parents = np.array([machine.links[i].parent for i in machine.joint_links], dtype=np.int64)
-        self._joint_links = np.array(machine.joint_links, dtype=np.int64)
-        self._at_zero = np.array([joint.parent_from_zero for joint in joints], dtype=float).reshape(-1, 4, 4)
-        self._revolute = np.array([joint.type == REVOLUTE for joint in joints], dtype=bool)
-        self._axes = np.array([joint.axis for joint in joints], dtype=float).reshape(-1, 3)
-        # motion(q) = I + a(q) A + b(q) B: revolute A = [axis]x, B = [axis]x^2; prismatic A the axis as a translation
+        self._parents = _owned([machine.links[i].parent for i in machine.joint_links], np.int64)
+        self._joint_links = _owned(machine.joint_links, np.int64)
+        self._at_zero = _owned([joint.parent_from_zero for joint in joints], float).reshape(-1, 4, 4)
+        self._revolute = _owned([joint.type == REVOLUTE for joint in joints], bool)
+        self._axes = _owned([joint.axis for joint in joints], float).reshape(-1, 3)
+        # motion(q) = I + a(q) A + b(q) B (Machine.link_poses): revolute A = [axis]x, B = [axis]x^2;
+        # prismatic A the axis as a translation
         self._first = np.zeros((len(joints), 4, 4))
         self._second = np.zeros((len(joints), 4, 4))
         for j, (x, y, z) in enumerate(self._axes):
@@ -194,18 +198,18 @@ class Problem:
                 self._first[j, :3, :3], self._second[j, :3, :3] = skew, skew @ skew
             else:
                 self._first[j, :3, 3] = self._axes[j]
-        self._marker_links = np.array(machine.marker_links, dtype=np.int64)
-        self._positions = np.array(machine.marker_positions, dtype=float).reshape(-1, 3)
-        self._moves = np.array(machine.marker_moves, dtype=bool)
-        self._camera_start = np.array([layout.camera_slice(c).start for c in range(layout.n_cameras)], dtype=np.int64)
-        self._joint_start = np.array([layout.joint_slice(g).start for g in range(layout.n_cameras if layout.per_camera
-                                                                                  else 1)], dtype=np.int64)
-        self._fitted = np.array([t.name not in layout.fixed_intrinsics for t in templates], dtype=bool)
-        self._matrices = np.array([t.matrix for t in templates], dtype=float).reshape(-1, 3, 3)
-        self._distortions = np.array([t.distortion for t in templates], dtype=float).reshape(-1, 5)
-        self._terms = np.array(layout.distortion_terms, dtype=np.int64)
+        self._marker_links = _owned(machine.marker_links, np.int64)
+        self._positions = _owned(machine.marker_positions, float).reshape(-1, 3)
+        self._moves = _owned(machine.marker_moves, bool)
+        groups = range(layout.n_cameras if layout.per_camera else 1)
+        self._camera_start = _owned([layout.camera_slice(c).start for c in range(layout.n_cameras)], np.int64)
+        self._joint_start = _owned([layout.joint_slice(g).start for g in groups], np.int64)
+        self._fitted = _owned([t.name not in layout.fixed_intrinsics for t in templates], bool)
+        self._matrices = _owned([t.matrix for t in templates], float).reshape(-1, 3, 3)
+        self._distortions = _owned([t.distortion for t in templates], float).reshape(-1, 5)
+        self._terms = _owned(layout.distortion_terms, np.int64)
         self._offset_start = int(layout.offset_slice.start) if layout.n_markers else -1
-        self._prior_weights = np.zeros(0) if self._prior is None else np.array(self._prior, dtype=float)
+        self._prior_weights = np.zeros(0) if self._prior is None else _owned(self._prior, float)
         self._shape = (2 * len(observations) + 3 * layout.n_markers, layout.size)
         self._last = None  # (x, residuals, Jacobian) of the last evaluation
 
@@ -240,3 +244,9 @@ class Problem:
                  self._offset_start, self._prior_weights, residuals, jac)
         self._last = (x, residuals, jac)
         return residuals, jac
+
+
+def _owned(values, dtype) -> np.ndarray:
+    """A fresh writeable C-ordered array of `values`: the compiled kernel's one signature
+    for every problem (a Fortran-ordered or read-only input would compile another)."""
+    return np.array(values, dtype=dtype, order="C")
