@@ -15,7 +15,7 @@ BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that t
 
 
 @njit(cache=True, nogil=True)
-def rodrigues(r, rotation, jac):  # pragma: no cover - compiled
+def rodrigues(r, rotation, jac):
     """cv2.Rodrigues of a rotation vector r (3,): the rotation matrix into `rotation` (3, 3)
     and d R.flat / d r into `jac` (3, 9), by OpenCV's formula."""
     theta = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
@@ -56,7 +56,7 @@ def rodrigues(r, rotation, jac):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def link_poses(q, parents, joint_links, at_zero, first, second, revolute, poses):  # pragma: no cover - compiled
+def link_poses(q, parents, joint_links, at_zero, first, second, revolute, poses):
     """`Machine.link_poses` of one set of joint values q (J,) into poses (L, 4, 4): the base
     at the identity, each joint's link its parent's pose times its pose at zero times its
     motion I + a(q) A + b(q) B (revolute a = sin q, b = 1 - cos q; prismatic a = q, b = 0)."""
@@ -88,7 +88,7 @@ def link_poses(q, parents, joint_links, at_zero, first, second, revolute, poses)
 @njit(cache=True, nogil=True)
 def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first, second, revolute, axes,
              n_links, marker_links, positions, moves, camera_start, joint_start, fitted, base_matrices,
-             base_distortions, terms, fit_principal_point, offset_start, prior, residuals, jac):  # pragma: no cover - compiled
+             base_distortions, terms, fit_principal_point, offset_start, prior, residuals, jac):
     """Residuals (2N + 3M,) and Jacobian (2N + 3M, P) at the parameter vector x (P,), written
     into `residuals` and `jac` (zeros on entry; the rows of a marker behind its camera stay zero).
 
@@ -163,7 +163,8 @@ def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first,
                 jac[row, start + 3 + a] = d_cam[r, a]
             jac[row, start + 6] = (uv[r] - matrices[c, r, 2]) / matrices[c, 0, 0]
             for a in range(3):
-                d_world[r, a] = d_cam[r, 0] * rotation[0, a] + d_cam[r, 1] * rotation[1, a] + d_cam[r, 2] * rotation[2, a]
+                d_world[r, a] = (d_cam[r, 0] * rotation[0, a] + d_cam[r, 1] * rotation[1, a]
+                                 + d_cam[r, 2] * rotation[2, a])
         k = start + 7
         if fit_principal_point:
             jac[2 * i, k] = 1.0
