@@ -149,6 +149,115 @@ def test_analytic_jacobian_matches_finite_differences(ex3500, offsets):
     assert np.allclose(analytic, numeric, rtol=1e-4, atol=1e-3)
 
 
+def _reference_jacobian(problem, x):
+    """The Jacobian (2N, P) of the pixel rows by the formula camera by camera (numpy), as
+    `Problem` computed it before its compiled pass."""
+    import cv2
+
+    from mocap.core.camera import project_cam
+
+    layout, obs = problem.layout, problem.obs
+    machine = problem.machine_at(x)
+    jac = np.zeros((len(obs), 2, layout.size))
+    for c, template in enumerate(problem.templates):
+        rows = np.nonzero(obs.camera == c)[0]
+        q = x[layout.joint_slice(c if layout.per_camera else 0)]
+        world, d_world_d_q = (a[0] for a in machine.markers_with_jacobian(q[None]))
+        world_from_link = machine.link_poses(q[None])[0, :, :3, :3][machine.marker_links]
+        start = layout.camera_slice(c).start
+        block = x[layout.camera_slice(c)]
+        matrix, distortion = layout.intrinsics(block, template)
+        rotation, d_rotation = cv2.Rodrigues(block[:3])
+        points = world[obs.marker[rows]]
+        points_cam = points @ rotation.T + block[3:6]
+        uv, d_uv_d_cam = project_cam(points_cam, matrix, distortion, True)
+        behind = ~np.isfinite(uv[:, 0])
+        uv, d_uv_d_cam = np.nan_to_num(uv), np.nan_to_num(d_uv_d_cam)
+        d_cam_d_rvec = np.einsum("kij,nj->nik", d_rotation.reshape(3, 3, 3), points)
+        jac[rows, :, start : start + 3] = d_uv_d_cam @ d_cam_d_rvec
+        jac[rows, :, start + 3 : start + 6] = d_uv_d_cam
+        jac[rows, :, start + 6] = (uv - matrix[:2, 2]) / matrix[0, 0]
+        k = start + 7
+        if layout.fit_principal_point:
+            jac[rows, 0, k], jac[rows, 1, k + 1] = 1.0, 1.0
+            k += 2
+        u, v = points_cam[:, 0] / points_cam[:, 2], points_cam[:, 1] / points_cam[:, 2]
+        r2 = u * u + v * v
+        terms = {0: (u * r2, v * r2), 1: (u * r2**2, v * r2**2), 2: (2 * u * v, r2 + 2 * v * v),
+                 3: (r2 + 2 * u * u, 2 * u * v), 4: (u * r2**3, v * r2**3)}
+        for term in layout.distortion_terms:
+            jac[rows, :, k] = matrix[0, 0] * np.stack(terms[term], axis=-1)
+            k += 1
+        jac[rows[behind]] = 0.0
+        d_uv_d_world = d_uv_d_cam @ rotation
+        jac[rows, :, layout.joint_slice(c if layout.per_camera else 0)] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]
+        d_offset = d_uv_d_world @ world_from_link[obs.marker[rows]]
+        for a in range(3):
+            jac[rows, :, layout.offset_slice.start + 3 * obs.marker[rows] + a] = d_offset[:, :, a]
+    return jac.reshape(2 * len(obs), layout.size)
+
+
+def test_problem_evaluation_is_the_cameras_pixels_and_the_formula_camera_by_camera(ex3500):
+    """Per-camera joints, principal points, full distortion, marker offsets, a camera with
+    known intrinsics and a marker behind its camera: the residuals are each camera's own
+    projection of the moved markers minus the pixels (BEHIND_PX behind), the prior rows the
+    offsets over their SD, and the Jacobian the formula camera by camera to 1e-12."""
+    from mocap.calibration.problem import BEHIND_PX
+
+    cameras, q, obs, _ = scene(ex3500, 3, seed=7)
+    rng = np.random.default_rng(2)
+    m = len(ex3500.marker_names)
+    layout = Layout(3, 4, per_camera=True, fit_principal_point=True, distortion="full", n_markers=m,
+                    fixed_intrinsics=frozenset([cameras[2].name]))
+    cams = [Camera(c.name, c.size, c.matrix, rng.normal(0, 0.02, 5), c.cam_from_world) for c in cameras]
+    marker_sd = rng.uniform(0.05, 0.2, (m, 3))
+    problem = Problem(ex3500, obs, layout, cams, marker_sd, prior_px=0.7)
+    joints = q + rng.normal(0, 0.05, (3, 4))
+    x = layout.pack(cams, joints)
+    x[layout.offset_slice] = rng.normal(0, 0.05, 3 * m)
+    # camera 1 moved forward to just behind its farthest-but-one marker
+    points_cam = cams[1].cam_from_world.apply(problem.machine_at(x).markers(joints[1][None])[0])
+    x[layout.camera_slice(1).start + 5] -= np.sort(points_cam[obs.marker[obs.camera == 1], 2])[-2] + 0.01
+    residuals, jacobian = problem.residuals(x), problem.jacobian(x)
+
+    fitted, _ = layout.unpack(x, cams)
+    moved = problem.machine_at(x)
+    expected = np.empty((len(obs), 2))
+    for c, camera in enumerate(fitted):
+        rows = obs.camera == c
+        expected[rows] = camera.project(moved.markers(joints[c][None])[0][obs.marker[rows]]) - obs.xy[rows]
+    behind = ~np.isfinite(expected[:, 0])
+    assert behind.sum() >= 1 and np.all(obs.camera[behind] == 1)
+    expected[behind] = BEHIND_PX
+    offsets_over_sd = 0.7 * x[layout.offset_slice] / marker_sd.ravel()
+    assert np.allclose(residuals, np.r_[expected.ravel(), offsets_over_sd], rtol=1e-12, atol=1e-9)
+    reference = _reference_jacobian(problem, x)
+    assert np.all(reference[np.repeat(behind, 2)] == 0.0)
+    assert np.max(np.abs(jacobian[: 2 * len(obs)] - reference)) <= 1e-12 * np.max(np.abs(reference))
+    assert np.array_equal(jacobian[2 * len(obs) :, layout.offset_slice], np.diag(0.7 / marker_sd.ravel()))
+    assert not np.any(jacobian[2 * len(obs) :, : layout.offset_slice.start])
+    jacobian[:] = 0.0  # the caller's to change: the next call at the same x does not see it
+    assert np.max(np.abs(problem.jacobian(x)[: 2 * len(obs)] - reference)) <= 1e-12 * np.max(np.abs(reference))
+
+
+def test_the_compiled_rodrigues_is_opencvs():
+    """The rotation and its derivative by the rotation vector as cv2.Rodrigues gives them,
+    at the identity, below and above DBL_EPSILON, near a half turn and at random."""
+    import cv2
+
+    from mocap.calibration.problem_kernel import rodrigues
+
+    rng = np.random.default_rng(3)
+    vectors = [np.zeros(3), np.array([1e-17, 0.0, 0.0]), np.array([3e-16, -1e-16, 2e-16]),
+               np.array([0.0, 0.0, np.pi - 1e-9]), *rng.normal(0.0, 1.5, (20, 3))]
+    for r in vectors:
+        rotation, jacobian = np.empty((3, 3)), np.empty((3, 9))
+        rodrigues(r, rotation, jacobian)
+        expected_rotation, expected_jacobian = cv2.Rodrigues(r)
+        assert np.allclose(rotation, expected_rotation, rtol=0, atol=1e-15)
+        assert np.allclose(jacobian, expected_jacobian, rtol=0, atol=1e-14)
+
+
 # --- guards ----------------------------------------------------------------------------------
 def test_three_markers_are_under_determined(cube_pair):
     camera, obs = cube_scene(cube_pair)

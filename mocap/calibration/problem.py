@@ -5,19 +5,24 @@ world -> camera), translation (m), focal length f = fx = fy (px) and, as options
 principal point (px) and distortion coefficients; then the machine's joint values (rad / m)
 at the calibration frame, shared by all cameras or one set per camera (`per_camera`).
 Residuals are projected minus observed pixels, (2N,) for N observations.
+
+`Problem` evaluates the residuals and their Jacobian together in one compiled pass
+(`problem_kernel.evaluate`) and keeps the last x's: the solver asks for the Jacobian at
+the x whose residuals it has just taken.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
-from mocap.core.camera import DISTORTION_MODELS, Camera, project_cam
+from mocap.calibration.problem_kernel import BEHIND_PX, evaluate
+from mocap.core.camera import DISTORTION_MODELS, Camera
 from mocap.core.geometry import Rigid
+from mocap.core.machine import REVOLUTE
 
-BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that the solver can start)
+__all__ = ["BEHIND_PX", "Layout", "Observations", "Problem"]
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 
@@ -166,29 +171,57 @@ class Problem:
         self.obs = observations
         self.layout = layout
         self.templates = templates
-        self._rows = [np.nonzero(observations.camera == c)[0] for c in range(layout.n_cameras)]
         if layout.n_markers and (marker_sd is None or np.shape(marker_sd) not in ((layout.n_markers,),
                                                                                    (layout.n_markers, 3))):
             raise ValueError(f"marker offsets need marker_sd of shape ({layout.n_markers},) or ({layout.n_markers}, 3)")
         self.prior_px = prior_px
         self._prior = None if not layout.n_markers else prior_px / np.broadcast_to(
             np.asarray(marker_sd, float).reshape(layout.n_markers, -1), (layout.n_markers, 3)).ravel()
+        # the evaluation's fixed inputs as the compiled kernel takes them
+        joints = machine.joints
+        self._camera = _owned(observations.camera, np.int64)
+        self._marker = _owned(observations.marker, np.int64)
+        self._xy = _owned(observations.xy, float).reshape(-1, 2)
+        self._group = self._camera.copy() if layout.per_camera else np.zeros(len(observations), dtype=np.int64)
+        self._parents = _owned([machine.links[i].parent for i in machine.joint_links], np.int64)
+        self._joint_links = _owned(machine.joint_links, np.int64)
+        self._at_zero = _owned([joint.parent_from_zero for joint in joints], float).reshape(-1, 4, 4)
+        self._revolute = _owned([joint.type == REVOLUTE for joint in joints], bool)
+        self._axes = _owned([joint.axis for joint in joints], float).reshape(-1, 3)
+        # motion(q) = I + a(q) A + b(q) B (Machine.link_poses): revolute A = [axis]x, B = [axis]x^2;
+        # prismatic A the axis as a translation
+        self._first = np.zeros((len(joints), 4, 4))
+        self._second = np.zeros((len(joints), 4, 4))
+        for j, (x, y, z) in enumerate(self._axes):
+            if self._revolute[j]:
+                skew = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+                self._first[j, :3, :3], self._second[j, :3, :3] = skew, skew @ skew
+            else:
+                self._first[j, :3, 3] = self._axes[j]
+        self._marker_links = _owned(machine.marker_links, np.int64)
+        self._positions = _owned(machine.marker_positions, float).reshape(-1, 3)
+        self._moves = _owned(machine.marker_moves, bool)
+        groups = range(layout.n_cameras if layout.per_camera else 1)
+        self._camera_start = _owned([layout.camera_slice(c).start for c in range(layout.n_cameras)], np.int64)
+        self._joint_start = _owned([layout.joint_slice(g).start for g in groups], np.int64)
+        self._fitted = _owned([t.name not in layout.fixed_intrinsics for t in templates], bool)
+        self._matrices = _owned([t.matrix for t in templates], float).reshape(-1, 3, 3)
+        self._distortions = _owned([t.distortion for t in templates], float).reshape(-1, 5)
+        self._terms = _owned(layout.distortion_terms, np.int64)
+        self._offset_start = int(layout.offset_slice.start) if layout.n_markers else -1
+        self._prior_weights = np.zeros(0) if self._prior is None else _owned(self._prior, float)
+        self._shape = (2 * len(observations) + 3 * layout.n_markers, layout.size)
+        self._last = None  # (x, residuals, Jacobian) of the last evaluation
 
     @property
     def n_pixel_rows(self) -> int:
         return 2 * len(self.obs)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        out = self._evaluate(x, jacobian=False)
-        return out if self._prior is None else np.r_[out, self._prior * x[self.layout.offset_slice]]
+        return self._evaluate(x)[0].copy()
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        out = self._evaluate(x, jacobian=True)
-        if self._prior is None:
-            return out
-        prior = np.zeros((len(self._prior), self.layout.size))
-        prior[:, self.layout.offset_slice] = np.diag(self._prior)
-        return np.r_[out, prior]
+        return self._evaluate(x)[1].copy()
 
     def machine_at(self, x: np.ndarray):
         """The machine with its markers moved by the offsets in `x` (itself without)."""
@@ -197,78 +230,23 @@ class Problem:
         offsets = x[self.layout.offset_slice].reshape(-1, 3)
         return replace(self.machine, marker_positions=self.machine.marker_positions + offsets)
 
-    def _evaluate(self, x: np.ndarray, jacobian: bool) -> np.ndarray:
-        layout, obs = self.layout, self.obs
-        machine = self.machine_at(x)
-        n = len(obs)
-        residuals = np.empty((n, 2))
-        jac = np.zeros((n, 2, layout.size)) if jacobian else None
-        groups = range(layout.n_cameras) if layout.per_camera else [None]
-        for g in groups:
-            q = x[layout.joint_slice(0 if g is None else g)]
-            if jacobian:
-                world, d_world_d_q = machine.markers_with_jacobian(q[None])
-                world, d_world_d_q = world[0], d_world_d_q[0]
-                if layout.n_markers:  # d world / d offset: the marker's link's rotation
-                    world_from_link = machine.link_poses(q[None])[0, :, :3, :3][machine.marker_links]
-            else:
-                world = machine.markers(q[None])[0]
-            for c, template in enumerate(self.templates):
-                if g is not None and c != g:
-                    continue
-                rows = self._rows[c]
-                if not len(rows):
-                    continue
-                start = layout.camera_slice(c).start
-                block = x[start : start + layout.camera_size]
-                matrix, distortion = layout.intrinsics(block, template)
-                rotation, d_rotation = cv2.Rodrigues(block[:3])  # d_rotation (3, 9): d R.flat / d rvec
-                points = world[obs.marker[rows]]
-                points_cam = points @ rotation.T + block[3:6]
-                projected = project_cam(points_cam, matrix, distortion, jacobian)
-                uv, d_uv_d_cam = projected if jacobian else (projected, None)
-                behind = ~np.isfinite(uv[:, 0])  # a start with markers behind the camera: a flat penalty
-                residuals[rows] = np.where(behind[:, None], BEHIND_PX, uv - obs.xy[rows])
-                if jacobian:
-                    uv, d_uv_d_cam = np.nan_to_num(uv), np.nan_to_num(d_uv_d_cam)
-                    self._camera_jacobian(jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam)
-                    jac[rows[behind]] = 0.0
-                    d_uv_d_world = d_uv_d_cam @ rotation
-                    cols = layout.joint_slice(c if layout.per_camera else 0)
-                    jac[rows, :, cols] = d_uv_d_world @ d_world_d_q[obs.marker[rows]]
-                    if layout.n_markers:
-                        first = layout.offset_slice.start + 3 * obs.marker[rows]
-                        d_offset = d_uv_d_world @ world_from_link[obs.marker[rows]]  # (n, 2, 3)
-                        for a in range(3):
-                            jac[rows, :, first + a] = d_offset[:, :, a]
-        return jac.reshape(2 * n, layout.size) if jacobian else residuals.reshape(-1)
+    def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (2N + 3M,) and Jacobian (2N + 3M, P) at x, both at once (the solver
+        asks for the Jacobian at the x whose residuals it has just taken): the last x's kept."""
+        if self._last is not None and np.array_equal(self._last[0], x):
+            return self._last[1], self._last[2]
+        x = np.array(x, dtype=float)
+        residuals, jac = np.empty(self._shape[0]), np.zeros(self._shape)
+        evaluate(x, self._camera, self._marker, self._group, self._xy, self._parents, self._joint_links,
+                 self._at_zero, self._first, self._second, self._revolute, self._axes, len(self.machine.links),
+                 self._marker_links, self._positions, self._moves, self._camera_start, self._joint_start,
+                 self._fitted, self._matrices, self._distortions, self._terms, bool(self.layout.fit_principal_point),
+                 self._offset_start, self._prior_weights, residuals, jac)
+        self._last = (x, residuals, jac)
+        return residuals, jac
 
-    def _camera_jacobian(self, jac, rows, start, matrix, d_rotation, points, points_cam, uv, d_uv_d_cam):
-        layout = self.layout
-        d_rotation = d_rotation.reshape(3, 3, 3)  # [k, i, j] = d R_ij / d rvec_k
-        d_cam_d_rvec = np.einsum("kij,nj->nik", d_rotation, points)  # (n, 3, 3)
-        jac[rows, :, start : start + 3] = d_uv_d_cam @ d_cam_d_rvec
-        jac[rows, :, start + 3 : start + 6] = d_uv_d_cam
-        focal = matrix[0, 0]
-        jac[rows, :, start + 6] = (uv - matrix[:2, 2]) / focal
-        k = start + 7
-        if layout.fit_principal_point:
-            jac[rows, 0, k] = 1.0
-            jac[rows, 1, k + 1] = 1.0
-            k += 2
-        if layout.distortion_terms:
-            x = points_cam[:, 0] / points_cam[:, 2]
-            y = points_cam[:, 1] / points_cam[:, 2]
-            r2 = x * x + y * y
-            d_normalised = {
-                0: (x * r2, y * r2),
-                1: (x * r2 * r2, y * r2 * r2),
-                2: (2 * x * y, r2 + 2 * y * y),
-                3: (r2 + 2 * x * x, 2 * x * y),
-                4: (x * r2**3, y * r2**3),
-            }
-            for term in layout.distortion_terms:
-                dx, dy = d_normalised[term]
-                jac[rows, 0, k] = focal * dx
-                jac[rows, 1, k] = focal * dy
-                k += 1
+
+def _owned(values, dtype) -> np.ndarray:
+    """A fresh writeable C-ordered array of `values`: the compiled kernel's one signature
+    for every problem (a Fortran-ordered or read-only input would compile another)."""
+    return np.array(values, dtype=dtype, order="C")
