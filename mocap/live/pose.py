@@ -37,6 +37,7 @@ _LEAVE_OUT_CANDIDATES = 6  # ... one at a time, each the one of its worst residu
 _WORST_RATIO = 5.0  # ... until its worst residual left is within this many times the usual frame's worst
 _PROCESS_NOISE_EVERY = 30  # frames between estimates of the smoother's process noise
 _PROCESS_NOISE_FRAMES = 900  # ... from this many frames (30 s at 30 fps)
+_GAP_FRAMES = 3  # frames without a fit after which the pose before them no longer starts the next fit
 _FIRST_PROCESS_NOISE = 10.0  # (rad or m)^2 / s^3 until the window holds enough to estimate it: little smoothing
 # the rows' covariance scale until the fits' scatter about the smoothed values is measured (the smallest the five
 # random looks of bench_live measured at their end: 5.0-15.0), and the rows of measurement it counts for: the
@@ -173,6 +174,7 @@ class WarmFit:
                         for moves in ((False, True) if both else (self.base_moves,))}
         self.n_params = machine.n_joints + 6 * (self.choose_base or self.base_moves)
         self.last: deque[np.ndarray] = deque(maxlen=2)
+        self.gap: tuple[np.ndarray, int] | None = None  # the last fit before frames without one, and those frames
         self.lengths: deque[np.ndarray] = deque(maxlen=_NOISE_FRAMES)
         self.per_obs: deque[float] = deque(maxlen=_NOISE_FRAMES)
         self.recent: list[tuple[np.ndarray, np.ndarray]] = []  # (pixels, joints) of every `stride`-th frame
@@ -213,13 +215,25 @@ class WarmFit:
         fitter = self.fitters[moves]
         if 2 * n_obs < fitter.n_params:
             if keep:
+                if self.last:
+                    self.gap = (self.last[-1], 0)
                 self.last.clear()
+                if self.gap is not None:
+                    self.gap = (self.gap[0], self.gap[1] + 1)
             return FrameFit(np.full(n_params, np.nan), np.zeros((n_params, n_params)), False, np.nan, n_obs, moves)
         frame = pixels[:, None]
         usual = float(np.median(self.per_obs)) if self.per_obs else np.inf  # the cost per observation so far
         beyond = _RESTART_RATIO * usual + self.options.scale_px**2  # ... that no pose explaining the frame reaches
         if not self.last:
             state = self._from_grid(frame, moves)
+            if self.gap is not None and self.gap[1] <= _GAP_FRAMES:
+                # a frame or two without a fit: the pose before them, as good a fit within the
+                # noise, is the pose the machine was in; the grid's may be a mirror that explains
+                # the pixels as well, metres off (a random digger's bucket, 11 m)
+                held = self.gap[0]
+                near = fitter.fit(frame, held[None, :n_joints], held[None, n_joints:] if moves else None)
+                if near.cost[0] <= state.cost[0] + fitter.n_params * self.noise_px**2:
+                    state = near
         else:
             start = self.last[-1] if len(self.last) < 2 else 2 * self.last[-1] - self.last[-2]
             state = fitter.fit(frame, start[None, :n_joints], start[None, n_joints:] if moves else None)
@@ -256,6 +270,7 @@ class WarmFit:
             # larger, and its information is that much less (the smoother weighs it as such)
             information /= per_obs / usual
         if keep:
+            self.gap = None
             self.lengths.append(length)
             self.per_obs.append(per_obs)
             self.last.append(values)
