@@ -227,7 +227,7 @@ class WarmFit:
         if not self.last:
             state = self._from_grid(frame, moves)
             if self.gap is not None and self.gap[1] <= _GAP_FRAMES:
-                # a frame or two without a fit: the pose before them, as good a fit within the
+                # up to _GAP_FRAMES frames without a fit: the pose before them, as good a fit within the
                 # noise, is the pose the machine was in; the grid's may be a mirror that explains
                 # the pixels as well, metres off (a random digger's bucket, 11 m)
                 held = self.gap[0]

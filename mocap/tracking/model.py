@@ -159,8 +159,9 @@ class CameraModel:
         two to spare with all of them, a base marker among them, so that a wrong label shows in
         the residuals. The count is the prior of a machine with many markers; one with two a
         link, filmed where a camera sees four, is fitted from a base marker and three that show
-        its four joints. (Four markers on moving links alone once fitted a random digger's
-        camera for seconds each a link along the chain from the right ones.)"""
+        its four joints. (Four markers on moving links alone once let a random digger's camera
+        label its arm and bucket markers each on the disk of the marker a link before it, for
+        seconds: nothing held the image's shift apart from the swing.)"""
         markers = np.asarray(markers, dtype=int)
         if len(markers) >= enough:
             return True
