@@ -20,7 +20,6 @@ import numpy as np
 from mocap.calibration.problem_kernel import BEHIND_PX, evaluate
 from mocap.core.camera import DISTORTION_MODELS, Camera
 from mocap.core.geometry import Rigid
-from mocap.core.machine import REVOLUTE
 
 __all__ = ["BEHIND_PX", "Layout", "Observations", "Problem"]
 _DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
@@ -178,26 +177,16 @@ class Problem:
         self._prior = None if not layout.n_markers else prior_px / np.broadcast_to(
             np.asarray(marker_sd, float).reshape(layout.n_markers, -1), (layout.n_markers, 3)).ravel()
         # the evaluation's fixed inputs as the compiled kernel takes them
-        joints = machine.joints
         self._camera = _owned(observations.camera, np.int64)
         self._marker = _owned(observations.marker, np.int64)
         self._xy = _owned(observations.xy, float).reshape(-1, 2)
         self._group = self._camera.copy() if layout.per_camera else np.zeros(len(observations), dtype=np.int64)
-        self._parents = _owned([machine.links[i].parent for i in machine.joint_links], np.int64)
+        revolute, parents, at_zero, axes = machine._chain
+        first, second = machine._motion_terms  # motion(q) = I + a(q) A + b(q) B (Machine.link_poses)
+        self._parents, self._revolute = _owned(parents, np.int64), _owned(revolute, bool)
+        self._at_zero, self._axes = _owned(at_zero, float), _owned(axes, float)
+        self._first, self._second = _owned(first, float), _owned(second, float)
         self._joint_links = _owned(machine.joint_links, np.int64)
-        self._at_zero = _owned([joint.parent_from_zero for joint in joints], float).reshape(-1, 4, 4)
-        self._revolute = _owned([joint.type == REVOLUTE for joint in joints], bool)
-        self._axes = _owned([joint.axis for joint in joints], float).reshape(-1, 3)
-        # motion(q) = I + a(q) A + b(q) B (Machine.link_poses): revolute A = [axis]x, B = [axis]x^2;
-        # prismatic A the axis as a translation
-        self._first = np.zeros((len(joints), 4, 4))
-        self._second = np.zeros((len(joints), 4, 4))
-        for j, (x, y, z) in enumerate(self._axes):
-            if self._revolute[j]:
-                skew = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-                self._first[j, :3, :3], self._second[j, :3, :3] = skew, skew @ skew
-            else:
-                self._first[j, :3, 3] = self._axes[j]
         self._marker_links = _owned(machine.marker_links, np.int64)
         self._positions = _owned(machine.marker_positions, float).reshape(-1, 3)
         self._moves = _owned(machine.marker_moves, bool)

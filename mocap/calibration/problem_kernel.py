@@ -10,6 +10,7 @@ import numpy as np
 from numba import njit
 
 from mocap.core.camera_kernel import project_point
+from mocap.reconstruct.kinkernel import world_frame
 
 BEHIND_PX = 1e4  # the residual of a marker behind its camera (finite, so that the solver can start)
 
@@ -56,36 +57,6 @@ def rodrigues(r, rotation, jac):
 
 
 @njit(cache=True, nogil=True)
-def link_poses(q, parents, joint_links, at_zero, first, second, revolute, poses):
-    """`Machine.link_poses` of one set of joint values q (J,) into poses (L, 4, 4): the base
-    at the identity, each joint's link its parent's pose times its pose at zero times its
-    motion I + a(q) A + b(q) B (revolute a = sin q, b = 1 - cos q; prismatic a = q, b = 0)."""
-    poses[0] = 0.0
-    for a in range(4):
-        poses[0, a, a] = 1.0
-    motion = np.empty((4, 4))
-    parent_from_link = np.empty((4, 4))
-    for j in range(len(q)):
-        if revolute[j]:
-            a_j, b_j = math.sin(q[j]), 1.0 - math.cos(q[j])
-        else:
-            a_j, b_j = q[j], 0.0
-        for a in range(4):
-            for b in range(4):
-                motion[a, b] = ((1.0 if a == b else 0.0) + a_j * first[j, a, b]) + b_j * second[j, a, b]
-        for a in range(4):
-            for b in range(4):
-                parent_from_link[a, b] = (at_zero[j, a, 0] * motion[0, b] + at_zero[j, a, 1] * motion[1, b]
-                                          + at_zero[j, a, 2] * motion[2, b] + at_zero[j, a, 3] * motion[3, b])
-        parent = poses[parents[j]]
-        link = poses[joint_links[j]]
-        for a in range(4):
-            for b in range(4):
-                link[a, b] = (parent[a, 0] * parent_from_link[0, b] + parent[a, 1] * parent_from_link[1, b]
-                              + parent[a, 2] * parent_from_link[2, b] + parent[a, 3] * parent_from_link[3, b])
-
-
-@njit(cache=True, nogil=True)
 def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first, second, revolute, axes,
              n_links, marker_links, positions, moves, camera_start, joint_start, fitted, base_matrices,
              base_distortions, terms, fit_principal_point, offset_start, prior, residuals, jac):
@@ -94,7 +65,7 @@ def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first,
 
     Per observation: camera (N,), marker (N,), group (N,) (the camera with per-camera joints,
     else 0), pixel xy (N, 2). The machine: its joints' parent links, links, poses at zero
-    (J, 4, 4), motion terms A and B (J, 4, 4) (`link_poses`), revolute (J,) and axes (J, 3) in
+    (J, 4, 4), motion terms A and B (J, 4, 4) (`Machine._motion_terms`), revolute (J,) and axes (J, 3) in
     their links; n_links; the markers' links (M,) and positions (M, 3) in them, moves (J, M)
     whether joint j moves marker m. The layout: each camera's first column (C,), each group's
     first joint column (G,), fitted (C,) whether its intrinsics are (else `base_matrices` (C, 3,
@@ -121,11 +92,21 @@ def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first,
                 k += 2
             for t in range(len(terms)):
                 distortions[c, terms[t]] = x[k + t]
+    # the markers (moved by their offsets) in the world and their derivatives by the joints, per group
+    moved = positions.copy()
+    if offset_start >= 0:
+        for m in range(len(positions)):
+            for a in range(3):
+                moved[m, a] = positions[m, a] + x[offset_start + 3 * m + a]
     poses = np.empty((n_groups, n_links, 4, 4))
+    world = np.empty((n_groups, len(positions), 3))
+    d_world_d_q = np.empty((n_groups, len(positions), 3, n_joints))
+    motion, local, ax = np.empty((4, 4)), np.empty((4, 4)), np.empty(3)
+    fixed_rotation, fixed_translation = np.empty((0, 3)), np.empty(0)
     for g in range(n_groups):
-        link_poses(x[joint_start[g] : joint_start[g] + n_joints], parents, joint_links, at_zero, first, second,
-                   revolute, poses[g])
-    position = np.empty(3)
+        world_frame(x[joint_start[g] : joint_start[g] + n_joints], fixed_rotation, fixed_translation, first, second,
+                    revolute, parents, at_zero, joint_links, axes, marker_links, moved, moves, world[g],
+                    d_world_d_q[g], poses[g], motion, local, ax)
     p_world = np.empty(3)
     p_cam = np.empty(3)
     uv = np.empty(2)
@@ -135,9 +116,7 @@ def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first,
         c, m, g = camera[i], marker[i], group[i]
         link = poses[g, marker_links[m]]
         for a in range(3):
-            position[a] = positions[m, a] + x[offset_start + 3 * m + a] if offset_start >= 0 else positions[m, a]
-        for a in range(3):
-            p_world[a] = (link[a, 0] * position[0] + link[a, 1] * position[1] + link[a, 2] * position[2]) + link[a, 3]
+            p_world[a] = world[g, m, a]
         rotation = rotations[c]
         start = camera_start[c]
         for a in range(3):
@@ -189,22 +168,14 @@ def evaluate(x, camera, marker, group, xy, parents, joint_links, at_zero, first,
                 jac[2 * i, k] = focal * du
                 jac[2 * i + 1, k] = focal * dv
                 k += 1
-        # the joints: revolute j moves the marker by a_j x (p - o_j), prismatic by a_j
+        # the joints (`world_frame`: revolute j moves the marker by a_j x (p - o_j), prismatic by a_j)
         for j in range(n_joints):
             if not moves[j, m]:
                 continue
-            o = poses[g, joint_links[j]]
-            ax = o[0, 0] * axes[j, 0] + o[0, 1] * axes[j, 1] + o[0, 2] * axes[j, 2]
-            ay = o[1, 0] * axes[j, 0] + o[1, 1] * axes[j, 1] + o[1, 2] * axes[j, 2]
-            az = o[2, 0] * axes[j, 0] + o[2, 1] * axes[j, 1] + o[2, 2] * axes[j, 2]
-            if revolute[j]:
-                lx, ly, lz = p_world[0] - o[0, 3], p_world[1] - o[1, 3], p_world[2] - o[2, 3]
-                dx, dy, dz = ay * lz - az * ly, az * lx - ax * lz, ax * ly - ay * lx
-            else:
-                dx, dy, dz = ax, ay, az
             column = joint_start[g] + j
+            d_q = d_world_d_q[g, m, :, j]
             for r in range(2):
-                jac[2 * i + r, column] = d_world[r, 0] * dx + d_world[r, 1] * dy + d_world[r, 2] * dz
+                jac[2 * i + r, column] = d_world[r, 0] * d_q[0] + d_world[r, 1] * d_q[1] + d_world[r, 2] * d_q[2]
         if offset_start >= 0:  # d world / d offset: the marker's link's rotation
             column = offset_start + 3 * m
             for r in range(2):

@@ -114,7 +114,7 @@ def _normal_frame(markers, d_world, pixels, rotation, translation, intrinsics, d
 
 
 @njit(cache=True, nogil=True)
-def _world_frame(joints, rotation, translation, first, second, revolute, parents, at_zero, joint_links, axes,
+def world_frame(joints, rotation, translation, first, second, revolute, parents, at_zero, joint_links, axes,
                  marker_links, marker_positions, moves, markers, d_world, poses, motion, local, ax):
     """One frame of `world_markers`: fill markers (M, 3) and d_world (M, 3, P) for joints
     (J,) and ``world_from_base`` rotation (3, 3) and translation (3,), both empty for a
@@ -202,7 +202,7 @@ def world_markers(joints, rotation, translation, first, second, revolute, parent
     has_base = rotation.shape[0] > 0
     for f in range(joints.shape[0]):
         base_rotation, base_translation = (rotation[f], translation[f]) if has_base else fixed
-        _world_frame(joints[f], base_rotation, base_translation, first, second, revolute, parents, at_zero,
+        world_frame(joints[f], base_rotation, base_translation, first, second, revolute, parents, at_zero,
                      joint_links, axes, marker_links, marker_positions, moves, markers[f], d_world[f],
                      poses, motion, local, ax)
 
@@ -290,7 +290,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
     no_rotation, no_translation = np.empty((0, 3)), np.empty(0)
     for f in range(n_frames):
         base_rotation, base_translation = (rotation[f], translation[f]) if has_base else (no_rotation, no_translation)
-        _world_frame(joints[f], base_rotation, base_translation, first, second, revolute, parents, at_zero,
+        world_frame(joints[f], base_rotation, base_translation, first, second, revolute, parents, at_zero,
                      joint_links, axes, marker_links, marker_positions, moves, markers, d_world, poses, motion,
                      local, ax)
         cost[f] = _normal_frame(markers, d_world, pixels[f], cam_rotation, cam_translation, intrinsics, distortion,
@@ -322,7 +322,7 @@ def levenberg_marquardt(joints, rotation, translation, pixels, first, second, re
                 trial_rotation, trial_translation = t_rotation, t_translation
             else:
                 trial_rotation, trial_translation = no_rotation, no_translation
-            _world_frame(t_joints, trial_rotation, trial_translation, first, second, revolute, parents, at_zero,
+            world_frame(t_joints, trial_rotation, trial_translation, first, second, revolute, parents, at_zero,
                          joint_links, axes, marker_links, marker_positions, moves, markers, d_world, poses, motion,
                          local, ax)
             t_cost = _normal_frame(markers, d_world, pixels[f], cam_rotation, cam_translation, intrinsics,
