@@ -18,7 +18,7 @@ import numpy as np
 
 from mocap.core.camera import project_cam
 from mocap.core.machine import Machine
-from mocap.core.shapes import hidden_by_solids, solid_arrays, solid_normals
+from mocap.core.shapes import GRAZE, hidden_by_boxes, hidden_by_solids, solid_arrays, solid_normals
 
 MIN_FACING_COS = 0.2  # a disk seen more obliquely than ~78° is not a usable marker
 
@@ -44,7 +44,7 @@ def marker_normals(machine: Machine, boxes: np.ndarray) -> np.ndarray:
 def segment_hits_box(start: np.ndarray, end: np.ndarray, box: np.ndarray) -> np.ndarray:
     """Whether segments from `start` to `end` (*, 3) pass through the box (2, 3), or boxes
     (*, 2, 3) broadcast with them (both in the box's frame); a start point inside the box
-    counts as a hit."""
+    counts as a hit, one on its surface only when the segment goes into it (`GRAZE`)."""
     low_corner, high_corner = box[..., 0, :], box[..., 1, :]
     d = end - start
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -55,7 +55,7 @@ def segment_hits_box(start: np.ndarray, end: np.ndarray, box: np.ndarray) -> np.
     low = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t1, t2))
     high = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t1, t2))
     enter, leave = low.max(axis=-1), high.min(axis=-1)
-    return (leave >= np.maximum(enter, 0.0)) & (enter <= 1.0)
+    return (leave - np.maximum(enter, 0.0) > GRAZE) & (enter <= 1.0)
 
 
 def visible_markers(
@@ -124,25 +124,17 @@ def _in_view(machine, boxes, link_poses, cam_from_world, matrix, distortion, siz
     w, h = size
     seen = np.all(np.isfinite(uv), axis=-1)
     seen &= (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    # the segments to the camera in every link's frame at once, a few frames at a time
-    n_links = len(machine.links)
-    rotation_t = np.swapaxes(link_poses[..., :3, :3], -1, -2)  # link_from_world (F, L, 3, 3)
-    shift = -np.einsum("flij,flj->fli", rotation_t, link_poses[..., :3, 3])
-    other = (links[None, :] != np.arange(n_links)[:, None])[:, :, None]  # (L, M, 1): its own box never hides
-    other &= ~box_replaced(machine)[:, None, None]  # a link's stated cylinders or meshes hide instead of its box
-    step = max(1, _CHUNK_POINTS // max(n_links * points.shape[0] * points.shape[1], 1))
-    for k in range(0, len(world), step):
-        part = slice(k, k + step)
-        start = world[part, None] @ np.swapaxes(rotation_t[part], -1, -2)[:, :, None] + shift[part, :, None, None]
-        end = np.einsum("flij,fj->fli", rotation_t[part], centre[part]) + shift[part]
-        hit = segment_hits_box(start, np.broadcast_to(end[:, :, None, None], start.shape), boxes[None, :, None, None])
-        seen[part] &= ~np.any(hit & other[None], axis=1)
+    n_frames, n_markers, n_points = world.shape[:3]
+    flat = np.ascontiguousarray(world.reshape(n_frames, n_markers * n_points, 3))
+    point_links = np.repeat(links, n_points).astype(np.int64)
+    poses = np.ascontiguousarray(link_poses, dtype=float)
+    centre = np.ascontiguousarray(centre)
+    hides = ~box_replaced(machine)  # a link's stated cylinders or meshes hide instead of its box
+    if hides.any():
+        seen &= ~hidden_by_boxes(flat, centre, poses, point_links, np.ascontiguousarray(boxes, dtype=float),
+                                 hides).reshape(seen.shape)
     if machine.link_solids:
-        n_frames, n_markers, n_points = world.shape[:3]
-        flat = np.ascontiguousarray(world.reshape(n_frames, n_markers * n_points, 3))
-        hidden = hidden_by_solids(flat, np.ascontiguousarray(centre), np.ascontiguousarray(link_poses, dtype=float),
-                                  np.repeat(links, n_points).astype(np.int64), *solid_arrays(machine))
-        seen &= ~hidden.reshape(n_frames, n_markers, n_points)
+        seen &= ~hidden_by_solids(flat, centre, poses, point_links, *solid_arrays(machine)).reshape(seen.shape)
     return uv, seen
 
 
@@ -155,8 +147,6 @@ def box_replaced(machine: Machine) -> np.ndarray:
         replaced &= ~np.all(np.isfinite(machine.link_boxes), axis=(1, 2))
     return replaced
 
-
-_CHUNK_POINTS = 1 << 16  # link x marker x point segments tested at once
 
 
 def marker_outlines(

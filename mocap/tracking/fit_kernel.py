@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from mocap.core.camera_kernel import project_point
-from mocap.core.shapes import segment_crosses_box
+from mocap.core.shapes import behind_a_box
 
 
 @njit(cache=True, nogil=True)
@@ -201,21 +201,8 @@ def marker_view(joints, chain, marker_links, positions, rotation, translation, m
                 inside = math.isfinite(u) and math.isfinite(v) and 0 <= u <= width - 1 and 0 <= v <= height - 1
                 tx, ty, tz = centre[0] - world[0], centre[1] - world[1], centre[2] - world[2]
                 facing = (nx * tx + ny * ty + nz * tz) / math.sqrt(tx * tx + ty * ty + tz * tz) > min_facing
-                visible = inside and facing
-                for other in range(n_links):
-                    if not visible:
-                        break
-                    if other == link or not box_hides[other]:  # its own box never hides it
-                        continue
-                    for a in range(3):  # link_from_world: R^T (p - t)
-                        start[a] = ((poses[other, 0, a] * (world[0] - poses[other, 0, 3])
-                                     + poses[other, 1, a] * (world[1] - poses[other, 1, 3]))
-                                    + poses[other, 2, a] * (world[2] - poses[other, 2, 3]))
-                        end[a] = ((poses[other, 0, a] * (centre[0] - poses[other, 0, 3])
-                                   + poses[other, 1, a] * (centre[1] - poses[other, 1, 3]))
-                                  + poses[other, 2, a] * (centre[2] - poses[other, 2, 3]))
-                    visible = not segment_crosses_box(start, end, boxes[other, 0], boxes[other, 1])
-                seen[f, m] = visible
+                seen[f, m] = inside and facing and not behind_a_box(world, centre, poses, link, boxes, box_hides,
+                                                                     start, end)
             else:
                 inside = -0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5
                 seen[f, m] = cam[2] > 0 and inside
