@@ -187,6 +187,7 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
         rr.spawn(connect=False, executable_path=rerun_executable())
         targets.append(rr.GrpcSink())
     if sinks.connect is not None:
+        _check_viewer(sinks.connect or DEFAULT_VIEWER)
         targets.append(rr.GrpcSink(sinks.connect or None))
     server = None
     if sinks.serve:
@@ -206,6 +207,26 @@ def _record_live(rec, replay: Replay, sinks: Sinks, blueprint, file: Path | None
         rr.serve_web_viewer(open_browser=bool(os.environ.get("DISPLAY") or sys.platform != "linux"),
                             connect_to=server.uri)
     return summary
+
+
+DEFAULT_VIEWER = "rerun+http://127.0.0.1:9876/proxy"  # where a viewer started with `rerun` listens
+
+
+def _check_viewer(url: str) -> None:
+    """Refuse at once, before the replay is recorded, a viewer URL where nothing listens
+    (Rerun's own sink finds out only when it flushes, seconds after the whole replay)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url.removeprefix("rerun+"))
+    if not parts.hostname:
+        return  # a form Rerun reads and this does not: Rerun's sink says what is wrong
+    try:
+        with socket.create_connection((parts.hostname, parts.port or 80), timeout=2.0):
+            pass
+    except OSError as exc:
+        raise InputError(f"no viewer answers at {url} ({exc.strerror or exc}); is a Rerun viewer running there? "
+                         "Start one with `rerun`, or use --spawn or --save") from None
 
 
 def rerun_executable() -> str | None:
