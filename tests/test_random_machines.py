@@ -78,6 +78,7 @@ def test_kinematic_fit_of_random_machines_keeps_no_wrong_minimum():
         assert ratio < 1.6, f"scene {seed}: tip RMSE {ratio:.2f} x the bound"
 
 
+@pytest.mark.long
 def test_long_sessions_of_random_machines_keep_no_wrong_stretch():
     """3,000 frames: a stretch of frames whose robust residual is low enough to pass for a few
     wild pixels, on a wrong minimum, is mended from its neighbours (before: 3 of these 10 scenes
