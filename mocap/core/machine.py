@@ -343,4 +343,5 @@ def _points_on_links(poses: np.ndarray, links: np.ndarray, positions: np.ndarray
             [_points_on_links(poses[k : k + _CHUNK], links, positions) for k in range(0, poses.shape[0], _CHUNK)]
         )
     on_links = poses[:, links]  # (F, N, 4, 4)
-    return np.einsum("fnij,nj->fni", on_links[..., :3, :3], positions) + on_links[..., :3, 3]
+    # row vectors times the transposed rotations (matmul: einsum is fourfold slower on these shapes)
+    return (positions[:, None, :] @ np.swapaxes(on_links[..., :3, :3], -1, -2))[..., 0, :] + on_links[..., :3, 3]

@@ -193,10 +193,11 @@ def solids_in_view(machine: Machine, solids: Solids, normals: np.ndarray, link_p
     links = machine.marker_links
     on_link = link_poses[:, links]  # (F, M, 4, 4)
     lift = points + LIFT_M * normals[:, None]
-    world = np.einsum("fmij,mpj->fmpi", on_link[..., :3, :3], lift) + on_link[..., None, :3, 3]
+    # row vectors times the transposed rotations (matmul: einsum is tenfold slower on these shapes)
+    world = lift @ np.swapaxes(on_link[..., :3, :3], -1, -2) + on_link[..., None, :3, 3]
     rotation, translation = cam_from_world[:, :3, :3], cam_from_world[:, :3, 3]
     centre = -np.einsum("fji,fj->fi", rotation, translation)
-    cam = np.einsum("fij,fmpj->fmpi", rotation, world) + translation[:, None, None]
+    cam = world @ np.swapaxes(rotation, -1, -2)[:, None] + translation[:, None, None]
     uv = project_cam(cam, matrix, distortion)
     w, h = size
     seen = np.all(np.isfinite(uv), axis=-1)
