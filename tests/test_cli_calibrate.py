@@ -1,5 +1,7 @@
 """`mocap calibrate` end to end, as a user runs it, and its answers to bad input."""
 
+import contextlib
+import io
 import subprocess
 import sys
 import tomllib
@@ -25,18 +27,24 @@ def observations(tmp_path, ex3500):
     return cameras, q, paths
 
 
-def run_cli(*args):
-    """Run the installed entry point in a fresh interpreter, as a user would."""
-    return subprocess.run(
-        [sys.executable, "-m", "mocap.cli", *map(str, args)], capture_output=True, text=True, timeout=120
-    )
+def run_cli(*args, fresh: bool = False):
+    """Run the command line: with `fresh`, the installed entry point in a fresh interpreter,
+    as a user would; else `mocap.cli.main` in this process, its stdout and stderr caught (a
+    second of imports saved per case; tests/test_bad_input.py runs its cases in processes too)."""
+    argv = list(map(str, args))
+    if fresh:
+        return subprocess.run([sys.executable, "-m", "mocap.cli", *argv], capture_output=True, text=True, timeout=120)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main(argv)
+    return subprocess.CompletedProcess(argv, status, out.getvalue(), err.getvalue())
 
 
 def test_calibrate_end_to_end(tmp_path, observations, ex3500):
     cameras, q, paths = observations
     out = tmp_path / "calibration" / "cameras.toml"
     before = [p.read_bytes() for p in paths]
-    done = run_cli("calibrate", "hitachi_ex3500", *paths, "--size", "1920x1080", "--out", out)
+    done = run_cli("calibrate", "hitachi_ex3500", *paths, "--size", "1920x1080", "--out", out, fresh=True)
     assert done.returncode == 0, done.stderr
     assert "identifiability: rank 18 of 18" in done.stdout
     assert [p.read_bytes() for p in paths] == before  # inputs untouched
