@@ -85,6 +85,32 @@ def test_singular_information_leaves_one_parameter_to_the_model():
     assert out.filled[80:110].all() and not out.filled[:80].any()
 
 
+def test_partly_observed_frames_on_a_far_branch_are_left_out_and_the_right_ones_kept():
+    """Two stretches whose fits leave parameter 1 unobserved: in the first the fit's parameter 0
+    is right and narrows the smoother there below the model's own SD; in the second (a random
+    digger's fits with its moving markers lost: a far branch that explains their few pixels
+    as well, the same for 20 frames, with the SD of a good fit) it is 0.8 off and is left out:
+    the smoother fills those frames from the frames that observe both, within 3 of its SDs,
+    where used it followed the branch 0.8 off at 0.01 SD (e/SD 80)."""
+    rng = np.random.default_rng(6)
+    time = np.arange(300) / FPS
+    truth = np.c_[np.sin(time), 0.5 * np.cos(time / 2.0)]
+    sd = np.array([0.01, 0.01])
+    measured = truth + rng.normal(0, sd, truth.shape)
+    information = np.tile(np.diag(1 / sd**2), (300, 1, 1))
+    partly = np.r_[60:80, 200:220]
+    information[partly, 1, :] = information[partly, :, 1] = 0.0  # parameter 1 unobserved
+    measured[partly, 1] = 3.0  # whatever the fit left there
+    measured[200:220, 0] = truth[200:220, 0] + 0.8  # a far branch
+    out = smooth(time, measured, information, np.ones(300, bool), options=SmoothOptions(process_noise=0.05))
+    error, spread = np.abs(out.values - truth), np.sqrt(np.diagonal(out.covariance, axis1=1, axis2=2))
+    assert out.filled[200:220].all() and (error[200:220] < 3 * spread[200:220]).all()
+    assert error[200:220, 0].max() < 0.1
+    # the right partial frames still count: parameter 0 there as sharp as in the frames around
+    assert not out.filled[:60].any() and np.median(spread[60:80, 0]) < 1.5 * np.median(spread[20:60, 0])
+    assert (error[60:80] < 3 * spread[60:80]).all()
+
+
 # a random digger's frame of two markers (its fit's information on four joints, rank 2): a
 # fixed ridge of 1e-12 was lost in the rounding of these entries and `mocap fit` stopped on
 # a singular matrix

@@ -5,7 +5,10 @@ of spectral density ``q`` per parameter). Each frame's measurement is the kinema
 parameter vector with its information matrix (the inverse covariance from the normal
 equations, singular where a joint was not observed), used in information form so that a
 frame that saw nothing of the bucket still constrains the other joints and leaves the
-bucket to the model. Frames that the fit could not determine are predicted (filled);
+bucket to the model, where those joints agree with the frames that observe every parameter
+(a frame with too few markers can be fitted on a far branch that explains them as well: on
+a random digger whose trackers lost the moving markers for a second, such stretches set the
+path 5 m off at 5 cm SD). Frames that the fit could not determine are predicted (filled);
 gaps longer than `max_gap_s` are left NaN. Measurements whose innovation is improbable
 (chi-square gate) are skipped as failed fits.
 
@@ -30,13 +33,17 @@ class SmoothOptions:
     None to estimate it from the data at the `stride_s` time scale; max_gap_s: longer gaps
     stay unfilled; gate_probability: measurements beyond this chi-square quantile are
     rejected (1 disables the gate); unobserved_factor: a parameter whose fit SD exceeds this
-    multiple of its median counts as unobserved (the frame is marked filled)."""
+    multiple of its median counts as unobserved (the frame is marked filled); partial_probability:
+    such a frame's observed parameters are used where they lie within this chi-square quantile
+    (by their own information) of the smoother of the frames that observe every parameter, else
+    (or when it observes none) the frame is left out and filled."""
 
     process_noise: float | np.ndarray | None = None
     max_gap_s: float = 2.0
     stride_s: float = 0.5
     gate_probability: float = 1.0
     unobserved_factor: float = 20.0
+    partial_probability: float = 0.9999
 
     def __post_init__(self) -> None:
         if not self.max_gap_s >= 0 or not self.stride_s > 0:
@@ -94,7 +101,8 @@ def smooth(
     if n > 1 and np.any(np.diff(time) <= 0):
         raise ValueError("time must increase")
     valid = np.asarray(valid, dtype=bool) & np.isfinite(values).all(1)
-    values = _unwrap(values, valid, np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool))
+    wrap = np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool)
+    values = _unwrap(values, valid, wrap)
     fit_sd = fit_sds(information)
     typical = np.nanmedian(np.where(valid[:, None], fit_sd, np.nan), axis=0) if valid.any() else np.ones(p)
     observed = valid[:, None] & (fit_sd <= options.unobserved_factor * typical)
@@ -104,6 +112,23 @@ def smooth(
     if not valid.any():
         nan = np.full((n, p), np.nan)
         return Smoothed(nan, nan.copy(), np.full((n, p, p), np.nan), np.full((n, p, p), np.nan), np.zeros(n, bool), np.zeros(n, bool), q)
+    partial = valid & ~observed.all(1)
+    if partial.any() and (valid & ~partial).any():
+        # A frame whose fit leaves parameters unobserved (too few markers: its fit can lie on a
+        # far branch that explains its few pixels as well, and a stretch of such frames agrees
+        # with itself) takes part only where the parameters it observes agree, within their own
+        # SDs, with the smoother of the frames that observe every one; one that observes none is
+        # left out (over a stretch of them its weak information would set the path).
+        mean, _, _ = _rts(time, values, information, valid & ~partial, q, options)
+        held = np.flatnonzero(partial)
+        gap = values[held] - mean[held, :p]
+        gap[:, wrap] = np.mod(gap[:, wrap] + np.pi, 2 * np.pi) - np.pi
+        chi2 = np.einsum("ni,nij,nj->n", gap, information[held], gap)
+        dof = observed[held].sum(1)
+        bound = {k: chi2_quantile(options.partial_probability, int(k)) for k in np.unique(dof[dof > 0])}
+        agree = np.array([k > 0 and c <= bound[k] for k, c in zip(dof, chi2)], dtype=bool)
+        valid = valid.copy()
+        valid[held[~agree]] = False
     mean, cov, rejected = _rts(time, values, information, valid, q, options)
     long_gap = _long_gaps(time, valid, options.max_gap_s)
     mean[long_gap] = np.nan
