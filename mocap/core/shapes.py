@@ -149,13 +149,7 @@ def hidden_by_solids(world, centre, poses, point_links, triangles, first, solid_
                 link = solid_links[s]
                 if link == point_links[m]:
                     continue
-                for a in range(3):  # link_from_world: R^T (p - t)
-                    start[a] = ((poses[f, link, 0, a] * (world[f, m, 0] - poses[f, link, 0, 3])
-                                 + poses[f, link, 1, a] * (world[f, m, 1] - poses[f, link, 1, 3]))
-                                + poses[f, link, 2, a] * (world[f, m, 2] - poses[f, link, 2, 3]))
-                    end[a] = ((poses[f, link, 0, a] * (centre[f, 0] - poses[f, link, 0, 3])
-                               + poses[f, link, 1, a] * (centre[f, 1] - poses[f, link, 1, 3]))
-                              + poses[f, link, 2, a] * (centre[f, 2] - poses[f, link, 2, 3]))
+                _in_link(world[f, m], centre[f], poses[f, link], start, end)
                 if not segment_crosses_box(start, end, bounds[s, 0], bounds[s, 1]):
                     continue
                 for t in range(first[s], first[s + 1]):
@@ -192,16 +186,21 @@ def behind_a_box(point, centre, poses, own, boxes, box_hides, start, end):
     for link in range(boxes.shape[0]):
         if link == own or not box_hides[link]:  # its own box never hides it
             continue
-        for a in range(3):  # link_from_world: R^T (p - t)
-            start[a] = ((poses[link, 0, a] * (point[0] - poses[link, 0, 3])
-                         + poses[link, 1, a] * (point[1] - poses[link, 1, 3]))
-                        + poses[link, 2, a] * (point[2] - poses[link, 2, 3]))
-            end[a] = ((poses[link, 0, a] * (centre[0] - poses[link, 0, 3])
-                       + poses[link, 1, a] * (centre[1] - poses[link, 1, 3]))
-                      + poses[link, 2, a] * (centre[2] - poses[link, 2, 3]))
+        _in_link(point, centre, poses[link], start, end)
         if segment_crosses_box(start, end, boxes[link, 0], boxes[link, 1]):
             return True
     return False
+
+
+@njit(cache=True, nogil=True)
+def _in_link(point, centre, pose, start, end):
+    """Fill start and end (3,) with `point` and `centre` (3,) in the frame of the link whose
+    world_from_link is `pose` (4, 4): R^T (p - t)."""
+    for a in range(3):
+        start[a] = ((pose[0, a] * (point[0] - pose[0, 3]) + pose[1, a] * (point[1] - pose[1, 3]))
+                    + pose[2, a] * (point[2] - pose[2, 3]))
+        end[a] = ((pose[0, a] * (centre[0] - pose[0, 3]) + pose[1, a] * (centre[1] - pose[1, 3]))
+                  + pose[2, a] * (centre[2] - pose[2, 3]))
 
 
 @njit(cache=True, nogil=True)
