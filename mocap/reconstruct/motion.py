@@ -33,7 +33,7 @@ from mocap.reconstruct.camera_share import CameraCovariance, camera_share
 from mocap.reconstruct.kinfit import FitOptions, JointFit, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
 from mocap.reconstruct.offsets import ASSUMED_TOLERANCE, SHOWN_MARKERS, MarkerOffsets, fit_with_offsets, markers_off
-from mocap.reconstruct.smooth import Smoothed, SmoothOptions, smooth
+from mocap.reconstruct.smooth import Smoothed, SmoothOptions, scatter_scale, smooth
 from mocap.reconstruct.uncertainty import point_quantities
 
 log = logging.getLogger(__name__)
@@ -100,8 +100,14 @@ def reconstruct_motion(
     if smoothing and len(frame) > 1:
         wrap = np.r_[machine.wraps, np.zeros(6 * base_motion, bool)]
         smoothed = smooth(time, values, fit.information, fit.valid & fit.explained, wrap=wrap, options=smooth_options)
+        scale, factor, rho = scatter_scale(values, fit.information, fit.valid & fit.explained & ~smoothed.filled,
+                                           smoothed, wrap)
+        if scale > 1.0:
+            log.info("the fits scatter about the smoothed path %.2f times what their information says and their "
+                     "deviations correlate %.2f from frame to frame: the smoothed SDs scaled by %.2f",
+                     factor, rho, np.sqrt(scale))
         values = smoothed.values
-        covariance = smoothed.covariance
+        covariance = smoothed.covariance * scale
         limits = machine.joint_limits
         span = limits[:, 1] - limits[:, 0]
         joints = values[:, :n_joints]

@@ -137,6 +137,36 @@ def smooth(
     return Smoothed(mean[:, :p], mean[:, p:], cov[:, :p, :p], cov[:, p:, p:], filled, rejected, q)
 
 
+def scatter_scale(values: np.ndarray, information: np.ndarray, used: np.ndarray, smoothed: Smoothed,
+                  wrap: np.ndarray | None = None) -> tuple[float, float, float]:
+    """How far the smoothed covariance understates the error: the fits' values (F, P) with
+    their information (F, P, P), in the frames `used` (F,), scatter about the smoothed values
+    by a chi-square over what the model expects of it (a fit's deviation from the smoothed
+    value has the fit's covariance less the smoothed one: P - tr(information x smoothed
+    covariance) a frame), `variance_factor` (at least 1), and their deviations correlate from
+    one frame to the next by rho (weighed by the information): a smoother that takes the fits
+    as independent averages errors that are not (a marker's centroid pulled the same way over
+    frames, two reference frames interpolated from one camera frame), by 1 + 2 rho.
+    -> (scale = variance_factor (1 + 2 max(rho, 0)), variance_factor, rho); 1 where fewer
+    than 10 pairs of frames tell."""
+    n, p = values.shape
+    wrap = np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool)
+    covariance = smoothed.covariance
+    ok = used & np.isfinite(values).all(1) & np.isfinite(smoothed.values).all(1) & np.isfinite(covariance).all((1, 2))
+    pairs = ok[1:] & ok[:-1]
+    if pairs.sum() < 10:
+        return 1.0, 1.0, 0.0
+    deviation = np.where(ok[:, None], values - smoothed.values, 0.0)
+    deviation[:, wrap] = np.mod(deviation[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    weighed = np.einsum("kij,kj->ki", information, deviation)
+    norm = np.einsum("ki,ki->k", weighed, deviation)
+    expected = ok.sum() * p - np.einsum("kij,kji->", information[ok], covariance[ok])
+    factor = max(float(norm[ok].sum() / expected), 1.0) if expected > 0 else 1.0
+    cross = np.einsum("ki,ki->k", weighed[:-1], deviation[1:])[pairs].sum()
+    rho = float(cross / np.sqrt(norm[:-1][pairs].sum() * norm[1:][pairs].sum()))
+    return factor * (1.0 + 2.0 * max(rho, 0.0)), factor, rho
+
+
 def _unwrap(values: np.ndarray, valid: np.ndarray, wrap: np.ndarray) -> np.ndarray:
     values = values.copy()
     for j in np.nonzero(wrap)[0]:
