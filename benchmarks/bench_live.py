@@ -316,6 +316,14 @@ def offline_rmse(motion, frames: np.ndarray, truth) -> float:
     return tip_rmse(keep, motion.point("bucket_tip")[[index[f] for f in keep]], truth)
 
 
+def offline_coverage(motion, frames: np.ndarray, truth):
+    """`coverage` of the offline motion's tip SDs over `frames` (those it has)."""
+    index = {int(f): k for k, f in enumerate(motion.frame)}
+    rows = [index[f] for f in frames if f in index]
+    sds = motion.points_sd[rows, motion.point_names.index("bucket_tip")]
+    return coverage(motion.frame[rows], motion.point("bucket_tip")[rows], sds, truth)
+
+
 def offline_without(session: Path, names: list[str], work: Path, camera: str, frames: np.ndarray, calibration):
     """The offline chain on the same tracks but with `camera`'s frames removed where the live
     rows `frames` (reference frames) went without it: each of its frames whose nearest
@@ -504,7 +512,8 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                 print(f"{'':>34}{report.reference.text()}" + (f" (and {report.rows_of_others} rows of the other "
                                                                "cameras' frames)" if report.rows_of_others else "")
                       + f"; frames 0-{FIRST_FRAMES}: live 1/2/3 SD % "
-                      f"{coverage_text(coverage(frames[first], tips[first], sds[first], truth)).strip()} (e/SD last)",
+                      f"{coverage_text(coverage(frames[first], tips[first], sds[first], truth)).strip()} (e/SD last)"
+                      f"; offline 1/2/3 SD % {coverage_text(offline_coverage(motion, frames, truth)).strip()}",
                       flush=True)
                 if gap is not None:
                     rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None,
