@@ -144,27 +144,47 @@ def scatter_scale(values: np.ndarray, information: np.ndarray, used: np.ndarray,
     by a chi-square over what the model expects of it (a fit's deviation from the smoothed
     value has the fit's covariance less the smoothed one: P - tr(information x smoothed
     covariance) a frame), `variance_factor` (at least 1), and their deviations correlate from
-    one frame to the next by rho (weighed by the information): a smoother that takes the fits
-    as independent averages errors that are not (a marker's centroid pulled the same way over
+    one frame to the next by rho (`frame_correlation`): a smoother that takes the fits as
+    independent averages errors that are not (a marker's centroid pulled the same way over
     frames, two reference frames interpolated from one camera frame), by 1 + 2 rho.
     -> (scale = variance_factor (1 + 2 max(rho, 0)), variance_factor, rho); 1 where fewer
     than 10 pairs of frames tell."""
     n, p = values.shape
-    wrap = np.zeros(p, bool) if wrap is None else np.asarray(wrap, bool)
     covariance = smoothed.covariance
     ok = used & np.isfinite(values).all(1) & np.isfinite(smoothed.values).all(1) & np.isfinite(covariance).all((1, 2))
+    rho = frame_correlation(values, information, ok, smoothed.values, wrap)
+    if rho is None:
+        return 1.0, 1.0, 0.0
+    deviation = _deviations(values, smoothed.values, ok, wrap)
+    chi2 = np.einsum("ki,kij,kj->", deviation[ok], information[ok], deviation[ok])
+    expected = ok.sum() * p - np.einsum("kij,kji->", information[ok], covariance[ok])
+    factor = max(float(chi2 / expected), 1.0) if expected > 0 else 1.0
+    return factor * (1.0 + 2.0 * max(rho, 0.0)), factor, rho
+
+
+def frame_correlation(values: np.ndarray, information: np.ndarray, used: np.ndarray, smoothed: np.ndarray,
+                      wrap: np.ndarray | None = None) -> float | None:
+    """The fits' deviations (values (F, P) in the frames `used` (F,)) from the smoothed values
+    (F, P), correlated from one frame to the next, weighed by the fits' information (F, P, P);
+    None where fewer than 10 pairs of frames tell."""
+    ok = used & np.isfinite(values).all(1) & np.isfinite(smoothed).all(1)
     pairs = ok[1:] & ok[:-1]
     if pairs.sum() < 10:
-        return 1.0, 1.0, 0.0
-    deviation = np.where(ok[:, None], values - smoothed.values, 0.0)
-    deviation[:, wrap] = np.mod(deviation[:, wrap] + np.pi, 2 * np.pi) - np.pi
+        return None
+    deviation = _deviations(values, smoothed, ok, wrap)
     weighed = np.einsum("kij,kj->ki", information, deviation)
-    norm = np.einsum("ki,ki->k", weighed, deviation)
-    expected = ok.sum() * p - np.einsum("kij,kji->", information[ok], covariance[ok])
-    factor = max(float(norm[ok].sum() / expected), 1.0) if expected > 0 else 1.0
     cross = np.einsum("ki,ki->k", weighed[:-1], deviation[1:])[pairs].sum()
-    rho = float(cross / np.sqrt(norm[:-1][pairs].sum() * norm[1:][pairs].sum()))
-    return factor * (1.0 + 2.0 * max(rho, 0.0)), factor, rho
+    norm = np.einsum("ki,ki->k", weighed, deviation)
+    return float(cross / np.sqrt(norm[:-1][pairs].sum() * norm[1:][pairs].sum()))
+
+
+def _deviations(values: np.ndarray, smoothed: np.ndarray, ok: np.ndarray, wrap: np.ndarray | None) -> np.ndarray:
+    """(F, P) values less smoothed where `ok`, else 0; angles (the columns `wrap`) in [-pi, pi)."""
+    deviation = np.where(ok[:, None], values - smoothed, 0.0)
+    if wrap is not None:
+        wrap = np.asarray(wrap, bool)
+        deviation[:, wrap] = np.mod(deviation[:, wrap] + np.pi, 2 * np.pi) - np.pi
+    return deviation
 
 
 def _unwrap(values: np.ndarray, valid: np.ndarray, wrap: np.ndarray) -> np.ndarray:
