@@ -375,16 +375,18 @@ def test_a_feed_port_in_use_exits_2(short_session, tmp_path, capsys):
 
 def test_a_camera_s_pixels_on_the_reference_clock():
     """Between two frames interpolated, past the last one extrapolated at its velocity (up to an
-    interval), a marker seen in one frame only taken from it within half an interval, nothing
-    from a frame further away."""
+    interval), a marker seen in one frame only taken from it within a tenth of an interval
+    (`_LONE_SHARE`: half a frame old, it is half a frame's motion off), nothing from a frame
+    further away."""
     from mocap.live.pose import CameraHistory
 
     history = CameraHistory(30.0)
     for f, (u, other) in enumerate([(10.0, np.nan), (11.0, np.nan), (12.0, 1.0)]):
         history.add(f / 30, np.array([[u, 5.0], [other, other]]))
-    assert np.allclose(history.pixels_at(1.5 / 30), [[11.5, 5.0], [1.0, 1.0]])
-    assert np.allclose(history.pixels_at(2.5 / 30), [[12.5, 5.0], [1.0, 1.0]])
-    assert np.allclose(history.pixels_at(1.2 / 30), [[11.2, 5.0], [np.nan, np.nan]], equal_nan=True)
+    assert np.allclose(history.pixels_at(1.95 / 30), [[11.95, 5.0], [1.0, 1.0]])
+    assert np.allclose(history.pixels_at(2.05 / 30), [[12.05, 5.0], [1.0, 1.0]])
+    for at in (1.5, 2.5, 1.2):
+        assert np.allclose(history.pixels_at(at / 30), [[10 + at, 5.0], [np.nan, np.nan]], equal_nan=True)
     assert history.pixels_at(3.5 / 30) is None
 
 

@@ -155,6 +155,38 @@ def test_a_camera_far_ahead_of_the_rows_keeps_the_frames_they_have_not_reached()
     assert bounded.pixels_at(at) is None
 
 
+def test_a_marker_seen_in_one_of_a_cameras_frames_either_side_is_not_taken_half_a_frame_old():
+    """A camera whose frames fall 0.4 of an interval after the reference frames (29.97 fps
+    against 30 drifts through every phase), its markers moving 8 px a frame (a swing, the base
+    bouncing), one going out of sight and one coming into it: every marker given at a time is
+    within 5 SDs of the noise of where it is then (those in both frames either side
+    interpolated); the one in a single frame, 0.4 or 0.6 of a frame away, is left out, where it
+    was taken from that frame 3.2 px off (as a marker leaving the view of seed 7's second
+    camera put the live tip 6 cm off for a few frames)."""
+    fps, speed, noise, markers = 30.0, 8.0, 0.1, 5
+    rng = np.random.default_rng(3)
+
+    def truth(t):  # (M, 2) where the markers are at time t
+        return np.stack([100.0 + 40 * np.arange(markers) + speed * fps * t, 200.0 + 0 * np.arange(markers)], 1)
+
+    history = CameraHistory(fps)
+    for k in range(40):
+        t = (k + 0.4) / fps
+        pixels = truth(t) + rng.normal(0, noise, (markers, 2))
+        if k > 20:
+            pixels[0] = np.nan  # out of sight from the camera's frame 21 on
+        if k < 20:
+            pixels[1] = np.nan  # in sight from frame 20 on
+        history.add(t, pixels)
+    for frame in range(2, 39):  # reference frame `frame` lies 0.6 after camera frame frame - 1, 0.4 before frame
+        at = history.pixels_at(frame / fps)
+        given = np.isfinite(at[:, 0])
+        error = np.linalg.norm(at[given] - truth(frame / fps)[given], axis=1)
+        assert error.max() < 5 * noise, (frame, error)
+        assert given[2:].all()  # the markers in every frame are always given
+        assert given[0] == (frame <= 20) and given[1] == (frame >= 21), (frame, given)
+
+
 def test_a_joint_still_for_the_whole_estimate_then_swinging_is_followed():
     """The swing still for the first 12 s (the process noise estimated several times: its own
     near 0) while the other joints move, then a swing of 1.5 rad in 3 s: no multiple of the
