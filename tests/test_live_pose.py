@@ -12,7 +12,7 @@ from mocap.io.cameras_toml import load_calibration
 from mocap.io.machine_toml import load_machine
 from mocap.io.motion_csv import load_motion
 from mocap.io.tracks_csv import load_tracks
-from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, FrameFit, WarmFit
+from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, FrameFit, WarmFit, warm_up
 from mocap.reconstruct.timing import on_reference_clock
 
 NOISE = 0.5  # px
@@ -185,6 +185,16 @@ def test_a_marker_seen_in_one_of_a_cameras_frames_either_side_is_not_taken_half_
         assert error.max() < 5 * noise, (frame, error)
         assert given[2:].all()  # the markers in every frame are always given
         assert given[0] == (frame <= 20) and given[1] == (frame >= 21), (frame, given)
+
+
+def test_the_smoothers_warm_up_runs_for_every_lag_and_base():
+    """`mocap live` gives a throwaway smoother a few still frames before the cameras' clock
+    starts (its compiled kernel and first-use imports out of the first rows): it runs for a
+    filter alone and longer lags, the base held or moving."""
+    machine = load_machine("hitachi_ex3500")
+    for lag in (0, 1, 3):
+        for base_motion in (False, True):
+            warm_up(machine, lag, base_motion)
 
 
 def test_a_joint_still_for_the_whole_estimate_then_swinging_is_followed():

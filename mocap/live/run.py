@@ -40,7 +40,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
 from mocap.live.feed import Feed
-from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, WarmFit
+from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, WarmFit, warm_up
 from mocap.live.rows import PoseWriter, row
 from mocap.live.sources import FILE, SourceReader, SourceSpec
 from mocap.reconstruct.kinfit import FitOptions
@@ -279,6 +279,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     joints = calibration.joints(machine)
     start_joints = machine.clip_to_limits(np.zeros(machine.n_joints) if joints is None else joints)
     specs = {s.camera: s for s in request.sources}
+    warm_up(machine, request.lag, _base_columns(request, machine))  # not in the first rows
     clock_start = time.perf_counter() + 0.2  # the threads started first
     readers = [SourceReader(specs[c.name], fps[k], offsets[k], clock_start, stop,
                             (offsets[k] - offsets.min()) if request.realtime else None, request.depth)
