@@ -421,35 +421,48 @@ class _Loop:
             if end is not None and time.perf_counter() >= end:
                 break
             try:
-                k, time_ref, arrived, pixels, labelled_at = labelled.get(timeout=0.05)
+                item = labelled.get(timeout=0.05)
             except queue.Empty:
                 if all(w.finished.is_set() for w in self.workers) and labelled.empty():
                     self._emit(final=True)
                     break
                 self._emit()
                 continue
-            if pixels is None:  # a camera's notice of a gap: nothing from it until after `time_ref`
-                self.history[k].add(time_ref, np.full((len(self.machine.marker_names), 2), np.nan))
-                self._emit()
-                continue
-            if self.follower is not None:  # the frame placed with its camera's newest offset
-                index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
-                self.follower.add(k, index, pixels)
-                time_ref = index / self.fps[k] + self.follower.offset(k)
-            self.history[k].add(time_ref, pixels)
-            self.seen[k] = time.perf_counter()
-            clock = self._clock()  # before this frame counts as taken in: a camera's last frame is still its own
-            self.received[k] += 1
-            frame = int(round(time_ref * self.fps[0]))
-            if k == clock and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
-                self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
-                self.clocked[k] += 1
-            else:
-                self.displaced[k] += 1
+            self._take(*item)
+            # the labels already queued are taken in before any frame is judged late: a main thread
+            # behind (short of CPU) read a reference frame's labels and found the other cameras'
+            # of its time missing while they sat in the queue behind it (rows fitted without them)
+            for _ in range(labelled.qsize()):
+                try:
+                    self._take(*labelled.get_nowait())
+                except queue.Empty:
+                    break
             self._emit()
         self._emit(final=True)  # the frames still waiting for a camera: with those there are
         for pose_and_meta in self._drain():
             self._write(*pose_and_meta)
+
+    def _take(self, k: int, time_ref: float, arrived: float, pixels: np.ndarray | None, labelled_at: float) -> None:
+        """Camera `k`'s labels of its frame at `time_ref` into its history (a clock frame's
+        also among those waiting for their fit); `pixels` None: its notice of a gap, nothing
+        from it until after `time_ref`."""
+        if pixels is None:
+            self.history[k].add(time_ref, np.full((len(self.machine.marker_names), 2), np.nan))
+            return
+        if self.follower is not None:  # the frame placed with its camera's newest offset
+            index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
+            self.follower.add(k, index, pixels)
+            time_ref = index / self.fps[k] + self.follower.offset(k)
+        self.history[k].add(time_ref, pixels)
+        self.seen[k] = time.perf_counter()
+        clock = self._clock()  # before this frame counts as taken in: a camera's last frame is still its own
+        self.received[k] += 1
+        frame = int(round(time_ref * self.fps[0]))
+        if k == clock and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
+            self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
+            self.clocked[k] += 1
+        else:
+            self.displaced[k] += 1
 
     def joints_at(self, k: int, t: float) -> np.ndarray | None:
         """The joints for camera `k`'s frame at `t` after a gap: the newest fit's (live, the
