@@ -511,7 +511,7 @@ class _Loop:
                     self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
                     self.skipped_by[k] += 1
                 continue
-            self._fit(frame, t, arrived, (labelled_at, now))
+            self._fit(frame, t, arrived, (labelled_at, time.perf_counter()))  # the frames fitted before it: its wait
         if self.early and self.pending and self.pending[-1][0] != self.ahead and self.fit.warm:
             self._fit_ahead(*self.pending[-1][:4])
 
