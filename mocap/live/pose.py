@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 _RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median of a 2-D residual's length over its per-axis SD
 _NOISE_FRAMES = 90  # frames whose residuals give the pixel noise
+_LONE_SHARE = 0.1  # a camera's frame this share of an interval from a time gives the markers seen in it alone
 _RESTART_RATIO = 4.0  # a frame whose cost per observation is this much above the typical one is fitted from the grid
 _LEAVE_OUT_SHARE = 0.25  # a frame no pose explains: at most this share of its observations left out ...
 _LEAVE_OUT_CANDIDATES = 6  # ... one at a time, each the one of its worst residuals whose leaving out explains the most
@@ -79,27 +80,29 @@ class CameraHistory:
 
     def pixels_at(self, time: float) -> np.ndarray | None:
         """(M, 2) the markers at `time`: interpolated between the frames either side, or (the
-        later frame not in yet) extrapolated from the last two frames at their velocity, up to
-        one interval ahead; a marker in only one of the two taken from it if that frame is
-        within half an interval; None if no frame is near."""
+        later frame not in yet, or a frame missed between them) extrapolated from the last two
+        frames before at their velocity, up to one interval ahead; a marker in only one of the
+        two, or every marker of the one frame near, taken from its frame only if that frame is
+        within `_LONE_SHARE` of an interval of `time` (a marker's pixel half a frame old is
+        half a frame's motion off: a marker going out of sight as the base bounced was 2-5 px
+        off, the fit 3-7 cm at the tip); None if no frame is near."""
         if not self.frames:
             return None
         interval = 1.0 / self.fps
         times = np.array([t for t, _ in self.frames])
         before = np.flatnonzero(times <= time)
         after = np.flatnonzero(times >= time)
-        if len(before) and len(after):
+        if len(before) and len(after) and times[after[0]] - times[before[-1]] <= 1.5 * interval:
             a, b = self.frames[before[-1]], self.frames[after[0]]
-        elif len(before) >= 2 and time - times[before[-1]] <= interval:
+        elif (len(before) >= 2 and time - times[before[-1]] <= interval
+              and times[before[-1]] - times[before[-2]] <= 1.5 * interval):
             a, b = self.frames[before[-2]], self.frames[before[-1]]
-        else:
-            a = b = self.frames[before[-1] if len(before) else after[0]]
-        if b[0] - a[0] > 1.5 * interval:  # a frame missed between them: the nearer alone
-            a = b = min((a, b), key=lambda f: abs(f[0] - time))
+        else:  # no two frames near: the nearest alone
+            a = b = min((self.frames[k] for k in (*before[-1:], *after[:1])), key=lambda f: abs(f[0] - time))
         share = 0.0 if b[0] == a[0] else (time - a[0]) / (b[0] - a[0])
         both = a[1] + share * (b[1] - a[1])
         near = min((a, b), key=lambda f: abs(f[0] - time))
-        alone = near[1] if abs(near[0] - time) <= 0.5 * interval else np.full_like(near[1], np.nan)
+        alone = near[1] if abs(near[0] - time) <= _LONE_SHARE * interval else np.full_like(near[1], np.nan)
         pixels = np.where(np.isfinite(both), both, alone) if a is not b else alone
         return pixels if np.isfinite(pixels).any() else None
 
@@ -394,6 +397,19 @@ class Pose:
     bucket_angle_sd: float
     filled: bool
     base: dict
+
+
+def warm_up(machine: Machine, lag: int, base_motion: bool) -> None:
+    """A throwaway smoother given a few still frames: its compiled kernel is loaded from numba's
+    cache and the modules its rows import on first use are imported (0.5-0.6 s the first time
+    in a process) before the cameras' clock starts, not while the first rows wait (5 of a
+    20 s run's 583 rows 160-280 ms late: its p99)."""
+    smoother = FixedLagSmoother(machine, lag, base_motion=base_motion)
+    n_params = machine.n_joints + 6 * base_motion
+    values = np.r_[machine.clip_to_limits(np.zeros(machine.n_joints)), np.zeros(6 * base_motion)]
+    still = FrameFit(values, np.eye(n_params), True, 0.0, 0, base_moves=base_motion)
+    for k in range(lag + 2):
+        smoother.push(k / 30.0, still)
 
 
 class FixedLagSmoother:

@@ -7,8 +7,8 @@ sources), or while it has ended, the first camera still delivering; a row's fram
 reference camera's frame at that time. A frame's own fit waits for every other running
 camera's frame at or after its time (to interpolate between the two either side), at most
 `wait_frames` reference intervals after its frame arrived (files read as fast as possible
-wait for as long as it takes); a camera that has not delivered by then is left out of that
-fit (column `cameras`). With a lag the row does not wait for them: the newest clock frame,
+wait for as long as it takes); a camera that has not delivered by then (its labels not even
+in the queue: those are all taken in first) is left out of that fit (column `cameras`). With a lag the row does not wait for them: the newest clock frame,
 once every older one has its own fit, is fitted at once from what is in (`_fit_ahead`) and
 the smoother gives the row `lag` frames back; the frame's own fit then replaces that one in
 the smoother. A frame still waiting for its fit `BEHIND_S` after it arrived (the process
@@ -40,7 +40,7 @@ from mocap.io.machine_toml import load_machine
 from mocap.io.session_toml import SessionCamera, SessionConfig, save_session_config
 from mocap.io.tracks_csv import save_tracks
 from mocap.live.feed import Feed
-from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, WarmFit
+from mocap.live.pose import BASE_WINDOW, CameraHistory, FixedLagSmoother, WarmFit, warm_up
 from mocap.live.rows import PoseWriter, row
 from mocap.live.sources import FILE, SourceReader, SourceSpec
 from mocap.reconstruct.kinfit import FitOptions
@@ -279,6 +279,7 @@ def run_live(request: LiveRequest, stop: threading.Event | None = None, announce
     joints = calibration.joints(machine)
     start_joints = machine.clip_to_limits(np.zeros(machine.n_joints) if joints is None else joints)
     specs = {s.camera: s for s in request.sources}
+    warm_up(machine, request.lag, _base_columns(request, machine))  # not in the first rows
     clock_start = time.perf_counter() + 0.2  # the threads started first
     readers = [SourceReader(specs[c.name], fps[k], offsets[k], clock_start, stop,
                             (offsets[k] - offsets.min()) if request.realtime else None, request.depth)
@@ -420,35 +421,48 @@ class _Loop:
             if end is not None and time.perf_counter() >= end:
                 break
             try:
-                k, time_ref, arrived, pixels, labelled_at = labelled.get(timeout=0.05)
+                item = labelled.get(timeout=0.05)
             except queue.Empty:
                 if all(w.finished.is_set() for w in self.workers) and labelled.empty():
                     self._emit(final=True)
                     break
                 self._emit()
                 continue
-            if pixels is None:  # a camera's notice of a gap: nothing from it until after `time_ref`
-                self.history[k].add(time_ref, np.full((len(self.machine.marker_names), 2), np.nan))
-                self._emit()
-                continue
-            if self.follower is not None:  # the frame placed with its camera's newest offset
-                index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
-                self.follower.add(k, index, pixels)
-                time_ref = index / self.fps[k] + self.follower.offset(k)
-            self.history[k].add(time_ref, pixels)
-            self.seen[k] = time.perf_counter()
-            clock = self._clock()  # before this frame counts as taken in: a camera's last frame is still its own
-            self.received[k] += 1
-            frame = int(round(time_ref * self.fps[0]))
-            if k == clock and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
-                self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
-                self.clocked[k] += 1
-            else:
-                self.displaced[k] += 1
+            self._take(*item)
+            # the labels already queued are taken in before any frame is judged late: a main thread
+            # behind (short of CPU) read a reference frame's labels and found the other cameras'
+            # of its time missing while they sat in the queue behind it (rows fitted without them)
+            for _ in range(labelled.qsize()):
+                try:
+                    self._take(*labelled.get_nowait())
+                except queue.Empty:
+                    break
             self._emit()
         self._emit(final=True)  # the frames still waiting for a camera: with those there are
         for pose_and_meta in self._drain():
             self._write(*pose_and_meta)
+
+    def _take(self, k: int, time_ref: float, arrived: float, pixels: np.ndarray | None, labelled_at: float) -> None:
+        """Camera `k`'s labels of its frame at `time_ref` into its history (a clock frame's
+        also among those waiting for their fit); `pixels` None: its notice of a gap, nothing
+        from it until after `time_ref`."""
+        if pixels is None:
+            self.history[k].add(time_ref, np.full((len(self.machine.marker_names), 2), np.nan))
+            return
+        if self.follower is not None:  # the frame placed with its camera's newest offset
+            index = int(round((time_ref - self.follower.calibrated[k]) * self.fps[k]))
+            self.follower.add(k, index, pixels)
+            time_ref = index / self.fps[k] + self.follower.offset(k)
+        self.history[k].add(time_ref, pixels)
+        self.seen[k] = time.perf_counter()
+        clock = self._clock()  # before this frame counts as taken in: a camera's last frame is still its own
+        self.received[k] += 1
+        frame = int(round(time_ref * self.fps[0]))
+        if k == clock and frame > self.last_frame and (not self.pending or frame > self.pending[-1][0]):
+            self.pending.append((frame, frame / self.fps[0], arrived, labelled_at, k))
+            self.clocked[k] += 1
+        else:
+            self.displaced[k] += 1
 
     def joints_at(self, k: int, t: float) -> np.ndarray | None:
         """The joints for camera `k`'s frame at `t` after a gap: the newest fit's (live, the
@@ -497,7 +511,7 @@ class _Loop:
                     self.skipped += 1  # the rows fall behind: this one is left out, not the next ones delayed
                     self.skipped_by[k] += 1
                 continue
-            self._fit(frame, t, arrived, (labelled_at, now))
+            self._fit(frame, t, arrived, (labelled_at, time.perf_counter()))  # the frames fitted before it: its wait
         if self.early and self.pending and self.pending[-1][0] != self.ahead and self.fit.warm:
             self._fit_ahead(*self.pending[-1][:4])
 
