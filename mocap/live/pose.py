@@ -24,7 +24,7 @@ from mocap.io.motion_csv import base_columns
 from mocap.reconstruct.base_check import SAMPLE_FRAMES, compare_bases
 from mocap.reconstruct.kinfit import FitOptions, FrameFitter, fit_joints
 from mocap.reconstruct.kinmodel import base_matrices
-from mocap.reconstruct.smooth import SmoothOptions, chi2_quantile, fit_sds, smooth
+from mocap.reconstruct.smooth import SmoothOptions, chi2_quantile, fit_sds, frame_correlation, smooth
 from mocap.reconstruct.uncertainty import point_quantities
 
 log = logging.getLogger(__name__)
@@ -638,16 +638,12 @@ class FixedLagSmoother:
 
     def _correlation(self, measured, information, valid, smoothed, wrap) -> None:
         """`correlation`: the window's fits' deviations from the smoothed values, frame to next
-        frame, weighed by the fits' information: its median over the last rows."""
-        ok = valid & np.isfinite(measured).all(1) & np.isfinite(smoothed).all(1)
-        deviation = _wrapped(np.where(ok[:, None], measured - smoothed, 0.0), wrap)
-        pairs = ok[1:] & ok[:-1]
-        if pairs.sum() < 10:
+        frame, weighed by the fits' information (`frame_correlation`, as `mocap fit` scales its
+        SDs): its median over the last rows."""
+        rho = frame_correlation(measured, information, valid, smoothed, wrap)
+        if rho is None:
             return
-        weighed = np.einsum("kij,kj->ki", information, deviation)
-        cross = np.einsum("ki,ki->k", weighed[:-1], deviation[1:])[pairs].sum()
-        norm = np.einsum("ki,ki->k", weighed, deviation)
-        self.correlations.append(float(cross / np.sqrt(norm[:-1][pairs].sum() * norm[1:][pairs].sum())))
+        self.correlations.append(rho)
         self.correlation = float(np.median(self.correlations))
 
 
