@@ -148,7 +148,6 @@ def box_replaced(machine: Machine) -> np.ndarray:
     return replaced
 
 
-
 def marker_outlines(
     machine: Machine, normals: np.ndarray, disk: float, square: float, n_points: int = 48
 ) -> tuple[np.ndarray, np.ndarray]:

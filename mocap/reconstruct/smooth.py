@@ -121,8 +121,7 @@ def smooth(
         # left out (over a stretch of them its weak information would set the path).
         mean, _, _ = _rts(time, values, information, valid & ~partial, q, options)
         held = np.flatnonzero(partial)
-        gap = values[held] - mean[held, :p]
-        gap[:, wrap] = np.mod(gap[:, wrap] + np.pi, 2 * np.pi) - np.pi
+        gap = _deviations(values[held], mean[held, :p], np.ones(len(held), bool), wrap)
         chi2 = np.einsum("ni,nij,nj->n", gap, information[held], gap)
         dof = observed[held].sum(1)
         bound = {k: chi2_quantile(options.partial_probability, int(k)) for k in np.unique(dof[dof > 0])}
@@ -149,7 +148,7 @@ def scatter_scale(values: np.ndarray, information: np.ndarray, used: np.ndarray,
     frames, two reference frames interpolated from one camera frame), by 1 + 2 rho.
     -> (scale = variance_factor (1 + 2 max(rho, 0)), variance_factor, rho); 1 where fewer
     than 10 pairs of frames tell."""
-    n, p = values.shape
+    p = values.shape[1]
     covariance = smoothed.covariance
     ok = used & np.isfinite(values).all(1) & np.isfinite(smoothed.values).all(1) & np.isfinite(covariance).all((1, 2))
     rho = frame_correlation(values, information, ok, smoothed.values, wrap)
