@@ -513,7 +513,8 @@ def files_table(args, root: Path, cameras: list[int]) -> None:
                                                                "cameras' frames)" if report.rows_of_others else "")
                       + f"; frames 0-{FIRST_FRAMES}: live 1/2/3 SD % "
                       f"{coverage_text(coverage(frames[first], tips[first], sds[first], truth)).strip()} (e/SD last)"
-                      f"; offline over all rows 1/2/3 SD % {coverage_text(offline_coverage(motion, frames, truth)).strip()}",
+                      f"; offline over all rows 1/2/3 SD % "
+                      f"{coverage_text(offline_coverage(motion, frames, truth)).strip()}",
                       flush=True)
                 if gap is not None:
                     rows = np.genfromtxt(work / "poses.csv", delimiter=",", names=True, dtype=None,

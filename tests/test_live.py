@@ -332,7 +332,8 @@ def test_a_main_thread_behind_takes_the_queued_labels_in_before_judging_a_frame_
     truth = session.tracks
     labelled: queue.Queue = queue.Queue()
     arrived = time.perf_counter() - 1.0  # a second ago: past any wait
-    frames = {0: range(40, 50), 1: range(int((40 / 30 - offsets[1]) * fps[1]) - 1, int((50 / 30 - offsets[1]) * fps[1]) + 2)}
+    frames = {0: range(40, 50),
+              1: range(int((40 / 30 - offsets[1]) * fps[1]) - 1, int((50 / 30 - offsets[1]) * fps[1]) + 2)}
     for k, camera in enumerate(("cam1", "cam2")):
         for f in frames[k]:
             rows = truth.select((truth.camera == camera) & (truth.frame == f))

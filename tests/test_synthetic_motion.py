@@ -223,7 +223,8 @@ def test_compiled_occlusion_is_the_slab_test_and_a_marker_on_a_neighbours_box_fa
         rng = np.random.default_rng(100 + seed)
         rest = machine.markers(np.zeros((1, machine.n_joints)))[0]
         extent = np.ptp(rest, axis=0).max()
-        cameras = ring_of_cameras(3, rest.mean(axis=0), (1.5 * extent, 3 * extent), rng, height=(0.1 * extent, 0.8 * extent))
+        cameras = ring_of_cameras(3, rest.mean(axis=0), (1.5 * extent, 3 * extent), rng,
+                                  height=(0.1 * extent, 0.8 * extent))
         q = random_joints(machine, 60, rng)
         poses, world = machine.link_poses(q), machine.markers(q)
         boxes = link_boxes(machine)

@@ -8,8 +8,9 @@ reference camera's frame at that time. A frame's own fit waits for every other r
 camera's frame at or after its time (to interpolate between the two either side), at most
 `wait_frames` reference intervals after its frame arrived (files read as fast as possible
 wait for as long as it takes); a camera that has not delivered by then (its labels not even
-in the queue: those are all taken in first) is left out of that fit (column `cameras`). With a lag the row does not wait for them: the newest clock frame,
-once every older one has its own fit, is fitted at once from what is in (`_fit_ahead`) and
+in the queue: those are all taken in first) is left out of that fit (column `cameras`). With
+a lag the row does not wait for them: the newest clock frame, once every older one has its
+own fit, is fitted at once from what is in (`_fit_ahead`) and
 the smoother gives the row `lag` frames back; the frame's own fit then replaces that one in
 the smoother. A frame still waiting for its fit `BEHIND_S` after it arrived (the process
 has too little CPU) gets no row and is counted: the rows never fall further

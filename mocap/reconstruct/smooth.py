@@ -124,8 +124,10 @@ def smooth(
         gap = _deviations(values[held], mean[held, :p], np.ones(len(held), bool), wrap)
         chi2 = np.einsum("ni,nij,nj->n", gap, information[held], gap)
         dof = observed[held].sum(1)
-        bound = {k: chi2_quantile(options.partial_probability, int(k)) for k in np.unique(dof[dof > 0])}
-        agree = np.array([k > 0 and c <= bound[k] for k, c in zip(dof, chi2)], dtype=bool)
+        bound = np.full(len(held), -np.inf)  # a frame that observes nothing: left out
+        for k in np.unique(dof[dof > 0]):
+            bound[dof == k] = chi2_quantile(options.partial_probability, int(k))
+        agree = chi2 <= bound
         valid = valid.copy()
         valid[held[~agree]] = False
     mean, cov, rejected = _rts(time, values, information, valid, q, options)
